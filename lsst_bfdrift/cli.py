@@ -1,0 +1,260 @@
+"""Command line interface ``bfdrift``.
+
+Subcommands
+-----------
+``bfdrift template build --out FILE [--config FILE]``
+    Compute a template from the electrostatic model (progress bar on stderr).
+``bfdrift template summary FILE [--json]``
+    Key numbers: A00, A01, A10, A11 (px^2, pixel at (di, dj) = (serial,
+    parallel) offset), ratio_01_10 = dlnA01/dlnA10, area_sum_error (sum of
+    all areas minus N^2), aggressor charge.
+``bfdrift template plot FILE --out PNG``
+    Distorted boundaries (exaggerated) and the area map.
+``bfdrift template import-galsim NAME --out FILE``
+    Convert a GalSim sensor file (e.g. lsst_itl_50_8) to a template file.
+``bfdrift maps [IMAGE] [--template FILE] [--out FILE] [--plot PNG] [--json]``
+    Final pixel geometry (area, centroid shift, ellipticity maps) of an image
+    in electrons; with no IMAGE, the bundled sample star. This is the quick
+    start's main job.
+
+Config files (JSON or TOML) have up to two tables: ``sensor`` (keys of
+:class:`~lsst_bfdrift.sensor.SensorParameters`) and ``template`` (keys of
+:class:`~lsst_bfdrift.template.TemplateSettings`). Unknown keys are errors.
+"""
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+from .io_utils import atomic_output
+
+__all__ = ["main", "read_config", "sample_image_path"]
+
+
+def read_config(path):
+    """Read a JSON or TOML build configuration.
+
+    Returns
+    -------
+    params : SensorParameters
+    settings : TemplateSettings
+    """
+    from .sensor import SensorParameters
+    from .template import TemplateSettings
+
+    if path is None:
+        return SensorParameters(), TemplateSettings()
+    with open(path, "rb") as fh:
+        raw = fh.read()
+    try:
+        if str(path).endswith(".toml"):
+            import tomllib
+            data = tomllib.loads(raw.decode())
+        else:
+            data = json.loads(raw.decode())
+    except Exception as exc:
+        raise ValueError(f"{path}: cannot parse configuration ({exc})") from exc
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: configuration must be a table/object")
+    unknown = sorted(set(data) - {"sensor", "template"})
+    if unknown:
+        raise KeyError(f"{path}: unknown configuration section(s) {unknown}; "
+                       "expected 'sensor' and/or 'template'")
+    return (SensorParameters.from_dict(data.get("sensor", {})),
+            TemplateSettings.from_dict(data.get("template", {})))
+
+
+def sample_image_path():
+    """Path of the bundled sample image (a bright star on sky, electrons)."""
+    return os.path.join(os.path.dirname(__file__), "data", "sample_star.fits")
+
+
+def _load_template(path):
+    from .template import DistortionTemplate, load_default_template
+    return load_default_template() if path is None else DistortionTemplate.load(path)
+
+
+def _print_json(obj):
+    print(json.dumps(obj, indent=2, sort_keys=True, default=float))
+
+
+def _cmd_template_build(args):
+    from .template import build_template
+    params, settings = read_config(args.config)
+    overrides = {k: v for k, v in (("size", args.size), ("aggressor_charge", args.charge),
+                                   ("edge_samples", args.samples), ("tol", args.tol),
+                                   ("workers", args.workers)) if v is not None}
+    if overrides:
+        settings = type(settings).from_dict({**settings.to_dict(), **overrides})
+    if os.path.exists(args.out) and not args.overwrite:
+        raise FileExistsError(f"{args.out} exists (use --overwrite)")
+    tpl = build_template(params, settings, progress=not args.quiet)
+    tpl.save(args.out, overwrite=True)
+    if args.json:
+        _print_json(tpl.summary())
+    else:
+        print(f"wrote {args.out}")
+    return 0
+
+
+def _cmd_template_summary(args):
+    tpl = _load_template(args.file)
+    s = tpl.summary()
+    if args.json:
+        _print_json(s)
+    else:
+        for k, v in s.items():
+            print(f"{k:>18s}: {v}")
+    return 0
+
+
+def _cmd_template_plot(args):
+    from .plots import plot_template, save_figure
+    tpl = _load_template(args.file)
+    save_figure(plot_template(tpl, exaggerate=args.exaggerate, half_width=args.half_width),
+                args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _cmd_template_import(args):
+    from .template import DistortionTemplate
+    tpl = DistortionTemplate.from_galsim(args.name)
+    if os.path.exists(args.out) and not args.overwrite:
+        raise FileExistsError(f"{args.out} exists (use --overwrite)")
+    tpl.save(args.out, overwrite=True)
+    if args.json:
+        _print_json(tpl.summary())
+    else:
+        print(f"wrote {args.out}")
+    return 0
+
+
+def read_image(path, *, hdu=None):
+    """Image (float64 copy) and mask from a FITS file; NaN/inf are masked."""
+    from astropy.io import fits
+    with fits.open(path, memmap=False) as hdul:
+        if hdu is None:
+            hdu = next((k for k, h in enumerate(hdul) if getattr(h, "data", None) is not None
+                        and h.data.ndim == 2), None)
+            if hdu is None:
+                raise ValueError(f"{path}: no 2-d image HDU")
+        data = np.array(hdul[hdu].data, dtype=np.float64)
+        header = hdul[hdu].header.copy()
+    return data, ~np.isfinite(data), header
+
+
+def _write_maps(path, maps, header):
+    from astropy.io import fits
+    hdus = [fits.PrimaryHDU(header=header)]
+    for name, arr in maps.as_dict().items():
+        hdus.append(fits.ImageHDU(arr.astype(np.float64), name=name.upper()))
+    with atomic_output(path) as tmp:
+        fits.HDUList(hdus).writeto(tmp, overwrite=True, checksum=True)
+
+
+def _cmd_maps(args):
+    from .progress import ProgressBar
+    from .superpose import moment_maps
+    path = args.image or sample_image_path()
+    image, bad, header = read_image(path)
+    if args.gain is not None:
+        if not args.gain > 0:
+            raise ValueError(f"--gain must be positive, got {args.gain}")
+        image = image * args.gain
+    tpl = _load_template(args.template)
+    with ProgressBar(image.shape[0], "maps", enabled=not args.quiet) as bar:
+        maps = moment_maps(tpl, image, mask=bad, workers=2, progress=bar)
+    summary = {
+        "image": os.path.abspath(path), "shape": list(image.shape),
+        "template": args.template or "default",
+        "template_charge": tpl.charge,
+        "masked_pixels": int(bad.sum()),
+        "max_charge": float(np.nanmax(np.where(bad, np.nan, image))),
+        "area_min": float(maps.area.min()), "area_max": float(maps.area.max()),
+        "area_sum_minus_npix": float(maps.area.sum() - maps.area.size),
+        "max_abs_shift": float(max(np.abs(maps.dx).max(), np.abs(maps.dy).max())),
+        "max_abs_e": float(np.hypot(maps.e1, maps.e2).max()),
+    }
+    if args.out:
+        header["BFTEMPL"] = (str(args.template or "default")[-60:], "lsst_bfdrift template")
+        _write_maps(args.out, maps, header)
+        summary["out"] = os.path.abspath(args.out)
+    if args.plot:
+        from .plots import plot_moment_maps, save_figure
+        save_figure(plot_moment_maps(maps, image=np.where(bad, np.nan, image),
+                                     title=os.path.basename(path)), args.plot)
+        summary["plot"] = os.path.abspath(args.plot)
+    if args.json:
+        _print_json(summary)
+    else:
+        for k, v in summary.items():
+            print(f"{k:>20s}: {v}")
+    return 0
+
+
+def build_parser():
+    """The argparse parser of ``bfdrift``."""
+    p = argparse.ArgumentParser(prog="bfdrift", description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+
+    tp = sub.add_parser("template", help="build, inspect and convert templates")
+    tsub = tp.add_subparsers(dest="action", required=True)
+    b = tsub.add_parser("build", help="compute a template from the model")
+    b.add_argument("--out", required=True, help="output FITS file")
+    b.add_argument("--config", help="JSON or TOML file with 'sensor' and 'template' tables")
+    b.add_argument("--size", type=int, help="neighbourhood side N (odd)")
+    b.add_argument("--charge", type=float, help="aggressor charge (e)")
+    b.add_argument("--samples", type=int, help="samples per edge")
+    b.add_argument("--tol", type=float, help="bisection tolerance (px)")
+    b.add_argument("--workers", type=int, help="threads")
+    b.add_argument("--overwrite", action="store_true")
+    b.add_argument("--quiet", action="store_true", help="no progress bar")
+    b.add_argument("--json", action="store_true", help="print the summary as JSON")
+    b.set_defaults(func=_cmd_template_build)
+    s = tsub.add_parser("summary", help="key numbers of a template")
+    s.add_argument("file", nargs="?", help="template FITS file (default: bundled)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=_cmd_template_summary)
+    pl = tsub.add_parser("plot", help="draw boundaries and area map")
+    pl.add_argument("file", nargs="?", help="template FITS file (default: bundled)")
+    pl.add_argument("--out", required=True, help="output PNG")
+    pl.add_argument("--exaggerate", type=float, help="displacement factor")
+    pl.add_argument("--half-width", type=int, help="pixels shown each side")
+    pl.set_defaults(func=_cmd_template_plot)
+    g = tsub.add_parser("import-galsim", help="convert a GalSim sensor file")
+    g.add_argument("name", help="sensor name (e.g. lsst_itl_50_8) or path prefix")
+    g.add_argument("--out", required=True)
+    g.add_argument("--overwrite", action="store_true")
+    g.add_argument("--json", action="store_true")
+    g.set_defaults(func=_cmd_template_import)
+
+    m = sub.add_parser("maps", help="pixel geometry maps of an image (main job)")
+    m.add_argument("image", nargs="?", help="FITS image in electrons (default: bundled sample)")
+    m.add_argument("--template", help="template FITS file (default: bundled)")
+    m.add_argument("--gain", type=float, help="e/ADU if the image is in ADU")
+    m.add_argument("--out", help="write the maps to this FITS file")
+    m.add_argument("--plot", help="write a PNG of the maps")
+    m.add_argument("--json", action="store_true")
+    m.add_argument("--quiet", action="store_true")
+    m.set_defaults(func=_cmd_maps)
+    return p
+
+
+def main(argv=None):
+    """Entry point; returns the exit status (errors: message on stderr, 2)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (ValueError, KeyError, TypeError, OSError, RuntimeError) as exc:
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"bfdrift: error: {msg}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

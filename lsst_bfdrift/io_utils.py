@@ -1,0 +1,34 @@
+"""Atomic file output shared by every writer in the package."""
+
+import contextlib
+import os
+import tempfile
+
+__all__ = ["atomic_output"]
+
+
+@contextlib.contextmanager
+def atomic_output(path, *, overwrite=True):
+    """Yield a temporary path next to ``path``; rename it to ``path`` on success.
+
+    The file appears complete or not at all; on error the temporary file is
+    removed and ``path`` is untouched. Permissions follow the umask (like a
+    plain ``open``), not mkstemp's 0600.
+    """
+    path = os.fspath(path)
+    if os.path.exists(path) and not overwrite:
+        raise FileExistsError(f"{path} exists (use overwrite)")
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    suffix = os.path.splitext(path)[1] or ".tmp"
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix, dir=directory)
+    os.close(fd)
+    try:
+        yield tmp
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
