@@ -4,11 +4,11 @@ Subcommands
 -----------
 ``bfdrift template build --out FILE [--config FILE]``
     Compute a template from the electrostatic model (progress bar on stderr).
-``bfdrift template summary FILE [--json]``
+``bfdrift template summary [FILE] [--json]``
     Key numbers: A00, A01, A10, A11 (px^2, pixel at (di, dj) = (serial,
     parallel) offset), ratio_01_10 = dlnA01/dlnA10, area_sum_error (sum of
     all areas minus N^2), aggressor charge.
-``bfdrift template plot FILE --out PNG``
+``bfdrift template plot [FILE] --out PNG``
     Distorted boundaries (exaggerated) and the area map.
 ``bfdrift template import-galsim NAME --out FILE``
     Convert a GalSim sensor file (e.g. lsst_itl_50_8) to a template file.
@@ -198,7 +198,7 @@ def _cmd_maps(args):
 
 def build_parser():
     """The argparse parser of ``bfdrift``."""
-    p = argparse.ArgumentParser(prog="bfdrift", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="bfdrift", description="Electrostatic brighter-fatter model (Rasmussen 2015): templates and pixel-geometry maps.")
     sub = p.add_subparsers(dest="command", required=True)
 
     tp = sub.add_parser("template", help="build, inspect and convert templates")

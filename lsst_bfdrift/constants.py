@@ -6,7 +6,8 @@ in e (that is e um / um) and point-dipole moments in e um.
 
 References
 ----------
-* Elementary charge and vacuum permittivity: CODATA 2018, through
+* Elementary charge and vacuum permittivity: the CODATA release of the
+  installed astropy (CODATA 2022 for astropy >= 7), through
   :mod:`astropy.constants`.
 * Relative permittivity of silicon, 11.7: S. M. Sze and K. K. Ng, *Physics of
   Semiconductor Devices*, 3rd ed. (Wiley, 2007), Appendix G; the value used by

@@ -1,13 +1,16 @@
 """Drift lines: electrons follow -E from the conversion height to the channel.
 
 Lines are integrated in arc length s with a classical Runge-Kutta (RK4)
-scheme, dr/ds = -E / |E|, so that the path (not the drift speed) is followed
+scheme, ``dr/ds = -E / |E|``, so that the path (not the drift speed) is followed
 and stagnation regions (where the collected charge cancels the backdrop) are
-crossed at finite cost. The step depends only on height,
+crossed at finite cost. In smooth regions the step depends only on height,
 ``h = clip(step_scale * (z - z_stop) + min_step, min_step, max_step)``, so
 that neighbouring lines see the same discretisation and the landing map is
 smooth in the starting point (which is what the boundary bisection relies
-on). Lines are integrated all at once; finished lines leave the active set.
+on). Where the field direction turns sharply within a step (lines passing a
+saddle point above a barrier, on their way to one side or the other), the
+step is cut by four until the turn is resolved, then grows back. Lines are
+integrated all at once; finished lines leave the active set.
 """
 
 import os
@@ -31,10 +34,15 @@ class DriftResult:
         RK4 steps taken by each line.
     finished : ndarray of bool
         False for lines stopped by ``max_steps`` (their last position is kept).
+    stalled : ndarray of bool
+        Lines that stopped descending at a null of the field (a saddle point
+        exactly on a separatrix, i.e. on a pixel boundary); their last
+        position is kept and they count as finished.
     """
 
-    def __init__(self, x, y, z, steps, finished):
+    def __init__(self, x, y, z, steps, finished, stalled=None):
         self.x, self.y, self.z, self.steps, self.finished = x, y, z, steps, finished
+        self.stalled = np.zeros(x.shape, bool) if stalled is None else stalled
 
     def __repr__(self):
         return (f"DriftResult(n={self.x.size}, unfinished={int((~self.finished).sum())}, "
@@ -42,7 +50,7 @@ class DriftResult:
 
 
 def drift_lines(model, x0, y0, z0=None, *, z_stop=None, step_scale=0.08, min_step=0.02,
-                max_step=4.0, max_steps=5000):
+                max_step=4.0, max_steps=5000, max_turn=0.2):
     """Integrate drift lines down to the collection height.
 
     Parameters
@@ -60,6 +68,10 @@ def drift_lines(model, x0, y0, z0=None, *, z_stop=None, step_scale=0.08, min_ste
         Step control (dimensionless, um, um), see the module docstring.
     max_steps : int, optional
         Safety limit of steps per line.
+    max_turn : float, optional
+        Largest change of field direction (rad) accepted within one step;
+        steps that turn more are retried with a quarter of the length, which
+        resolves the turn of lines passing next to a saddle of the field.
 
     Returns
     -------
@@ -89,33 +101,52 @@ def drift_lines(model, x0, y0, z0=None, *, z_stop=None, step_scale=0.08, min_ste
     def direction(px, py, pz):
         ex, ey, ez = model.field(px, py, pz)
         norm = np.sqrt(ex * ex + ey * ey + ez * ez) + 1e-300
-        return -ex / norm, -ey / norm, -ez / norm
+        return -ex / norm, -ey / norm, -ez / norm, norm
 
+    cos_max = np.cos(max_turn)
+    stalled = np.zeros(x.size, dtype=bool)
+    idle = np.zeros(x.size, dtype=np.int64)
+    h = np.clip(step_scale * (z - z_stop) + min_step, min_step, max_step)
     n_iter = 0
     while active.size and n_iter < max_steps:
         n_iter += 1
         px, py, pz = x[active], y[active], z[active]
-        h = np.clip(step_scale * (pz - z_stop) + min_step, min_step, max_step)
+        ha = h[active]
         k1 = direction(px, py, pz)
-        k2 = direction(px + 0.5 * h * k1[0], py + 0.5 * h * k1[1], pz + 0.5 * h * k1[2])
-        k3 = direction(px + 0.5 * h * k2[0], py + 0.5 * h * k2[1], pz + 0.5 * h * k2[2])
-        k4 = direction(px + h * k3[0], py + h * k3[1], pz + h * k3[2])
-        nx = px + h / 6.0 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
-        ny = py + h / 6.0 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
-        nz = pz + h / 6.0 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])
-        done = nz <= z_stop
+        k2 = direction(px + 0.5 * ha * k1[0], py + 0.5 * ha * k1[1], pz + 0.5 * ha * k1[2])
+        k3 = direction(px + 0.5 * ha * k2[0], py + 0.5 * ha * k2[1], pz + 0.5 * ha * k2[2])
+        k4 = direction(px + ha * k3[0], py + ha * k3[1], pz + ha * k3[2])
+        # Step control: where the field turns by more than max_turn within a
+        # step (near a saddle or null of E), retry with a quarter of the step.
+        turn_ok = (k1[0] * k4[0] + k1[1] * k4[1] + k1[2] * k4[2] >= cos_max) | (ha <= 1e-7)
+        # A line sitting on a null of E (exactly on a separatrix) cannot move:
+        # stop it where it is after 40 steps without descent.
+        null = k1[3] < 1e-12 * (1.0 + np.abs(k4[3]))
+        nx = px + ha / 6.0 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
+        ny = py + ha / 6.0 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+        nz = pz + ha / 6.0 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])
+        descending = turn_ok & (nz < pz - 1e-6 * ha)
+        idle[active] = np.where(descending, 0, idle[active] + 1)
+        stuck = null | (idle[active] > 40)
+        done = turn_ok & (nz <= z_stop)
         if np.any(done):
             # linear interpolation to the collection plane inside the last step
             f = (pz[done] - z_stop) / (pz[done] - nz[done])
             nx[done] = px[done] + f * (nx[done] - px[done])
             ny[done] = py[done] + f * (ny[done] - py[done])
             nz[done] = z_stop
-        x[active], y[active], z[active] = nx, ny, nz
+        x[active] = np.where(turn_ok, nx, px)
+        y[active] = np.where(turn_ok, ny, py)
+        z[active] = np.where(turn_ok, nz, pz)
+        h_base = np.clip(step_scale * (z[active] - z_stop) + min_step, min_step, max_step)
+        h[active] = np.where(turn_ok, np.minimum(h_base, 2.0 * ha), 0.25 * ha)
         steps[active] += 1
+        stalled[active[stuck & ~done]] = True
+        done |= stuck
         finished[active[done]] = True
         active = active[~done]
     return DriftResult(x.reshape(shape), y.reshape(shape), z.reshape(shape),
-                       steps.reshape(shape), finished.reshape(shape))
+                       steps.reshape(shape), finished.reshape(shape), stalled.reshape(shape))
 
 
 def landing_pixels(model, x0, y0, z0=None, **kwargs):

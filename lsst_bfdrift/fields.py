@@ -307,7 +307,7 @@ class PeriodicDipoleGrid(_AxisLine):
         Moment per unit length of each line (e).
     cutoff : float, optional
         Beyond ``|z - height| > cutoff * pitch`` the field, which decays as
-        exp(-2 pi |z - height| / pitch), is not evaluated (set to 0).
+        ``exp(-2 pi |z - height| / pitch)``, is not evaluated (set to 0).
     """
 
     def __init__(self, axis, pitch, position=0.0, *, height=0.0, m_perp=0.0, m_z=0.0,
@@ -407,10 +407,13 @@ class TruncatedLineDipole(_AxisLine):
     The line runs parallel to ``axis`` from the truncation point ``end``
     (coordinate along the axis, um) towards ``extends`` (+1: increasing
     coordinate, -1: decreasing). With s the unit vector from the truncation
-    point away from the dipoles and cos(theta0) = s . r_hat:
+    point away from the dipoles and c = cos(theta0) = s . r_hat::
 
-    4 pi eps r_perp^2 E = (2 - 3 c + c^3)(xi . r_perp_hat) r_perp_hat
-                          + sin^3(theta0) (xi . r_perp_hat) s - (1 - c) xi.
+        4 pi eps r_perp^2 E = (2 - 3 c + c^3)(xi . r_perp_hat) r_perp_hat
+                              + sin^3(theta0) (xi . r_perp_hat) s - (1 - c) xi.
+
+    It is evaluated with (1 - c) / r_perp^2 in a cancellation-free form, so the
+    field is finite on the axis beyond the truncation point.
 
     Parameters
     ----------

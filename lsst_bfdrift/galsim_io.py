@@ -1,4 +1,5 @@
-"""Import of GalSim's sensor distortion files into :class:`DistortionTemplate`.
+"""Import of GalSim's sensor distortion files into
+:class:`~lsst_bfdrift.template.DistortionTemplate`.
 
 GalSim's ``share/sensors/NAME.dat`` (written by the Poisson_CCD solver) lists,
 for each pixel of an Nx x Ny stamp around a pixel holding

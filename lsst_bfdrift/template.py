@@ -67,7 +67,7 @@ class TemplateSettings:
     step_scale, min_step, max_step : float
         Drift step control (see :mod:`lsst_bfdrift.drift`).
     workers : int
-        Threads sharing the drift lines.
+        Processes sharing the drift lines (forked; 1 runs in-process).
     """
 
     size: int = 21
@@ -501,7 +501,9 @@ class DistortionTemplate:
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("error")
-                with fits.open(path, memmap=False, checksum=True) as hdul:
+                # open the file ourselves so that it is closed even when
+                # astropy raises while reading (corrupt or truncated files)
+                with open(path, "rb") as fh, fits.open(fh, memmap=False, checksum=True) as hdul:
                     hdul.verify("exception")
                     if "TEMPLATE" not in hdul:
                         raise TemplateFileError(f"{path}: no TEMPLATE extension")
@@ -588,7 +590,7 @@ def build_template(params=None, settings=None, *, progress=False):
     model = base.with_charge({(0, 0): settings.aggressor_charge})
     iters = int(np.ceil(np.log2(0.9 / settings.tol)))
     runs = 2 if settings.baseline == "computed" else 1
-    total = runs * iters * 5 * settings.workers
+    total = runs * 3 * max(settings.workers, 1) if settings.workers > 1 else runs * iters * 5
     kw = dict(edge_samples=ns, tol=settings.tol, z0=settings.conversion_height,
               drift_kwargs=settings.drift_kwargs(), workers=settings.workers)
     with ProgressBar(total, "template", enabled=progress) as bar:
@@ -609,5 +611,5 @@ def default_template_path():
 
 
 def load_default_template():
-    """The template shipped with the package (see ``docs/default_template.rst``)."""
+    """The template shipped with the package (see ``docs/templates.rst``, "The default template")."""
     return DistortionTemplate.load(default_template_path())

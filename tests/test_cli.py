@@ -1,0 +1,97 @@
+"""Tests of the bfdrift command line (run in-process through main())."""
+
+import json
+
+import numpy as np
+import pytest
+from astropy.io import fits
+
+from lsst_bfdrift.cli import main
+from lsst_bfdrift.template import DistortionTemplate, load_default_template
+
+
+def _run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_summary_of_default_template(capsys):
+    code, out, _ = _run(capsys, "template", "summary", "--json")
+    assert code == 0
+    s = json.loads(out)
+    ref = load_default_template().summary()
+    for key in ("A00", "A01", "A10", "A11", "ratio_01_10", "area_sum_error",
+                "aggressor_charge"):
+        assert s[key] == pytest.approx(ref[key], rel=1e-12)
+    assert s["ratio_01_10"] == pytest.approx(np.log(s["A01"]) / np.log(s["A10"]))
+
+
+def test_build_from_config_then_summary_and_plot(capsys, tmp_path):
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text('[sensor]\nchannel_depth = 3.0\n[template]\nsize = 3\nedge_samples = 2\n'
+                   'tol = 1e-3\nworkers = 1\n')
+    out_file = tmp_path / "t.fits"
+    code, out, err = _run(capsys, "template", "build", "--out", str(out_file), "--config",
+                          str(cfg), "--json")
+    assert code == 0, err
+    s = json.loads(out)
+    t = DistortionTemplate.load(out_file)
+    assert t.meta["params"]["channel_depth"] == 3.0
+    assert s["size"] == 3 and s["A00"] == t.summary()["A00"]
+    assert "template" in err  # progress bar on stderr
+    png = tmp_path / "t.png"
+    code, out, _ = _run(capsys, "template", "plot", str(out_file), "--out", str(png))
+    assert code == 0 and png.read_bytes()[:4] == b"\x89PNG"
+    code, _, err = _run(capsys, "template", "build", "--out", str(out_file), "--quiet")
+    assert code == 2 and "exists" in err
+
+
+def test_import_galsim(capsys, tmp_path):
+    out_file = tmp_path / "itl.fits"
+    code, out, _ = _run(capsys, "template", "import-galsim", "lsst_itl_50_8", "--out",
+                        str(out_file), "--json")
+    assert code == 0
+    s = json.loads(out)
+    assert s["aggressor_charge"] == 1e5 and s["size"] == 9
+
+
+def test_maps_on_sample(capsys, tmp_path):
+    out_file = tmp_path / "maps.fits"
+    code, out, _ = _run(capsys, "maps", "--json", "--quiet", "--out", str(out_file))
+    assert code == 0
+    s = json.loads(out)
+    assert s["shape"] == [64, 64] and s["area_min"] < 0.95 < 1.0 < s["area_max"]
+    with fits.open(out_file) as hdul:
+        assert [h.name for h in hdul[1:]] == ["AREA", "DX", "DY", "IXX", "IYY", "IXY", "E1",
+                                               "E2"]
+        assert hdul["AREA"].data.min() == pytest.approx(s["area_min"])
+
+
+def test_maps_masks_nan_pixels(capsys, tmp_path):
+    img = np.full((20, 20), 1000.0)
+    img[10, 10] = 5e4
+    img[3, 4] = np.nan
+    path = tmp_path / "img.fits"
+    fits.PrimaryHDU(img).writeto(path)
+    code, out, _ = _run(capsys, "maps", str(path), "--json", "--quiet")
+    assert code == 0 and json.loads(out)["masked_pixels"] == 1
+    with fits.open(path) as hdul:
+        assert np.isnan(hdul[0].data[3, 4])  # input file untouched
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["template", "summary", "/nonexistent/t.fits"], "does not exist"),
+    (["maps", "--gain", "-1", "--quiet"], "gain"),
+])
+def test_errors_are_reported(capsys, argv, match):
+    code, _, err = _run(capsys, *argv)
+    assert code == 2 and match in err
+
+
+def test_unknown_config_key(capsys, tmp_path):
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps({"sensor": {"thickness": 100, "bogus": 1}}))
+    code, _, err = _run(capsys, "template", "build", "--out", str(tmp_path / "x.fits"),
+                        "--config", str(cfg))
+    assert code == 2 and "bogus" in err
