@@ -89,9 +89,16 @@ def _cmd_template_build(args):
                                    ("workers", args.workers)) if v is not None}
     if overrides:
         settings = type(settings).from_dict({**settings.to_dict(), **overrides})
+    _refuse_overwrite(args)
+    return _save_and_report(build_template(params, settings, progress=not args.quiet), args)
+
+
+def _refuse_overwrite(args):
     if os.path.exists(args.out) and not args.overwrite:
         raise FileExistsError(f"{args.out} exists (use --overwrite)")
-    tpl = build_template(params, settings, progress=not args.quiet)
+
+
+def _save_and_report(tpl, args):
     tpl.save(args.out, overwrite=True)
     if args.json:
         _print_json(tpl.summary())
@@ -122,15 +129,8 @@ def _cmd_template_plot(args):
 
 def _cmd_template_import(args):
     from .template import DistortionTemplate
-    tpl = DistortionTemplate.from_galsim(args.name)
-    if os.path.exists(args.out) and not args.overwrite:
-        raise FileExistsError(f"{args.out} exists (use --overwrite)")
-    tpl.save(args.out, overwrite=True)
-    if args.json:
-        _print_json(tpl.summary())
-    else:
-        print(f"wrote {args.out}")
-    return 0
+    _refuse_overwrite(args)
+    return _save_and_report(DistortionTemplate.from_galsim(args.name), args)
 
 
 def read_image(path, *, hdu=None):

@@ -20,7 +20,7 @@ from astropy import units as u
 from .fields import (BackdropField, HalfPeriodicDipoleGrid, LineDipole, PeriodicDipoleGrid,
                      PointDipoles, TruncatedLineDipole)
 
-__all__ = ["SensorParameters", "SensorModel"]
+__all__ = ["SensorParameters", "SensorModel", "strict_from_dict"]
 
 # Unit of each float parameter, for astropy Quantity input.
 _UNITS = {
@@ -48,6 +48,19 @@ def _as_float(name, value):
     if not math.isfinite(value):
         raise ValueError(f"parameter {name!r} must be finite, got {value!r}")
     return value
+
+
+def strict_from_dict(cls, mapping, what):
+    """Build dataclass ``cls`` from ``mapping``, naming any unknown keys.
+
+    ``what`` is the phrase used in the error, e.g. "sensor parameter".
+    """
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(mapping) - names)
+    if unknown:
+        raise KeyError(f"unknown {what}(s): {', '.join(unknown)}; "
+                       f"known: {', '.join(sorted(names))}")
+    return cls(**dict(mapping))
 
 
 def _pairs(name, value, width):
@@ -210,12 +223,7 @@ class SensorParameters:
     @classmethod
     def from_dict(cls, mapping):
         """Build from a mapping, rejecting unknown keys by name."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(mapping) - names)
-        if unknown:
-            raise KeyError(f"unknown sensor parameter(s): {', '.join(unknown)}; "
-                           f"known: {', '.join(sorted(names))}")
-        return cls(**dict(mapping))
+        return strict_from_dict(cls, mapping, "sensor parameter")
 
     def to_dict(self):
         """Plain-Python dictionary (JSON serialisable)."""

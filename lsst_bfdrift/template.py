@@ -28,7 +28,7 @@ from .boundaries import BoundaryGrid, pixel_boundaries, uniform_fractions
 from .geometry import pixel_polygons, polygon_moments
 from .io_utils import atomic_output
 from .progress import ProgressBar
-from .sensor import SensorModel, SensorParameters
+from .sensor import SensorModel, SensorParameters, strict_from_dict
 
 __all__ = ["TEMPLATE_SCHEMA_VERSION", "TemplateSettings", "DistortionTemplate",
            "TemplateFileError", "build_template", "default_template_path",
@@ -108,12 +108,7 @@ class TemplateSettings:
     @classmethod
     def from_dict(cls, mapping):
         """Build from a mapping, rejecting unknown keys by name."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(mapping) - names)
-        if unknown:
-            raise KeyError(f"unknown template setting(s): {', '.join(unknown)}; "
-                           f"known: {', '.join(sorted(names))}")
-        return cls(**dict(mapping))
+        return strict_from_dict(cls, mapping, "template setting")
 
     def to_dict(self):
         """Plain dictionary."""
