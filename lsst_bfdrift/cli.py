@@ -12,6 +12,11 @@ Subcommands
     Distorted boundaries (exaggerated) and the area map.
 ``bfdrift template import-galsim NAME --out FILE``
     Convert a GalSim sensor file (e.g. lsst_itl_50_8) to a template file.
+``bfdrift ptc FILES... [--max-lag L] [--json]``
+    Photon transfer analysis (Astier et al. 2019): either one two-column text
+    file (mean ADU, variance ADU^2; exponential C00 fit: gain, a00) or an even
+    number of FITS flats taken as consecutive pairs (covariances by FFT, full
+    model: gain and a_ij).
 ``bfdrift maps [IMAGE] [--template FILE] [--out FILE] [--plot PNG] [--json]``
     Final pixel geometry (area, centroid shift, ellipticity maps) of an image
     in electrons; with no IMAGE, the bundled sample star. This is the quick
@@ -196,6 +201,41 @@ def _cmd_maps(args):
     return 0
 
 
+def _cmd_ptc(args):
+    from . import ptc
+    files = list(args.files)
+    if len(files) == 1 and not files[0].lower().endswith((".fits", ".fit", ".fits.gz")):
+        mu, var = ptc.read_ptc_text(files[0])
+        fit = ptc.fit_ptc_exponential(mu, var)
+        out = {"input": files[0], "model": "exponential C00 (Astier et al. 2019 eq. 16)",
+               "gain": fit["gain"], "gain_err": fit["gain_err"], "a00": fit["a00"],
+               "a00_err": fit["a00_err"], "noise_e2": fit["noise"],
+               "noise_e2_err": fit["noise_err"], "npoints": fit["npoints"],
+               "mu_max": fit["mu_max"], "chi2": fit["chi2"], "dof": fit["dof"]}
+        for k in ("a01", "a10", "a11"):
+            out[k] = out[k + "_err"] = None  # a variance-only PTC does not constrain them
+    else:
+        if len(files) < 10 or len(files) % 2:
+            raise ValueError("give one PTC text file or an even number (>= 10) of FITS "
+                             "flats, consecutive files forming pairs")
+        table = ptc.measure_ptc(list(zip(files[::2], files[1::2])), max_lag=args.max_lag)
+        fit = ptc.fit_covariance_model(table["mu"], table["cov"], npix=table["npix"])
+        out = {"input": files, "model": "full covariance model (Astier et al. 2019 eq. 20)",
+               "gain": fit["gain"], "gain_err": fit["gain_err"], "npairs": len(table),
+               "chi2": fit["chi2"], "dof": fit["dof"]}
+        for name, (i, j) in (("a00", (0, 0)), ("a01", (0, 1)), ("a10", (1, 0)),
+                             ("a11", (1, 1))):
+            out[name] = float(fit["a"][i, j])
+            out[name + "_err"] = float(fit["a_err"][i, j])
+        out["a"] = fit["a"].tolist()
+    if args.json:
+        _print_json(out)
+    else:
+        for k, v in out.items():
+            print(f"{k:>14s}: {v}")
+    return 0
+
+
 def build_parser():
     """The argparse parser of ``bfdrift``."""
     p = argparse.ArgumentParser(prog="bfdrift", description="Electrostatic brighter-fatter model (Rasmussen 2015): templates and pixel-geometry maps.")
@@ -231,6 +271,12 @@ def build_parser():
     g.add_argument("--overwrite", action="store_true")
     g.add_argument("--json", action="store_true")
     g.set_defaults(func=_cmd_template_import)
+
+    pt = sub.add_parser("ptc", help="photon transfer curve fit (gain, a_ij)")
+    pt.add_argument("files", nargs="+", help="PTC text file, or FITS flats in pairs")
+    pt.add_argument("--max-lag", type=int, default=3, help="largest covariance lag")
+    pt.add_argument("--json", action="store_true")
+    pt.set_defaults(func=_cmd_ptc)
 
     m = sub.add_parser("maps", help="pixel geometry maps of an image (main job)")
     m.add_argument("image", nargs="?", help="FITS image in electrons (default: bundled sample)")

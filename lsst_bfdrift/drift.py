@@ -49,7 +49,7 @@ class DriftResult:
                 f"mean_steps={self.steps.mean() if self.steps.size else 0:.1f})")
 
 
-def drift_lines(model, x0, y0, z0=None, *, z_stop=None, step_scale=0.08, min_step=0.02,
+def drift_lines(model, x0, y0, z0=None, *, z_stop=None, step_scale=0.15, min_step=0.02,
                 max_step=4.0, max_steps=5000, max_turn=0.2):
     """Integrate drift lines down to the collection height.
 

@@ -340,7 +340,15 @@ class SensorModel:
         barriers = self.barrier_terms()
         terms += barriers
         if P.backside_images:
-            terms += [b.mirrored(P.thickness) for b in barriers]
+            for b in barriers:
+                img = b.mirrored(P.thickness)
+                # A periodic grid's field decays as exp(-2 pi |dz| / p); its image
+                # lies >= t above the silicon, where that is below exp(-2 pi t / p)
+                # (~1e-27 for LSST), and the term's cutoff zeroes it anyway.
+                if isinstance(img, PeriodicDipoleGrid) and \
+                        P.thickness - P.barrier_height > img.cutoff * img.pitch:
+                    continue
+                terms.append(img)
         terms += self.charge_terms()
         terms += self.extra_terms
         return terms

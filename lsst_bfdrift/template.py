@@ -76,7 +76,7 @@ class TemplateSettings:
     tol: float = 1e-4
     conversion_height: float = None
     baseline: str = "nominal"
-    step_scale: float = 0.08
+    step_scale: float = 0.15
     min_step: float = 0.02
     max_step: float = 4.0
     workers: int = 2

@@ -95,3 +95,33 @@ def test_unknown_config_key(capsys, tmp_path):
     code, _, err = _run(capsys, "template", "build", "--out", str(tmp_path / "x.fits"),
                         "--config", str(cfg))
     assert code == 2 and "bogus" in err
+
+
+def test_ptc_on_measured_text_file(capsys):
+    code, out, _ = _run(capsys, "ptc", "/work/shared/data/measured/eotest_e2v_ptc_amp05.txt",
+                        "--json")
+    assert code == 0
+    s = json.loads(out)
+    assert s["gain"] == pytest.approx(0.7713, rel=0.01)
+    assert s["a01"] is None
+
+
+def test_ptc_on_fits_pairs(capsys, tmp_path, rng):
+    """Poisson flats without BF: gain recovered, a_ij consistent with zero."""
+    gain = 1.3
+    files = []
+    for k, m in enumerate(np.geomspace(300, 3e4, 6)):
+        for p in range(2):
+            path = tmp_path / f"flat_{k}_{p}.fits"
+            fits.PrimaryHDU(rng.poisson(m * gain, (120, 120)) / gain).writeto(path)
+            files.append(str(path))
+    code, out, err = _run(capsys, "ptc", *files, "--json", "--max-lag", "1")
+    assert code == 0, err
+    s = json.loads(out)
+    assert s["gain"] == pytest.approx(gain, abs=4 * s["gain_err"] + 0.01)
+    assert abs(s["a10"]) < 4 * s["a10_err"] + 1e-9
+
+
+def test_ptc_needs_pairs(capsys, tmp_path):
+    code, _, err = _run(capsys, "ptc", "a.fits", "b.fits", "c.fits")
+    assert code == 2 and "pairs" in err
