@@ -17,6 +17,9 @@ Subcommands
     file (mean ADU, variance ADU^2; exponential C00 fit: gain, a00) or an even
     number of FITS flats taken as consecutive pairs (covariances by FFT, full
     model: gain and a_ij).
+``bfdrift flat-sim [--template FILE] [--n-images N] [--steps K] ... [--json]``
+    Flat-field simulation with moving boundaries: per-step covariances by the
+    paper's all-pairs estimator and LSST's per-pair estimator.
 ``bfdrift maps [IMAGE] [--template FILE] [--out FILE] [--plot PNG] [--json]``
     Final pixel geometry (area, centroid shift, ellipticity maps) of an image
     in electrons; with no IMAGE, the bundled sample star. This is the quick
@@ -236,6 +239,40 @@ def _cmd_ptc(args):
     return 0
 
 
+def _cmd_flat_sim(args):
+    from .simulations import simulate_flats
+    tpl = _load_template(args.template)
+    if args.responsivity is not None:
+        # rescale so that dlnA00 per electron equals the requested value
+        own = np.log(tpl.moments().area[tpl.center, tpl.center]) / tpl.charge
+        tpl = tpl.scaled(own / args.responsivity)
+    tab = simulate_flats(tpl, n_images=args.n_images, shape=(args.size, args.size),
+                         step=args.step, n_steps=args.steps, max_lag=args.max_lag,
+                         seed=args.seed, progress=not args.quiet)
+    if args.out:
+        with atomic_output(args.out) as tmp:
+            tab.write(tmp, format="ascii.ecsv", overwrite=True)
+    if args.plot:
+        from .plots import plot_flat_simulation, save_figure
+        save_figure(plot_flat_simulation(tab, tpl), args.plot)
+    steps = [{"mu": float(r["mu"]),
+              **{f"C{i}{j}_paper": float(r["paper"][i, j] * r["mu"]) for i in range(2)
+                 for j in range(2)},
+              **{f"C{i}{j}_pairs": float(r["pairs"][i, j]) for i in range(2) for j in range(2)},
+              **{f"C{i}{j}_pairs_err": float(r["pairs_err"][i, j]) for i in range(2)
+                 for j in range(2)}} for r in tab]
+    out = {"template_charge": tpl.charge, "n_images": args.n_images,
+           "shape": [args.size, args.size], "step": args.step, "steps": steps,
+           "units": "covariances in e^2, mean in e"}
+    if args.json:
+        _print_json(out)
+    else:
+        last = steps[-1]
+        print(f"final mean {last['mu']:.1f} e: C00 {last['C00_paper']:.1f}, C01 "
+              f"{last['C01_paper']:.2f}, C10 {last['C10_paper']:.2f} e^2 (all pairs)")
+    return 0
+
+
 def build_parser():
     """The argparse parser of ``bfdrift``."""
     p = argparse.ArgumentParser(prog="bfdrift", description="Electrostatic brighter-fatter model (Rasmussen 2015): templates and pixel-geometry maps.")
@@ -277,6 +314,23 @@ def build_parser():
     pt.add_argument("--max-lag", type=int, default=3, help="largest covariance lag")
     pt.add_argument("--json", action="store_true")
     pt.set_defaults(func=_cmd_ptc)
+
+    fs = sub.add_parser("flat-sim", help="flat-field simulation with moving boundaries")
+    fs.add_argument("--template", help="template FITS file (default: bundled)")
+    fs.add_argument("--responsivity", type=float,
+                    help="rescale the template to this dlnA00 per electron; write it "
+                    "as --responsivity=-1e-5 (a leading minus needs the = form)")
+    fs.add_argument("--n-images", type=int, default=1024)
+    fs.add_argument("--size", type=int, default=16, help="side of each periodic image")
+    fs.add_argument("--step", type=float, default=1000.0, help="electrons per pixel per step")
+    fs.add_argument("--steps", type=int, default=250)
+    fs.add_argument("--max-lag", type=int, default=3)
+    fs.add_argument("--seed", type=int, default=20151)
+    fs.add_argument("--out", help="write the per-step table (ECSV)")
+    fs.add_argument("--plot", help="write a PNG of covariances against mean")
+    fs.add_argument("--json", action="store_true")
+    fs.add_argument("--quiet", action="store_true")
+    fs.set_defaults(func=_cmd_flat_sim)
 
     m = sub.add_parser("maps", help="pixel geometry maps of an image (main job)")
     m.add_argument("image", nargs="?", help="FITS image in electrons (default: bundled sample)")

@@ -15,7 +15,7 @@ from matplotlib.collections import PolyCollection  # noqa: E402
 
 from .io_utils import atomic_output  # noqa: E402
 
-__all__ = ["plot_template", "plot_moment_maps", "save_figure"]
+__all__ = ["plot_template", "plot_moment_maps", "plot_flat_simulation", "save_figure"]
 
 
 def _auto_exaggeration(template):
@@ -103,6 +103,39 @@ def plot_moment_maps(maps, *, image=None, title=None):
         fig.colorbar(im, ax=ax, shrink=0.75)
     if title:
         fig.suptitle(title)
+    return fig
+
+
+def plot_flat_simulation(table, template=None):
+    """Covariances against mean of a flat simulation (like the paper's Fig. 6).
+
+    Left: C00 (e^2) with the Poisson line; right: C01, C10, C11 (e^2) with
+    the first-order guides a_ij mu^2 from the template, both estimators.
+    """
+    mu = np.asarray(table["mu"])
+    paper = np.asarray(table["paper"]) * mu[:, None, None]
+    pairs = np.asarray(table["pairs"])
+    err = np.asarray(table["pairs_err"])
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.5), constrained_layout=True)
+    ax0.plot(mu, paper[:, 0, 0], "o", ms=3, label="all pairs (paper)")
+    ax0.errorbar(mu, pairs[:, 0, 0], err[:, 0, 0], fmt=".", ms=2, label="per pair (LSST)")
+    ax0.plot(mu, mu, "k--", lw=1, label="Poisson")
+    ax0.set_xlabel("mean (e)")
+    ax0.set_ylabel("C00 (e$^2$)")
+    ax0.legend()
+    a = None
+    if template is not None:
+        c = template.center
+        a = np.log(template.moments().area) / template.charge
+    for (di, dj), col in (((0, 1), "C0"), ((1, 0), "C1"), ((1, 1), "C2")):
+        ax1.plot(mu, paper[:, di, dj], "o", ms=3, color=col, label=f"C{di}{dj} all pairs")
+        ax1.errorbar(mu, pairs[:, di, dj], err[:, di, dj], fmt=".", ms=2, color=col, alpha=0.5)
+        if a is not None:
+            ax1.plot(mu, a[c + dj, c + di] * mu**2, "--", color=col, lw=1,
+                     label=f"a{di}{dj} mu$^2$ (template)")
+    ax1.set_xlabel("mean (e)")
+    ax1.set_ylabel("C$_{ij}$ (e$^2$)")
+    ax1.legend(fontsize=8)
     return fig
 
 

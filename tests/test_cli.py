@@ -125,3 +125,20 @@ def test_ptc_on_fits_pairs(capsys, tmp_path, rng):
 def test_ptc_needs_pairs(capsys, tmp_path):
     code, _, err = _run(capsys, "ptc", "a.fits", "b.fits", "c.fits")
     assert code == 2 and "pairs" in err
+
+
+def test_flat_sim(capsys, tmp_path):
+    png, ecsv = tmp_path / "fs.png", tmp_path / "fs.ecsv"
+    code, out, err = _run(capsys, "flat-sim", "--n-images", "64", "--size", "8", "--steps",
+                          "3", "--step", "2000", "--max-lag", "2", "--responsivity=-1e-5",
+                          "--json", "--quiet", "--plot", str(png), "--out", str(ecsv))
+    assert code == 0, err
+    s = json.loads(out)
+    assert len(s["steps"]) == 3 and s["steps"][-1]["mu"] == pytest.approx(6000, rel=0.01)
+    # rescaled to dlnA00 = -1e-5 per e: the template charge changed accordingly
+    t = load_default_template()
+    own = np.log(t.moments().area[t.center, t.center]) / t.charge
+    assert s["template_charge"] == pytest.approx(t.charge * own / -1e-5)
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    from astropy.table import Table
+    assert len(Table.read(ecsv)) == 3
