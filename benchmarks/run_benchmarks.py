@@ -1,4 +1,4 @@
-"""Benchmarks of the engine (issue 2): template build and 4k x 4k superposition.
+"""Benchmarks: template build, 4k x 4k superposition, flat and star simulations.
 
 Run from the repository root::
 
@@ -69,6 +69,37 @@ def main():
     lines.append(f"superposition {n}x{n} -> area/centroid/ellipticity maps: {dt1:.1f} s "
                  f"(1 FFT thread), {dt2:.1f} s (2), {n * n / dt2 / 1e6:.2f} Mpix/s, peak RSS "
                  f"{peak:.0f} MB (image {charge.nbytes / 2**20:.0f} MB)")
+    # 3. paper-scale flat simulation: 1024 images of 16 x 16, 250 steps of 1000 e
+    from lsst_bfdrift.simulations import simulate_flats
+    tab, dt = _timed(simulate_flats, tpl, n_images=1024, shape=(16, 16), step=1000.0,
+                     n_steps=250, seed=1)
+    rows["flat_sim"] = {"seconds": dt, "target_seconds": 300.0, "final_mu": float(tab["mu"][-1])}
+    lines.append(f"flat simulation 1024 x (16x16) x 250 steps of 1000 e: {dt:.1f} s "
+                 f"(target <= 300 s)")
+
+    # 4. star simulation conversions per second against galsim.SiliconSensor, same
+    #    photons count, boundaries updated every 1000 conversions in both
+    import galsim
+
+    from lsst_bfdrift.stars import simulate_star
+    from lsst_bfdrift.template import DistortionTemplate
+    itl = DistortionTemplate.from_galsim("lsst_itl_50_8")
+    nphot = 500000
+    psf = galsim.Gaussian(fwhm=0.7)
+    _, dt_ours = _timed(simulate_star, itl, psf, nphot, stamp_size=31, update_every=1000,
+                        seed=3)
+    sensor = galsim.SiliconSensor("lsst_itl_50_8", rng=galsim.BaseDeviate(3), nrecalc=1000,
+                                  diffusion_factor=0.0)
+    img = galsim.ImageD(31, 31, scale=0.2)
+    _, dt_gs = _timed(psf.withFlux(nphot).drawImage, img, method="phot", sensor=sensor,
+                      rng=galsim.BaseDeviate(4), n_photons=nphot)
+    rows["star_sim"] = {"photons": nphot, "update_every": 1000,
+                        "ours_per_second": nphot / dt_ours, "galsim_per_second": nphot / dt_gs,
+                        "ratio": dt_gs / dt_ours, "target_ratio": 1.0}
+    lines.append(f"star simulation, {nphot} conversions, update every 1000: "
+                 f"{nphot / dt_ours / 1e3:.0f} k/s (lsst_bfdrift) vs {nphot / dt_gs / 1e3:.0f} k/s "
+                 f"(galsim.SiliconSensor, diffusion off), ratio {dt_gs / dt_ours:.1f}x; "
+                 f"target >= 1.0x")
     text = "\n".join(lines) + "\n"
     print(text, end="")
     with open(args.out + ".json", "w") as fh:

@@ -142,3 +142,19 @@ def test_flat_sim(capsys, tmp_path):
     assert png.read_bytes()[:4] == b"\x89PNG"
     from astropy.table import Table
     assert len(Table.read(ecsv)) == 3
+
+
+def test_star_sim(capsys, tmp_path):
+    png = tmp_path / "star.png"
+    code, out, err = _run(capsys, "star-sim", "--flux", "30000", "--psf", "moffat", "--json",
+                          "--quiet", "--plot", str(png), "--stamp", "21")
+    assert code == 0, err
+    s = json.loads(out)
+    assert s["T_growth"] > 0 and s["central_counts"] < s["central_counts_square_pixels"]
+    assert s["steps"][-1]["counts"] == 30000
+    assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_star_sim_bad_psf(capsys):
+    code, _, err = _run(capsys, "star-sim", "--psf", "airy", "--quiet")
+    assert code == 2 and "unknown PSF" in err
