@@ -12,3 +12,5 @@ from .sensor import SensorModel, SensorParameters  # noqa: F401
 from .drift import drift_lines, landing_pixels  # noqa: F401
 from .boundaries import BoundaryGrid, pixel_boundaries  # noqa: F401
 from .geometry import polygon_moments, points_in_polygons, pixel_polygons, locate_points  # noqa: F401,E501
+from .config import ChoiceField, Config, ConfigurableField, Field, Struct, Task  # noqa: F401
+from .task import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: F401

@@ -1,0 +1,238 @@
+"""Flux-redistribution correction with the template as Green's function.
+
+Model of image formation (flux F per pixel with square pixels, recorded
+image I): while charge Q collects, every pixel edge has swept an area
+S_e = L_e[Q] (linear in Q: a convolution of the charge with the template's
+swept-area kernel, :func:`swept_area_kernels`), and the collection rate of a
+pixel is its flux plus, for each edge, the flux density f_e at that edge
+times the area the edge has swept outward. With tau the exposure fraction,
+
+    dQ/dtau = F + G(Q; F),   G(Q; F)_p = sum_e +-f_e(F) L_e[Q],
+
+which is linear in Q for a given F, so the recorded image is the series
+
+    I = R(F) = F + G(F)/2 + G(G(F))/6 + G(G(G(F)))/24 + ...
+
+The first correction term alone is the usual "half the final shift"
+approximation; keeping ``order`` terms accounts for the time history of the
+boundaries (the collecting rates change while charge accumulates). F is found
+by iterating F <- F + (1 - G/2)(I - R(F)) (a Newton-like step with the
+first-order inverse of dR/dF). Every edge transfer is added
+to one pixel and subtracted from its neighbour, so the correction conserves
+flux exactly.
+
+The flux density at an edge is the mean of the two pixels beside it
+(``'mean2'``) or a four-point interpolation along the edge normal,
+(-F_{-2} + 9 F_{-1} + 9 F_{+1} - F_{+2}) / 16 (``'cubic4'``), which follows the
+curvature of a star's profile. Edges touching masked pixels or the image
+border carry no flux.
+"""
+
+import numpy as np
+from scipy import fft as sp_fft
+
+__all__ = ["swept_area_kernels", "SweptAreas", "edge_flux_density", "edge_transfer",
+           "recorded_image", "correct_image"]
+
+
+def _trapezoid(c0, samples, c1, fractions):
+    """Integral over [0, 1] of the piecewise-linear profile through the knots."""
+    s = np.concatenate([[0.0], fractions, [1.0]])
+    vals = np.concatenate([c0[..., None], samples, c1[..., None]], axis=-1)
+    return np.sum(0.5 * (vals[..., 1:] + vals[..., :-1]) * np.diff(s), axis=-1)
+
+
+def swept_area_kernels(template):
+    """Areas swept by the template's edges (px^2 per template charge).
+
+    Returns
+    -------
+    kv : ndarray, shape (N, N + 1)
+        Vertical edges (left edge of pixel offset (I - c, J - c)); positive
+        when the edge moved towards +x.
+    kh : ndarray, shape (N + 1, N)
+        Horizontal edges (bottom edge); positive when moved towards +y.
+    """
+    t = template
+    kv = _trapezoid(t.corner_d[:-1, :, 0], t.vedge_d, t.corner_d[1:, :, 0], t.fractions)
+    kh = _trapezoid(t.corner_d[:, :-1, 1], t.hedge_d, t.corner_d[:, 1:, 1], t.fractions)
+    return kv, kh
+
+
+class SweptAreas:
+    """Linear operator Q -> swept areas of every edge of an image (FFT).
+
+    Parameters
+    ----------
+    template : DistortionTemplate
+        Green's function.
+    shape : tuple of int
+        (ny, nx) of the images.
+    workers : int, optional
+        FFT threads.
+    """
+
+    def __init__(self, template, shape, *, workers=1):
+        self.ny, self.nx = (int(v) for v in shape)
+        self.c = template.center
+        kv, kh = swept_area_kernels(template)
+        n1 = template.size + 1
+        self.fshape = (sp_fft.next_fast_len(self.ny + n1 - 1, real=True),
+                       sp_fft.next_fast_len(self.nx + n1 - 1, real=True))
+        self.workers = workers
+        q = 1.0 / template.charge
+        self.fkv = sp_fft.rfft2(kv * q, self.fshape, workers=workers)
+        self.fkh = sp_fft.rfft2(kh * q, self.fshape, workers=workers)
+
+    def __call__(self, charge):
+        """Swept areas (sv of shape (ny, nx + 1), sh of shape (ny + 1, nx)), px^2."""
+        fq = sp_fft.rfft2(charge, self.fshape, workers=self.workers)
+        c, ny, nx = self.c, self.ny, self.nx
+        sv = sp_fft.irfft2(fq * self.fkv, self.fshape, workers=self.workers)
+        sh = sp_fft.irfft2(fq * self.fkh, self.fshape, workers=self.workers)
+        return sv[c:c + ny, c:c + nx + 1], sh[c:c + ny + 1, c:c + nx]
+
+
+def edge_flux_density(flux, *, mode="cubic4", blocked=None):
+    """Flux density (e / px^2) at every interior edge.
+
+    Parameters
+    ----------
+    flux : ndarray, shape (ny, nx)
+        Flux per pixel (e).
+    mode : {'mean2', 'cubic4'}
+        Two-pixel mean or four-point interpolation along the edge normal
+        (falls back to the mean where the outer pixels are missing).
+    blocked : ndarray of bool, optional
+        Pixels that neither give nor receive flux.
+
+    Returns
+    -------
+    fv : ndarray, shape (ny, nx + 1)
+        Density at the left edge of each pixel column (0 on the border).
+    fh : ndarray, shape (ny + 1, nx)
+        Density at the bottom edge of each pixel row (0 on the border).
+    """
+    if mode not in ("mean2", "cubic4"):
+        raise ValueError(f"flux density mode must be 'mean2' or 'cubic4', got {mode!r}")
+    f = np.asarray(flux, float)
+    ny, nx = f.shape
+    blk = np.zeros(f.shape, bool) if blocked is None else np.asarray(blocked, bool)
+
+    def along(a, b):
+        """Densities between a[..., k-1] and a[..., k] for k = 1..n-1, axis last."""
+        mean = 0.5 * (a[..., :-1] + a[..., 1:])
+        ok = ~(b[..., :-1] | b[..., 1:])
+        out = np.where(ok, mean, 0.0)
+        if mode == "cubic4" and a.shape[-1] >= 4:
+            cub = (-a[..., :-3] + 9 * a[..., 1:-2] + 9 * a[..., 2:-1] - a[..., 3:]) / 16.0
+            okc = ok[..., 1:-1] & ~(b[..., :-3] | b[..., 3:])
+            out[..., 1:-1] = np.where(okc, cub, out[..., 1:-1])
+        return out
+
+    fv = np.zeros((ny, nx + 1))
+    fh = np.zeros((ny + 1, nx))
+    fv[:, 1:-1] = along(f, blk)
+    fh[1:-1, :] = along(f.T, blk.T).T
+    return fv, fh
+
+
+def edge_transfer(sv, sh, fv, fh):
+    """Charge gained by every pixel from its edges' swept areas (e).
+
+    An edge that moved towards +x by area S gives the pixel on its left
+    ``f S`` and takes the same from the pixel on its right (likewise +y).
+    The result sums to zero exactly.
+    """
+    tv = fv * sv
+    th = fh * sh
+    return (tv[:, 1:] - tv[:, :-1]) + (th[1:, :] - th[:-1, :])
+
+
+def recorded_image(flux, swept, *, order=3, density="cubic4", blocked=None):
+    """Image recorded for a flux ``flux`` with moving boundaries (series to ``order``).
+
+    Parameters
+    ----------
+    flux : ndarray
+        Flux per pixel with square pixels (e).
+    swept : SweptAreas
+        Operator of the template on this image shape.
+    order : int, optional
+        Number of terms of R(F) = F + G(F)/2 + G(G(F))/6 + ...; 2 is the
+        half-final-shift approximation.
+    density, blocked
+        See :func:`edge_flux_density`.
+
+    Returns
+    -------
+    ndarray
+    """
+    fv, fh = edge_flux_density(flux, mode=density, blocked=blocked)
+    out = np.array(flux, float, copy=True)
+    term = out.copy()
+    fact = 1.0
+    for k in range(1, int(order)):
+        fact *= k + 1
+        sv, sh = swept(term)
+        term = edge_transfer(sv, sh, fv, fh)
+        out += term / fact  # term k of the series carries 1 / (k + 1)!
+    return out
+
+
+def correct_image(image, template, *, order=3, density="cubic4", blocked=None, max_iter=10,
+                  rtol=1e-7, workers=1):
+    """Flux that square pixels would have collected, from a recorded image.
+
+    Parameters
+    ----------
+    image : ndarray
+        Recorded image (e); not modified.
+    template : DistortionTemplate
+        Green's function.
+    order : int, optional
+        Terms of the time-history series (2 = half final shift).
+    density : {'mean2', 'cubic4'}, optional
+        Flux density at the edges.
+    blocked : ndarray of bool, optional
+        Pixels that neither give nor receive flux (masked, saturated, NaN);
+        their values are left unchanged. Finite blocked pixels still act as
+        aggressors (a saturated pixel holds its charge); non-finite ones count
+        as empty.
+    max_iter : int, optional
+        Fixed-point iterations.
+    rtol : float, optional
+        Convergence: max |I - R(F)| <= rtol * max |I|.
+    workers : int, optional
+        FFT threads.
+
+    Returns
+    -------
+    flux : ndarray
+        Corrected image (e).
+    iterations : int
+    converged : bool
+    """
+    img = np.array(image, dtype=np.float64, copy=True)
+    blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
+    blk = blk | ~np.isfinite(img)
+    img_eff = np.where(np.isfinite(img), img, 0.0)
+    swept = SweptAreas(template, img.shape, workers=workers)
+    flux = img_eff.copy()
+    scale = max(np.abs(img_eff).max(), 1e-300)
+    converged = False
+    it = 0
+    for it in range(1, int(max_iter) + 1):
+        resid = img_eff - recorded_image(flux, swept, order=order, density=density,
+                                         blocked=blk)
+        resid[blk] = 0.0
+        # Newton-like step: (dR/dF)^-1 ~ 1 - G/2 to first order, which makes
+        # the iteration converge much faster than F <- F + r where BF is strong.
+        fv, fh = edge_flux_density(flux, mode=density, blocked=blk)
+        sv, sh = swept(resid)
+        flux += resid - 0.5 * edge_transfer(sv, sh, fv, fh)
+        if np.abs(resid).max() <= rtol * scale:
+            converged = True
+            break
+    flux[blk] = img[blk]
+    return flux, it, converged
