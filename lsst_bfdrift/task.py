@@ -13,7 +13,7 @@ from astropy.io import fits
 from astropy.nddata import CCDData, NDData
 
 from .config import ChoiceField, Config, Field, Struct, Task
-from .correction import correct_image
+from .correction import area_coefficients, correct_coulton18, correct_image, coulton18_kernel
 from .superpose import moment_maps
 from .template import DistortionTemplate, load_default_template
 
@@ -27,8 +27,10 @@ FLAG_EDGE = 2
 
 _METHODS = {
     "drift": "time-history series of the template's swept areas (order >= 3), iterated",
-    "half_shift": "first-order half-final-shift with the same template and a two-pixel "
-                  "flux density (the approximation of Astier & Regnault 2023)",
+    "astier23": "Astier & Regnault 2023: per-electron boundary shifts (the template's swept "
+                "areas), half the final shift, two-pixel flux density, one pass solved exactly",
+    "coulton18": "Coulton et al. 2018: kernel with Laplacian equal to the template's a_ij, "
+                 "I = F + 1/2 div(F grad(K * F)), iterated",
 }
 
 
@@ -143,11 +145,18 @@ class BrighterFatterDriftTask(Task):
             blocked |= mask
         if cfg.saturation is not None:
             blocked |= np.where(np.isfinite(data), data, 0.0) >= cfg.saturation
-        order = 2 if cfg.method == "half_shift" else cfg.order
-        density = "mean2" if cfg.method == "half_shift" else cfg.density
-        flux, iterations, converged = correct_image(
-            data, self.template, order=order, density=density, blocked=blocked,
-            max_iter=cfg.max_iter, rtol=cfg.rtol, workers=cfg.workers)
+        order = 2 if cfg.method == "astier23" else cfg.order
+        density = "mean2" if cfg.method == "astier23" else cfg.density
+        if cfg.method == "coulton18":
+            order = density = "n/a"
+            kernel = coulton18_kernel(area_coefficients(self.template))
+            flux, iterations, converged = correct_coulton18(
+                data, kernel, blocked=blocked, max_iter=cfg.max_iter, rtol=cfg.rtol,
+                workers=cfg.workers)
+        else:
+            flux, iterations, converged = correct_image(
+                data, self.template, order=order, density=density, blocked=blocked,
+                max_iter=cfg.max_iter, rtol=cfg.rtol, workers=cfg.workers)
         moved = np.where(blocked, 0.0, flux - np.where(np.isfinite(data), data, 0.0))
         flags = np.where(blocked, FLAG_BLOCKED, 0)
         c = self.template.center
