@@ -173,14 +173,15 @@ class BrighterFatterDriftTask(Task):
             self.log.warning("brighter-fatter correction did not converge in %d iterations",
                              iterations)
         header = fits.Header(meta)
-        header["BFDRIFT"] = (True, "brighter-fatter correction applied (lsst_bfdrift)")
+        header["BFDRIFT"] = (True, "BF correction applied (lsst_bfdrift)")
         header["BFMETHOD"] = (cfg.method, "correction method")
         header["BFORDER"] = (order, "time-history series order")
         header["BFDENS"] = (density, "edge flux density estimate")
         header["BFITER"] = (iterations, "solver iterations")
         header["BFCONV"] = (bool(converged), "solver converged")
         header["BFQTMPL"] = (self.template.charge, "template aggressor charge (e)")
-        header["BFTMPL"] = (str(cfg.template or "bundled default")[-60:], "template")
+        header["BFTMPL"] = (os.path.basename(str(cfg.template or "bundled default"))[-40:],
+                            "BF template file")
         out_data = flux / gain
         if kind in ("ccddata", "nddata"):
             new_mask = blocked if mask is None else (mask | blocked)

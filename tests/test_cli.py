@@ -158,3 +158,23 @@ def test_star_sim(capsys, tmp_path):
 def test_star_sim_bad_psf(capsys):
     code, _, err = _run(capsys, "star-sim", "--psf", "airy", "--quiet")
     assert code == 2 and "unknown PSF" in err
+
+
+def test_correct(capsys, tmp_path):
+    from lsst_bfdrift.cli import sample_image_path
+    out_file = tmp_path / "corr.fits"
+    code, out, err = _run(capsys, "correct", sample_image_path(), str(out_file), "--json",
+                          "--quiet", "--geometry")
+    assert code == 0, err
+    s = json.loads(out)
+    assert s["files"][0]["converged"]
+    with fits.open(out_file) as hdul:
+        assert hdul[0].header["BFDRIFT"] is True
+        with fits.open(sample_image_path()) as src:
+            assert hdul[0].data.sum() == pytest.approx(src[0].data.sum(), rel=1e-6)
+        assert "AREA" in hdul and "FLUX_MOVED" in hdul
+    code, _, err = _run(capsys, "correct", sample_image_path(), sample_image_path(), "--quiet")
+    assert code == 2 and "refusing" in err
+    code, out, err = _run(capsys, "correct", sample_image_path(), "--out-dir",
+                          str(tmp_path / "many"), "--method", "astier23", "--quiet", "--json")
+    assert code == 0 and json.loads(out)["method"] == "astier23"
