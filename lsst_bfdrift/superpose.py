@@ -174,7 +174,7 @@ class MomentMaps:
         return {k: getattr(self, k) for k in self._names}
 
 
-def moment_maps(template, charge, *, mask=None, strip=64, workers=1, progress=None):
+def moment_maps(template, charge, *, mask=None, strip=256, workers=1, progress=None):
     """Area, centroid-shift and ellipticity maps of a charge image's pixels.
 
     Parameters
@@ -186,7 +186,9 @@ def moment_maps(template, charge, *, mask=None, strip=64, workers=1, progress=No
     mask : array_like of bool, optional
         Pixels that do not act as aggressors (their geometry is still computed).
     strip : int, optional
-        Rows per block (memory ~ 40 * strip * width * (4 + 4 ns) bytes).
+        Rows per block (memory ~ 8 * strip * width * (4 + 2 ns) bytes). The
+        moments are evaluated by a compiled kernel (:mod:`lsst_bfdrift._kernels`)
+        that builds each pixel's polygon on the fly.
     workers : int, optional
         FFT threads.
     progress : callable, optional
@@ -196,29 +198,26 @@ def moment_maps(template, charge, *, mask=None, strip=64, workers=1, progress=No
     -------
     MomentMaps
     """
+    from ._kernels import grid_moments
+
     q = check_charge_image(charge, mask=mask)
     ny, nx = q.shape
     strip = max(int(strip), 1)
     conv = _Convolver(template)
     out = MomentMaps(q.shape)
-    ii = np.arange(nx)[None, :]
+    fr = np.ascontiguousarray(template.fractions)
     for r0 in range(0, ny, strip):
         r1 = min(r0 + strip, ny)
         cd, v, h, vt, ht = _block_displacements(conv, q, r0, r1, workers=workers)
         nom = BoundaryGrid(0, r0, np.zeros(cd.shape), v, h, template.fractions).nominal()
-        x, y = pixel_polygons(nom.corners + cd, nom.vedge + v, nom.hedge + h,
-                              template.fractions, i0=0, j0=r0, vedge_t=vt, hedge_t=ht)
-        jj = np.arange(r0, r1)[:, None]
-        m = polygon_moments(x - ii[..., None], y - jj[..., None],
-                            origin=(np.zeros((r1 - r0, nx)), np.zeros((r1 - r0, nx))))
-        out.area[r0:r1] = m.area
-        out.dx[r0:r1] = m.x
-        out.dy[r0:r1] = m.y
-        out.ixx[r0:r1] = m.ixx
-        out.iyy[r0:r1] = m.iyy
-        out.ixy[r0:r1] = m.ixy
-        out.e1[r0:r1] = m.e1
-        out.e2[r0:r1] = m.e2
+        has_t = vt is not None
+        res = np.empty((8, r1 - r0, nx))
+        grid_moments(np.ascontiguousarray(nom.corners + cd), np.ascontiguousarray(nom.vedge + v),
+                     np.ascontiguousarray(nom.hedge + h), fr,
+                     vt if has_t else np.zeros((1, 1, 1)), ht if has_t else np.zeros((1, 1, 1)),
+                     has_t, r0, res)
+        for k, name in enumerate(MomentMaps._names):
+            getattr(out, name)[r0:r1] = res[k]
         if progress is not None:
             progress(r1 - r0)
     return out

@@ -109,3 +109,20 @@ def test_input_is_not_modified_and_mask_removes_aggressors(small_template):
 def test_bad_images(charge, kw, match):
     with pytest.raises(ValueError, match=match):
         check_charge_image(charge, **kw)
+
+
+def test_compiled_moments_with_tangential_displacements(rng):
+    """The GalSim import carries tangential displacements: kernel vs numpy."""
+    from lsst_bfdrift.template import DistortionTemplate
+    t = DistortionTemplate.from_galsim("lsst_itl_50_8")
+    charge = rng.uniform(0, 2e5, (14, 12))
+    g = superpose_boundaries(t, charge)
+    assert g.vedge_t is not None
+    x, y = pixel_polygons(g.corners, g.vedge, g.hedge, g.fractions, vedge_t=g.vedge_t,
+                          hedge_t=g.hedge_t)
+    ref = polygon_moments(x, y)
+    maps = moment_maps(t, charge, strip=5)
+    jj, ii = np.mgrid[0:14, 0:12]
+    assert_allclose(maps.area, ref.area, rtol=1e-12)
+    assert_allclose(maps.dx, ref.x - ii, atol=1e-11)
+    assert_allclose(maps.ixy, ref.ixy, atol=1e-11)
