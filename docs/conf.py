@@ -61,6 +61,6 @@ html_theme_options = {
     "description": "Electrostatic brighter-fatter model of thick CCDs",
     "fixed_sidebar": False,
 }
-html_static_path = []
+html_static_path = ["_static"]
 html_title = f"{project} {release}"
 html_show_sourcelink = True

@@ -45,7 +45,7 @@ import numpy as np
 
 from .io_utils import atomic_output
 
-__all__ = ["main", "read_config", "sample_image_path"]
+__all__ = ["main", "read_config", "sample_image_path", "make_psf", "read_image"]
 
 
 def read_config(path):
@@ -487,7 +487,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, KeyError, TypeError, OSError, RuntimeError) as exc:
+    except (ValueError, KeyError, TypeError, OSError, RuntimeError, AttributeError) as exc:
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         print(f"bfdrift: error: {msg}", file=sys.stderr)
         return 2

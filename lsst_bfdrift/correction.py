@@ -203,7 +203,7 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
     max_iter : int, optional
         Fixed-point iterations.
     rtol : float, optional
-        Convergence: max |I - R(F)| <= rtol * max |I|.
+        Convergence: ``max |I - R(F)| <= rtol * max |I|``.
     workers : int, optional
         FFT threads.
 
