@@ -230,18 +230,25 @@ def _bisect_task(model, kind, arrays, kw):
 def _split_run(model, kind, arrays, kw, workers):
     """Run a bisection task on ``workers`` chunks of the samples.
 
-    Chunks go to forked worker processes (numpy on small arrays holds the
-    GIL, so threads do not help); where ``fork`` is unavailable the chunks
-    run in turn. Results are concatenated in order and do not depend on
-    ``workers``.
+    With the compiled drift engine (the default for the package's own field
+    terms) the kernel already shares the lines between all cores, and forking
+    after its thread pool has started is unsafe: everything runs in-process.
+    Otherwise chunks go to forked worker processes (numpy on small arrays
+    holds the GIL, so threads do not help); where ``fork`` is unavailable the
+    chunks run in turn. Results are concatenated in order and do not depend
+    on ``workers``.
     """
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
+    from .drift import compile_model
+
     arrays = [np.asarray(a).ravel() for a in np.broadcast_arrays(*arrays)]
     n = arrays[0].size
     workers = max(1, min(int(workers), n))
-    if workers > 1 and "fork" not in mp.get_all_start_methods():
+    engine = (kw.get("drift_kwargs") or {}).get("engine", "auto")
+    if workers > 1 and ("fork" not in mp.get_all_start_methods()
+                        or (engine != "numpy" and compile_model(model) is not None)):
         workers = 1
     if workers == 1:
         return _bisect_task(model, kind, arrays, kw)

@@ -17,8 +17,8 @@ import os
 
 import numpy as np
 
-__all__ = ["DriftResult", "drift_lines", "landing_pixels", "conversion_height",
-           "absorption_length"]
+__all__ = ["DriftResult", "drift_lines", "compile_model", "landing_pixels",
+           "conversion_height", "absorption_length"]
 
 
 class DriftResult:
@@ -49,8 +49,50 @@ class DriftResult:
                 f"mean_steps={self.steps.mean() if self.steps.size else 0:.1f})")
 
 
+def compile_model(model):
+    """Flat arrays of a model's terms for the compiled integrator, or None.
+
+    Returns None when the model has a term the compiled engine does not know
+    (e.g. user-supplied field terms); :func:`drift_lines` then uses numpy.
+    """
+    from .fields import (BackdropField, HalfPeriodicDipoleGrid, LineDipole, PeriodicDipoleGrid,
+                         PointDipoles, TabulatedBackdrop, TruncatedLineDipole)
+
+    lines, px, py, pz, ph = [], [], [], [], []
+    bd_kind, bd, bd_z, bd_ez = 0, np.zeros(3), np.zeros(2), np.ones(2)
+    n_backdrop = 0
+    for t in model.terms:
+        if isinstance(t, BackdropField):
+            bd_kind, bd, n_backdrop = 0, np.array([t.mean_field, t.gradient, t.thickness]), \
+                n_backdrop + 1
+        elif isinstance(t, TabulatedBackdrop):
+            bd_kind, bd_z, bd_ez, n_backdrop = 1, t.z, t.ez_table, n_backdrop + 1
+        elif isinstance(t, (LineDipole, PeriodicDipoleGrid, HalfPeriodicDipoleGrid,
+                            TruncatedLineDipole)):
+            axis = 0.0 if t.axis == "x" else 1.0
+            row = [0.0, axis, 0.0, t.position, t.height, t.m_perp, t.m_z, 0.0, 0.0, 0.0]
+            if isinstance(t, PeriodicDipoleGrid):
+                row[0], row[2], row[7] = 1.0, t.pitch, t.cutoff
+            elif isinstance(t, HalfPeriodicDipoleGrid):
+                row[0], row[2], row[7], row[8] = 2.0, t.pitch, float(t.side), float(t.n_direct)
+            elif isinstance(t, TruncatedLineDipole):
+                row[0], row[7], row[8] = 3.0, t.end, float(t.extends)
+            lines.append(row)
+        elif isinstance(t, PointDipoles):
+            px.append(t.x), py.append(t.y), pz.append(t.p_z)
+            ph.append(np.full(t.x.size, t.height))
+        else:
+            return None
+    if n_backdrop > 1:
+        return None
+    cat = (lambda a: np.ascontiguousarray(np.concatenate(a)) if a else np.zeros(0))
+    return (np.array(lines, dtype=float).reshape(-1, 10), bd_kind, np.asarray(bd, float),
+            np.asarray(bd_z, float), np.asarray(bd_ez, float), cat(px), cat(py), cat(pz),
+            cat(ph))
+
+
 def drift_lines(model, x0, y0, z0=None, *, z_stop=None, step_scale=0.15, min_step=0.02,
-                max_step=4.0, max_steps=5000, max_turn=0.2):
+                max_step=4.0, max_steps=5000, max_turn=0.2, engine="auto"):
     """Integrate drift lines down to the collection height.
 
     Parameters
@@ -72,6 +114,11 @@ def drift_lines(model, x0, y0, z0=None, *, z_stop=None, step_scale=0.15, min_ste
         Largest change of field direction (rad) accepted within one step;
         steps that turn more are retried with a quarter of the length, which
         resolves the turn of lines passing next to a saddle of the field.
+    engine : {'auto', 'compiled', 'numpy'}, optional
+        'compiled' integrates each line with the numba kernel
+        (:func:`lsst_bfdrift._kernels.drift_batch`, same algorithm, lines in
+        parallel); 'numpy' steps all lines together with numpy; 'auto' uses
+        the compiled engine when every term of the model is known to it.
 
     Returns
     -------
@@ -91,6 +138,22 @@ def drift_lines(model, x0, y0, z0=None, *, z_stop=None, step_scale=0.15, min_ste
     if np.any(z0 > P.thickness + 1e-9) or np.any(z0 < z_stop):
         raise ValueError(f"conversion heights must lie in [z_stop={z_stop}, "
                          f"thickness={P.thickness}] um")
+    if engine not in ("auto", "compiled", "numpy"):
+        raise ValueError(f"engine must be 'auto', 'compiled' or 'numpy', got {engine!r}")
+    arrays = None if engine == "numpy" else compile_model(model)
+    if engine == "compiled" and arrays is None:
+        raise ValueError("this model has terms the compiled engine does not support")
+    if arrays is not None:
+        from ._kernels import drift_batch
+        from .constants import COULOMB_UM
+        n = x0.size
+        out = [np.empty(n), np.empty(n), np.empty(n), np.empty(n, np.int64),
+               np.empty(n, np.bool_), np.empty(n, np.bool_)]
+        drift_batch(np.ascontiguousarray(x0.ravel()), np.ascontiguousarray(y0.ravel()),
+                    np.ascontiguousarray(z0.ravel()), float(z_stop), float(step_scale),
+                    float(min_step), float(max_step), int(max_steps), float(np.cos(max_turn)),
+                    *arrays, COULOMB_UM, *out)
+        return DriftResult(*(a.reshape(shape) for a in out))
     x = x0.ravel().copy()
     y = y0.ravel().copy()
     z = z0.ravel().copy()

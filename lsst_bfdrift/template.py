@@ -67,7 +67,9 @@ class TemplateSettings:
     step_scale, min_step, max_step : float
         Drift step control (see :mod:`lsst_bfdrift.drift`).
     workers : int
-        Processes sharing the drift lines (forked; 1 runs in-process).
+        Processes sharing the drift lines with the numpy engine (forked; 1
+        runs in-process). The compiled engine, used whenever the model allows,
+        runs in-process on all cores and ignores it.
     """
 
     size: int = 21
@@ -585,7 +587,7 @@ def build_template(params=None, settings=None, *, progress=False):
     model = base.with_charge({(0, 0): settings.aggressor_charge})
     iters = int(np.ceil(np.log2(0.9 / settings.tol)))
     runs = 2 if settings.baseline == "computed" else 1
-    total = runs * 3 * max(settings.workers, 1) if settings.workers > 1 else runs * iters * 5
+    total = runs * iters * 5
     kw = dict(edge_samples=ns, tol=settings.tol, z0=settings.conversion_height,
               drift_kwargs=settings.drift_kwargs(), workers=settings.workers)
     with ProgressBar(total, "template", enabled=progress) as bar:

@@ -102,3 +102,37 @@ def test_conversion_height(rng):
     z = conversion_height(700.0, 100.0, rng=rng, size=20000, z_stop=2.0)
     assert z.min() >= 2.0 and z.max() <= 100.0
     assert_allclose(100.0 - z.mean(), L, rtol=0.05)
+
+
+def test_compiled_engine_equals_numpy_engine(rng):
+    """Same algorithm, compiled line by line: identical to rounding, every term kind."""
+    from lsst_bfdrift.drift import compile_model
+    m = SensorModel(SensorParameters(bloom_stop=2, edge=-3, xi_guard=2.0,
+                                     truncations=[(1, 0.5, 1, 3.0)], row_overrides=[(1, 1.0)],
+                                     row_shifts=[(2, 0.5)]),
+                    charge={(0, 0): 1e4, (1, 2): 5e3})
+    assert compile_model(m) is not None
+    x, y = rng.uniform(-20, 30, 200), rng.uniform(-20, 30, 200)
+    a = drift_lines(m, x, y, engine="numpy")
+    b = drift_lines(m, x, y, engine="compiled")
+    assert_allclose(b.x, a.x, atol=1e-10)
+    assert_allclose(b.y, a.y, atol=1e-10)
+    assert np.array_equal(a.steps, b.steps) and np.array_equal(a.stalled, b.stalled)
+
+
+def test_unknown_terms_fall_back_to_numpy():
+    from lsst_bfdrift.drift import compile_model
+    from lsst_bfdrift.fields import FieldTerm
+
+    class Zero(FieldTerm):
+        def field(self, x, y, z):
+            z0 = np.zeros(np.broadcast(x, y, z).shape)
+            return z0, z0.copy(), z0.copy()
+    m = SensorModel(terms=[Zero()])
+    assert compile_model(m) is None
+    res = drift_lines(m, [3.0], [4.0])  # auto -> numpy
+    assert res.finished.all()
+    with pytest.raises(ValueError, match="compiled engine"):
+        drift_lines(m, [3.0], [4.0], engine="compiled")
+    with pytest.raises(ValueError, match="engine"):
+        drift_lines(m, [3.0], [4.0], engine="gpu")
