@@ -17,7 +17,7 @@ import numpy as np
 from .drift import drift_lines
 
 __all__ = ["BoundaryGrid", "bisect_boundary", "locate_corners", "pixel_boundaries",
-           "uniform_fractions"]
+           "uniform_fractions", "edge_fractions"]
 
 
 def uniform_fractions(n):
@@ -25,6 +25,23 @@ def uniform_fractions(n):
     if int(n) != n or n < 1:
         raise ValueError(f"number of edge samples must be a positive integer, got {n!r}")
     return (np.arange(n) + 1.0) / (n + 1.0)
+
+
+def edge_fractions(n, spacing="uniform"):
+    """Sample fractions along an edge.
+
+    ``'uniform'`` (the paper's choice) or ``'tan'``: rays from the pixel
+    centre at equal angles, (tan(theta_k) + 1) / 2 with theta_k = -pi/4 +
+    (k + 1) pi / (2 (n + 1)) (GalSim's vertices), denser towards the corners
+    where boundaries curve most next to an aggressor.
+    """
+    if spacing == "uniform":
+        return uniform_fractions(n)
+    if spacing == "tan":
+        uniform_fractions(n)  # validates n
+        theta = -np.pi / 4 + (np.arange(n) + 1.0) * np.pi / (2.0 * (n + 1.0))
+        return (np.tan(theta) + 1.0) / 2.0
+    raise ValueError(f"edge spacing must be 'uniform' or 'tan', got {spacing!r}")
 
 
 def bisect_boundary(model, along, across, axis, index, *, tol=1e-4, half_width=0.45,
@@ -266,7 +283,7 @@ def _split_run(model, kind, arrays, kw, workers):
 
 
 def pixel_boundaries(model, i_range, j_range, *, edge_samples=8, tol=1e-4, z0=None,
-                     drift_kwargs=None, progress=None, workers=1):
+                     drift_kwargs=None, progress=None, workers=1, spacing="uniform"):
     """Boundaries of all pixels ``i0 <= i < i1``, ``j0 <= j < j1``.
 
     Parameters
@@ -287,6 +304,8 @@ def pixel_boundaries(model, i_range, j_range, *, edge_samples=8, tol=1e-4, z0=No
         Called with the number of traces done (for progress bars).
     workers : int, optional
         Processes sharing the drift lines (results do not depend on it).
+    spacing : {'uniform', 'tan'}, optional
+        Placement of the edge samples (:func:`edge_fractions`).
 
     Returns
     -------
@@ -298,7 +317,7 @@ def pixel_boundaries(model, i_range, j_range, *, edge_samples=8, tol=1e-4, z0=No
         raise ValueError(f"empty pixel range i={i_range}, j={j_range}")
     if not (0 < tol < 0.1):
         raise ValueError(f"tol must be in (0, 0.1) pixel, got {tol}")
-    fr = uniform_fractions(edge_samples)
+    fr = edge_fractions(edge_samples, spacing)
     nx, ny = i1 - i0, j1 - j0
     kw = dict(tol=tol, z0=z0, drift_kwargs=drift_kwargs, progress=progress)
     # Column boundaries: x = I - 0.5 for I in i0..i1, rows J in j0..j1-1.

@@ -24,7 +24,7 @@ import numpy as np
 from astropy.io import fits
 from astropy.table import Table
 
-from .boundaries import BoundaryGrid, pixel_boundaries, uniform_fractions
+from .boundaries import BoundaryGrid, pixel_boundaries
 from .geometry import pixel_polygons, polygon_moments
 from .io_utils import atomic_output
 from .progress import ProgressBar
@@ -66,6 +66,9 @@ class TemplateSettings:
         the aggressor ('computed', for models with fixed-pattern features).
     step_scale, min_step, max_step : float
         Drift step control (see :mod:`lsst_bfdrift.drift`).
+    spacing : {'uniform', 'tan'}
+        Placement of the edge samples; 'tan' (denser towards the corners)
+        converges with fewer samples (see ``docs/templates.rst``).
     workers : int
         Processes sharing the drift lines with the numpy engine (forked; 1
         runs in-process). The compiled engine, used whenever the model allows,
@@ -82,6 +85,7 @@ class TemplateSettings:
     min_step: float = 0.02
     max_step: float = 4.0
     workers: int = 2
+    spacing: str = "uniform"
 
     def __post_init__(self):
         for name in ("size", "edge_samples", "workers"):
@@ -101,6 +105,9 @@ class TemplateSettings:
             raise ValueError("template setting 'aggressor_charge' must be non-zero")
         if not 0 < self.tol < 0.1:
             raise ValueError(f"template setting 'tol' must be in (0, 0.1) px, got {self.tol}")
+        if self.spacing not in ("uniform", "tan"):
+            raise ValueError(f"template setting 'spacing' must be 'uniform' or 'tan', "
+                             f"got {self.spacing!r}")
         if self.baseline not in ("nominal", "computed"):
             raise ValueError(f"template setting 'baseline' must be 'nominal' or 'computed', "
                              f"got {self.baseline!r}")
@@ -589,7 +596,8 @@ def build_template(params=None, settings=None, *, progress=False):
     runs = 2 if settings.baseline == "computed" else 1
     total = runs * iters * 5
     kw = dict(edge_samples=ns, tol=settings.tol, z0=settings.conversion_height,
-              drift_kwargs=settings.drift_kwargs(), workers=settings.workers)
+              drift_kwargs=settings.drift_kwargs(), workers=settings.workers,
+              spacing=settings.spacing)
     with ProgressBar(total, "template", enabled=progress) as bar:
         grid = pixel_boundaries(model, (-c, c + 1), (-c, c + 1), progress=bar, **kw)
         ref = None
@@ -598,7 +606,7 @@ def build_template(params=None, settings=None, *, progress=False):
     corner_d, vedge_d, hedge_d = grid.displacements(ref)
     meta = {"source": "lsst_bfdrift.build_template", "params": params.to_dict(),
             "settings": settings.to_dict()}
-    return DistortionTemplate(corner_d, vedge_d, hedge_d, uniform_fractions(ns),
+    return DistortionTemplate(corner_d, vedge_d, hedge_d, grid.fractions,
                               settings.aggressor_charge, meta=meta)
 
 
