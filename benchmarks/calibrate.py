@@ -1,0 +1,78 @@
+"""Calibration fits of the model's free scales (issue 3 item 1, issue 6 start).
+
+1. Paper: xi0 (SI value of the dipole unit) and channel depth so that a 1e4 e
+   aggressor gives the paper's A00 = 0.9033, A01 = 1.0077, A10 = 1.0027,
+   A11 = 1.0033 (sigma 1e-4 each: the larger of the paper's rounding and
+   the bisection noise), with xi_CS = -14.3 xi0, |xi_CK| = 5 xi0,
+   V_BSS = -50 V and drift lines collected 1 um above the gates.
+2. ITL: the same two scales fitted to the measured a01, a10, a11 of
+   ../shared/data/measured/itl_covariances_21oct19.txt (a00 left out: set by
+   the sum rule), with a 1e5 e aggressor and collection 0.5 um above the gates.
+
+Prints both fits and writes ``benchmarks/calibration_results.json``.
+
+    python benchmarks/calibrate.py
+"""
+
+import json
+import os
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+from lsst_bfdrift.calibration import fit_sensor_parameters  # noqa: E402
+from lsst_bfdrift.sensor import SensorParameters  # noqa: E402
+from lsst_bfdrift.template import TemplateSettings, build_template  # noqa: E402
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ITL = os.path.join(HERE, "..", "..", "shared", "data", "measured", "itl_covariances_21oct19.txt")
+
+
+def report(name, r):
+    print(f"{name}: " + ", ".join(f"{k} = {v:.5g} +- {r.errors[k]:.2g}"
+                                 for k, v in r.values.items())
+          + f"; correlation {r.correlation[0, 1]:+.3f}; chi2 = {r.chi2:.2f} "
+          f"for {len(r.targets) - len(r.values)} dof; {r.n_evaluations} templates, "
+          f"{r.seconds:.1f} s")
+    for k, target, sig, model, pull in r.table():
+        print(f"    {k}: target {target:.5f} +- {sig:.1e}, model {model:.5f}, pull {pull:+.2f}")
+
+
+def main():
+    out = {}
+    paper = {"A00": (0.9033, 1e-4), "A01": (1.0077, 1e-4), "A10": (1.0027, 1e-4),
+             "A11": (1.0033, 1e-4)}
+    r = fit_sensor_parameters(paper, SensorParameters(xi0=8000.0, channel_depth=4.0,
+                                                      collection_height=1.0),
+                              {"xi0": (1e3, 1e5), "channel_depth": (0.5, 12.0)}, max_nfev=30)
+    report("paper template", r)
+    full = build_template(r.params, TemplateSettings(size=21, edge_samples=32)).summary()
+    print("    full 21x21 template, 32 samples per edge: "
+          + ", ".join(f"{k} {full[k]:.5f}" for k in ("A00", "A01", "A10", "A11", "ratio_01_10")))
+    out["paper"] = {**r.as_dict(), "full_template": full}
+
+    q = 1e5
+    d = np.loadtxt(ITL, skiprows=1)
+    a = {(int(x[0]), int(x[1])): (x[2], x[3]) for x in d}
+    # axis assignment: the larger nearest neighbour is the file's (0, 1), i.e.
+    # the parallel neighbour, so the file's (i, j) = (serial, parallel)
+    assert a[(0, 1)][0] > a[(1, 0)][0]
+    itl = {f"A{i}{j}": (float(np.exp(a[(i, j)][0] * q)), float(a[(i, j)][1] * q))
+           for (i, j) in ((0, 1), (1, 0), (1, 1))}
+    st = TemplateSettings(size=3, edge_samples=32, tol=1e-4, aggressor_charge=q, workers=1)
+    r = fit_sensor_parameters(itl, SensorParameters(xi0=8000.0, channel_depth=1.0,
+                                                    collection_height=0.5),
+                              {"xi0": (1e3, 1e5), "channel_depth": (0.2, 12.0)}, settings=st,
+                              max_nfev=30)
+    report("ITL a_ij (1e5 e)", r)
+    print(f"    model dlnA00 per e {np.log(r.model['A00']) / q:.3e} "
+          f"(measured a00 {a[(0, 0)][0]:.3e}, set by the sum rule)")
+    out["itl"] = r.as_dict()
+    with open(os.path.join(HERE, "calibration_results.json"), "w") as fh:
+        json.dump(out, fh, indent=2, default=float)
+
+
+if __name__ == "__main__":
+    main()
