@@ -26,6 +26,10 @@ Subcommands
 ``bfdrift correct IN.fits OUT.fits [--config FILE] [--method M] [--json]``
     BrighterFatterDriftTask on a FITS image; several inputs with
     ``--out-dir`` (processed in turn with a progress bar).
+``bfdrift validate-stars [--n-stars N] [--psf moffat|kolmogorov] [--json]``
+    Sky-like stars drawn by galsim.SiliconSensor (paired BF-free twins):
+    size and ellipticity slopes against flux for uncorrected, coulton18,
+    astier23 and drift, with errors.
 ``bfdrift maps [IMAGE] [--template FILE] [--out FILE] [--plot PNG] [--json]``
     Final pixel geometry (area, centroid shift, ellipticity maps) of an image
     in electrons; with no IMAGE, the bundled sample star. This is the quick
@@ -379,6 +383,29 @@ def _cmd_correct(args):
     return 0
 
 
+def _cmd_validate_stars(args):
+    from .template import DistortionTemplate
+    from .validation import draw_star_pairs, validate_stars
+    tpl = DistortionTemplate.from_galsim(args.sensor) if args.template is None else \
+        DistortionTemplate.load(args.template)
+    pairs = draw_star_pairs(args.n_stars, sensor=args.sensor, psf=args.psf, sky=args.sky,
+                            seed=args.seed, progress=not args.quiet)
+    res = validate_stars(pairs, tpl, sky=args.sky, progress=not args.quiet)
+    unc = res["uncorrected"]["size_slope"]
+    for k, v in res.items():
+        v["size_slope_fraction_of_uncorrected"] = v["size_slope"] / unc if unc else None
+    out = {"sensor": args.sensor, "psf": args.psf, "n_stars": args.n_stars,
+           "units": "slopes per 1e5 e: fractional change of T = Ixx + Iyy, change of e1/e2",
+           "template": args.template or f"galsim:{args.sensor}", **res}
+    if args.json:
+        _print_json(out)
+    else:
+        for k, v in res.items():
+            print(f"{k:12s} size slope {v['size_slope']:+.2e} +- {v['size_slope_err']:.1e}  "
+                  f"e1 slope {v['e_slope']:+.2e} +- {v['e_slope_err']:.1e}")
+    return 0
+
+
 def build_parser():
     """The argparse parser of ``bfdrift``."""
     p = argparse.ArgumentParser(prog="bfdrift", description="Electrostatic brighter-fatter model (Rasmussen 2015): templates and pixel-geometry maps.")
@@ -468,6 +495,17 @@ def build_parser():
     co.add_argument("--json", action="store_true")
     co.add_argument("--quiet", action="store_true")
     co.set_defaults(func=_cmd_correct)
+
+    vs = sub.add_parser("validate-stars", help="corrections on galsim.SiliconSensor stars")
+    vs.add_argument("--n-stars", type=int, default=200)
+    vs.add_argument("--psf", default="moffat", help="moffat, kolmogorov or gaussian")
+    vs.add_argument("--sensor", default="lsst_itl_50_8", help="GalSim sensor name")
+    vs.add_argument("--template", help="template for the corrections (default: the sensor's)")
+    vs.add_argument("--sky", type=float, default=1000.0, help="sky level (e per pixel)")
+    vs.add_argument("--seed", type=int, default=20151)
+    vs.add_argument("--json", action="store_true")
+    vs.add_argument("--quiet", action="store_true")
+    vs.set_defaults(func=_cmd_validate_stars)
 
     m = sub.add_parser("maps", help="pixel geometry maps of an image (main job)")
     m.add_argument("image", nargs="?", help="FITS image in electrons (default: bundled sample)")
