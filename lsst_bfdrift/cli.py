@@ -99,6 +99,16 @@ def _print_json(obj):
     print(json.dumps(obj, indent=2, sort_keys=True, default=float))
 
 
+def _emit(obj, as_json, width=18):
+    """Print ``obj`` as JSON, or as aligned ``key: value`` lines."""
+    if as_json:
+        _print_json(obj)
+    else:
+        for k, v in obj.items():
+            print(f"{k:>{width}s}: {v}")
+    return 0
+
+
 def _cmd_template_build(args):
     from .template import build_template
     params, settings = read_config(args.config)
@@ -127,13 +137,7 @@ def _save_and_report(tpl, args):
 
 def _cmd_template_summary(args):
     tpl = _load_template(args.file)
-    s = tpl.summary()
-    if args.json:
-        _print_json(s)
-    else:
-        for k, v in s.items():
-            print(f"{k:>18s}: {v}")
-    return 0
+    return _emit(tpl.summary(), args.json)
 
 
 def _cmd_template_plot(args):
@@ -206,12 +210,7 @@ def _cmd_maps(args):
         save_figure(plot_moment_maps(maps, image=np.where(bad, np.nan, image),
                                      title=os.path.basename(path)), args.plot)
         summary["plot"] = os.path.abspath(args.plot)
-    if args.json:
-        _print_json(summary)
-    else:
-        for k, v in summary.items():
-            print(f"{k:>20s}: {v}")
-    return 0
+    return _emit(summary, args.json, 20)
 
 
 def _cmd_ptc(args):
@@ -241,12 +240,7 @@ def _cmd_ptc(args):
             out[name] = float(fit["a"][i, j])
             out[name + "_err"] = float(fit["a_err"][i, j])
         out["a"] = fit["a"].tolist()
-    if args.json:
-        _print_json(out)
-    else:
-        for k, v in out.items():
-            print(f"{k:>14s}: {v}")
-    return 0
+    return _emit(out, args.json, 14)
 
 
 def _cmd_flat_sim(args):

@@ -30,7 +30,27 @@ class FieldValidationError(ValueError):
     """A config value is of the wrong type, out of range, or set on a frozen config."""
 
 
-class Field:
+class _Descriptor:
+    """Storage plumbing shared by fields: values live in the config's
+    ``_storage``; setting a frozen config raises."""
+
+    name = None
+
+    def __set_name__(self, owner, name):
+        self.name = name
+
+    def __get__(self, instance, owner):
+        if instance is None:
+            return self
+        return instance._storage[self.name]
+
+    def __set__(self, instance, value):
+        if instance._frozen:
+            raise FieldValidationError(f"cannot set {self.name!r}: the config is frozen")
+        instance._storage[self.name] = self._convert(value)
+
+
+class Field(_Descriptor):
     """A typed configuration value.
 
     Parameters
@@ -53,11 +73,7 @@ class Field:
         if not doc:
             raise ValueError("every field needs a doc string")
         self.doc, self.dtype, self.check, self.optional = doc, dtype, check, bool(optional)
-        self.name = None
         self.default = None if default is None else self._convert(default)
-
-    def __set_name__(self, owner, name):
-        self.name = name
 
     def _convert(self, value):
         if value is None:
@@ -79,16 +95,6 @@ class Field:
             raise FieldValidationError(f"field {self.name!r} takes a {self.dtype.__name__}, "
                                        f"got {type(value).__name__} {value!r}")
         return value
-
-    def __get__(self, instance, owner):
-        if instance is None:
-            return self
-        return instance._storage[self.name]
-
-    def __set__(self, instance, value):
-        if instance._frozen:
-            raise FieldValidationError(f"cannot set {self.name!r}: the config is frozen")
-        instance._storage[self.name] = self._convert(value)
 
     def validate(self, instance):
         """Raise :class:`FieldValidationError` if the current value fails."""
@@ -117,25 +123,14 @@ class ChoiceField(Field):
         return value
 
 
-class ConfigurableField:
+class ConfigurableField(_Descriptor):
     """A sub-config that configures a subtask (``target`` with its ConfigClass)."""
 
     def __init__(self, doc, target, ConfigClass=None):  # noqa: N803 (LSST name)
         self.doc, self.target = doc, target
         self.ConfigClass = ConfigClass or target.ConfigClass
-        self.name = None
 
-    def __set_name__(self, owner, name):
-        self.name = name
-
-    def __get__(self, instance, owner):
-        if instance is None:
-            return self
-        return instance._storage[self.name]
-
-    def __set__(self, instance, value):
-        if instance._frozen:
-            raise FieldValidationError(f"cannot set {self.name!r}: the config is frozen")
+    def _convert(self, value):
         if isinstance(value, dict):
             sub = self.ConfigClass()
             sub.update(**value)
@@ -143,7 +138,7 @@ class ConfigurableField:
         if not isinstance(value, self.ConfigClass):
             raise FieldValidationError(f"field {self.name!r} takes a "
                                        f"{self.ConfigClass.__name__} or a dict")
-        instance._storage[self.name] = value
+        return value
 
     def validate(self, instance):
         instance._storage[self.name].validate()
