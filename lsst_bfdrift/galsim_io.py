@@ -21,7 +21,7 @@ import numpy as np
 from astropy.table import Table
 
 __all__ = ["galsim_sensor_files", "read_galsim_config", "galsim_nominal_vertices",
-           "galsim_vertex_table", "read_galsim_sensor"]
+           "galsim_vertex_table", "read_galsim_sensor", "match_galsim_areas"]
 
 
 def galsim_sensor_files(name):
@@ -181,3 +181,59 @@ def read_galsim_sensor(cls, name):
     meta = {"source": f"galsim:{name}", "merge": "nearest", "galsim_config": {k: v for k, v in config.items()
                                                           if isinstance(v, (int, float, str))}}
     return cls.from_table(table, fr, charge, meta=meta, merge="nearest")
+
+
+def match_galsim_areas(template, name):
+    """Adjust the shared corners so that pixel areas equal GalSim's own.
+
+    GalSim keeps per-edge copies of pixel corners, so its pixels do not tile
+    and no shared (tiling) boundary set reproduces all its vertices. The
+    areas matter most for the flux, so the corners of the shared form are
+    moved by the smallest amount (minimum-norm least squares on the
+    linearised shoelace areas, then one Newton refinement) that makes every
+    pixel area equal ``galsim.SiliconSensor(name).calculate_pixel_areas`` for
+    the file's aggressor charge.
+
+    Returns
+    -------
+    DistortionTemplate
+        A copy with adjusted corners (``meta['area_matched']`` records the
+        largest corner change, px).
+    """
+    import galsim
+
+    n, c = template.size, template.center
+    sensor = galsim.SiliconSensor(name)
+    big = n + 2 * sensor.qdist + 4
+    img = galsim.ImageD(big, big)
+    img.setCenter(0, 0)
+    img[0, 0] = template.charge
+    ref = sensor.calculate_pixel_areas(img).array
+    mid = big // 2
+    target = ref[mid - c:mid + c + 1, mid - c:mid + c + 1]
+
+    def areas(cd):
+        t = type(template)(cd, template.vedge_d, template.hedge_d, template.fractions,
+                           template.charge, vedge_t=template.vedge_t, hedge_t=template.hedge_t,
+                           meta=template.meta)
+        return t.moments().area
+
+    cd = template.corner_d.copy()
+    total = np.zeros_like(cd)
+    for _ in range(2):
+        a0 = areas(cd)
+        eps = 1e-6
+        jac = np.empty((n * n, cd.size))
+        flat = cd.ravel()
+        for k in range(cd.size):
+            pert = flat.copy()
+            pert[k] += eps
+            jac[:, k] = ((areas(pert.reshape(cd.shape)) - a0) / eps).ravel()
+        step = np.linalg.lstsq(jac, (target - a0).ravel(), rcond=None)[0].reshape(cd.shape)
+        cd = cd + step
+        total += step
+    meta = dict(template.meta)
+    meta["area_matched"] = float(np.abs(total).max())
+    return type(template)(cd, template.vedge_d, template.hedge_d, template.fractions,
+                          template.charge, vedge_t=template.vedge_t, hedge_t=template.hedge_t,
+                          meta=meta, pixel_table=template._pixel_table)

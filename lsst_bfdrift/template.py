@@ -453,7 +453,16 @@ class DistortionTemplate:
         h.update("".join(str(e).strip() for e in t["edge"]).encode())
         h.update(np.ascontiguousarray(self.fractions, dtype="<f8").tobytes())
         h.update(repr(float(self.charge)).encode())
+        if self._pixel_table is not None:
+            for arr in self._shared_arrays().values():
+                h.update(np.ascontiguousarray(arr, dtype="<f8").tobytes())
         return h.hexdigest()
+
+    def _shared_arrays(self):
+        out = {"CORNER_D": self.corner_d, "VEDGE_D": self.vedge_d, "HEDGE_D": self.hedge_d}
+        if self.vedge_t is not None:
+            out.update(VEDGE_T=self.vedge_t, HEDGE_T=self.hedge_t)
+        return out
 
     def save(self, path, *, overwrite=False):
         """Write the template to a FITS file, atomically.
@@ -485,7 +494,13 @@ class DistortionTemplate:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", fits.verify.VerifyWarning)
             primary.header["BFMETA"] = json.dumps(meta, sort_keys=True, default=_json_default)
-        hdul = fits.HDUList([primary, hdu])
+        hdus = [primary, hdu]
+        if self._pixel_table is not None:
+            # the shared form is not derivable from a per-pixel table that
+            # disagrees between neighbours (GalSim files): store it as well
+            for name, arr in self._shared_arrays().items():
+                hdus.append(fits.ImageHDU(np.asarray(arr, dtype=np.float64), name=name))
+        hdul = fits.HDUList(hdus)
         with atomic_output(path) as tmp:
             hdul.writeto(tmp, overwrite=True, checksum=True)
 
@@ -515,6 +530,9 @@ class DistortionTemplate:
                     hdr = hdu.header.copy()
                     data = Table(hdu.data)
                     meta_str = hdul[0].header.get("BFMETA", "{}")
+                    shared = {name: np.array(hdul[name].data, dtype=np.float64)
+                              for name in ("CORNER_D", "VEDGE_D", "HEDGE_D", "VEDGE_T",
+                                           "HEDGE_T") if name in hdul}
         except TemplateFileError:
             raise
         except Exception as exc:  # astropy raises many kinds for broken files
@@ -533,6 +551,15 @@ class DistortionTemplate:
         tol = 0.0 if hdr.get("BFSHARED", False) else None
         merge = meta.get("merge", "mean")
         tpl = cls.from_table(data, fractions, charge, meta=meta, max_mismatch=tol, merge=merge)
+        if shared:
+            if not {"CORNER_D", "VEDGE_D", "HEDGE_D"} <= set(shared):
+                raise TemplateFileError(f"{path}: incomplete shared-boundary extensions")
+            try:
+                tpl = cls(shared["CORNER_D"], shared["VEDGE_D"], shared["HEDGE_D"], fractions,
+                          charge, vedge_t=shared.get("VEDGE_T"), hedge_t=shared.get("HEDGE_T"),
+                          meta=tpl.meta, pixel_table=tpl._pixel_table)
+            except ValueError as exc:
+                raise TemplateFileError(f"{path}: {exc}") from exc
         if int(hdr.get("BFSIZE", -1)) != tpl.size:
             raise TemplateFileError(f"{path}: header size {hdr.get('BFSIZE')} does not match "
                                     f"table ({tpl.size})")
@@ -543,7 +570,7 @@ class DistortionTemplate:
 
     # -- GalSim -----------------------------------------------------------------
     @classmethod
-    def from_galsim(cls, name="lsst_itl_50_8"):
+    def from_galsim(cls, name="lsst_itl_50_8", *, match_areas=True):
         """Import one of GalSim's sensor distortion files (Poisson_CCD output).
 
         Parameters
@@ -551,15 +578,25 @@ class DistortionTemplate:
         name : str
             Sensor name in galsim's ``share/sensors`` (e.g. ``lsst_itl_50_8``)
             or a path without extension to a ``.cfg``/``.dat`` pair.
+        match_areas : bool, optional
+            See below.
 
         Returns
         -------
         DistortionTemplate
             Charge ``CollectedCharge_0_0`` of the file; sample fractions are
             GalSim's tan-spaced vertex positions; tangential displacements kept.
+            The per-pixel table keeps the file's vertices exactly
+            (``polygons(per_pixel=True)``).
+        match_areas : bool, optional
+            Adjust the shared corners so that every pixel area equals
+            GalSim's own (:func:`~lsst_bfdrift.galsim_io.match_galsim_areas`);
+            otherwise each edge and corner is taken from the pixel nearest
+            the aggressor.
         """
-        from .galsim_io import read_galsim_sensor
-        return read_galsim_sensor(cls, name)
+        from .galsim_io import match_galsim_areas, read_galsim_sensor
+        tpl = read_galsim_sensor(cls, name)
+        return match_galsim_areas(tpl, name) if match_areas else tpl
 
 
 def _json_default(obj):
