@@ -154,10 +154,13 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
     x, y : ndarray
         Corner positions (pixel units).
 
+    Corners that have not converged after ``max_passes`` rounds (contraction
+    near 1) are finished by Steffensen's method on y -> Y(X(y)).
+
     Raises
     ------
     RuntimeError
-        If some corner has not converged after ``max_passes`` rounds.
+        If some corner has not converged after that either.
     """
     x = np.asarray(xc, float).ravel().copy()
     y = np.asarray(yc, float).ravel().copy()
@@ -179,6 +182,29 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
         x[todo], y[todo] = xn, yn
         step[todo] = change
         todo = todo[change >= 2.0 * tol]
+    if todo.size:
+        # Slow or oscillating alternation (|X'Y'| near 1 at strong cusps):
+        # Steffensen's method on the composed map G(y) = Y(X(y)).
+        kw = dict(tol=tol, half_width=0.45, **kwargs)
+
+        def g_of(yy, xx, idx):
+            xn = bisect_boundary(model, yy, xx, "x", col_index[idx], **kw)
+            return bisect_boundary(model, xn, yy, "y", row_index[idx], **kw), xn
+
+        for _ in range(max_passes):
+            if todo.size == 0:
+                break
+            y0 = y[todo]
+            g0, x0 = g_of(y0, x[todo], todo)
+            g1, x1 = g_of(g0, x0, todo)
+            den = g1 - 2.0 * g0 + y0
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ynew = np.where(np.abs(den) > 1e-12, y0 - (g0 - y0) ** 2 / den, g1)
+            ynew = np.clip(ynew, y0 - 0.45, y0 + 0.45)
+            xnew = bisect_boundary(model, ynew, x1, "x", col_index[todo], **kw)
+            change = np.maximum(np.abs(ynew - y0), np.abs(xnew - x[todo]))
+            x[todo], y[todo] = xnew, ynew
+            todo = todo[change >= 2.0 * tol]
     if todo.size:
         raise RuntimeError(f"{todo.size} corner(s) did not converge in {max_passes} passes, "
                            f"e.g. near ({x[todo[0]]:.4f}, {y[todo[0]]:.4f})")

@@ -30,6 +30,10 @@ Subcommands
     Sky-like stars drawn by galsim.SiliconSensor (paired BF-free twins):
     size and ellipticity slopes against flux for uncorrected, coulton18,
     astier23 and drift, with errors.
+``bfdrift reproduce [--json] [--out DIR] [--quick]``
+    The paper's numbers next to the calibrated model's (A00..A11, ratio,
+    radial slopes, neighbour recovery, fall-off), the V_BSS ratio scan, and
+    figures in DIR.
 ``bfdrift maps [IMAGE] [--template FILE] [--out FILE] [--plot PNG] [--json]``
     Final pixel geometry (area, centroid shift, ellipticity maps) of an image
     in electrons; with no IMAGE, the bundled sample star. This is the quick
@@ -400,6 +404,31 @@ def _cmd_validate_stars(args):
     return 0
 
 
+def _cmd_reproduce(args):
+    from .progress import ProgressBar
+    from .reproduce import radial_profile, reproduce
+    kw = dict(size=11, edge_samples=16, v_bss=(-65.0, -50.0), xi_ck=(4.0, 5.0)) if args.quick \
+        else {}
+    n_scan = len(kw.get("v_bss", (0,) * 5)) * len(kw.get("xi_ck", (0,) * 5))
+    with ProgressBar(n_scan, "reproduce", enabled=not args.quiet) as bar:
+        numbers, tpl, (v_bss, xi_ck, ratio) = reproduce(progress=bar, **kw)
+    numbers["ratio_scan"] = {"v_bss": v_bss.tolist(), "xi_ck": xi_ck.tolist(),
+                             "ratio_01_10": ratio.tolist()}
+    if args.out:
+        from .plots import plot_radial, plot_ratio_scan, plot_template, save_figure
+        os.makedirs(args.out, exist_ok=True)
+        fid = numbers["ratio_01_10"]["package"]
+        save_figure(plot_ratio_scan(v_bss, xi_ck, ratio, fiducial=(-50.0, 5.0, fid)),
+                    os.path.join(args.out, "ratio_scan.png"))
+        save_figure(plot_radial(*radial_profile(tpl)), os.path.join(args.out, "radial.png"))
+        save_figure(plot_template(tpl), os.path.join(args.out, "template.png"))
+        tpl.save(os.path.join(args.out, "paper_template.fits"), overwrite=True)
+        with atomic_output(os.path.join(args.out, "reproduce.json")) as tmp, \
+                open(tmp, "w") as fh:
+            json.dump(numbers, fh, indent=2, default=float)
+    return _emit(numbers, args.json, 20)
+
+
 def build_parser():
     """The argparse parser of ``bfdrift``."""
     p = argparse.ArgumentParser(prog="bfdrift", description="Electrostatic brighter-fatter model (Rasmussen 2015): templates and pixel-geometry maps.")
@@ -500,6 +529,13 @@ def build_parser():
     vs.add_argument("--json", action="store_true")
     vs.add_argument("--quiet", action="store_true")
     vs.set_defaults(func=_cmd_validate_stars)
+
+    rp = sub.add_parser("reproduce", help="the paper's numbers with the calibrated model")
+    rp.add_argument("--out", help="directory for figures, template and JSON")
+    rp.add_argument("--quick", action="store_true", help="small template and scan (tests)")
+    rp.add_argument("--json", action="store_true")
+    rp.add_argument("--quiet", action="store_true")
+    rp.set_defaults(func=_cmd_reproduce)
 
     m = sub.add_parser("maps", help="pixel geometry maps of an image (main job)")
     m.add_argument("image", nargs="?", help="FITS image in electrons (default: bundled sample)")

@@ -16,7 +16,7 @@ from matplotlib.collections import PolyCollection  # noqa: E402
 from .io_utils import atomic_output  # noqa: E402
 
 __all__ = ["plot_template", "plot_moment_maps", "plot_flat_simulation", "plot_star_history",
-           "save_figure"]
+           "plot_ratio_scan", "plot_radial", "save_figure"]
 
 
 def _auto_exaggeration(template):
@@ -178,6 +178,33 @@ def plot_star_history(history):
         if not a.get_xlabel():
             a.set_xlabel("counts (e)" if a in (ax[0, 0], ax[0, 1], ax[1, 2]) else
                          "central pixel counts (e)")
+    return fig
+
+
+def plot_ratio_scan(v_bss, xi_ck, ratio, *, fiducial=(-50.0, 5.0, None)):
+    """d ln A01 / d ln A10 against V_BSS for several xi_CK (paper Fig. 5, upper left)."""
+    fig, ax = plt.subplots(figsize=(6, 4.5), constrained_layout=True)
+    for k, ck in enumerate(xi_ck):
+        ax.plot(v_bss, ratio[k], "o-", label=f"|xi_CK| = {ck:g} xi0")
+    if fiducial[2] is not None:
+        ax.plot([fiducial[0]], [fiducial[2]], "ko", ms=9, label="fiducial")
+    ax.set_xlabel("V_BSS (V)")
+    ax.set_ylabel("d ln A01 / d ln A10")
+    ax.set_ylim(0, 8)
+    ax.axhline(2.86, color="grey", ls=":", lw=1)
+    ax.legend(fontsize=8)
+    return fig
+
+
+def plot_radial(r2, dlna, p_r, e_r, *, r2_range=(4, 25)):
+    """|d ln A|, |ln(1 - p_r)| and |ln(1 - e_r)| against r^2 (paper Fig. 5, bottom)."""
+    fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
+    for y, name in ((dlna, "|d ln A|"), (np.log1p(-p_r), "|ln(1 - p_r)|"),
+                    (np.log1p(-e_r), "|ln(1 - e_r)|")):
+        ax.loglog(r2, np.abs(y), ".", label=name)
+    ax.axvspan(*r2_range, color="grey", alpha=0.15, label="fit range")
+    ax.set_xlabel("r$^2$ = di$^2$ + dj$^2$ (px$^2$)")
+    ax.legend()
     return fig
 
 
