@@ -197,7 +197,7 @@ def plot_ratio_scan(v_bss, xi_ck, ratio, *, fiducial=(-50.0, 5.0, None)):
 
 
 def plot_radial(r2, dlna, p_r, e_r, *, r2_range=(4, 25)):
-    """|d ln A|, |ln(1 - p_r)| and |ln(1 - e_r)| against r^2 (paper Fig. 5, bottom)."""
+    """Magnitudes of d ln A, ln(1 - p_r) and ln(1 - e_r) against r^2 (paper Fig. 5, bottom)."""
     fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
     for y, name in ((dlna, "|d ln A|"), (np.log1p(-p_r), "|ln(1 - p_r)|"),
                     (np.log1p(-e_r), "|ln(1 - e_r)|")):
