@@ -166,18 +166,32 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
     y = np.asarray(yc, float).ravel().copy()
     col_index = np.broadcast_to(np.asarray(col_index), np.shape(xc)).ravel()
     row_index = np.broadcast_to(np.asarray(row_index), np.shape(xc)).ravel()
-    x = bisect_boundary(model, y, x, "x", col_index, tol=tol, **kwargs)
-    y = bisect_boundary(model, x, y, "y", row_index, tol=tol, **kwargs)
+    # Each boundary is read a small step to either side of the other one and
+    # averaged: exactly on a barrier's symmetry plane, lines stall on its
+    # saddle and the crossing boundary there is not the limit of its neighbours.
+    delta = 2.0 * tol  # bias at a cusp ~ delta * (slope jump) / 2 < tol
+
+    def col_bnd(yy, xx, idx, **kw):
+        lo = bisect_boundary(model, yy - delta, xx, "x", col_index[idx], tol=tol, **kw)
+        hi = bisect_boundary(model, yy + delta, xx, "x", col_index[idx], tol=tol, **kw)
+        return 0.5 * (lo + hi)
+
+    def row_bnd(xx, yy, idx, **kw):
+        lo = bisect_boundary(model, xx - delta, yy, "y", row_index[idx], tol=tol, **kw)
+        hi = bisect_boundary(model, xx + delta, yy, "y", row_index[idx], tol=tol, **kw)
+        return 0.5 * (lo + hi)
+
+    everything = np.arange(x.size)
+    x = col_bnd(y, x, everything, **kwargs)
+    y = row_bnd(x, y, everything, **kwargs)
     todo = np.arange(x.size)
     step = np.full(x.size, 0.45)
     for _ in range(max_passes):
         if todo.size == 0:
             break
         hw = float(np.clip(4.0 * step[todo].max(), 4.0 * tol, 0.45))
-        xn = bisect_boundary(model, y[todo], x[todo], "x", col_index[todo], tol=tol,
-                             half_width=hw, **kwargs)
-        yn = bisect_boundary(model, xn, y[todo], "y", row_index[todo], tol=tol,
-                             half_width=hw, **kwargs)
+        xn = col_bnd(y[todo], x[todo], todo, half_width=hw, **kwargs)
+        yn = row_bnd(xn, y[todo], todo, half_width=hw, **kwargs)
         change = np.maximum(np.abs(xn - x[todo]), np.abs(yn - y[todo]))
         x[todo], y[todo] = xn, yn
         step[todo] = change
@@ -185,11 +199,11 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
     if todo.size:
         # Slow or oscillating alternation (|X'Y'| near 1 at strong cusps):
         # Steffensen's method on the composed map G(y) = Y(X(y)).
-        kw = dict(tol=tol, half_width=0.45, **kwargs)
+        kw = dict(half_width=0.45, **kwargs)
 
         def g_of(yy, xx, idx):
-            xn = bisect_boundary(model, yy, xx, "x", col_index[idx], **kw)
-            return bisect_boundary(model, xn, yy, "y", row_index[idx], **kw), xn
+            xn = col_bnd(yy, xx, idx, **kw)
+            return row_bnd(xn, yy, idx, **kw), xn
 
         for _ in range(max_passes):
             if todo.size == 0:
@@ -201,7 +215,7 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
             with np.errstate(divide="ignore", invalid="ignore"):
                 ynew = np.where(np.abs(den) > 1e-12, y0 - (g0 - y0) ** 2 / den, g1)
             ynew = np.clip(ynew, y0 - 0.45, y0 + 0.45)
-            xnew = bisect_boundary(model, ynew, x1, "x", col_index[todo], **kw)
+            xnew = col_bnd(ynew, x1, todo, **kw)
             change = np.maximum(np.abs(ynew - y0), np.abs(xnew - x[todo]))
             x[todo], y[todo] = xnew, ynew
             todo = todo[change >= 2.0 * tol]

@@ -422,6 +422,15 @@ def _cmd_reproduce(args):
                     os.path.join(args.out, "ratio_scan.png"))
         save_figure(plot_radial(*radial_profile(tpl)), os.path.join(args.out, "radial.png"))
         save_figure(plot_template(tpl), os.path.join(args.out, "template.png"))
+        from .features import edge_rolloff, midline
+        from .plots import plot_feature_profiles
+        from .reproduce import paper_parameters
+        save_figure(plot_feature_profiles(edge_rolloff(paper_parameters()),
+                                          xlabel="column from the edge"),
+                    os.path.join(args.out, "edge_rolloff.png"))
+        save_figure(plot_feature_profiles(midline(paper_parameters()),
+                                          xlabel="row (bloom stop below row 0)"),
+                    os.path.join(args.out, "midline.png"))
         tpl.save(os.path.join(args.out, "paper_template.fits"), overwrite=True)
         with atomic_output(os.path.join(args.out, "reproduce.json")) as tmp, \
                 open(tmp, "w") as fh:

@@ -149,8 +149,9 @@ def drift_lines(model, x0, y0, z0=None, *, z_stop=None, step_scale=0.15, min_ste
         n = x0.size
         out = [np.empty(n), np.empty(n), np.empty(n), np.empty(n, np.int64),
                np.empty(n, np.bool_), np.empty(n, np.bool_)]
-        drift_batch(np.ascontiguousarray(x0.ravel()), np.ascontiguousarray(y0.ravel()),
-                    np.ascontiguousarray(z0.ravel()), float(z_stop), float(step_scale),
+        # fresh contiguous copies: the inputs may be read-only broadcast views
+        drift_batch(np.array(x0, dtype=np.float64).ravel(), np.array(y0, dtype=np.float64).ravel(),
+                    np.array(z0, dtype=np.float64).ravel(), float(z_stop), float(step_scale),
                     float(min_step), float(max_step), int(max_steps), float(np.cos(max_turn)),
                     *arrays, COULOMB_UM, *out)
         return DriftResult(*(a.reshape(shape) for a in out))

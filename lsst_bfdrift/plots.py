@@ -16,7 +16,7 @@ from matplotlib.collections import PolyCollection  # noqa: E402
 from .io_utils import atomic_output  # noqa: E402
 
 __all__ = ["plot_template", "plot_moment_maps", "plot_flat_simulation", "plot_star_history",
-           "plot_ratio_scan", "plot_radial", "save_figure"]
+           "plot_ratio_scan", "plot_radial", "plot_feature_profiles", "save_figure"]
 
 
 def _auto_exaggeration(template):
@@ -205,6 +205,26 @@ def plot_radial(r2, dlna, p_r, e_r, *, r2_range=(4, 25)):
     ax.axvspan(*r2_range, color="grey", alpha=0.15, label="fit range")
     ax.set_xlabel("r$^2$ = di$^2$ + dj$^2$ (px$^2$)")
     ax.legend()
+    return fig
+
+
+def plot_feature_profiles(table, *, xlabel="index"):
+    """Area, centroid shift and ellipticity profiles of a fixed-pattern feature."""
+    fig, ax = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
+    for setting in sorted(set(table["setting"])):
+        s = table[table["setting"] == setting]
+        lab = f"{setting:g}"
+        ax[0].plot(s["index"], s["area"], ".-", label=lab)
+        ax[1].plot(s["index"], s["dx"], ".-", label=f"dx {lab}")
+        ax[1].plot(s["index"], s["dy"], "--", label=f"dy {lab}")
+        ax[2].plot(s["index"], s["e1"], ".-", label=f"e1 {lab}")
+    ax[0].set_ylabel("area (px$^2$)")
+    ax[1].set_ylabel("centroid shift (px)")
+    ax[2].set_ylabel("e1")
+    for a in ax:
+        a.set_xlabel(xlabel)
+        a.legend(fontsize=7)
+    fig.suptitle(table.meta.get("feature", ""))
     return fig
 
 

@@ -11,7 +11,7 @@ from .sensor import SensorParameters
 from .template import TemplateSettings, build_template
 
 __all__ = ["PAPER", "paper_parameters", "radial_profile", "radial_fits",
-           "neighbour_recovery", "ratio_scan", "reproduce"]
+           "neighbour_recovery", "ratio_scan", "reproduce", "feature_summary"]
 
 #: The paper's numbers (section 4.1; fiducial template for a 1e4 e aggressor).
 PAPER = {"A00": 0.9033, "A01": 1.0077, "A10": 1.0027, "A11": 1.0033, "ratio_01_10": 2.86,
@@ -119,4 +119,28 @@ def reproduce(*, size=31, edge_samples=32, v_bss=(-80.0, -65.0, -50.0, -35.0, -2
     numbers["clock_separation_um"] = p.clock_separation
     numbers["collection_height_um"] = p.z_collect
     scan = ratio_scan(v_bss, xi_ck, progress=progress)
+    numbers["features"] = feature_summary(p)
     return numbers, tpl, scan
+
+
+def feature_summary(params, *, edge=None, mid=None):
+    """Key numbers of the edge roll-off and midline profiles (see features)."""
+    from .features import edge_rolloff, midline
+    edge = edge_rolloff(params) if edge is None else edge
+    mid = midline(params) if mid is None else mid
+    out = {"edge_rolloff": {}, "midline": {}}
+    for g in sorted(set(edge["setting"])):
+        s = edge[edge["setting"] == g]
+        area = np.asarray(s["area"])
+        reach = int(np.argmax(area > 0.99)) if np.any(area > 0.99) else len(area)
+        out["edge_rolloff"][f"xi_guard={g:+g}"] = {
+            "area_column0": float(area[0]), "dx_column0": float(s["dx"][0]),
+            "columns_to_area_0.99": reach}
+    for v in sorted(set(mid["setting"])):
+        s = mid[mid["setting"] == v]
+        area = np.asarray(s["area"])
+        n = len(area) // 2
+        out["midline"][f"v_bss={v:g}"] = {"area_rows_beside_stop": float(area[n]),
+                                          "area_next_rows": float(area[n + 1]),
+                                          "dy_row0": float(s["dy"][n])}
+    return out
