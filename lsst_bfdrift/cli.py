@@ -51,7 +51,8 @@ import sys
 
 import numpy as np
 
-from .io_utils import atomic_output
+from .io_utils import atomic_output, read_image
+from .stars import make_psf
 
 __all__ = ["main", "read_config", "sample_image_path", "make_psf", "read_image"]
 
@@ -157,20 +158,6 @@ def _cmd_template_import(args):
     from .template import DistortionTemplate
     _refuse_overwrite(args)
     return _save_and_report(DistortionTemplate.from_galsim(args.name), args)
-
-
-def read_image(path, *, hdu=None):
-    """Image (float64 copy) and mask from a FITS file; NaN/inf are masked."""
-    from astropy.io import fits
-    with fits.open(path, memmap=False) as hdul:
-        if hdu is None:
-            hdu = next((k for k, h in enumerate(hdul) if getattr(h, "data", None) is not None
-                        and h.data.ndim == 2), None)
-            if hdu is None:
-                raise ValueError(f"{path}: no 2-d image HDU")
-        data = np.array(hdul[hdu].data, dtype=np.float64)
-        header = hdul[hdu].header.copy()
-    return data, ~np.isfinite(data), header
 
 
 def _write_maps(path, maps, header):
@@ -279,23 +266,6 @@ def _cmd_flat_sim(args):
         print(f"final mean {last['mu']:.1f} e: C00 {last['C00_paper']:.1f}, C01 "
               f"{last['C01_paper']:.2f}, C10 {last['C10_paper']:.2f} e^2 (all pairs)")
     return 0
-
-
-def make_psf(kind, fwhm, *, e=0.0, beta=0.0, beta_moffat=3.5):
-    """A GalSim PSF by name: 'gaussian', 'moffat' or 'kolmogorov' (FWHM arcsec),
-    sheared to ellipticity ``e`` at position angle ``beta`` (degrees)."""
-    import galsim
-    if not fwhm > 0:
-        raise ValueError(f"--fwhm must be positive, got {fwhm}")
-    if not 0 <= e < 1:
-        raise ValueError(f"--e must be in [0, 1), got {e}")
-    makers = {"gaussian": lambda: galsim.Gaussian(fwhm=fwhm),
-              "moffat": lambda: galsim.Moffat(beta=beta_moffat, fwhm=fwhm),
-              "kolmogorov": lambda: galsim.Kolmogorov(fwhm=fwhm)}
-    if kind not in makers:
-        raise ValueError(f"unknown PSF {kind!r}; choose from {sorted(makers)}")
-    psf = makers[kind]()
-    return psf.shear(e=e, beta=beta * galsim.degrees) if e > 0 else psf
 
 
 def _cmd_star_sim(args):

@@ -150,7 +150,7 @@ def edge_transfer(sv, sh, fv, fh):
     return (tv[:, 1:] - tv[:, :-1]) + (th[1:, :] - th[:-1, :])
 
 
-def recorded_image(flux, swept, *, order=3, density="cubic4", blocked=None):
+def recorded_image(flux, swept, *, order=3, density="cubic4", blocked=None, densities=None):
     """Image recorded for a flux ``flux`` with moving boundaries (series to ``order``).
 
     Parameters
@@ -164,12 +164,15 @@ def recorded_image(flux, swept, *, order=3, density="cubic4", blocked=None):
         half-final-shift approximation.
     density, blocked
         See :func:`edge_flux_density`.
+    densities : tuple, optional
+        (fv, fh) already computed for ``flux`` (saves recomputing them).
 
     Returns
     -------
     ndarray
     """
-    fv, fh = edge_flux_density(flux, mode=density, blocked=blocked)
+    fv, fh = densities if densities is not None else \
+        edge_flux_density(flux, mode=density, blocked=blocked)
     out = np.array(flux, float, copy=True)
     term = out.copy()
     fact = 1.0
@@ -224,12 +227,11 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
     converged = False
     it = 0
     for it in range(1, int(max_iter) + 1):
-        resid = img_eff - recorded_image(flux, swept, order=order, density=density,
-                                         blocked=blk)
+        fv, fh = edge_flux_density(flux, mode=density, blocked=blk)
+        resid = img_eff - recorded_image(flux, swept, order=order, densities=(fv, fh))
         resid[blk] = 0.0
         # Newton-like step: (dR/dF)^-1 ~ 1 - G/2 to first order, which makes
         # the iteration converge much faster than F <- F + r where BF is strong.
-        fv, fh = edge_flux_density(flux, mode=density, blocked=blk)
         sv, sh = swept(resid)
         flux += resid - 0.5 * edge_transfer(sv, sh, fv, fh)
         if np.abs(resid).max() <= rtol * scale:

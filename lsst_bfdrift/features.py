@@ -35,6 +35,23 @@ def strip_geometry(params, i_range, j_range, *, edge_samples=8, tol=1e-4):
     return m, ii, jj
 
 
+def _profiles(settings, make_params, i_range, j_range, axis, edge_samples, tol, meta):
+    """Profiles of a strip for each setting; ``axis`` 1 runs along columns."""
+    rows = []
+    for value in settings:
+        m, ii, jj = strip_geometry(make_params(float(value)), i_range, j_range,
+                                   edge_samples=edge_samples, tol=tol)
+        take = (lambda a: a[0]) if axis == 1 else (lambda a: a[:, 0])
+        index = ii if axis == 1 else jj
+        rows.append(Table({"setting": np.full(take(index).size, float(value)),
+                           "index": take(index), "area": take(m.area),
+                           "dx": take(m.x - ii), "dy": take(m.y - jj), "e1": take(m.e1),
+                           "e2": take(m.e2)}))
+    t = vstack(rows)
+    t.meta["feature"] = meta
+    return t
+
+
 def edge_rolloff(params=None, *, xi_guard=(-5.0, 0.0, 5.0), n_columns=25, edge_samples=8,
                  tol=1e-4):
     """Pixel geometry across a sensor edge for several guard-ring dipoles.
@@ -55,17 +72,9 @@ def edge_rolloff(params=None, *, xi_guard=(-5.0, 0.0, 5.0), n_columns=25, edge_s
     astropy.table.Table
     """
     base = SensorParameters() if params is None else params
-    rows = []
-    for xg in xi_guard:
-        p = base.replace(edge=0.0, edge_side=1, xi_guard=float(xg))
-        m, ii, jj = strip_geometry(p, (0, n_columns), (0, 1), edge_samples=edge_samples,
-                                   tol=tol)
-        rows.append(Table({"setting": np.full(n_columns, float(xg)), "index": ii[0],
-                           "area": m.area[0], "dx": m.x[0] - ii[0], "dy": m.y[0] - jj[0],
-                           "e1": m.e1[0], "e2": m.e2[0]}))
-    t = vstack(rows)
-    t.meta["feature"] = "edge roll-off; setting = guard-ring dipole (xi0)"
-    return t
+    return _profiles(xi_guard, lambda g: base.replace(edge=0.0, edge_side=1, xi_guard=g),
+                     (0, n_columns), (0, 1), 1, edge_samples, tol,
+                     "edge roll-off; setting = guard-ring dipole (xi0)")
 
 
 def midline(params=None, *, v_bss=(-70.0, -50.0, -30.0), n_rows=10, edge_samples=8,
@@ -79,14 +88,6 @@ def midline(params=None, *, v_bss=(-70.0, -50.0, -30.0), n_rows=10, edge_samples
     astropy.table.Table
     """
     base = SensorParameters() if params is None else params
-    rows = []
-    for v in v_bss:
-        p = base.replace(bloom_stop=0.0, v_bss=float(v))
-        m, ii, jj = strip_geometry(p, (0, 1), (-n_rows, n_rows), edge_samples=edge_samples,
-                                   tol=tol)
-        rows.append(Table({"setting": np.full(2 * n_rows, float(v)), "index": jj[:, 0],
-                           "area": m.area[:, 0], "dx": m.x[:, 0] - ii[:, 0],
-                           "dy": m.y[:, 0] - jj[:, 0], "e1": m.e1[:, 0], "e2": m.e2[:, 0]}))
-    t = vstack(rows)
-    t.meta["feature"] = "midline (bloom stop); setting = V_BSS (V)"
-    return t
+    return _profiles(v_bss, lambda v: base.replace(bloom_stop=0.0, v_bss=v), (0, 1),
+                     (-n_rows, n_rows), 0, edge_samples, tol,
+                     "midline (bloom stop); setting = V_BSS (V)")

@@ -1,10 +1,12 @@
-"""Atomic file output shared by every writer in the package."""
+"""File helpers shared by the package: atomic output, image input."""
 
 import contextlib
 import os
 import tempfile
 
-__all__ = ["atomic_output"]
+import numpy as np
+
+__all__ = ["atomic_output", "read_image"]
 
 
 @contextlib.contextmanager
@@ -32,3 +34,18 @@ def atomic_output(path, *, overwrite=True):
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
+
+
+def read_image(path, *, hdu=None):
+    """Image (float64 copy) and mask from a FITS file; NaN/inf are masked."""
+    from astropy.io import fits
+
+    with fits.open(path, memmap=False) as hdul:
+        if hdu is None:
+            hdu = next((k for k, h in enumerate(hdul) if getattr(h, "data", None) is not None
+                        and h.data.ndim == 2), None)
+            if hdu is None:
+                raise ValueError(f"{path}: no 2-d image HDU")
+        data = np.array(hdul[hdu].data, dtype=np.float64)
+        header = hdul[hdu].header.copy()
+    return data, ~np.isfinite(data), header

@@ -159,7 +159,7 @@ def measure_ptc(pairs, *, max_lag=8, masks=None, **kwargs):
         Columns ``mu`` (ADU), ``cov`` (ADU^2, shape (L+1, L+1) per row),
         ``npix``, ``nmasked``.
     """
-    from .cli import read_image
+    from .io_utils import read_image
 
     rows = []
     for k, (f1, f2) in enumerate(pairs):

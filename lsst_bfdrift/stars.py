@@ -20,7 +20,24 @@ from .geometry import locate_points, pixel_polygons
 from .progress import ProgressBar
 from .superpose import moment_maps, superpose_boundaries
 
-__all__ = ["shoot_photons", "image_moments", "StarSimulation", "simulate_star"]
+__all__ = ["make_psf", "shoot_photons", "image_moments", "StarSimulation", "simulate_star"]
+
+
+def make_psf(kind, fwhm, *, e=0.0, beta=0.0, beta_moffat=3.5):
+    """A GalSim PSF by name: 'gaussian', 'moffat' or 'kolmogorov' (FWHM arcsec),
+    sheared to ellipticity ``e`` at position angle ``beta`` (degrees)."""
+    import galsim
+    if not fwhm > 0:
+        raise ValueError(f"--fwhm must be positive, got {fwhm}")
+    if not 0 <= e < 1:
+        raise ValueError(f"--e must be in [0, 1), got {e}")
+    makers = {"gaussian": lambda: galsim.Gaussian(fwhm=fwhm),
+              "moffat": lambda: galsim.Moffat(beta=beta_moffat, fwhm=fwhm),
+              "kolmogorov": lambda: galsim.Kolmogorov(fwhm=fwhm)}
+    if kind not in makers:
+        raise ValueError(f"unknown PSF {kind!r}; choose from {sorted(makers)}")
+    psf = makers[kind]()
+    return psf.shear(e=e, beta=beta * galsim.degrees) if e > 0 else psf
 
 
 def shoot_photons(psf, n_photons, *, pixel_scale=0.2, seed=None):

@@ -90,7 +90,7 @@ class _Convolver:
 def _block_displacements(conv, charge, r0, r1, workers=1):
     """Displacement arrays for pixel rows r0..r1-1 (and their corner rows)."""
     t = conv.t
-    c, n, ns = t.center, t.size, t.edge_samples
+    c, ns = t.center, t.edge_samples
     ny, nx = charge.shape
     # Aggressor rows that can reach corner rows r0..r1: ja in [r0 - c, r1 + c].
     a0 = max(r0 - c - 1, 0)
@@ -111,7 +111,6 @@ def _block_displacements(conv, charge, r0, r1, workers=1):
         o = 2 + 2 * ns
         vt = np.stack([full[o + s][rows(r0, r1), cols_c] for s in range(ns)], axis=-1)
         ht = np.stack([full[o + ns + s][rows(r0, r1 + 1), cols_h] for s in range(ns)], axis=-1)
-    del n
     q = 1.0 / t.charge
     out = [np.stack([cdx, cdy], axis=-1) * q, v * q, h * q]
     out += [None if vt is None else vt * q, None if ht is None else ht * q]

@@ -56,7 +56,7 @@ def draw_star_pairs(n_stars, *, sensor="lsst_itl_50_8", psf="moffat", fwhm=(0.6,
     """
     import galsim
 
-    from .cli import make_psf
+    from .stars import make_psf
 
     if int(n_stars) < 1:
         raise ValueError(f"n_stars must be positive, got {n_stars!r}")
