@@ -60,7 +60,7 @@ def _positions(rng, n, shape, margin, min_sep, max_tries=20000):
 def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=False,
                         sensor="lsst_itl_50_8", fwhm=(0.7, 0.95), e_range=0.04,
                         flux=(1e4, 1.5e6), sky=800.0, read_noise=5.0, min_separation=32,
-                        stamp=31, pixel_scale=0.2, beta_moffat=3.5, updates=20,
+                        stamp=31, pixel_scale=0.2, beta_moffat=3.5, nrecalc=10000,
                         seed=20151, progress=False):
     """A star field drawn by galsim.SiliconSensor.
 
@@ -70,8 +70,10 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
         (ny, nx) of the field (px).
     n_stars : int, optional
         Number of stars.
-    strength : float, optional
+    strength : float or sequence of float, optional
         ``galsim.SiliconSensor`` strength (1 = nominal BF; 0 means 1e-9, no BF).
+        With several strengths the same photons, sensor seeds and noise are
+        used for each (paired images, returned in ``images``).
     twin : bool, optional
         Also return the BF-free twin (same photons, same noise).
     sensor : str, optional
@@ -95,10 +97,8 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
         arcsec per px.
     beta_moffat : float, optional
         Moffat index.
-    updates : int, optional
-        Boundary updates per star: ``nrecalc = max(1e4, flux / updates)``
-        (GalSim's default is every 1e4 photons; the per-update cost dominates
-        for bright stars, and 20 updates resolve the time history to ~2 %).
+    nrecalc : float, optional
+        Photons between GalSim's boundary updates (GalSim's default, 1e4).
     seed : int, optional
         Seed of every random number.
     progress : bool, optional
@@ -107,7 +107,8 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
     Returns
     -------
     dict
-        ``image`` (e, float64), ``truth_image`` (BF-free twin or None),
+        ``image`` (e, float64; the first strength), ``images`` (one per
+        strength), ``truth_image`` (BF-free twin or None),
         ``stars`` (QTable: ``x``, ``y`` (px), ``flux`` (e), ``fwhm`` (arcsec),
         ``psf_e1``, ``psf_e2``), ``sky`` (e per px), ``strength``.
     """
@@ -119,17 +120,40 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
         raise ValueError(f"field {nx} x {ny} is smaller than one stamp ({stamp} px)")
     if int(n_stars) < 0:
         raise ValueError(f"n_stars must be >= 0, got {n_stars!r}")
-    strength = float(strength)
-    if strength < 0:
+    req = [float(v) for v in np.atleast_1d(strength)]
+    if not req or min(req) < 0:
         raise ValueError(f"strength must be >= 0, got {strength}")
-    s_bf = max(strength, _NULL_STRENGTH)
     rng = np.random.default_rng(seed)
     half = stamp // 2
     pos = _positions(rng, int(n_stars), (ny, nx), half + 1, float(min_separation))
-    strengths = (s_bf, _NULL_STRENGTH) if twin else (s_bf,)
+    strengths = [max(v, _NULL_STRENGTH) for v in req] + ([_NULL_STRENGTH] if twin else [])
     images = [np.zeros((ny, nx)) for _ in strengths]
     rows = []
-    with ProgressBar(int(n_stars), "galsim field", enabled=progress) as bar:
+    from galsim.utilities import get_omp_threads, set_omp_threads
+    n_threads = get_omp_threads()
+    try:
+        # single-threaded accumulation: the stamps are small, and GalSim's OpenMP
+        # threads spin on a busy machine (measured 30x slower under load)
+        set_omp_threads(1)
+        _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_range, flux,
+              beta_moffat, stamp, half, pixel_scale, sensor, nrecalc)
+    finally:
+        set_omp_threads(n_threads)
+    noise = rng.poisson(sky, (ny, nx)).astype(float) + rng.normal(0.0, read_noise, (ny, nx))
+    arr = np.array(rows, float).reshape(-1, 6)
+    stars = QTable([arr[:, 0] * u.pix, arr[:, 1] * u.pix, arr[:, 2] * u.electron,
+                    arr[:, 3] * u.arcsec, arr[:, 4], arr[:, 5]],
+                   names=("x", "y", "flux", "fwhm", "psf_e1", "psf_e2"))
+    out = [im + noise for im in images]
+    return {"image": out[0], "images": out[:len(req)], "truth_image": out[-1] if twin else None,
+            "stars": stars, "sky": float(sky),
+            "strength": req[0] if np.ndim(strength) == 0 else req}
+
+
+def _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_range, flux,
+          beta_moffat, stamp, half, pixel_scale, sensor, nrecalc):
+    """Draw every star into ``images`` (one per strength), appending truth rows."""
+    with ProgressBar(len(pos), "galsim field", enabled=progress) as bar:
         for x, y in pos:
             f = float(np.exp(rng.uniform(np.log(flux[0]), np.log(flux[1]))))
             fw = fwhm[0] + (fwhm[1] - fwhm[0]) * x / max(nx - 1, 1)
@@ -145,7 +169,7 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
             cen = img.true_center
             for k, s in enumerate(strengths):
                 sens = galsim.SiliconSensor(sensor, strength=s, rng=galsim.BaseDeviate(s2),
-                                            nrecalc=max(1e4, f / max(int(updates), 1)))
+                                            nrecalc=float(nrecalc))
                 p = galsim.PhotonArray(photons.size())
                 p.copyFrom(photons)
                 p.x = p.x + cen.x
@@ -155,10 +179,3 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
                 images[k][iy - half:iy + half + 1, ix - half:ix + half + 1] += im.array
             rows.append((x, y, f, fw, e1, e2))
             bar(1)
-    noise = rng.poisson(sky, (ny, nx)).astype(float) + rng.normal(0.0, read_noise, (ny, nx))
-    arr = np.array(rows, float).reshape(-1, 6)
-    stars = QTable([arr[:, 0] * u.pix, arr[:, 1] * u.pix, arr[:, 2] * u.electron,
-                    arr[:, 3] * u.arcsec, arr[:, 4], arr[:, 5]],
-                   names=("x", "y", "flux", "fwhm", "psf_e1", "psf_e2"))
-    return {"image": images[0] + noise, "truth_image": images[1] + noise if twin else None,
-            "stars": stars, "sky": float(sky), "strength": strength}
