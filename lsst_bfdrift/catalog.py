@@ -9,8 +9,11 @@ Steps of :func:`measure_stars`:
 3. Detection: the background-subtracted image is smoothed by a Gaussian of
    ``kernel_fwhm`` px and segmented above ``threshold`` times the background
    rms with at least ``n_pixels`` connected pixels
-   (``photutils.segmentation.detect_sources``); segments are deblended
-   (``deblend_sources``).
+   (``photutils.segmentation.detect_sources``). A segment with more than one
+   significant peak of the smoothed image (``photutils.detection.find_peaks``;
+   a secondary peak counts when it rises more than ``threshold`` rms above
+   the lowest point on the straight line to the main peak) is a blend; it is
+   flagged, not split (photutils' deblender needs scikit-image).
 4. Per source, in a ``stamp`` x ``stamp`` cutout centred on the segment's
    centroid: adaptive (elliptical-Gaussian-weighted) moments by
    ``galsim.hsm.FindAdaptiveMom`` with other sources' pixels and masked
@@ -28,7 +31,7 @@ Flags (bit mask ``flags``; ``use`` is True when ``flags == 0``):
 
 =================  ===  ========================================================
 FLAG_SATURATED       1  a pixel of the source at or above ``saturation`` (e)
-FLAG_BLENDED         2  deblended from a shared segment, segment touching another,
+FLAG_BLENDED         2  several peaks in one segment, segment touching another,
                         or another source's centroid within ``isolation`` px
 FLAG_EDGE            4  the measurement stamp leaves the image
 FLAG_MASKED          8  masked or non-finite pixel within the aperture radius
@@ -193,7 +196,7 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
         neighbours by more than this fraction are flagged FLAG_NOT_STAR
         (only applied when at least 5 good sources exist).
     deblend : bool, optional
-        Deblend segments (sources split from one segment are flagged blended).
+        Look for several peaks in one segment (flagged blended).
     progress : bool, optional
         Progress bar on stderr.
 
@@ -214,7 +217,7 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
     ValueError
         For a blank or non-finite image, an image too small, or no detection.
     """
-    from photutils.segmentation import deblend_sources, detect_sources, make_2dgaussian_kernel
+    from photutils.segmentation import detect_sources, make_2dgaussian_kernel
     from scipy import ndimage
     from scipy.signal import fftconvolve
 
@@ -238,27 +241,17 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
     conv = fftconvolve(sub, kernel, mode="same")
     # noise of the smoothed image: rms * sqrt(sum k^2)
     thr = threshold * rms * np.sqrt(np.sum(kernel ** 2))
-    segm = detect_sources(conv, thr, int(n_pixels), mask=bad)
+    from photutils.utils.exceptions import NoDetectionsWarning
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NoDetectionsWarning)  # reported as an error below
+        segm = detect_sources(conv, thr, int(n_pixels), mask=bad)
     if segm is None or segm.n_labels == 0:
         raise ValueError(f"no sources detected above {threshold:g} sigma: no stars to measure "
                          "(check the image, its unit/gain and the threshold)")
-    parent = segm.data.copy()
-    if deblend:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # photutils notes when it cannot deblend
-            segm = deblend_sources(conv, segm, int(n_pixels), progress_bar=False)
     labels = segm.data
     ny, nx = data.shape
     objs = ndimage.find_objects(labels)
-    # parents split into several children
-    split = set()
-    for lab, sl in enumerate(objs, start=1):
-        if sl is None:
-            continue
-        par = np.unique(parent[sl][labels[sl] == lab])
-        for p in par:
-            if p and len(np.unique(labels[parent == p])) > 1:
-                split.add(lab)
+    split = _multi_peak_segments(conv, labels, thr, bad) if deblend else set()
     cen = ndimage.center_of_mass(np.clip(conv, 0, None), labels,
                                  index=np.arange(1, labels.max() + 1))
     rows = []
@@ -333,6 +326,38 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
                     isolation=float(isolation), moments="galsim.hsm.FindAdaptiveMom (adaptive)",
                     shape=[int(ny), int(nx)])
     return tab
+
+
+def _multi_peak_segments(conv, labels, thr, bad):
+    """Labels of segments holding more than one significant peak (saddle test)."""
+    from photutils.detection import find_peaks
+
+    peaks = find_peaks(conv, thr, box_size=5, mask=bad)
+    if peaks is None or len(peaks) < 2:
+        return set()
+    xp = np.asarray(peaks["x_peak"], int)
+    yp = np.asarray(peaks["y_peak"], int)
+    hp = np.asarray(peaks["peak_value"], float)
+    lab = labels[yp, xp]
+    thr_map = np.broadcast_to(thr, conv.shape)
+    out = set()
+    for seg in np.unique(lab[lab > 0]):
+        idx = np.flatnonzero(lab == seg)
+        if idx.size < 2:
+            continue
+        main = idx[np.argmax(hp[idx])]
+        for k in idx:
+            if k == main:
+                continue
+            n = int(max(abs(xp[k] - xp[main]), abs(yp[k] - yp[main]))) * 2 + 2
+            xs = np.rint(np.linspace(xp[k], xp[main], n)).astype(int)
+            ys = np.rint(np.linspace(yp[k], yp[main], n)).astype(int)
+            saddle = conv[ys, xs].min()
+            # prominence above the saddle larger than the detection threshold
+            if hp[k] - saddle > thr_map[yp[k], xp[k]]:
+                out.add(int(seg))
+                break
+    return out
 
 
 def _empty_row(lab, cx, cy, flags, flux=np.nan, flux_err=np.nan, peak=np.nan,
