@@ -32,12 +32,22 @@ spread like its footprint,
   (the same sum on an undistorted image gives the usual moments), so the
   result estimates what the square-pixel moments would have been without BF.
 
-Weighted (adaptive) moments use the same sums with the Gaussian weight
-evaluated at the displaced centroid :math:`W(\mathbf{x}_p + \mathbf{d}_p)`;
+Weighted (adaptive) moments use the same expansion with
+:math:`g = W, W\mathbf{d}, W\mathbf{d}\mathbf{d}^{\mathsf T}` (W the Gaussian
+weight of covariance M, :math:`\mathbf{d} = \mathbf{x} - \boldsymbol{\mu}`):
+with :math:`\mathbf{u} = M^{-1}\mathbf{d}`, :math:`\mathbf{v} = S\mathbf{u}`
+and :math:`k = 1 + \tfrac12(\mathbf{u}\cdot\mathbf{v} - \mathrm{tr}\,M^{-1}S)`,
+a footprint contributes :math:`W k`, :math:`W(k\mathbf{d} - \mathbf{v})` and
+:math:`W(k\mathbf{d}\mathbf{d}^{\mathsf T} - \mathbf{v}\mathbf{d}^{\mathsf T}
+- \mathbf{d}\mathbf{v}^{\mathsf T} + S)`, all at the displaced centroid
+(S here is the footprint's moment minus the square pixel's, so the nominal
+grid gives the usual sums at pixel centres). The weight's variation across
+the footprint matters at the same order as S itself: without it a uniform
+extra S would change Gaussian adaptive moments by 4 S instead of S.
 :func:`adaptive_moments` iterates to the elliptical Gaussian whose weighted
-moments reproduce it (Bernstein & Jarvis 2002; the fixed point of
-``galsim.hsm.FindAdaptiveMom``, against which it is tested). The weight's
-curvature within a pixel is neglected, as HSM does on square pixels.
+moments reproduce it, M = 2 x (weighted covariance) (Bernstein & Jarvis
+2002; the fixed point of ``galsim.hsm.FindAdaptiveMom``, against which it is
+tested).
 
 Time history: pixel boundaries move while the exposure builds up, in
 proportion to the charge collected so far (the template is linear). For a
@@ -114,23 +124,35 @@ def adaptive_moments(x, y, counts, *, sxx=None, syy=None, sxy=None, guess=None,
         mx, my = float(guess[0]), float(guess[1])
     a = b = float(guess_sigma) ** 2
     h = 0.0
+    has_s = bool(np.any(sxx) or np.any(syy) or np.any(sxy))
     for it in range(1, max_iter + 1):
         det = a * b - h * h
         if not det > 0:
             raise RuntimeError("adaptive moments: weight became degenerate")
+        ia, ib, ih = b / det, a / det, -h / det  # M^-1
         dx, dy = x - mx, y - my
-        q = (b * dx * dx - 2 * h * dx * dy + a * dy * dy) / det
+        q = ia * dx * dx + 2 * ih * dx * dy + ib * dy * dy
         w = c * np.exp(-0.5 * q)
-        s0 = w.sum()
+        if has_s:
+            # light spread over a footprint with moments S about (x, y): second-order
+            # Taylor expansion of the weighted integrands w, w d, w d d^T over the footprint
+            ux, uy = ia * dx + ih * dy, ih * dx + ib * dy          # M^-1 d
+            vx, vy = sxx * ux + sxy * uy, sxy * ux + syy * uy      # S M^-1 d
+            k = 1.0 + 0.5 * (ux * vx + uy * vy - (ia * sxx + 2 * ih * sxy + ib * syy))
+        else:
+            vx = vy = 0.0
+            k = 1.0
+        s0 = (w * k).sum()
         if not s0 > 0:
             raise RuntimeError("adaptive moments: weighted flux is not positive")
-        nx_, ny_ = (w * x).sum() / s0, (w * y).sum() / s0
-        dx, dy = x - nx_, y - ny_
-        na = 2 * (w * (dx * dx + sxx)).sum() / s0
-        nb = 2 * (w * (dy * dy + syy)).sum() / s0
-        nh = 2 * (w * (dx * dy + sxy)).sum() / s0
-        change = max(abs(na - a), abs(nb - b), abs(nh - h), abs(nx_ - mx), abs(ny_ - my))
-        mx, my, a, b, h = nx_, ny_, na, nb, nh
+        ddx = (w * (dx * k - vx)).sum() / s0
+        ddy = (w * (dy * k - vy)).sum() / s0
+        mxx = (w * (dx * dx * k - 2 * vx * dx + sxx)).sum() / s0 - ddx * ddx
+        myy = (w * (dy * dy * k - 2 * vy * dy + syy)).sum() / s0 - ddy * ddy
+        mxy = (w * (dx * dy * k - vx * dy - dx * vy + sxy)).sum() / s0 - ddx * ddy
+        na, nb, nh = 2 * mxx, 2 * myy, 2 * mxy
+        change = max(abs(na - a), abs(nb - b), abs(nh - h), abs(ddx), abs(ddy))
+        mx, my, a, b, h = mx + ddx, my + ddy, na, nb, nh
         if not (a > 0 and b > 0):
             raise RuntimeError("adaptive moments: negative second moment")
         if change < tol:
