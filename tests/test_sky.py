@@ -55,10 +55,21 @@ def test_too_few_stars_and_all_saturated_get_clear_messages():
     x, y, g, q, snr, _ = _synthetic(rng, 5, 0.0)
     with pytest.raises(ValueError, match="only 5 usable stars"):
         fit_flux_slope(x, y, g, q, snr)
+    import galsim
+
     from lsst_bfdrift.catalog import measure_stars
-    img = paired_fields()["images"][0]
-    with pytest.raises(ValueError, match=r"usable stars.*saturated"):
-        shape_flux_relations(measure_stars(img, saturation=2000.0))
+    img = galsim.ImageD(160, 160, xmin=0, ymin=0)
+    for k in range(9):
+        galsim.Gaussian(sigma=1.8, flux=2e5).drawImage(
+            img, scale=1.0, add_to_image=True,
+            center=galsim.PositionD(25 + 50 * (k % 3), 25 + 50 * (k // 3)))
+    arr = img.array + rng.normal(800.0, 28.0, img.array.shape)
+    cat = measure_stars(arr, saturation=2000.0)
+    assert len(cat) == 9 and np.all(cat["flag_saturated"])
+    with pytest.raises(ValueError, match=r"only 0 of 9 .*9 saturated"):
+        shape_flux_relations(cat)
+    with pytest.raises(ValueError, match="catalogue is empty"):
+        shape_flux_relations(cat[:0])
     with pytest.raises(ValueError, match="no sources detected"):
         validate_sky(rng.normal(800.0, 28.0, (128, 128)))
 
