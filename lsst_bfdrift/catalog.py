@@ -107,6 +107,9 @@ def load_electrons(exposure, *, gain=None, mask=None, saturation=None):
         m = exposure.mask if isinstance(exposure, NDData) else None
         exposure = NDData(np.array(arr, dtype=np.float64), mask=m, unit=u.adu)
     data, emask, _, meta, unit, g, _ = _unpack(exposure, gain)
+    if gain is not None and g != gain:
+        # a file without BUNIT = ADU given with a gain: the gain wins (documented)
+        data, g = data / g * gain, gain
     bad = ~np.isfinite(data)
     if emask is not None:
         bad |= emask
@@ -254,6 +257,8 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
     split = _multi_peak_segments(conv, labels, thr, bad) if deblend else set()
     cen = ndimage.center_of_mass(np.clip(conv, 0, None), labels,
                                  index=np.arange(1, labels.max() + 1))
+    cen_x = np.array([c[1] for c in cen], float)
+    cen_y = np.array([c[0] for c in cen], float)
     rows = []
     yy, xx = np.mgrid[-half:half + 1, -half:half + 1]
     with ProgressBar(len(objs), "stars", enabled=progress) as bar:
@@ -280,7 +285,7 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
             gsub = grown[gy0:gy0 + box.shape[0], gx0:gx0 + box.shape[1]]
             if np.any((box[gsub] != 0) & (box[gsub] != lab)):
                 flags |= FLAG_BLENDED
-            d2 = (np.array([c[1] for c in cen]) - cx) ** 2 + (np.array([c[0] for c in cen]) - cy) ** 2
+            d2 = (cen_x - cx) ** 2 + (cen_y - cy) ** 2
             d2[lab - 1] = np.inf
             if np.nanmin(d2) < isolation ** 2:
                 flags |= FLAG_BLENDED
@@ -311,7 +316,7 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
                                        float(bkg[iy, ix])))
                 continue
             mx, my, ixx, iyy, ixy, t, e1, e2, sig = m
-            if not (0.05 < t < stamp ** 2 / 4) or abs(mx - cx) > half / 2 or abs(my - cy) > half / 2:
+            if not (0.05 < t < stamp ** 2 / 4) or max(abs(mx - cx), abs(my - cy)) > half / 2:
                 flags |= FLAG_MOMENTS
             rows.append(dict(id=lab, x=mx, y=my, flux=flux, flux_err=flux_err, peak=peak,
                              ixx=ixx, iyy=iyy, ixy=ixy, T=t, sigma=sig, e1=e1, e2=e2,

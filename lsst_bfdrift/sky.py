@@ -22,9 +22,10 @@ alpha and tau fitted to the squared residuals (non-negative least squares);
 outliers are down-weighted by Huber iteratively reweighted least squares
 (c = 1.345), and the formal errors are scaled by the reduced chi^2. With at
 least 30 stars the slope error is the larger of the formal error and a
-seeded bootstrap over stars (robust spread of the bootstrap slopes). LSST's verification quotes the slope of size
-against magnitude; the same fit with ``mag`` instead of flux is reported as
-``size_mag_slope`` (fractional T per magnitude; BF makes it negative).
+seeded bootstrap over stars (robust spread of the bootstrap slopes).
+LSST's verification quotes the slope of size against magnitude; the same
+fit with the magnitude instead of the flux is reported as ``size_mag``
+(fractional T per magnitude; BF makes it negative).
 
 :func:`validate_sky` measures the slopes before and after correction: the
 catalogue-level correction (:func:`~lsst_bfdrift.shape_correction.correct_catalog`),
@@ -259,7 +260,7 @@ class SkyValidation:
     summary : dict
         JSON-ready: ``before`` and ``after`` (per route) relations, verdict
         fields ``bf_detected_before``, ``residual_bf_detected``,
-        ``significance_before``, ``significance_after`` (|z| of the size
+        ``significance_before``, ``significance_after`` (absolute z of the size
         slope), ``removed_fraction`` and ``verdict`` (a sentence).
     catalog : QTable
         Catalogue of the recorded image.
@@ -281,7 +282,8 @@ def _compact(rel):
     for k in ("size", "e1", "e2", "size_mag"):
         r = rel[k]
         out[k] = {"slope": r["slope"], "slope_err": r["slope_err"], "z": r["z"],
-                  "err_formal": r["err_formal"], "err_boot": r["err_boot"], "tau": r["tau"], "alpha": r["alpha"],
+                  "err_formal": r["err_formal"], "err_boot": r["err_boot"], "tau": r["tau"],
+                  "alpha": r["alpha"],
                   "chi2_dof": r["chi2_dof"], "n_downweighted": r["n_downweighted"],
                   "poly_order": r["poly_order"]}
     out["n_stars"] = rel["n_stars"]

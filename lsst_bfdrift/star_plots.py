@@ -35,10 +35,10 @@ def _panel(ax, fits, key, ylabel, scale):
 def plot_whiskers(ax, x, y, e1, e2, *, scale=None, color="k", title=None, shape=None):
     """Whiskers of ellipticity (e1, e2) at star positions on ``ax``.
 
-    Length is proportional to |e| (``scale`` px per unit e; default: the
+    Length is proportional to sqrt(e1^2 + e2^2) (``scale`` px per unit e; default: the
     largest whisker is 1/10 of the field), orientation the position angle
     0.5 atan2(e2, e1) from the x (serial) axis. A reference whisker of the
-    median |e| is drawn in the corner.
+    median modulus is drawn in the corner.
     """
     e = np.hypot(e1, e2)
     th = 0.5 * np.arctan2(e2, e1)
@@ -102,7 +102,8 @@ def plot_sky_validation(result, *, title=None):
                           title="residual ellipticity before correction", shape=shape)
     if after:
         a1, a2 = fits[after[0]]["e1"]["points"], fits[after[0]]["e2"]["points"]
-        plot_whiskers(axes[1, 2], a1["x"], a1["y"], a1["detrended"], a2["detrended"], color=_STYLE[after[0]][0], scale=scale,
+        plot_whiskers(axes[1, 2], a1["x"], a1["y"], a1["detrended"], a2["detrended"],
+                      color=_STYLE[after[0]][0], scale=scale,
                       title=f"residual ellipticity after ({_STYLE[after[0]][2]})", shape=shape)
     else:
         axes[1, 2].axis("off")
