@@ -65,8 +65,9 @@ the aperture edge (the aperture flux is left unchanged).
 
 The correction is applied as a difference: ``M_corrected = M_catalogue +
 (M_adaptive(distorted) - M_adaptive(nominal))`` with both adaptive moments
-computed here by the same algorithm on the same cutout and weight, so any
-small difference between this implementation and HSM cancels.
+computed here by the same algorithm on the same cutout (each iterated to its
+own weight), so any small difference between this implementation and HSM
+cancels.
 """
 
 import numpy as np

@@ -6,8 +6,8 @@ import pytest
 from astropy.io import fits
 from numpy.testing import assert_allclose
 
-from lsst_bfdrift.catalog import FLAG_BLENDED, FLAG_EDGE, FLAG_MASKED, FLAG_SATURATED, \
-    measure_stars
+from lsst_bfdrift.catalog import FLAG_BLENDED, FLAG_EDGE, FLAG_MASKED, FLAG_NOT_STAR, \
+    FLAG_SATURATED, measure_stars
 
 SKY = 500.0
 
@@ -56,7 +56,10 @@ def test_flags_saturation_blending_edges_masks():
              (100.0, 40.0, 5e4, 1.8, 0, 0), (106.0, 42.0, 5e4, 1.8, 0, 0),  # blended pair
              (3.0, 120.0, 5e4, 1.8, 0, 0),     # at the edge
              (120.0, 120.0, 5e4, 1.8, 0, 0),   # masked pixel in the aperture
-             (60.0, 110.0, 5e4, 1.8, 0, 0)]    # clean
+             (60.0, 110.0, 5e4, 1.8, 0, 0),    # clean
+             (20.0, 80.0, 5e4, 1.8, 0, 0), (140.0, 80.0, 5e4, 1.8, 0, 0),
+             (80.0, 140.0, 5e4, 1.8, 0, 0), (140.0, 145.0, 5e4, 1.8, 0, 0),
+             (75.0, 80.0, 3e5, 4.0, 0, 0)]     # galaxy-like: twice the stars' size
     arr = _gauss_field(stars)
     arr[122, 123] = np.nan
     peak_sat = 3e5 / (2 * np.pi * 1.8 ** 2) + SKY
@@ -71,6 +74,9 @@ def test_flags_saturation_blending_edges_masks():
     assert cat["flags"][k] & FLAG_MASKED
     k, _ = _nearest(cat, 60, 110)
     assert cat["flags"][k] == 0 and cat["use"][k]
+    k, _ = _nearest(cat, 75, 80)
+    assert cat["flags"][k] & FLAG_NOT_STAR and cat["flag_not_star"][k]
+    assert cat["T"][k].value > 3 * np.median(cat["T"].value[cat["use"]])
 
 
 def test_adu_with_gain_equals_electrons(tmp_path):
@@ -86,6 +92,10 @@ def test_adu_with_gain_equals_electrons(tmp_path):
     assert_allclose(cat_adu["T"].value, cat_e["T"].value, rtol=1e-5)
     cat_arr = measure_stars(arr / 2.0, gain=2.0)
     assert_allclose(cat_arr["flux"].value, cat_e["flux"].value, rtol=1e-6)
+    plain = tmp_path / "plain.fits"  # no BUNIT: an explicit gain still applies
+    fits.PrimaryHDU(arr / 2.0).writeto(plain)
+    assert_allclose(measure_stars(str(plain), gain=2.0)["flux"].value, cat_e["flux"].value,
+                    rtol=1e-6)
     assert cat_adu.meta["gain"] == 2.0
     before = arr.copy()
     measure_stars(arr)

@@ -72,6 +72,12 @@ def test_too_few_stars_and_all_saturated_get_clear_messages():
         shape_flux_relations(cat[:0])
     with pytest.raises(ValueError, match="no sources detected"):
         validate_sky(rng.normal(800.0, 28.0, (128, 128)))
+    with pytest.raises(ValueError, match="no usable pixel"):
+        validate_sky(np.full((128, 128), np.nan))
+    with pytest.raises(ValueError, match="blank"):
+        validate_sky(np.zeros((128, 128)))
+    with pytest.raises(ValueError, match="route"):
+        validate_sky(arr, route="sideways")
 
 
 @pytest.mark.slow
@@ -96,6 +102,9 @@ def test_galsim_fields_known_strengths():
     # correcting a BF-free image with a strength-3 template over-corrects: detected
     v = validate_sky(fields["images"][0], template=scale_template(tpl, 3.0), n_boot=0)
     assert v.summary["residual_bf_detected"] and "over-corrected" in v.summary["verdict"]
+    # no correction: the verdict is about the recorded image only
+    v = validate_sky(fields["images"][2], route="none", n_boot=0)
+    assert v.summary["after"] == {} and v.summary["verdict"].startswith("BF slope detected")
 
 
 @pytest.mark.slow
