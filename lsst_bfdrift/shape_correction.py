@@ -153,6 +153,14 @@ def adaptive_moments(x, y, counts, *, sxx=None, syy=None, sxy=None, guess=None,
         mxy = (w * (dx * dy * k - vx * dy - dx * vy + sxy)).sum() / s0 - ddx * ddy
         na, nb, nh = 2 * mxx, 2 * myy, 2 * mxy
         change = max(abs(na - a), abs(nb - b), abs(nh - h), abs(ddx), abs(ddy))
+        if it > 3 and change < 0.05 * min(a, b):
+            # near the fixed point the plain update halves the error (exactly so for
+            # Gaussian light and weight): extrapolate, M <- 2 M' - M, unless that loses
+            # positivity
+            ea, eb, eh = 2 * na - a, 2 * nb - b, 2 * nh - h
+            if ea > 0 and eb > 0 and ea * eb > eh * eh:
+                na, nb, nh = ea, eb, eh
+                ddx, ddy = 2 * ddx, 2 * ddy  # the weighted centroid also moves halfway
         mx, my, a, b, h = mx + ddx, my + ddy, na, nb, nh
         if not (a > 0 and b > 0):
             raise RuntimeError("adaptive moments: negative second moment")
