@@ -34,6 +34,11 @@ Subcommands
     The paper's numbers next to the calibrated model's (A00..A11, ratio,
     radial slopes, neighbour recovery, fall-off), the V_BSS ratio scan, and
     figures in DIR.
+``bfdrift validate-sky IMAGE.fits [--json] [--plot PNG] [--gain G] [--route R]``
+    Star catalogue of a sky image (photutils, adaptive moments) and robust
+    size- and ellipticity-flux slopes at fixed position, before and after
+    the catalogue-level and/or pixel-level BF correction, with a verdict
+    (``residual_bf_detected``) and optional figures.
 ``bfdrift maps [IMAGE] [--template FILE] [--out FILE] [--plot PNG] [--json]``
     Final pixel geometry (area, centroid shift, ellipticity maps) of an image
     in electrons; with no IMAGE, the bundled sample star. This is the quick
@@ -408,6 +413,38 @@ def _cmd_reproduce(args):
     return _emit(numbers, args.json, 20)
 
 
+def _cmd_validate_sky(args):
+    from .sky import validate_sky
+    from .template import DistortionTemplate
+    if args.galsim_sensor:
+        tpl = DistortionTemplate.from_galsim(args.galsim_sensor)
+    else:
+        tpl = _load_template(args.template)
+    res = validate_sky(args.image, gain=args.gain, saturation=args.saturation, template=tpl,
+                       route=args.route, method=args.method, z_crit=args.z_crit,
+                       min_snr=args.min_snr, poly_order=args.poly_order, n_boot=args.n_boot,
+                       progress=not args.quiet)
+    out = dict(res.summary)
+    out["image"] = os.path.abspath(args.image)
+    out["template"] = (f"galsim:{args.galsim_sensor}" if args.galsim_sensor
+                       else args.template or "default")
+    if args.catalog:
+        cat = res.corrected.get("catalog", res.catalog)
+        with atomic_output(args.catalog) as tmp:
+            cat.write(tmp, format="ascii.ecsv", overwrite=True)
+        out["catalog"] = os.path.abspath(args.catalog)
+    if args.plot:
+        from .plots import save_figure
+        from .star_plots import plot_sky_validation
+        save_figure(plot_sky_validation(res), args.plot)
+        out["plot"] = os.path.abspath(args.plot)
+    if args.json:
+        _print_json(out)
+    else:
+        print(out["verdict"])
+    return 0
+
+
 def build_parser():
     """The argparse parser of ``bfdrift``."""
     p = argparse.ArgumentParser(prog="bfdrift", description="Electrostatic brighter-fatter model (Rasmussen 2015): templates and pixel-geometry maps.")
@@ -515,6 +552,26 @@ def build_parser():
     rp.add_argument("--json", action="store_true")
     rp.add_argument("--quiet", action="store_true")
     rp.set_defaults(func=_cmd_reproduce)
+
+    vk = sub.add_parser("validate-sky", help="BF size/shape-flux slopes of the stars of an "
+                        "image, before and after correction (no truth needed)")
+    vk.add_argument("image", help="FITS image (electrons, or ADU with --gain / GAIN keyword)")
+    vk.add_argument("--gain", type=float, help="e/ADU if the image is in ADU")
+    vk.add_argument("--saturation", type=float, help="saturation level (image unit)")
+    vk.add_argument("--template", help="template FITS file (default: bundled)")
+    vk.add_argument("--galsim-sensor", help="use the import of this GalSim sensor as template")
+    vk.add_argument("--route", default="catalog", choices=["catalog", "pixel", "both", "none"],
+                    help="correction route(s) to validate")
+    vk.add_argument("--method", default="drift", help="Task method for the pixel route")
+    vk.add_argument("--z-crit", type=float, default=3.0, help="detection significance (sigma)")
+    vk.add_argument("--min-snr", type=float, default=30.0, help="faintest stars used (SNR)")
+    vk.add_argument("--poly-order", type=int, default=2, help="PSF position polynomial order")
+    vk.add_argument("--n-boot", type=int, default=200, help="bootstrap resamples")
+    vk.add_argument("--catalog", help="write the (corrected) star catalogue (ECSV)")
+    vk.add_argument("--plot", help="write a PNG: size/ellipticity vs flux and whiskers")
+    vk.add_argument("--json", action="store_true")
+    vk.add_argument("--quiet", action="store_true")
+    vk.set_defaults(func=_cmd_validate_sky)
 
     m = sub.add_parser("maps", help="pixel geometry maps of an image (main job)")
     m.add_argument("image", nargs="?", help="FITS image in electrons (default: bundled sample)")
