@@ -9,7 +9,8 @@ of the bundled template, rescaled), independent stacks of periodic flats are
 filled to a series of signal levels
 (:func:`lsst_bfdrift.simulations.simulate_ptc_levels`), the per-pair
 covariances are fitted with the full model of Astier et al. 2019
-(:func:`lsst_bfdrift.ptc.fit_covariance_model`, gain, a_ij, b_ij, n_ij free),
+(:func:`lsst_bfdrift.ptc.fit_covariance_model`: a_ij free; gain 1, b_ij and n_ij 0
+fixed at their true values, then again with gain and n_ij free),
 the fitted a_ij are corrected for the discrete filling (divided by
 1 - 1/n) and compared with the template's linear response alpha_ij (and,
 for the record, with (A_ij - 1)/Q and ln A_ij / Q). Prints and writes
@@ -71,9 +72,11 @@ def main():
         t0 = time.perf_counter()
         r = closure(tpl, levels, n_images=args.n_images, seed=args.seed, progress=True)
         dt = time.perf_counter() - t0
+        # the same data fitted as real data would be: gain and n_ij free
+        rf = closure(tpl, None, table=r["table"], known_gain=False)
         lines.append(f"responsivity d lnA00/Q = {resp:g} per e; 10 independent levels "
                      f"{levels[0]:.0f}..{levels[-1]:.0f} e, {args.n_images} flats of 16x16 each, "
-                     f"40 fill steps per level (a / (1 - 1/40)); fit lags <= 2, b and n free; "
+                     f"40 fill steps per level (a / (1 - 1/40)); fit lags <= 2, gain 1, b = n = 0 fixed; "
                      f"gain {r['gain']:.5f} +- {r['gain_err']:.5f} (truth 1), "
                      f"chi2 / dof = {r['chi2']:.1f} / {r['dof']}; {dt:.0f} s")
         lines.append("  lag   fitted a (1/e)           alpha (dA/dQ)  pull   (A-1)/Q     pull"
@@ -91,9 +94,18 @@ def main():
         chi = {k: float(sum(x[f"pull_{k}"] ** 2 for x in row)) for k in ("alpha", "linear", "log")}
         lines.append("  sum of squared pulls over the 9 lags: " + ", ".join(
             f"{k} {v:.1f}" for k, v in chi.items()))
+        lines.append(f"  same data, gain and n_ij free: gain {rf['gain']:.5f} +- "
+                     f"{rf['gain_err']:.5f}, chi2 / dof = {rf['chi2']:.1f} / {rf['dof']}; pulls "
+                     "against alpha: " + ", ".join(
+                         f"a{di}{dj} {rf['a'][di, dj]:.4e} +- {rf['a_err'][di, dj]:.2e} "
+                         f"({rf['pull']['alpha'][di, dj]:+.2f})" for di, dj in LAGS[:4]))
         rows[str(resp)] = {"levels": levels.tolist(), "gain": r["gain"], "gain_err": r["gain_err"],
                            "chi2": r["chi2"], "dof": r["dof"], "lags": row,
-                           "sum_pull2": chi, "seconds": dt}
+                           "sum_pull2": chi, "seconds": dt,
+                           "free_gain_fit": {"gain": rf["gain"], "gain_err": rf["gain_err"],
+                                             "chi2": rf["chi2"], "dof": rf["dof"],
+                                             "a": rf["a"].tolist(), "a_err": rf["a_err"].tolist(),
+                                             "pull_alpha": rf["pull"]["alpha"].tolist()}}
     text = "\n".join(lines) + "\n"
     print(text, end="")
     with open(args.out + ".json", "w") as fh:

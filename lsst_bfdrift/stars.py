@@ -126,16 +126,45 @@ class StarSimulation:
         Side of the stamp (pixels).
     update_every : int, optional
         Conversions between boundary updates (paper: 1000).
+    layout : {'shared', 'galsim'}, optional
+        'shared' (default): the template's shared boundaries, pixels tile
+        the stamp. 'galsim': galsim.SiliconSensor's layout and assignment
+        rule (every edge a polyline with its own corners, taken from the
+        file pixel nearest the aggressor; nominal pixel first, then the
+        neighbours; unassigned conversions to the nominal pixel or the first
+        neighbour at random), for photon-by-photon comparisons with GalSim
+        (:mod:`lsst_bfdrift._galsim_rules`). Needs a template with its
+        per-pixel table (:meth:`DistortionTemplate.from_galsim`).
+    seed : int, optional
+        Seed of the random choices of the 'galsim' layout.
+    qdist : int, optional
+        With ``layout='galsim'``: GalSim's ``qdist`` truncation of each
+        aggressor's reach (GalSim's default is 3; None keeps the whole
+        template, as GalSim does with ``qdist`` = template half size).
+    galsim_box : bool, optional
+        With ``layout='galsim'``: accept a conversion in GalSim's own
+        "trivially inside" box of its nominal pixel without the polygon test,
+        as GalSim does (default True); False uses a box proven to lie inside
+        the polygon, i.e. the exact polygon rule.
     """
 
-    def __init__(self, template, *, stamp_size=31, update_every=1000):
+    def __init__(self, template, *, stamp_size=31, update_every=1000, layout="shared",
+                 seed=None, qdist=None, galsim_box=True):
         if int(stamp_size) != stamp_size or stamp_size < 3:
             raise ValueError(f"stamp_size must be an integer >= 3, got {stamp_size!r}")
         if int(update_every) != update_every or update_every < 1:
             raise ValueError(f"update_every must be a positive integer, got {update_every!r}")
+        if layout not in ("shared", "galsim"):
+            raise ValueError(f"layout must be 'shared' or 'galsim', got {layout!r}")
         self.t = template
         self.n = int(stamp_size)
         self.update_every = int(update_every)
+        self.layout = layout
+        self.galsim_box = bool(galsim_box)
+        self._rng = np.random.default_rng(seed)
+        if layout == "galsim":
+            from ._galsim_rules import galsim_edge_templates
+            self._tv, self._th = galsim_edge_templates(template, qdist=qdist)
         self.nominal_image = np.zeros((self.n, self.n))
         self.lost = 0
         self._has_t = template.vedge_t is not None
@@ -160,6 +189,16 @@ class StarSimulation:
         if q.shape != (self.n, self.n):
             raise ValueError(f"charge must have shape {(self.n, self.n)}, got {q.shape}")
         self.image = q
+        if self.layout == "galsim":
+            from ._galsim_rules import (add_templates_galsim, edge_boxes, galsim_boxes,
+                                        nominal_edges)
+            self._V, self._H = nominal_edges(self.n, self.n, self._fr)
+            add_templates_galsim(q, 1.0 / self.t.charge, self.t.center, self._V, self._H,
+                                 self._tv, self._th)
+            self._box = np.empty((self.n, self.n, 4))
+            (galsim_boxes if self.galsim_box else edge_boxes)(self._V, self._H, 0, self.n, 0,
+                                                              self.n, self._box)
+            return
         g = superpose_boundaries(self.t, q)
         self._corners = np.ascontiguousarray(g.corners)
         self._vedge = np.ascontiguousarray(g.vedge)
@@ -174,6 +213,9 @@ class StarSimulation:
     def boundaries(self):
         """Copy of the current boundaries as a :class:`~lsst_bfdrift.boundaries.BoundaryGrid`
         (absolute positions, pixel units; ``vedge_t``/``hedge_t`` attributes)."""
+        if self.layout != "shared":
+            raise ValueError("boundaries() needs layout='shared'; the 'galsim' layout keeps "
+                             "edge polylines (attributes _V, _H)")
         g = BoundaryGrid(0, 0, self._corners.copy(), self._vedge.copy(), self._hedge.copy(),
                          self._fr.copy())
         g.vedge_t = self._vt.copy() if self._has_t else None
@@ -186,6 +228,13 @@ class StarSimulation:
         px, py = _check_points(px, py)
         oi = np.empty(px.size, dtype=np.int64)
         oj = np.empty(px.size, dtype=np.int64)
+        if self.layout == "galsim":
+            from ._galsim_rules import locate_galsim
+            locate_galsim(px, py, self._rng.uniform(size=px.size), self._V, self._H, self._box,
+                          oi, oj)
+            off = (oi < 0) | (oi >= self.n) | (oj < 0) | (oj >= self.n)
+            oi[off] = oj[off] = -1
+            return oi, oj
         locate(px, py, self._corners, self._vedge, self._hedge, self._fr, self._vt, self._ht,
                self._has_t, NEIGHBOUR_ORDER, self._box, oi, oj)
         return oi, oj
@@ -197,6 +246,14 @@ class StarSimulation:
         (counted from the start of this call) and after the last one.
         """
         px, py = _check_points(px, py)
+        if self.layout == "galsim":
+            from ._galsim_rules import accumulate_galsim
+            self.lost += int(accumulate_galsim(px, py, self._rng.uniform(size=px.size),
+                                               self.update_every, self.image,
+                                               self.nominal_image, self._V, self._H, self._box,
+                                               1.0 / self.t.charge, self.t.center, self._tv,
+                                               self._th, self.galsim_box))
+            return
         kc, kv, kh, kvt, kht = self._kernels
         self.lost += int(accumulate(px, py, self.update_every, self.image, self.nominal_image,
                                     self._corners, self._vedge, self._hedge, self._fr, self._vt,
@@ -204,7 +261,8 @@ class StarSimulation:
                                     1.0 / self.t.charge, self.t.center, kc, kv, kh, kvt, kht))
 
     def geometry(self):
-        """:class:`~lsst_bfdrift.superpose.MomentMaps` of the current pixels."""
+        """:class:`~lsst_bfdrift.superpose.MomentMaps` of the current pixels
+        (of the template's shared boundaries, whatever the layout)."""
         return moment_maps(self.t, self.image)
 
 

@@ -166,3 +166,57 @@ def test_bad_photons_and_charge(small_template):
         sim.assign([1.0, 2.0], [1.0])
     with pytest.raises(ValueError, match="shape"):
         sim.reset(np.zeros((4, 4)))
+
+
+@pytest.mark.parametrize("qdist", [3, 4])
+def test_galsim_layout_areas_equal_galsim(itl_template, qdist):
+    """The 'galsim' layout rebuilds GalSim's own pixel polygons: its areas
+    equal galsim.SiliconSensor.calculate_pixel_areas (GalSim stores float32)."""
+    from lsst_bfdrift._galsim_rules import layout_areas
+    n = 21
+    jj, ii = np.mgrid[:n, :n]
+    q = np.round(2e5 * np.exp(-0.5 * ((ii - 10.3) ** 2 + (jj - 9.8) ** 2) / 1.5 ** 2))
+    ref = galsim.SiliconSensor("lsst_itl_50_8", qdist=qdist).calculate_pixel_areas(
+        galsim.ImageD(q.copy())).array
+    sim = StarSimulation(itl_template, stamp_size=n, layout="galsim", qdist=qdist)
+    sim.reset(q)
+    a = layout_areas(sim._V, sim._H)
+    assert_allclose(a, ref, rtol=0, atol=1e-7)
+    assert np.abs(ref - 1).max() > 0.05  # strongly distorted
+    # the shared (tiling) layout differs from GalSim's at the 1e-4..1e-3 level
+    assert np.abs(sim.geometry().area - ref).max() > 1e-4
+
+
+@pytest.mark.slow
+def test_galsim_layout_reproduces_galsim_photon_by_photon():
+    """Same photons, same update cadence: the 'galsim' layout with GalSim's
+    box rule lands all but a few conversions where galsim.SiliconSensor does;
+    the exact polygon rule (galsim_box=False) lands measurably more elsewhere."""
+    raw = DistortionTemplate.from_galsim("lsst_itl_50_8", match_areas=False)
+    rng = np.random.default_rng(8)
+    img = galsim.ImageD(31, 31, scale=0.2)
+    galsim.Gaussian(fwhm=0.7).withFlux(3e5).drawImage(
+        img, method="phot", save_photons=True, rng=galsim.BaseDeviate(9),
+        offset=tuple(rng.uniform(-0.5, 0.5, 2)))
+    x = np.asarray(img.photons.x) + img.true_center.x
+    y = np.asarray(img.photons.y) + img.true_center.y
+    p = galsim.PhotonArray(x.size)
+    p.x, p.y, p.flux = x, y, np.ones(x.size)
+    ref = galsim.ImageD(31, 31)
+    threads = galsim.utilities.get_omp_threads()
+    galsim.utilities.set_omp_threads(1)  # OpenMP on busy shared cores is very slow
+    try:
+        galsim.SiliconSensor("lsst_itl_50_8", diffusion_factor=0.0, nrecalc=1000,
+                             rng=galsim.BaseDeviate(3)).accumulate(p, ref)
+    finally:
+        galsim.utilities.set_omp_threads(threads)
+    moved = {}
+    for box in (True, False):
+        sim = StarSimulation(raw, stamp_size=31, update_every=1000, layout="galsim", qdist=3,
+                             galsim_box=box, seed=1)
+        sim.add(x - 1.0, y - 1.0)  # GalSim's pixel i is centred on x = i, ours on i - 1
+        moved[box] = np.abs(sim.image - ref.array).sum() / 2
+    bf = np.abs(sim.image - sim.nominal_image).sum() / 2
+    assert bf > 200  # the brighter-fatter effect moved many conversions
+    assert moved[True] <= 5
+    assert moved[False] > moved[True] + 4
