@@ -28,8 +28,8 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from lsst_bfdrift.ptc import fit_covariance_model  # noqa: E402
-from lsst_bfdrift.simulations import (simulate_ptc_levels, template_area_coefficients,  # noqa: E402,E501
-                                      with_responsivity)
+from lsst_bfdrift.simulations import (simulate_ptc_levels,  # noqa: E402
+                                      template_area_coefficients, with_responsivity)
 from lsst_bfdrift.template import load_default_template  # noqa: E402
 
 LAGS = [(0, 0), (1, 0), (0, 1), (1, 1), (2, 0), (0, 2), (2, 1), (1, 2), (2, 2)]
@@ -76,7 +76,8 @@ def main():
         rf = closure(tpl, None, table=r["table"], known_gain=False)
         lines.append(f"responsivity d lnA00/Q = {resp:g} per e; 10 independent levels "
                      f"{levels[0]:.0f}..{levels[-1]:.0f} e, {args.n_images} flats of 16x16 each, "
-                     f"40 fill steps per level (a / (1 - 1/40)); fit lags <= 2, gain 1, b = n = 0 fixed; "
+                     f"40 fill steps per level (a / (1 - 1/40)); fit lags <= 2, gain 1, "
+                     f"b = n = 0 fixed; "
                      f"gain {r['gain']:.5f} +- {r['gain_err']:.5f} (truth 1), "
                      f"chi2 / dof = {r['chi2']:.1f} / {r['dof']}; {dt:.0f} s")
         lines.append("  lag   fitted a (1/e)           alpha (dA/dQ)  pull   (A-1)/Q     pull"
@@ -86,10 +87,12 @@ def main():
             a, e = r["a"][di, dj], r["a_err"][di, dj]
             tr = {k: r["truth"][k][di, dj] for k in ("alpha", "linear", "log")}
             pl = {k: r["pull"][k][di, dj] for k in ("alpha", "linear", "log")}
-            lines.append(f"  a{di}{dj}  {a: .4e} +- {e:.2e}   {tr['alpha']: .4e} {pl['alpha']:+6.2f}"
+            lines.append(f"  a{di}{dj}  {a: .4e} +- {e:.2e}   {tr['alpha']: .4e} "
+                         f"{pl['alpha']:+6.2f}"
                          f"  {tr['linear']: .4e} {pl['linear']:+6.2f}  {tr['log']: .4e} "
                          f"{pl['log']:+6.2f}")
-            row.append({"lag": [di, dj], "a": a, "a_err": e, **{f"truth_{k}": v for k, v in tr.items()},
+            row.append({"lag": [di, dj], "a": a, "a_err": e,
+                        **{f"truth_{k}": v for k, v in tr.items()},
                         **{f"pull_{k}": v for k, v in pl.items()}})
         chi = {k: float(sum(x[f"pull_{k}"] ** 2 for x in row)) for k in ("alpha", "linear", "log")}
         lines.append("  sum of squared pulls over the 9 lags: " + ", ".join(

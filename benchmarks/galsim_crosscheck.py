@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    python benchmarks/galsim_crosscheck.py [--n-stars 24] [--out benchmarks/galsim_crosscheck_results]
+    python benchmarks/galsim_crosscheck.py [--n-stars 24] [--out PREFIX]
 
 For each star the same photons (GalSim photon shooting, Gaussian PSF) are
 accumulated three ways, in the same order and with the boundaries updated

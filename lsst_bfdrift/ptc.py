@@ -435,7 +435,8 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
     errs[free] = np.sqrt(np.diag(np.array(stats["covariance"])))
     g, a, b, nz = unpack(res.x)
     ge, ae, be, ne = (errs[0], errs[1:1 + n1].reshape(L + 1, L + 1),
-                      errs[1 + n1:1 + 2 * n1].reshape(L + 1, L + 1), errs[-n1:].reshape(L + 1, L + 1))
+                      errs[1 + n1:1 + 2 * n1].reshape(L + 1, L + 1),
+                      errs[-n1:].reshape(L + 1, L + 1))
     return {"gain": float(g), "gain_err": float(ge), "a": a, "a_err": ae, "b": b,
             "b_err": be, "noise": nz, "noise_err": ne, "chi2": stats["chi2"],
             "dof": stats["dof"], "mu": m,

@@ -337,7 +337,8 @@ def simulate_ptc_levels(template, levels, *, steps_per_level=40, n_images=1024, 
     -------
     astropy.table.Table
         One row per level: ``mu`` (e), ``cov`` and ``cov_err`` (per-pair
-        estimator without its mean-subtraction bias, e^2, [di, dj]), ``paper`` (C_ij / mu, all pairs),
+        estimator without its mean-subtraction bias, e^2, [di, dj]), ``paper``
+        (C_ij / mu, all pairs),
         ``area_min``, ``area_max``; meta ``step_factor`` = 1 - 1/n.
     """
     levels = np.asarray(levels, dtype=float).ravel()
