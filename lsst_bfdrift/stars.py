@@ -178,7 +178,8 @@ class StarSimulation:
         self.reset(np.zeros((self.n, self.n)))
 
     def reset(self, charge):
-        """Set the collected charge (e) and recompute the boundaries in full (FFT).
+        """Set the collected charge (e) and recompute the boundaries in full
+        (FFT superposition; a direct sum for the 'galsim' layout).
 
         Parameters
         ----------
