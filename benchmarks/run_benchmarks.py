@@ -3,10 +3,14 @@
 Run from the repository root::
 
     python benchmarks/run_benchmarks.py [--size 4096] [--out benchmarks/results]
+                                        [--sections template,superpose,flat,star]
 
 Prints the figures and writes ``<out>.json`` and ``<out>.txt`` (quoted by
 ``docs/benchmarks.rst``). Timings are wall-clock seconds on this machine;
-the machine's core count is recorded with them.
+the machine's core count is recorded with them. With ``--sections`` only
+the named sections are run and their lines replace those of the existing
+files. The star section also records CPU seconds (``time.process_time``),
+which depend much less on other jobs than wall-clock time.
 """
 
 import argparse
@@ -35,12 +39,30 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=4096, help="side of the charge image")
     ap.add_argument("--out", default=os.path.join("benchmarks", "results"))
+    ap.add_argument("--sections", default="template,superpose,flat,star",
+                    help="comma-separated subset of template,superpose,flat,star")
     args = ap.parse_args()
+    sections = set(args.sections.split(","))
+    unknown = sections - {"template", "superpose", "flat", "star"}
+    if unknown:
+        ap.error(f"unknown sections {sorted(unknown)}")
     rows = {"machine": {"cores": os.cpu_count(), "python": platform.python_version(),
                         "numpy": np.__version__, "platform": platform.platform()}}
     lines = [f"machine: {os.cpu_count()} cores, Python {platform.python_version()}, "
              f"numpy {np.__version__}"]
 
+    if "template" in sections:
+        _template_section(rows, lines)
+    if "superpose" in sections:
+        _superpose_section(rows, lines, args.size)
+    if "flat" in sections:
+        _flat_section(rows, lines)
+    if "star" in sections:
+        _star_section(rows, lines)
+    _write(args.out, rows, lines, sections)
+
+
+def _template_section(rows, lines):
     # 1. default template build (21 x 21, 8 samples, tol 1e-4 px), serial vs 2 processes
     times = {}
     for workers in (1, 2):
@@ -54,9 +76,10 @@ def main():
                  f"{times[2]:.1f} s (2 processes), ratio {times[1] / times[2]:.2f}x; "
                  f"target <= 30 s")
 
+
+def _superpose_section(rows, lines, n):
     # 2. superposition of a size x size charge image into moment maps
     rng = np.random.default_rng(7)
-    n = args.size
     charge = rng.poisson(2e4, (n, n)).astype(np.float64)
     tpl = load_default_template()
     _, dt1 = _timed(moment_maps, tpl, charge, workers=1)
@@ -69,42 +92,98 @@ def main():
     lines.append(f"superposition {n}x{n} -> area/centroid/ellipticity maps: {dt1:.1f} s "
                  f"(1 FFT thread), {dt2:.1f} s (2), {n * n / dt2 / 1e6:.2f} Mpix/s, peak RSS "
                  f"{peak:.0f} MB (image {charge.nbytes / 2**20:.0f} MB)")
+
+
+def _flat_section(rows, lines):
     # 3. paper-scale flat simulation: 1024 images of 16 x 16, 250 steps of 1000 e
     from lsst_bfdrift.simulations import simulate_flats
+    tpl = load_default_template()
     tab, dt = _timed(simulate_flats, tpl, n_images=1024, shape=(16, 16), step=1000.0,
                      n_steps=250, seed=1)
     rows["flat_sim"] = {"seconds": dt, "target_seconds": 300.0, "final_mu": float(tab["mu"][-1])}
     lines.append(f"flat simulation 1024 x (16x16) x 250 steps of 1000 e: {dt:.1f} s "
                  f"(target <= 300 s)")
 
+
+def _star_section(rows, lines):
     # 4. star simulation conversions per second against galsim.SiliconSensor, same
-    #    photons count, boundaries updated every 1000 conversions in both
+    #    photon count, boundaries updated every 1000 conversions in both (nrecalc),
+    #    GalSim with its default OpenMP threads and with 1 thread (ours is serial)
     import galsim
 
     from lsst_bfdrift.stars import simulate_star
     from lsst_bfdrift.template import DistortionTemplate
     itl = DistortionTemplate.from_galsim("lsst_itl_50_8")
-    nphot = 500000
+    nphot, every = 500000, 1000
     psf = galsim.Gaussian(fwhm=0.7)
-    _, dt_ours = _timed(simulate_star, itl, psf, nphot, stamp_size=31, update_every=1000,
+    simulate_star(itl, psf, 2 * every, stamp_size=31, update_every=every, seed=1)  # compile
+
+    def _galsim(threads):
+        default = galsim.utilities.get_omp_threads()
+        galsim.utilities.set_omp_threads(threads or default)
+        sensor = galsim.SiliconSensor("lsst_itl_50_8", rng=galsim.BaseDeviate(3),
+                                      nrecalc=every, diffusion_factor=0.0)
+        img = galsim.ImageD(31, 31, scale=0.2)
+        c0 = time.process_time()
+        _, dt = _timed(psf.withFlux(nphot).drawImage, img, method="phot", sensor=sensor,
+                       rng=galsim.BaseDeviate(4), n_photons=nphot)
+        cpu = time.process_time() - c0
+        galsim.utilities.set_omp_threads(default)
+        return dt, cpu, threads or default
+
+    dt_gs, cpu_gs, gs_threads = _galsim(None)
+    c0 = time.process_time()
+    _, dt_ours = _timed(simulate_star, itl, psf, nphot, stamp_size=31, update_every=every,
                         seed=3)
-    sensor = galsim.SiliconSensor("lsst_itl_50_8", rng=galsim.BaseDeviate(3), nrecalc=1000,
-                                  diffusion_factor=0.0)
-    img = galsim.ImageD(31, 31, scale=0.2)
-    _, dt_gs = _timed(psf.withFlux(nphot).drawImage, img, method="phot", sensor=sensor,
-                      rng=galsim.BaseDeviate(4), n_photons=nphot)
-    rows["star_sim"] = {"photons": nphot, "update_every": 1000,
+    cpu_ours = time.process_time() - c0
+    dt_gs1, cpu_gs1, _ = _galsim(1)
+    load = os.getloadavg()[0]
+    rows["star_sim"] = {"photons": nphot, "update_every": every,
                         "ours_per_second": nphot / dt_ours, "galsim_per_second": nphot / dt_gs,
-                        "ratio": dt_gs / dt_ours, "target_ratio": 1.0}
-    lines.append(f"star simulation, {nphot} conversions, update every 1000: "
-                 f"{nphot / dt_ours / 1e3:.0f} k/s (lsst_bfdrift) vs {nphot / dt_gs / 1e3:.0f} k/s "
-                 f"(galsim.SiliconSensor, diffusion off), ratio {dt_gs / dt_ours:.1f}x; "
-                 f"target >= 1.0x")
+                        "galsim_threads": gs_threads,
+                        "galsim_1thread_per_second": nphot / dt_gs1,
+                        "ratio": dt_gs / dt_ours, "ratio_1thread": dt_gs1 / dt_ours,
+                        "ours_cpu_seconds": cpu_ours, "galsim_cpu_seconds": cpu_gs,
+                        "galsim_1thread_cpu_seconds": cpu_gs1,
+                        "ratio_1thread_cpu": cpu_gs1 / cpu_ours,
+                        "target_ratio": 1.0, "load_average_1min": load}
+    lines.append(f"star simulation, {nphot} conversions, update every {every} (nrecalc "
+                 f"{every}): {nphot / dt_ours / 1e3:.0f} k/s (lsst_bfdrift, serial) vs "
+                 f"{nphot / dt_gs / 1e3:.0f} k/s (galsim.SiliconSensor, {gs_threads} OpenMP "
+                 f"threads, diffusion off), ratio {dt_gs / dt_ours:.2f}x; vs "
+                 f"{nphot / dt_gs1 / 1e3:.0f} k/s (GalSim 1 thread), ratio "
+                 f"{dt_gs1 / dt_ours:.2f}x; CPU seconds {cpu_ours:.3f} (ours) vs "
+                 f"{cpu_gs1:.3f} (GalSim 1 thread), ratio {cpu_gs1 / cpu_ours:.2f}x, "
+                 f"{cpu_gs:.3f} (GalSim {gs_threads} threads); target >= 1.0x; load average "
+                 f"{load:.1f}")
+
+
+_PREFIXES = {"template": "template build", "superpose": "superposition",
+             "flat": "flat simulation", "star": "star simulation"}
+
+
+def _write(out, rows, lines, sections):
+    """Write the results, keeping the other sections' lines and rows."""
+    if sections != set(_PREFIXES) and os.path.exists(out + ".json"):
+        with open(out + ".json") as fh:
+            old_rows = json.load(fh)
+        old_rows.update(rows)
+        rows = old_rows
+        with open(out + ".txt") as fh:
+            old = fh.read().splitlines()
+        new = {k: ln for k, p in _PREFIXES.items() for ln in lines if ln.startswith(p)}
+        kept = [lines[0]]
+        for k, p in _PREFIXES.items():
+            if k in new:
+                kept.append(new[k])
+            else:
+                kept += [ln for ln in old if ln.startswith(p)]
+        lines = kept
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    with open(args.out + ".json", "w") as fh:
+    with open(out + ".json", "w") as fh:
         json.dump(rows, fh, indent=2)
-    with open(args.out + ".txt", "w") as fh:
+    with open(out + ".txt", "w") as fh:
         fh.write(text)
 
 

@@ -243,9 +243,9 @@ def _cmd_flat_sim(args):
     from .simulations import simulate_flats
     tpl = _load_template(args.template)
     if args.responsivity is not None:
-        # rescale so that dlnA00 per electron equals the requested value
-        own = np.log(tpl.moments().area[tpl.center, tpl.center]) / tpl.charge
-        tpl = tpl.scaled(own / args.responsivity)
+        # same displacements, attributed to the charge giving dlnA00/Q = responsivity
+        from .simulations import with_responsivity
+        tpl = with_responsivity(tpl, args.responsivity)
     tab = simulate_flats(tpl, n_images=args.n_images, shape=(args.size, args.size),
                          step=args.step, n_steps=args.steps, max_lag=args.max_lag,
                          seed=args.seed, progress=not args.quiet)

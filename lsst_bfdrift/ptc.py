@@ -336,7 +336,7 @@ def covariance_model(mu, gain, a, b, noise):
 
 
 def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max=None,
-                         fit_b=True):
+                         fit_b=True, gain=None, fit_noise=True):
     """Fit gain, a_ij, b_ij and n_ij of the full model to measured covariances.
 
     Parameters
@@ -359,6 +359,10 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
         Exclude signals above (ADU).
     fit_b : bool, optional
         Fit b_ij (else fixed to 0).
+    gain : float, optional
+        Known gain (e/ADU), held fixed (its error is then 0); default: fitted.
+    fit_noise : bool, optional
+        Fit n_ij (else fixed to 0, e.g. for noiseless simulations).
 
     Returns
     -------
@@ -390,7 +394,9 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
     if np.any(~(s > 0)):
         raise ValueError("covariance errors must be positive")
     exp = fit_ptc_exponential(m, c[:, 0, 0], mu_max=None)
-    g0 = exp["gain"]
+    g0 = exp["gain"] if gain is None else float(gain)
+    if gain is not None and not (np.isfinite(g0) and g0 > 0):
+        raise ValueError(f"gain must be positive, got {gain!r}")
     n1 = (L + 1) ** 2
     # start: a_ij from the slope of C_ij / (mu/g) against mu g
     a0 = np.zeros((L + 1, L + 1))
@@ -403,30 +409,35 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
             else:
                 a0[i, j] = np.polyfit(x, y, 1)[0] if m.size > 2 else 0.0
     n0 = np.zeros((L + 1, L + 1))
-    n0[0, 0] = exp["noise"]
+    n0[0, 0] = exp["noise"] if fit_noise else 0.0
 
-    def unpack(p):
-        a = p[1:1 + n1].reshape(L + 1, L + 1)
-        b = p[1 + n1:1 + 2 * n1].reshape(L + 1, L + 1) if fit_b else np.zeros_like(a)
-        nz = p[-n1:].reshape(L + 1, L + 1)
-        return p[0], a, b, nz
+    # full vector [gain, a, b, n]; only the free entries are fitted
+    free = np.concatenate([[gain is None], np.ones(n1, bool), np.full(n1, bool(fit_b)),
+                           np.full(n1, bool(fit_noise))])
+    full0 = np.concatenate([[g0], a0.ravel(), np.zeros(n1), n0.ravel()])
 
-    def resid(p):
-        g, a, b, nz = unpack(p)
+    def unpack(q):
+        p = full0.copy()
+        p[free] = q
+        return (p[0], p[1:1 + n1].reshape(L + 1, L + 1),
+                p[1 + n1:1 + 2 * n1].reshape(L + 1, L + 1), p[-n1:].reshape(L + 1, L + 1))
+
+    def resid(q):
+        g, a, b, nz = unpack(q)
         return ((covariance_model(m, g, a, b, nz) - c) / s).ravel()
 
-    p0 = np.concatenate([[g0], a0.ravel()] + ([np.zeros(n1)] if fit_b else []) + [n0.ravel()])
-    scale = np.concatenate([[0.1], np.full(n1, 1e-7)] + ([np.full(n1, 1e-8)] if fit_b else [])
-                           + [np.full(n1, 10.0)])
-    res = least_squares(resid, p0, x_scale=scale, method="trf")
-    names = ["gain"] + [f"a{i}" for i in range(n1)] + ([f"b{i}" for i in range(n1)]
-                                                         if fit_b else []) + \
-        [f"n{i}" for i in range(n1)]
+    scale = np.concatenate([[0.1], np.full(n1, 1e-7), np.full(n1, 1e-8), np.full(n1, 10.0)])
+    res = least_squares(resid, full0[free], x_scale=scale[free], method="trf")
+    names = np.array(["gain"] + [f"a{i}" for i in range(n1)] + [f"b{i}" for i in range(n1)]
+                     + [f"n{i}" for i in range(n1)])[free].tolist()
     stats = _fit_result(res, names, c.size, known_sigma=known)
-    err = np.sqrt(np.diag(np.array(stats["covariance"])))
+    errs = np.zeros(full0.size)
+    errs[free] = np.sqrt(np.diag(np.array(stats["covariance"])))
     g, a, b, nz = unpack(res.x)
-    _, ae, be, ne = unpack(err)
-    return {"gain": float(g), "gain_err": float(err[0]), "a": a, "a_err": ae, "b": b,
+    ge, ae, be, ne = (errs[0], errs[1:1 + n1].reshape(L + 1, L + 1),
+                      errs[1 + n1:1 + 2 * n1].reshape(L + 1, L + 1),
+                      errs[-n1:].reshape(L + 1, L + 1))
+    return {"gain": float(g), "gain_err": float(ge), "a": a, "a_err": ae, "b": b,
             "b_err": be, "noise": nz, "noise_err": ne, "chi2": stats["chi2"],
             "dof": stats["dof"], "mu": m,
             "residuals": c - covariance_model(m, g, a, b, nz)}

@@ -23,7 +23,8 @@ from astropy.table import Table
 
 from .progress import ProgressBar
 
-__all__ = ["PeriodicAreas", "simulate_flats"]
+__all__ = ["PeriodicAreas", "simulate_flats", "simulate_ptc_levels", "template_area_coefficients",
+           "with_responsivity"]
 
 
 class PeriodicAreas:
@@ -133,6 +134,79 @@ class PeriodicAreas:
         return left + top - right - bottom
 
 
+def with_responsivity(template, dlna00_per_e):
+    """The same boundary displacements attributed to another aggressor charge.
+
+    Returns a template whose ln A00 / Q equals ``dlna00_per_e`` (1/e, the
+    paper's "responsivity", negative): the displacements are kept and the
+    charge Q is changed. (:meth:`DistortionTemplate.scaled` multiplies both
+    and so keeps the responsivity.)
+
+    Parameters
+    ----------
+    template : DistortionTemplate
+        Source template.
+    dlna00_per_e : float
+        Target ln A00 / Q (1/e), negative and finite.
+
+    Returns
+    -------
+    DistortionTemplate
+    """
+    r = float(dlna00_per_e)
+    if not (np.isfinite(r) and r < 0):
+        raise ValueError(f"responsivity must be negative and finite, got {dlna00_per_e!r}")
+    c = template.center
+    own = np.log(template.moments().area[c, c])
+    if not own < 0:
+        raise ValueError("template's central pixel does not shrink; no responsivity to rescale")
+    return type(template)(template.corner_d, template.vedge_d, template.hedge_d,
+                          template.fractions, own / r, vedge_t=template.vedge_t,
+                          hedge_t=template.hedge_t,
+                          meta={**template.meta, "rescaled_responsivity": r})
+
+
+def template_area_coefficients(template, *, max_lag=3):
+    """The template's area coefficients a_ij (1/e) in three definitions.
+
+    Boundary displacements are linear in the aggressor charge Q and a
+    polygon's area is quadratic in its vertices, so exactly
+    A_ij(Q) = 1 + l_ij Q + q_ij Q^2. The covariance model of Astier et al.
+    (2019) uses the linear response ``alpha`` = l_ij = dA_ij/dQ at Q = 0
+    (in a uniform flat the mean charge displaces no boundary of a symmetric
+    template, so this is also the response at any signal). The template's
+    own ``(A_ij - 1) / Q`` and ``ln A_ij / Q`` differ from it by
+    O(q_ij Q) in opposite directions.
+
+    Parameters
+    ----------
+    template : DistortionTemplate
+        The Green's function.
+    max_lag : int, optional
+        Largest lag returned (at most the template's half size).
+
+    Returns
+    -------
+    dict
+        ``alpha``, ``linear`` ((A - 1) / Q), ``log`` (ln A / Q), each an
+        array [di, dj] (1/e) of lags 0..max_lag, and ``charge`` (Q, e).
+    """
+    c = template.center
+    L = int(max_lag)
+    if not 0 <= L <= c:
+        raise ValueError(f"max_lag must be in [0, {c}] for this template, got {max_lag!r}")
+    q = template.charge
+    full = template.moments(charge=q).area
+    half = template.moments(charge=0.5 * q).area
+    # A(f) = 1 + l f + s f^2 at f = 1 and 1/2: l = 4 (A(1/2) - 1) - (A(1) - 1)
+    lin = 4.0 * (half - 1.0) - (full - 1.0)
+
+    def quad(arr):  # [dj + c, di + c] -> [di, dj]
+        return np.ascontiguousarray(arr[c:c + L + 1, c:c + L + 1].T)
+    return {"alpha": quad(lin) / q, "linear": quad(full - 1.0) / q,
+            "log": quad(np.log(full)) / q, "charge": q}
+
+
 def _circular_autocorr(x, lags):
     """Sum over pixels of x(p) x(p + lag) (periodic) for lags [(di, dj), ...]."""
     f = np.fft.rfft2(x, axes=(-2, -1))
@@ -220,3 +294,73 @@ def simulate_flats(template, *, n_images=1024, shape=(16, 16), step=1000.0, n_st
     t.meta["shape"] = [ny, nx]
     t.meta["step"] = float(step)
     return t
+
+
+def simulate_ptc_levels(template, levels, *, steps_per_level=40, n_images=1024, shape=(16, 16),
+                        max_lag=3, seed=None, progress=False):
+    """Independent flat stacks, one per signal level, for a PTC fit.
+
+    :func:`simulate_flats` fills one stack, so its covariances at different
+    signals are strongly correlated; a least-squares fit that treats them as
+    independent would understate its errors. Here each level is a new stack
+    (its own random stream) filled in ``steps_per_level`` equal steps, and
+    only its last row is kept, so the levels are statistically independent.
+
+    ``cov`` is the per-pair estimator of :func:`simulate_flats` with its
+    mean-subtraction bias removed: subtracting each difference image's mean
+    lowers every lag by Var(sum of the image) / N_pix^2 per pixel pair, and
+    in a periodic stack whose areas sum to N_pix the summed charge is exactly
+    Poisson, so the bias is exactly -mu / N_pix at every lag (added back).
+
+    Filling in n discrete steps (areas updated between steps) gives, to first
+    order, C_ij = a_ij mu^2 (1 - 1/n) instead of the continuous a_ij mu^2:
+    the charge of step k sees the boundaries of steps < k only. Divide fitted
+    a_ij by ``1 - 1/steps_per_level`` (column ``step_factor``) to compare
+    with a continuous exposure.
+
+    Parameters
+    ----------
+    template : DistortionTemplate
+        Green's function.
+    levels : array_like
+        Target mean signals (e per pixel).
+    steps_per_level : int, optional
+        Fill steps of each stack (step = level / steps_per_level).
+    n_images, shape, max_lag : optional
+        As in :func:`simulate_flats`.
+    seed : int, optional
+        Seed of the generator from which each level's stream is spawned.
+    progress : bool, optional
+        Progress bar on stderr.
+
+    Returns
+    -------
+    astropy.table.Table
+        One row per level: ``mu`` (e), ``cov`` and ``cov_err`` (per-pair
+        estimator without its mean-subtraction bias, e^2, [di, dj]), ``paper``
+        (C_ij / mu, all pairs),
+        ``area_min``, ``area_max``; meta ``step_factor`` = 1 - 1/n.
+    """
+    levels = np.asarray(levels, dtype=float).ravel()
+    if levels.size < 1 or not np.all(np.isfinite(levels) & (levels > 0)):
+        raise ValueError("levels must be positive and finite")
+    if int(steps_per_level) != steps_per_level or steps_per_level < 2:
+        raise ValueError(f"steps_per_level must be an integer >= 2, got {steps_per_level!r}")
+    n = int(steps_per_level)
+    streams = np.random.SeedSequence(seed).spawn(levels.size)
+    rows = []
+    with ProgressBar(levels.size, "ptc-levels", enabled=progress) as bar:
+        for lev, ss in zip(levels, streams):
+            t = simulate_flats(template, n_images=n_images, shape=shape, step=lev / n,
+                               n_steps=n, max_lag=max_lag, rng=np.random.default_rng(ss))
+            last = t[-1]
+            unbiased = last["pairs"] + last["mu"] / (shape[0] * shape[1])
+            rows.append((last["mu"], unbiased, last["pairs_err"], last["paper"],
+                         last["area_min"], last["area_max"]))
+            bar(1)
+    out = Table(rows=rows, names=("mu", "cov", "cov_err", "paper", "area_min", "area_max"))
+    out["mu"].unit = "electron"
+    out.meta.update(template_charge=template.charge, n_images=int(n_images),
+                    shape=[int(v) for v in shape], steps_per_level=n,
+                    step_factor=1.0 - 1.0 / n)
+    return out

@@ -16,9 +16,10 @@ c = stamp_size // 2.
 import numpy as np
 from astropy.table import Table
 
-from .geometry import locate_points, pixel_polygons
+from ._star_kernels import NEIGHBOUR_ORDER, accumulate, inner_boxes, locate
+from .boundaries import BoundaryGrid
 from .progress import ProgressBar
-from .superpose import moment_maps, superpose_boundaries
+from .superpose import check_charge_image, moment_maps, superpose_boundaries
 
 __all__ = ["make_psf", "shoot_photons", "image_moments", "StarSimulation", "simulate_star"]
 
@@ -110,6 +111,13 @@ def image_moments(image, *, weight_sigma=None, center=None):
 class StarSimulation:
     """Accumulate conversions into a stamp whose pixel boundaries move.
 
+    The boundaries are kept as absolute arrays (the layout of
+    :class:`~lsst_bfdrift.boundaries.BoundaryGrid`) and updated incrementally:
+    after each batch of ``update_every`` conversions, every pixel that
+    received dq electrons adds dq / Q times the template centred on it
+    (compiled direct sum, :mod:`lsst_bfdrift._star_kernels`). This equals the
+    FFT superposition of the whole charge image to rounding (tested).
+
     Parameters
     ----------
     template : DistortionTemplate
@@ -118,68 +126,155 @@ class StarSimulation:
         Side of the stamp (pixels).
     update_every : int, optional
         Conversions between boundary updates (paper: 1000).
+    layout : {'shared', 'galsim'}, optional
+        'shared' (default): the template's shared boundaries, pixels tile
+        the stamp. 'galsim': galsim.SiliconSensor's layout and assignment
+        rule (every edge a polyline with its own corners, taken from the
+        file pixel nearest the aggressor; nominal pixel first, then the
+        neighbours; unassigned conversions to the nominal pixel or the first
+        neighbour at random), for photon-by-photon comparisons with GalSim
+        (:mod:`lsst_bfdrift._galsim_rules`). Needs a template with its
+        per-pixel table (:meth:`DistortionTemplate.from_galsim`).
+    seed : int, optional
+        Seed of the random choices of the 'galsim' layout.
+    qdist : int, optional
+        With ``layout='galsim'``: GalSim's ``qdist`` truncation of each
+        aggressor's reach (GalSim's default is 3; None keeps the whole
+        template, as GalSim does with ``qdist`` = template half size).
+    galsim_box : bool, optional
+        With ``layout='galsim'``: accept a conversion in GalSim's own
+        "trivially inside" box of its nominal pixel without the polygon test,
+        as GalSim does (default True); False uses a box proven to lie inside
+        the polygon, i.e. the exact polygon rule.
     """
 
-    def __init__(self, template, *, stamp_size=31, update_every=1000):
+    def __init__(self, template, *, stamp_size=31, update_every=1000, layout="shared",
+                 seed=None, qdist=None, galsim_box=True):
         if int(stamp_size) != stamp_size or stamp_size < 3:
             raise ValueError(f"stamp_size must be an integer >= 3, got {stamp_size!r}")
         if int(update_every) != update_every or update_every < 1:
             raise ValueError(f"update_every must be a positive integer, got {update_every!r}")
+        if layout not in ("shared", "galsim"):
+            raise ValueError(f"layout must be 'shared' or 'galsim', got {layout!r}")
         self.t = template
         self.n = int(stamp_size)
         self.update_every = int(update_every)
-        self.image = np.zeros((self.n, self.n))
+        self.layout = layout
+        self.galsim_box = bool(galsim_box)
+        self._rng = np.random.default_rng(seed)
+        if layout == "galsim":
+            from ._galsim_rules import galsim_edge_templates
+            self._tv, self._th = galsim_edge_templates(template, qdist=qdist)
         self.nominal_image = np.zeros((self.n, self.n))
         self.lost = 0
-        nom = superpose_boundaries(template, self.image).nominal()
-        self._nx, self._ny = pixel_polygons(nom.corners, nom.vedge, nom.hedge, nom.fractions)
-        self._refresh()
+        self._has_t = template.vedge_t is not None
+        dummy = np.zeros((1, 1, 1))
+        self._kernels = (np.ascontiguousarray(template.corner_d),
+                         np.ascontiguousarray(template.vedge_d),
+                         np.ascontiguousarray(template.hedge_d),
+                         np.ascontiguousarray(template.vedge_t) if self._has_t else dummy,
+                         np.ascontiguousarray(template.hedge_t) if self._has_t else dummy)
+        self._fr = np.ascontiguousarray(template.fractions, dtype=float)
+        self.reset(np.zeros((self.n, self.n)))
 
-    def _refresh(self):
-        g = superpose_boundaries(self.t, self.image)
-        self._x, self._y = pixel_polygons(g.corners, g.vedge, g.hedge, g.fractions,
-                                          vedge_t=g.vedge_t, hedge_t=g.hedge_t)
-        self._dmax = np.max(np.hypot(self._x - self._nx, self._y - self._ny), axis=-1)
+    def reset(self, charge):
+        """Set the collected charge (e) and recompute the boundaries in full
+        (FFT superposition; a direct sum for the 'galsim' layout).
 
-    def _assign(self, px, py):
-        """Pixel indices of conversions at (px, py) for the current boundaries."""
-        i0 = np.floor(px + 0.5).astype(int)
-        j0 = np.floor(py + 0.5).astype(int)
-        inside = (i0 >= 0) & (i0 < self.n) & (j0 >= 0) & (j0 < self.n)
-        ii = np.full(px.size, -1)
-        jj = np.full(px.size, -1)
-        # deep inside the square shrunk by the pixel's largest vertex shift
-        margin = 0.5 - np.maximum(np.abs(px - i0), np.abs(py - j0))
-        d = np.full(px.size, np.inf)
-        d[inside] = self._dmax[j0[inside], i0[inside]]
-        sure = inside & (margin > d)
-        ii[sure], jj[sure] = i0[sure], j0[sure]
-        near = np.flatnonzero(~sure & (px > -1.5) & (px < self.n + 0.5) & (py > -1.5)
-                              & (py < self.n + 0.5))
-        if near.size:
-            a, b = locate_points(px[near], py[near], self._x, self._y)
-            ii[near], jj[near] = a, b
-        return ii, jj
+        Parameters
+        ----------
+        charge : array_like, shape (stamp_size, stamp_size)
+            Charge per pixel, ``charge[j, i]``; copied.
+        """
+        q = check_charge_image(charge)
+        if q.shape != (self.n, self.n):
+            raise ValueError(f"charge must have shape {(self.n, self.n)}, got {q.shape}")
+        self.image = q
+        if self.layout == "galsim":
+            from ._galsim_rules import (add_templates_galsim, edge_boxes, galsim_boxes,
+                                        nominal_edges)
+            self._V, self._H = nominal_edges(self.n, self.n, self._fr)
+            add_templates_galsim(q, 1.0 / self.t.charge, self.t.center, self._V, self._H,
+                                 self._tv, self._th)
+            self._box = np.empty((self.n, self.n, 4))
+            (galsim_boxes if self.galsim_box else edge_boxes)(self._V, self._H, 0, self.n, 0,
+                                                              self.n, self._box)
+            return
+        g = superpose_boundaries(self.t, q)
+        self._corners = np.ascontiguousarray(g.corners)
+        self._vedge = np.ascontiguousarray(g.vedge)
+        self._hedge = np.ascontiguousarray(g.hedge)
+        dummy = np.zeros((1, 1, 1))
+        self._vt = np.ascontiguousarray(g.vedge_t) if self._has_t else dummy
+        self._ht = np.ascontiguousarray(g.hedge_t) if self._has_t else dummy
+        self._box = np.empty((self.n, self.n, 4))
+        inner_boxes(self._corners, self._vedge, self._hedge, self._fr, self._vt, self._ht,
+                    self._has_t, 0, self.n, 0, self.n, self._box)
+
+    def boundaries(self):
+        """Copy of the current boundaries as a :class:`~lsst_bfdrift.boundaries.BoundaryGrid`
+        (absolute positions, pixel units; ``vedge_t``/``hedge_t`` attributes)."""
+        if self.layout != "shared":
+            raise ValueError("boundaries() needs layout='shared'; the 'galsim' layout keeps "
+                             "edge polylines (attributes _V, _H)")
+        g = BoundaryGrid(0, 0, self._corners.copy(), self._vedge.copy(), self._hedge.copy(),
+                         self._fr.copy())
+        g.vedge_t = self._vt.copy() if self._has_t else None
+        g.hedge_t = self._ht.copy() if self._has_t else None
+        return g
+
+    def assign(self, px, py):
+        """Pixel indices (i, j) of conversions at (px, py) for the current
+        boundaries; -1 (both) for points in no pixel of the stamp."""
+        px, py = _check_points(px, py)
+        oi = np.empty(px.size, dtype=np.int64)
+        oj = np.empty(px.size, dtype=np.int64)
+        if self.layout == "galsim":
+            from ._galsim_rules import locate_galsim
+            locate_galsim(px, py, self._rng.uniform(size=px.size), self._V, self._H, self._box,
+                          oi, oj)
+            off = (oi < 0) | (oi >= self.n) | (oj < 0) | (oj >= self.n)
+            oi[off] = oj[off] = -1
+            return oi, oj
+        locate(px, py, self._corners, self._vedge, self._hedge, self._fr, self._vt, self._ht,
+               self._has_t, NEIGHBOUR_ORDER, self._box, oi, oj)
+        return oi, oj
 
     def add(self, px, py):
-        """Convert photons at (px, py) (pixel units, stamp frame), in order."""
-        px = np.asarray(px, float)
-        py = np.asarray(py, float)
-        for s in range(0, px.size, self.update_every):
-            x, y = px[s:s + self.update_every], py[s:s + self.update_every]
-            ii, jj = self._assign(x, y)
-            ok = ii >= 0
-            self.lost += int((~ok).sum())
-            np.add.at(self.image, (jj[ok], ii[ok]), 1.0)
-            i0 = np.floor(x + 0.5).astype(int)
-            j0 = np.floor(y + 0.5).astype(int)
-            ok0 = (i0 >= 0) & (i0 < self.n) & (j0 >= 0) & (j0 < self.n)
-            np.add.at(self.nominal_image, (j0[ok0], i0[ok0]), 1.0)
-            self._refresh()
+        """Convert photons at (px, py) (pixel units, stamp frame), in order.
+
+        The boundaries are updated after every ``update_every`` conversions
+        (counted from the start of this call) and after the last one.
+        """
+        px, py = _check_points(px, py)
+        if self.layout == "galsim":
+            from ._galsim_rules import accumulate_galsim
+            self.lost += int(accumulate_galsim(px, py, self._rng.uniform(size=px.size),
+                                               self.update_every, self.image,
+                                               self.nominal_image, self._V, self._H, self._box,
+                                               1.0 / self.t.charge, self.t.center, self._tv,
+                                               self._th, self.galsim_box))
+            return
+        kc, kv, kh, kvt, kht = self._kernels
+        self.lost += int(accumulate(px, py, self.update_every, self.image, self.nominal_image,
+                                    self._corners, self._vedge, self._hedge, self._fr, self._vt,
+                                    self._ht, self._has_t, NEIGHBOUR_ORDER, self._box,
+                                    1.0 / self.t.charge, self.t.center, kc, kv, kh, kvt, kht))
 
     def geometry(self):
-        """:class:`~lsst_bfdrift.superpose.MomentMaps` of the current pixels."""
+        """:class:`~lsst_bfdrift.superpose.MomentMaps` of the current pixels
+        (of the template's shared boundaries, whatever the layout)."""
         return moment_maps(self.t, self.image)
+
+
+def _check_points(px, py):
+    px = np.ascontiguousarray(px, dtype=float).ravel()
+    py = np.ascontiguousarray(py, dtype=float).ravel()
+    if px.shape != py.shape:
+        raise ValueError(f"px and py must have the same size, got {px.size} and {py.size}")
+    if not (np.all(np.isfinite(px)) and np.all(np.isfinite(py))):
+        raise ValueError("photon positions must be finite")
+    return px, py
 
 
 def simulate_star(template, psf, flux, *, stamp_size=31, update_every=1000, pixel_scale=0.2,

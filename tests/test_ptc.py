@@ -139,3 +139,26 @@ def test_full_fit_recovers_synthetic(rng):
     assert r["gain"] == pytest.approx(g, abs=4 * r["gain_err"])
     assert np.all(np.abs(r["a"] - a) < 4 * r["a_err"] + 1e-12)
     assert r["chi2"] / r["dof"] < 1.5
+
+
+def test_full_fit_with_known_gain_and_no_noise(rng):
+    """Gain held at its true value and n_ij at zero: fewer parameters, smaller
+    errors on a_ij, still unbiased; a wrong fixed gain is detected by chi2."""
+    a = np.array([[-2e-6, 3e-7], [1.2e-7, 4e-8]])
+    g = 0.8
+    mu = np.geomspace(500, 9e4, 30)
+    c = covariance_model(mu, g, a, np.zeros_like(a), np.zeros_like(a))
+    err = np.sqrt(2.0 / 1e6) * (mu / g)[:, None, None] * np.ones_like(c)
+    c_noisy = c + rng.normal(0, 1, c.shape) * err
+    free = fit_covariance_model(mu, c_noisy, sigma=err, fit_b=False)
+    fixed = fit_covariance_model(mu, c_noisy, sigma=err, fit_b=False, gain=g, fit_noise=False)
+    assert fixed["gain"] == g and fixed["gain_err"] == 0.0
+    assert np.all(fixed["noise"] == 0) and np.all(fixed["noise_err"] == 0)
+    assert np.all(np.abs(fixed["a"] - a) < 4 * fixed["a_err"])
+    assert fixed["a_err"][0, 0] < 0.8 * free["a_err"][0, 0]
+    assert fixed["chi2"] / fixed["dof"] < 1.5
+    wrong = fit_covariance_model(mu, c_noisy, sigma=err, fit_b=False, gain=1.02 * g,
+                                 fit_noise=False)
+    assert wrong["chi2"] / wrong["dof"] > 5
+    with pytest.raises(ValueError, match="gain"):
+        fit_covariance_model(mu, c_noisy, sigma=err, gain=-1.0)
