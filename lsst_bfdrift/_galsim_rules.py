@@ -29,6 +29,8 @@ Layouts (pixel (i, j) centred on (i, j), absolute positions, pixel units):
 import numba
 import numpy as np
 
+from ._star_kernels import _crossing
+
 __all__ = ["galsim_edge_templates", "nominal_edges", "edge_boxes", "galsim_boxes",
            "add_templates_galsim", "accumulate_galsim", "locate_galsim", "layout_areas"]
 
@@ -157,22 +159,6 @@ def layout_areas(V, H):
                 a += (xs[k] - i) * (ys[b] - j) - (xs[b] - i) * (ys[k] - j)
             out[j, i] = abs(0.5 * a)
     return out
-
-
-@numba.njit(cache=True)
-def _crossing(px, py, xs, ys):
-    n = xs.shape[0]
-    count = 0
-    for a in range(n):
-        b = a + 1 if a + 1 < n else 0
-        ya = ys[a]
-        yb = ys[b]
-        if (ya > py) != (yb > py):
-            xa = xs[a]
-            xcross = xa + (py - ya) * (xs[b] - xa) / (yb - ya)
-            if px < xcross:
-                count += 1
-    return count % 2 == 1
 
 
 @numba.njit(cache=True)
