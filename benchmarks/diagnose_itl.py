@@ -35,7 +35,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, ".."))
 
 from lsst_bfdrift.acoeff_fit import (AcoeffTable, LinearBasis, default_basis_path,  # noqa: E402
-                                     fit_acoeffs, read_acoeff_table)
+                                     electrostatic_acoeffs, fit_acoeffs, read_acoeff_table)
 from lsst_bfdrift.diagnosis import Observations, diagnose  # noqa: E402
 from lsst_bfdrift.injection import simulate_flat_pairs  # noqa: E402
 from lsst_bfdrift.io_utils import atomic_output  # noqa: E402
@@ -123,9 +123,29 @@ def main():
     for (i, j) in ((0, 1), (1, 0), (1, 1), (0, 2), (2, 0)):
         print(f"  a{i}{j}: measured {a[i, j]:.4g} +- {s[i, j]:.2g}, model {m[i, j]:.4g}, "
               f"pull {(a[i, j] - m[i, j]) / s[i, j]:+.2f}", file=out)
+    pulls = np.where(np.arange(9)[:, None] + np.arange(9)[None, :] == 0, np.nan, (a - m) / s)
+    print("  pull map (measured - model) / sigma, rows serial lag i = 0..8, columns parallel "
+          "lag j = 0..8 (a00 not fitted):", file=out)
+    for i in range(pulls.shape[0]):
+        print("    " + " ".join("   -- " if np.isnan(v) else f"{v:+6.2f}" for v in pulls[i]),
+              file=out)
     print(f"  anisotropy a01/a10: measured {a[0, 1] / a[1, 0]:.3f}, model "
           f"{m[0, 1] / m[1, 0]:.3f}; model a00 {m[0, 0]:.4g} (measured {a[0, 0]:.4g}, "
           "set by the sum rule)", file=out)
+    # 2b: the previous calibration (xi0 and channel depth fitted to a01, a10, a11
+    # only; benchmarks/calibrate.py) evaluated on all 80 lags
+    prev = electrostatic_acoeffs(SensorParameters(xi0=4722.4, channel_depth=0.56159,
+                                                  collection_height=0.5), max_lag=8)
+    msk = table.mask()
+    chi_prev = float(np.sum(((table.a - prev) / table.sigma)[msk] ** 2))
+    print(f"previous calibration (xi0 4722.4, channel depth 0.5616; nearest neighbours "
+          f"only) on all 80 lags: chi2 = {chi_prev:.2f} (chi2/80 = {chi_prev / 80:.3f}); "
+          f"a01/a10 = {prev[0, 1] / prev[1, 0]:.3f}; largest pulls " + ", ".join(
+              f"a{i}{j} {((table.a - prev) / table.sigma)[i, j]:+.2f}" for i, j in
+              sorted(np.argwhere(msk).tolist(), key=lambda ij: -abs(
+                  ((table.a - prev) / table.sigma)[ij[0], ij[1]]))[:4]), file=out)
+    results["previous_calibration"] = {"chi2": chi_prev, "n_lags": 80,
+                                       "ratio_01_10": float(prev[0, 1] / prev[1, 0])}
     results["itl_fit"] = fit_d
     results["axis_note"] = table.axis_note
     if not args.reuse_fit:  # keep the slow part even if a later step fails
@@ -141,6 +161,15 @@ def main():
     results["itl_diagnosis"] = d.as_dict()
     write_report(d.as_dict(), FIG_DIR, extra={"electrostatic_fit": {
         k: fit_d[k] for k in ("names", "values", "errors", "chi2", "dof", "seconds")}})
+
+    # 3b: sensitivity: were the quoted errors scatter rather than errors of the
+    # mean, they would be smaller; scale them so that the base fit has chi2/dof = 1
+    k = float(np.sqrt(d.chi2_dof_before))
+    ds = diagnose(Observations.from_table(AcoeffTable(table.a, table.sigma * k,
+                                                      exclude_a00=True)), basis)
+    print(f"diagnosis with the ITL errors scaled by {k:.3f} (base chi2/dof = 1):", file=out)
+    print_steps(out, ds)
+    results["itl_diagnosis_scaled_errors"] = {"scale": k, **ds.as_dict()}
 
     # 4: diagnosis on the e2v PTC
     mu, var = read_ptc_text(E2V)

@@ -39,7 +39,7 @@ EFFECT_NAMES = ("charge_cloud", "well_filling", "diffusion", "gain_nonlinearity"
 def full_lags(q):
     """Extend a quadrant array q[i, j] (i, j >= 0) to signed lags, shape (2L+1, 2L+1).
 
-    Element [L + i, L + j] of the result is q[|i|, |j|].
+    Element ``[L + i, L + j]`` of the result is ``q[abs(i), abs(j)]``.
     """
     q = np.asarray(q, dtype=float)
     rows = np.concatenate([q[::-1][:-1], q], axis=0)
