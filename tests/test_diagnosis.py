@@ -173,3 +173,15 @@ def test_bad_inputs(tmp_path, basis, capsys):
         diagnose(Observations.from_table(big), basis)
     assert main(["diagnose", str(p), "--basis", BASIS]) == 2
     assert "not an a_ij table" in capsys.readouterr().err
+
+
+def test_cli_itl_table_with_shipped_basis(capsys):
+    """The measured ITL table against the shipped fit: nothing to add."""
+    rc = main(["diagnose", "/work/shared/data/measured/itl_covariances_21oct19.txt", "--json"])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["kind"] == "table" and out["n_points"] == 80  # a00 left out (sum rule)
+    assert out["effects_added"] == [] and not out["unexplained"]
+    assert out["chi2_dof_before"] < 0.1  # the file's errors are generous (docs/measured.rst)
+    assert out["tried"] == ["charge_cloud"]
+    assert len(out["residuals_before"]) == 80
