@@ -39,6 +39,11 @@ Subcommands
     size- and ellipticity-flux slopes at fixed position, before and after
     the catalogue-level and/or pixel-level BF correction, with a verdict
     (``residual_bf_detected``) and optional figures.
+``bfdrift diagnose INPUT [--json] [--report DIR] [--basis FILE]``
+    Where the electrostatic model is wrong and which effect explains it:
+    INPUT is an a_ij table, a PTC text file or a directory of flat pairs;
+    chi2/dof, rms and largest residual lags before and after each added
+    effect (see ``docs/measured.rst``).
 ``bfdrift maps [IMAGE] [--template FILE] [--out FILE] [--plot PNG] [--json]``
     Final pixel geometry (area, centroid shift, ellipticity maps) of an image
     in electrons; with no IMAGE, the bundled sample star. This is the quick
@@ -442,6 +447,30 @@ def _cmd_validate_sky(args):
         _print_json(out)
     else:
         print(out["verdict"])
+
+
+def _cmd_diagnose(args):
+    from .acoeff_fit import LinearBasis, load_default_basis
+    from .diagnosis import diagnose, load_input
+
+    obs = load_input(args.input, max_lag=args.max_lag)
+    if args.basis:
+        with open(args.basis) as fh:
+            basis = LinearBasis.from_dict(json.load(fh))
+    else:
+        basis = load_default_basis()
+    d = diagnose(obs, basis).as_dict()
+    d["input"] = args.input
+    if args.report:
+        from .report import write_report
+        d["report_files"] = write_report(d, args.report)
+    if args.json:
+        _print_json(d)
+    else:
+        for s in d["steps"]:
+            print(f"{s['label']:>24s}: chi2/dof {s['chi2_dof']:.3f}, rms pull {s['rms_pull']:.3f}")
+        print(f"{'effects added':>24s}: {', '.join(d['effects_added']) or 'none'}")
+        print(d["verdict"])
     return 0
 
 
@@ -572,6 +601,14 @@ def build_parser():
     vk.add_argument("--json", action="store_true")
     vk.add_argument("--quiet", action="store_true")
     vk.set_defaults(func=_cmd_validate_sky)
+    dg = sub.add_parser("diagnose", help="residual of the model and the effects explaining it")
+    dg.add_argument("input", help="a_ij table, PTC text file or directory of flat pairs")
+    dg.add_argument("--json", action="store_true")
+    dg.add_argument("--report", help="write report.md, diagnosis.json and figures here")
+    dg.add_argument("--basis", help="linearised electrostatic model (JSON; default: the "
+                    "shipped fit to the ITL a_ij)")
+    dg.add_argument("--max-lag", type=int, default=3, help="largest lag for flat pairs")
+    dg.set_defaults(func=_cmd_diagnose)
 
     m = sub.add_parser("maps", help="pixel geometry maps of an image (main job)")
     m.add_argument("image", nargs="?", help="FITS image in electrons (default: bundled sample)")
