@@ -447,6 +447,7 @@ def _cmd_validate_sky(args):
         _print_json(out)
     else:
         print(out["verdict"])
+    return 0
 
 
 def _cmd_diagnose(args):
