@@ -82,10 +82,11 @@ def read_config(path):
         raise ValueError(f"{path}: cannot parse configuration ({exc})") from exc
     if not isinstance(data, dict):
         raise ValueError(f"{path}: configuration must be a table/object")
-    unknown = sorted(set(data) - {"sensor", "template"})
+    # 'provenance' is free-form documentation (e.g. the default's calibration)
+    unknown = sorted(set(data) - {"sensor", "template", "provenance"})
     if unknown:
         raise KeyError(f"{path}: unknown configuration section(s) {unknown}; "
-                       "expected 'sensor' and/or 'template'")
+                       "expected 'sensor' and/or 'template' (and 'provenance')")
     return (SensorParameters.from_dict(data.get("sensor", {})),
             TemplateSettings.from_dict(data.get("template", {})))
 

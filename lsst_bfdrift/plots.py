@@ -16,7 +16,8 @@ from matplotlib.collections import PolyCollection  # noqa: E402
 from .io_utils import atomic_output  # noqa: E402
 
 __all__ = ["plot_template", "plot_moment_maps", "plot_flat_simulation", "plot_star_history",
-           "plot_ratio_scan", "plot_radial", "plot_feature_profiles", "save_figure"]
+           "plot_ratio_scan", "plot_radial", "plot_feature_profiles", "plot_pixel_contours",
+           "plot_structure_functions", "save_figure"]
 
 
 def _auto_exaggeration(template):
@@ -225,6 +226,86 @@ def plot_feature_profiles(table, *, xlabel="index"):
         a.set_xlabel(xlabel)
         a.legend(fontsize=7)
     fig.suptitle(table.meta.get("feature", ""))
+    return fig
+
+
+def plot_pixel_contours(table, *, settings=None, title=None):
+    """Pixel contours (coloured by A - 1) of a block for several settings.
+
+    Parameters
+    ----------
+    table : astropy.table.Table
+        Rows of :func:`lsst_bfdrift.patterns.block_geometry` with a
+        ``setting`` column (e.g. :func:`~lsst_bfdrift.patterns.tearing_onset`).
+    settings : sequence of float, optional
+        Settings drawn (default all), one panel each.
+    title : str, optional
+        Figure title (default: the table's ``feature`` metadata).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    vals = sorted(set(table["setting"])) if settings is None else list(settings)
+    fig, axes = plt.subplots(1, len(vals), figsize=(3.6 * len(vals) + 1, 4.2),
+                             constrained_layout=True, squeeze=False)
+    lim = max(float(np.max(np.abs(table["area"] - 1))), 1e-6)
+    pc = None
+    for ax, v in zip(axes[0], vals):
+        s = table[table["setting"] == v]
+        xv, yv = np.asarray(s["xv"]), np.asarray(s["yv"])
+        verts = np.stack([xv, yv], axis=-1)
+        pc = PolyCollection(verts, array=np.asarray(s["area"]) - 1, cmap="RdBu_r",
+                            edgecolors="k", linewidths=0.5)
+        pc.set_clim(-lim, lim)
+        ax.add_collection(pc)
+        ax.set_xlim(np.min(s["i"]) - 0.2, np.max(s["i"]) + 1.2)
+        ax.set_ylim(np.min(s["j"]) - 0.2, np.max(s["j"]) + 1.2)
+        ax.set_aspect("equal")
+        ax.set_title(f"setting {v:g}", fontsize=9)
+        ax.set_xlabel("column i")
+    axes[0][0].set_ylabel("row j")
+    if pc is not None:
+        fig.colorbar(pc, ax=axes[0].tolist(), shrink=0.8, label="A - 1 (px$^2$)")
+    fig.suptitle(title or table.meta.get("feature", ""), fontsize=10)
+    return fig
+
+
+def plot_structure_functions(result):
+    """Area maps and structure functions of clock jitter and channel-stop variations.
+
+    Parameters
+    ----------
+    result : dict
+        Output of :func:`lsst_bfdrift.patterns.prnu`.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    fig, ax = plt.subplots(1, 3, figsize=(14, 4.2), constrained_layout=True)
+    for a, name in zip(ax[:2], ("jitter", "channel_stop")):
+        m = result["maps"][name]
+        im = a.imshow(m - 1, origin="lower", cmap="RdBu_r",
+                      vmin=-np.max(np.abs(m - 1)), vmax=np.max(np.abs(m - 1)))
+        a.set_title(f"{name.replace('_', ' ')}: A - 1", fontsize=9)
+        a.set_xlabel("column (serial)")
+        a.set_ylabel("row (parallel)")
+        fig.colorbar(im, ax=a, shrink=0.8)
+    lags = result["lags"]
+    for key, style in (("jitter_parallel", "o-"), ("jitter_serial", "o:"),
+                       ("channel_stop_serial", "s-"), ("channel_stop_parallel", "s:")):
+        d = np.asarray(result["D"][key])
+        ax[2].plot(lags, np.where(d > 0, d, np.nan), style, label=key.replace("_", " "))
+    for key in ("jitter_parallel_expected", "channel_stop_serial_expected"):
+        if key in result["D"]:
+            ax[2].plot(lags, result["D"][key], "k--", lw=0.8)
+    ax[2].set_yscale("log")
+    ax[2].set_xlabel("lag (px)")
+    ax[2].set_ylabel("D(lag) = <(A(x+lag) - A(x))$^2$> (px$^4$)")
+    ax[2].set_title("structure functions (dashed: ensemble from impulse response)",
+                    fontsize=9)
+    ax[2].legend(fontsize=8)
     return fig
 
 
