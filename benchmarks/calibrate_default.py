@@ -46,7 +46,10 @@ CONFIG = os.path.join(ROOT, "lsst_bfdrift", "data", "default_template_config.jso
 Q = 1e4
 LAGS = ((0, 1), (1, 0), (1, 1), (0, 2), (2, 0))
 FREE = {"xi0": (1e3, 1e5), "channel_depth": (0.3, 12.0), "clock_separation": (0.5, 8.0)}
-START = SensorParameters(xi0=4722.4, channel_depth=0.8, clock_separation=3.0,
+#: Start: the end of a first exploration from (4722 e, 0.8 um, 3.0 um), which
+#: walked along a shallow valley (chi2 from 69 to 1.0 in 86 templates) towards
+#: the smallest clock-pair separation allowed (docs/calibration.rst).
+START = SensorParameters(xi0=2952.0, channel_depth=0.368, clock_separation=0.52,
                          collection_height=0.5)
 FIT_SETTINGS = TemplateSettings(size=5, edge_samples=32, tol=1e-5, aggressor_charge=Q,
                                 workers=1)
@@ -66,6 +69,7 @@ def read_itl(path=ITL):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--write-config", action="store_true")
+    ap.add_argument("--max-nfev", type=int, default=4, help="optimiser evaluations")
     args = ap.parse_args(argv)
     a = read_itl()
     targets = {f"A{i}{j}": (float(np.exp(a[(i, j)][0] * Q)), a[(i, j)][1] * Q)
@@ -80,7 +84,7 @@ def main(argv=None):
         print("   ", {k: round(v, 5) for k, v in p.items()},
               {k: round(nums[k], 6) for k in targets}, flush=True)
 
-    r = fit_sensor_parameters(targets, START, FREE, settings=FIT_SETTINGS, max_nfev=40,
+    r = fit_sensor_parameters(targets, START, FREE, settings=FIT_SETTINGS, max_nfev=args.max_nfev,
                               callback=cb)
     dof = len(targets) - len(r.values)
     say(f"ITL default calibration (Q = {Q:g} e, {FIT_SETTINGS.size}x{FIT_SETTINGS.size}, "

@@ -39,7 +39,7 @@ def template_numbers(params, settings=CALIBRATION_SETTINGS):
     c = tpl.center
     for j in range(min(c, 9) + 1):
         for i in range(min(c, 9) + 1):
-            out.setdefault(f"A{i}{j}", float(area[c + j, c + i]))
+            out[f"A{i}{j}"] = float(area[c + j, c + i])
     return out
 
 

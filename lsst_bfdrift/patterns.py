@@ -348,8 +348,28 @@ def structure_function(image, max_lag, *, axis):
 
 
 def prnu(params=None, *, jitter_sigma=0.1, cs_sigma=0.5, shape=(32, 32), max_lag=8,
-         edge_samples=8, tol=1e-5, seeds=(1, 2)):
+         edge_samples=8, tol=1e-4, kernel_tol=1e-5, kernel_half_width=8, seeds=(1, 2)):
     """Area maps and structure functions of clock jitter and channel-stop variations.
+
+    Parameters
+    ----------
+    params : SensorParameters, optional
+        Base model.
+    jitter_sigma : float, optional
+        Standard deviation of the clock-pair displacements (um).
+    cs_sigma : float, optional
+        Standard deviation of the channel-stop strength changes (xi0).
+    shape : tuple of int, optional
+        (rows, columns) of the maps.
+    max_lag : int, optional
+        Largest lag of the structure functions (px).
+    edge_samples, tol : optional
+        Boundary sampling of the maps (tolerance in px).
+    kernel_tol, kernel_half_width : optional
+        Tolerance (px) and half width (px) of the single-barrier responses
+        that give the ensemble-average structure functions.
+    seeds : tuple of int, optional
+        Seeds of the jitter and channel-stop draws.
 
     Returns
     -------
@@ -382,10 +402,10 @@ def prnu(params=None, *, jitter_sigma=0.1, cs_sigma=0.5, shape=(32, 32), max_lag
             s[f"corr1_{axis}"] = float(np.mean(x0 * x1) / den) if den > 0 else float("nan")
         out["summary"][name] = s
     out["lags"] = lags
-    hw = max(6, int(max_lag))
+    hw = max(int(kernel_half_width), int(max_lag))
     for name, (resp, sig) in {"jitter": (jitter_response, jitter_sigma),
                               "channel_stop": (channel_stop_response, cs_sigma)}.items():
-        idx, k = resp(params, half_width=hw, edge_samples=edge_samples, tol=tol)
+        idx, k = resp(params, half_width=hw, edge_samples=edge_samples, tol=kernel_tol)
         axis = "parallel" if name == "jitter" else "serial"
         _, d = expected_structure_function(k, sig, max_lag)
         out["inputs"][f"{name}_kernel"] = (idx, k)
