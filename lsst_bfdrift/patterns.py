@@ -122,7 +122,7 @@ def tearing_onset(params=None, *, weakening=(0.0, 0.25, 0.5, 0.75, 1.0), boundar
 
 
 def tearing_summary(table):
-    """Per weakening f: largest |A - 1|, |dx|, and the areas far beyond and at the end.
+    """Per weakening f: largest absolute A - 1 and dx, areas far beyond and at the end.
 
     Returns
     -------

@@ -232,6 +232,8 @@ def plot_feature_profiles(table, *, xlabel="index"):
 def plot_pixel_contours(table, *, settings=None, title=None, vertical=False):
     """Pixel contours (coloured by A - 1) of a block for several settings.
 
+    Axes are in pixel units with pixel (i, j) nominally centred on (i, j).
+
     Parameters
     ----------
     table : astropy.table.Table
@@ -267,8 +269,9 @@ def plot_pixel_contours(table, *, settings=None, title=None, vertical=False):
                             edgecolors="k", linewidths=0.5)
         pc.set_clim(-lim, lim)
         ax.add_collection(pc)
-        ax.set_xlim(np.min(s["i"]) - 0.2, np.max(s["i"]) + 1.2)
-        ax.set_ylim(np.min(s["j"]) - 0.2, np.max(s["j"]) + 1.2)
+        # vertices are in pixel units with pixel (i, j) centred on (i, j)
+        ax.set_xlim(np.min(s["i"]) - 0.7, np.max(s["i"]) + 0.7)
+        ax.set_ylim(np.min(s["j"]) - 0.7, np.max(s["j"]) + 0.7)
         ax.set_aspect("equal")
         ax.set_title(f"setting {v:g}", fontsize=9)
         ax.set_xlabel("column i")
@@ -322,7 +325,7 @@ def plot_recovery(template, *, r2_range=(4, 25)):
 
     Left: fraction of the central loss 1 - A00 recovered by the pixels within
     Chebyshev radius R (R = 1: the 8 nearest neighbours; paper ~35%). Right:
-    |d ln A| against r with the power law fitted over ``r2_range`` extended
+    the magnitude of d ln A against r with the power law fitted over ``r2_range`` extended
     outwards.
     """
     a = template.moments().area
@@ -354,7 +357,7 @@ def plot_recovery(template, *, r2_range=(4, 25)):
 
 
 def plot_tearing_onset(table):
-    """Largest |A - 1| and |dx| of the tearing block against the weakening f."""
+    """Largest absolute A - 1 and dx of the tearing block against the weakening f."""
     fs = sorted(set(table["setting"]))
     da = [float(np.max(np.abs(table[table["setting"] == f]["area"] - 1))) for f in fs]
     dx = [float(np.max(np.abs(table[table["setting"] == f]["dx"]))) for f in fs]
