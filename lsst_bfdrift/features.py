@@ -18,7 +18,7 @@ computed. Each returns an astropy Table with one row per pixel and setting:
 """
 
 import numpy as np
-from astropy.table import Table, vstack
+from astropy.table import vstack
 
 from .boundaries import pixel_boundaries
 from .geometry import pixel_polygons, polygon_moments
