@@ -26,8 +26,21 @@ CALIBRATION_SETTINGS = TemplateSettings(size=3, edge_samples=32, tol=1e-4, worke
 
 
 def template_numbers(params, settings=CALIBRATION_SETTINGS):
-    """Summary numbers (A00, A01, A10, A11, ratio_01_10, ...) of a template."""
-    return build_template(params, settings).summary()
+    """Summary numbers (A00, A01, A10, A11, ratio_01_10, ...) of a template.
+
+    Besides :meth:`~lsst_bfdrift.template.DistortionTemplate.summary`, every
+    lag (i, j) >= 0 inside the template is given as ``"A{i}{j}"`` (i serial,
+    j parallel: the area in px^2 of pixel (c + i, c + j) for the aggressor at
+    c), e.g. ``A02`` and ``A20`` for a template of size 5 or more.
+    """
+    tpl = build_template(params, settings)
+    out = tpl.summary()
+    area = tpl.moments().area
+    c = tpl.center
+    for j in range(min(c, 9) + 1):
+        for i in range(min(c, 9) + 1):
+            out[f"A{i}{j}"] = float(area[c + j, c + i])
+    return out
 
 
 class CalibrationResult:

@@ -92,10 +92,11 @@ def read_config(path):
         raise ValueError(f"{path}: cannot parse configuration ({exc})") from exc
     if not isinstance(data, dict):
         raise ValueError(f"{path}: configuration must be a table/object")
-    unknown = sorted(set(data) - {"sensor", "template"})
+    # 'provenance' is free-form documentation (e.g. the default's calibration)
+    unknown = sorted(set(data) - {"sensor", "template", "provenance"})
     if unknown:
         raise KeyError(f"{path}: unknown configuration section(s) {unknown}; "
-                       "expected 'sensor' and/or 'template'")
+                       "expected 'sensor' and/or 'template' (and 'provenance')")
     return (SensorParameters.from_dict(data.get("sensor", {})),
             TemplateSettings.from_dict(data.get("template", {})))
 
@@ -386,31 +387,17 @@ def _cmd_validate_stars(args):
 
 def _cmd_reproduce(args):
     from .progress import ProgressBar
-    from .reproduce import radial_profile, reproduce
-    kw = dict(size=11, edge_samples=16, v_bss=(-65.0, -50.0), xi_ck=(4.0, 5.0)) if args.quick \
-        else {}
-    n_scan = len(kw.get("v_bss", (0,) * 5)) * len(kw.get("xi_ck", (0,) * 5))
+    from .reproduce import reproduce, write_figures
+    kw = dict(size=11, edge_samples=16, v_bss=(-65.0, -50.0), xi_ck=(4.0, 5.0),
+              quick_features=True) if args.quick else {}
+    n_scan = len(kw.get("v_bss", (0,) * 5)) * len(kw.get("xi_ck", (0,) * 5)) + 5
+    tables = {}
     with ProgressBar(n_scan, "reproduce", enabled=not args.quiet) as bar:
-        numbers, tpl, (v_bss, xi_ck, ratio) = reproduce(progress=bar, **kw)
+        numbers, tpl, (v_bss, xi_ck, ratio) = reproduce(progress=bar, tables=tables, **kw)
     numbers["ratio_scan"] = {"v_bss": v_bss.tolist(), "xi_ck": xi_ck.tolist(),
                              "ratio_01_10": ratio.tolist()}
     if args.out:
-        from .plots import plot_radial, plot_ratio_scan, plot_template, save_figure
-        os.makedirs(args.out, exist_ok=True)
-        fid = numbers["ratio_01_10"]["package"]
-        save_figure(plot_ratio_scan(v_bss, xi_ck, ratio, fiducial=(-50.0, 5.0, fid)),
-                    os.path.join(args.out, "ratio_scan.png"))
-        save_figure(plot_radial(*radial_profile(tpl)), os.path.join(args.out, "radial.png"))
-        save_figure(plot_template(tpl), os.path.join(args.out, "template.png"))
-        from .features import edge_rolloff, midline
-        from .plots import plot_feature_profiles
-        from .reproduce import paper_parameters
-        save_figure(plot_feature_profiles(edge_rolloff(paper_parameters()),
-                                          xlabel="column from the edge"),
-                    os.path.join(args.out, "edge_rolloff.png"))
-        save_figure(plot_feature_profiles(midline(paper_parameters()),
-                                          xlabel="row (bloom stop below row 0)"),
-                    os.path.join(args.out, "midline.png"))
+        write_figures(numbers, tpl, (v_bss, xi_ck, ratio), tables, args.out)
         tpl.save(os.path.join(args.out, "paper_template.fits"), overwrite=True)
         with atomic_output(os.path.join(args.out, "reproduce.json")) as tmp, \
                 open(tmp, "w") as fh:

@@ -11,12 +11,14 @@ electrostatic model (no collected charge):
 
 Both features are invariant along the other axis, so a one-pixel strip is
 computed. Each returns an astropy Table with one row per pixel and setting:
-``setting``, ``index`` (column or row), ``area`` (px^2), ``dx``, ``dy``
-(centroid shift, px), ``e1``, ``e2``.
+``setting``, ``index`` (column or row), ``i``, ``j``, ``area`` (px^2),
+``dx``, ``dy`` (centroid shift, px), ``e1``, ``e2`` and the pixel vertices
+``xv``, ``yv`` (px). Barrier variations (tearing, bamboo, PRNU) are in
+:mod:`lsst_bfdrift.patterns`.
 """
 
 import numpy as np
-from astropy.table import Table, vstack
+from astropy.table import vstack
 
 from .boundaries import pixel_boundaries
 from .geometry import pixel_polygons, polygon_moments
@@ -36,17 +38,20 @@ def strip_geometry(params, i_range, j_range, *, edge_samples=8, tol=1e-4):
 
 
 def _profiles(settings, make_params, i_range, j_range, axis, edge_samples, tol, meta):
-    """Profiles of a strip for each setting; ``axis`` 1 runs along columns."""
+    """Profiles of a strip for each setting; ``axis`` 1 runs along columns.
+
+    The rows are those of :func:`lsst_bfdrift.patterns.block_geometry` (with
+    the pixel vertices ``xv``, ``yv`` for contour plots) plus ``setting`` and
+    ``index`` (column or row of the profile).
+    """
+    from .patterns import block_geometry
     rows = []
     for value in settings:
-        m, ii, jj = strip_geometry(make_params(float(value)), i_range, j_range,
-                                   edge_samples=edge_samples, tol=tol)
-        take = (lambda a: a[0]) if axis == 1 else (lambda a: a[:, 0])
-        index = ii if axis == 1 else jj
-        rows.append(Table({"setting": np.full(take(index).size, float(value)),
-                           "index": take(index), "area": take(m.area),
-                           "dx": take(m.x - ii), "dy": take(m.y - jj), "e1": take(m.e1),
-                           "e2": take(m.e2)}))
+        t = block_geometry(make_params(float(value)), i_range, j_range,
+                           edge_samples=edge_samples, tol=tol)
+        t.add_column(np.full(len(t), float(value)), name="setting", index=0)
+        t.add_column(np.asarray(t["i"] if axis == 1 else t["j"]), name="index", index=1)
+        rows.append(t)
     t = vstack(rows)
     t.meta["feature"] = meta
     return t

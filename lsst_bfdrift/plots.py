@@ -16,7 +16,8 @@ from matplotlib.collections import PolyCollection  # noqa: E402
 from .io_utils import atomic_output  # noqa: E402
 
 __all__ = ["plot_template", "plot_moment_maps", "plot_flat_simulation", "plot_star_history",
-           "plot_ratio_scan", "plot_radial", "plot_feature_profiles", "save_figure"]
+           "plot_ratio_scan", "plot_radial", "plot_feature_profiles", "plot_pixel_contours",
+           "plot_structure_functions", "plot_recovery", "plot_tearing_onset", "save_figure"]
 
 
 def _auto_exaggeration(template):
@@ -225,6 +226,147 @@ def plot_feature_profiles(table, *, xlabel="index"):
         a.set_xlabel(xlabel)
         a.legend(fontsize=7)
     fig.suptitle(table.meta.get("feature", ""))
+    return fig
+
+
+def plot_pixel_contours(table, *, settings=None, title=None, vertical=False):
+    """Pixel contours (coloured by A - 1) of a block for several settings.
+
+    Axes are in pixel units with pixel (i, j) nominally centred on (i, j).
+
+    Parameters
+    ----------
+    table : astropy.table.Table
+        Rows of :func:`lsst_bfdrift.patterns.block_geometry` with a
+        ``setting`` column (e.g. :func:`~lsst_bfdrift.patterns.tearing_onset`).
+    settings : sequence of float, optional
+        Settings drawn (default all), one panel each.
+    title : str, optional
+        Figure title (default: the table's ``feature`` metadata).
+    vertical : bool, optional
+        Stack the panels (for one-row strips) instead of placing them side by
+        side.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    vals = sorted(set(table["setting"])) if settings is None else list(settings)
+    if vertical:
+        fig, axes = plt.subplots(len(vals), 1, figsize=(10, 1.9 * len(vals) + 0.8),
+                                 constrained_layout=True, squeeze=False)
+        axes = axes.T
+    else:
+        fig, axes = plt.subplots(1, len(vals), figsize=(3.6 * len(vals) + 1, 4.2),
+                                 constrained_layout=True, squeeze=False)
+    lim = max(float(np.max(np.abs(table["area"] - 1))), 1e-6)
+    pc = None
+    for ax, v in zip(axes[0], vals):
+        s = table[table["setting"] == v]
+        xv, yv = np.asarray(s["xv"]), np.asarray(s["yv"])
+        verts = np.stack([xv, yv], axis=-1)
+        pc = PolyCollection(verts, array=np.asarray(s["area"]) - 1, cmap="RdBu_r",
+                            edgecolors="k", linewidths=0.5)
+        pc.set_clim(-lim, lim)
+        ax.add_collection(pc)
+        # vertices are in pixel units with pixel (i, j) centred on (i, j)
+        ax.set_xlim(np.min(s["i"]) - 0.7, np.max(s["i"]) + 0.7)
+        ax.set_ylim(np.min(s["j"]) - 0.7, np.max(s["j"]) + 0.7)
+        ax.set_aspect("equal")
+        ax.set_title(f"setting {v:g}", fontsize=9)
+        ax.set_xlabel("column i")
+    axes[0][0].set_ylabel("row j")
+    if pc is not None:
+        fig.colorbar(pc, ax=axes[0].tolist(), shrink=0.8, label="A - 1 (px$^2$)")
+    fig.suptitle(title or table.meta.get("feature", ""), fontsize=10)
+    return fig
+
+
+def plot_structure_functions(result):
+    """Area maps and structure functions of clock jitter and channel-stop variations.
+
+    Parameters
+    ----------
+    result : dict
+        Output of :func:`lsst_bfdrift.patterns.prnu`.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    fig, ax = plt.subplots(1, 3, figsize=(14, 4.2), constrained_layout=True)
+    for a, name in zip(ax[:2], ("jitter", "channel_stop")):
+        m = result["maps"][name]
+        im = a.imshow(m - 1, origin="lower", cmap="RdBu_r",
+                      vmin=-np.max(np.abs(m - 1)), vmax=np.max(np.abs(m - 1)))
+        a.set_title(f"{name.replace('_', ' ')}: A - 1", fontsize=9)
+        a.set_xlabel("column (serial)")
+        a.set_ylabel("row (parallel)")
+        fig.colorbar(im, ax=a, shrink=0.8)
+    lags = result["lags"]
+    for key, style in (("jitter_parallel", "o-"), ("jitter_serial", "o:"),
+                       ("channel_stop_serial", "s-"), ("channel_stop_parallel", "s:")):
+        d = np.asarray(result["D"][key])
+        ax[2].plot(lags, np.where(d > 0, d, np.nan), style, label=key.replace("_", " "))
+    for key in ("jitter_parallel_expected", "channel_stop_serial_expected"):
+        if key in result["D"]:
+            ax[2].plot(lags, result["D"][key], "k--", lw=0.8)
+    ax[2].set_yscale("log")
+    ax[2].set_xlabel("lag (px)")
+    ax[2].set_ylabel("D(lag) = <(A(x+lag) - A(x))$^2$> (px$^4$)")
+    ax[2].set_title("D(lag); dashed: ensemble from one-barrier response\n"
+                    "(identically zero curves are not drawn)", fontsize=9)
+    ax[2].legend(fontsize=8)
+    return fig
+
+
+def plot_recovery(template, *, r2_range=(4, 25)):
+    """Where the aggressor's lost area goes, and the fall-off beyond 10 px.
+
+    Left: fraction of the central loss 1 - A00 recovered by the pixels within
+    Chebyshev radius R (R = 1: the 8 nearest neighbours; paper ~35%). Right:
+    the magnitude of d ln A against r with the power law fitted over ``r2_range`` extended
+    outwards.
+    """
+    a = template.moments().area
+    c = template.center
+    loss = 1.0 - a[c, c]
+    jj, ii = np.mgrid[-c:c + 1, -c:c + 1]
+    cheb = np.maximum(np.abs(ii), np.abs(jj))
+    radii = np.arange(1, c + 1)
+    frac = [(np.sum(a[(cheb <= r) & (cheb > 0)] - 1.0)) / loss for r in radii]
+    fig, ax = plt.subplots(1, 2, figsize=(12, 4.3), constrained_layout=True)
+    ax[0].plot(radii, frac, "o-", label="package")
+    ax[0].axhline(0.35, color="grey", ls=":", label="paper, R = 1 (~35%)")
+    ax[0].set_xlabel("Chebyshev radius R (px)")
+    ax[0].set_ylabel("fraction of 1 - A00 recovered within R")
+    ax[0].legend()
+    r2 = (ii**2 + jj**2).astype(float)
+    keep = r2 > 0
+    y = np.abs(np.log(a[keep]))
+    ax[1].loglog(np.sqrt(r2[keep]), y, ".", label="|d ln A|")
+    sel = keep & (r2 >= r2_range[0]) & (r2 <= r2_range[1])
+    fit = np.polyfit(np.log(r2[sel]), np.log(np.abs(np.log(a[sel]))), 1)
+    rr = np.linspace(np.sqrt(r2_range[0]), np.sqrt(r2.max()), 50)
+    ax[1].loglog(rr, np.exp(np.polyval(fit, np.log(rr**2))), "k--",
+                 label=f"fit r$^2$ in {r2_range}: slope {fit[0]:.3f} (per ln r$^2$)")
+    ax[1].axvspan(10, np.sqrt(r2.max()), color="grey", alpha=0.15, label="r >= 10 px")
+    ax[1].set_xlabel("r (px)")
+    ax[1].legend(fontsize=8)
+    return fig
+
+
+def plot_tearing_onset(table):
+    """Largest absolute A - 1 and dx of the tearing block against the weakening f."""
+    fs = sorted(set(table["setting"]))
+    da = [float(np.max(np.abs(table[table["setting"] == f]["area"] - 1))) for f in fs]
+    dx = [float(np.max(np.abs(table[table["setting"] == f]["dx"]))) for f in fs]
+    fig, ax = plt.subplots(figsize=(6, 4.2), constrained_layout=True)
+    ax.plot(fs, da, "o-", label="max |A - 1| (px$^2$)")
+    ax.plot(fs, dx, "s-", label="max |dx| (px)")
+    ax.set_xlabel("weakening f of the channel stop beyond its end")
+    ax.legend()
+    ax.set_title("tearing onset")
     return fig
 
 

@@ -11,7 +11,8 @@ from .sensor import SensorParameters
 from .template import TemplateSettings, build_template
 
 __all__ = ["PAPER", "paper_parameters", "radial_profile", "radial_fits",
-           "neighbour_recovery", "ratio_scan", "reproduce", "feature_summary"]
+           "neighbour_recovery", "ratio_scan", "reproduce", "fixed_patterns",
+           "feature_summary", "write_figures"]
 
 #: The paper's numbers (section 4.1; fiducial template for a 1e4 e aggressor).
 PAPER = {"A00": 0.9033, "A01": 1.0077, "A10": 1.0027, "A11": 1.0033, "ratio_01_10": 2.86,
@@ -84,13 +85,28 @@ def ratio_scan(v_bss=(-80.0, -65.0, -50.0, -35.0, -20.0), xi_ck=(3.0, 4.0, 5.0, 
 
 
 def reproduce(*, size=31, edge_samples=32, v_bss=(-80.0, -65.0, -50.0, -35.0, -20.0),
-              xi_ck=(3.0, 4.0, 5.0, 6.0, 7.0), progress=None):
+              xi_ck=(3.0, 4.0, 5.0, 6.0, 7.0), quick_features=False, progress=None,
+              tables=None):
     """All numbers: paper value next to package value, plus the inputs.
+
+    Parameters
+    ----------
+    size, edge_samples : int, optional
+        Template size and samples per edge.
+    v_bss, xi_ck : sequence of float, optional
+        Grid of the ratio scan (V, xi0).
+    quick_features : bool, optional
+        Coarse fixed-pattern features (tests).
+    progress : callable, optional
+        Called with 1 after each scan point and feature.
+    tables : dict, optional
+        Filled with the :func:`fixed_patterns` results (for figures).
 
     Returns
     -------
     numbers : dict
-        ``{key: {"paper": x, "package": y}}`` and ``xi0_si``, ``channel_depth_um``.
+        ``{key: {"paper": x, "package": y}}``, ``xi0_si``, ``channel_depth_um``
+        and the fixed-pattern ``features``.
     template : DistortionTemplate
         The calibrated template (``size`` x ``size``).
     scan : tuple
@@ -119,13 +135,76 @@ def reproduce(*, size=31, edge_samples=32, v_bss=(-80.0, -65.0, -50.0, -35.0, -2
     numbers["clock_separation_um"] = p.clock_separation
     numbers["collection_height_um"] = p.z_collect
     scan = ratio_scan(v_bss, xi_ck, progress=progress)
-    numbers["features"] = feature_summary(p)
+    found = fixed_patterns(p, quick=quick_features, progress=progress)
+    if tables is not None:
+        tables.update(found)
+    numbers["features"] = feature_summary(p, tables=found)
     return numbers, tpl, scan
 
 
-def feature_summary(params, *, edge=None, mid=None):
-    """Key numbers of the edge roll-off and midline profiles (see features)."""
+def fixed_patterns(params, *, quick=False, progress=None):
+    """Every fixed-pattern feature of section 4.2 for ``params``.
+
+    Returns
+    -------
+    dict
+        ``edge_rolloff``, ``midline`` (:mod:`~lsst_bfdrift.features`
+        tables), ``tearing``, ``bamboo`` (:mod:`~lsst_bfdrift.patterns`
+        tables) and ``prnu`` (:func:`~lsst_bfdrift.patterns.prnu` result).
+    """
     from .features import edge_rolloff, midline
+    from .patterns import bamboo, prnu, tearing_onset
+    if quick:
+        kw = dict(edge_samples=4, tol=3e-4)
+        jobs = {
+            "edge_rolloff": lambda: edge_rolloff(params, xi_guard=(0.0,), n_columns=3, **kw),
+            "midline": lambda: midline(params, v_bss=(-50.0,), n_rows=2, **kw),
+            "tearing": lambda: tearing_onset(params, weakening=(0.0, 1.0), i_range=(-1, 1),
+                                             j_range=(0, 1), **kw),
+            "bamboo": lambda: bamboo(params, amplitudes=(1.0,), period=4, n_periods=1, **kw),
+            "prnu": lambda: prnu(params, shape=(3, 3), max_lag=2, kernel_half_width=2,
+                                 kernel_tol=3e-4, **kw)}
+    else:
+        jobs = {"edge_rolloff": lambda: edge_rolloff(params),
+                "midline": lambda: midline(params),
+                "tearing": lambda: tearing_onset(params),
+                "bamboo": lambda: bamboo(params),
+                "prnu": lambda: prnu(params)}
+    out = {}
+    for name, job in jobs.items():
+        out[name] = job()
+        if progress is not None:
+            progress(1)
+    return out
+
+
+def _clean(obj):
+    """NaN -> None, numpy scalars -> float, recursively (for JSON)."""
+    if isinstance(obj, dict):
+        return {k: _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (float, np.floating)):
+        return None if not np.isfinite(obj) else float(obj)
+    return obj
+
+
+def feature_summary(params, *, edge=None, mid=None, tables=None):
+    """Key numbers of the fixed-pattern features.
+
+    Parameters
+    ----------
+    params : SensorParameters
+        Model used when a table is not given.
+    edge, mid : astropy.table.Table, optional
+        Edge roll-off and midline tables (computed if not given).
+    tables : dict, optional
+        :func:`fixed_patterns` output; with it, tearing, bamboo and PRNU
+        numbers are added.
+    """
+    from .features import edge_rolloff, midline
+    from .patterns import bamboo_summary, tearing_summary
+    tables = {} if tables is None else tables
+    edge = tables.get("edge_rolloff", edge)
+    mid = tables.get("midline", mid)
     edge = edge_rolloff(params) if edge is None else edge
     mid = midline(params) if mid is None else mid
     out = {"edge_rolloff": {}, "midline": {}}
@@ -143,4 +222,70 @@ def feature_summary(params, *, edge=None, mid=None):
         out["midline"][f"v_bss={v:g}"] = {"area_rows_beside_stop": float(area[n]),
                                           "area_next_rows": float(area[n + 1]),
                                           "dy_row0": float(s["dy"][n])}
-    return out
+    if "tearing" in tables:
+        out["tearing_onset"] = tearing_summary(tables["tearing"])
+    if "bamboo" in tables:
+        out["bamboo"] = bamboo_summary(tables["bamboo"])
+    if "prnu" in tables:
+        r = tables["prnu"]
+        out["prnu"] = {**r["summary"], "settings": r["settings"],
+                       "lags": [int(v) for v in r["lags"]],
+                       "D": {k: [float(x) for x in v] for k, v in r["D"].items()}}
+    return _clean(out)
+
+
+def write_figures(numbers, template, scan, tables, out):
+    """Write every reproduction figure (PNG) into directory ``out``.
+
+    Returns
+    -------
+    list of str
+        The files written.
+    """
+    import os
+
+    from .plots import (plot_feature_profiles, plot_pixel_contours, plot_radial,
+                        plot_ratio_scan, plot_recovery, plot_structure_functions,
+                        plot_tearing_onset, plot_template, save_figure)
+    os.makedirs(out, exist_ok=True)
+    v_bss, xi_ck, ratio = scan
+    fid = numbers["ratio_01_10"]["package"]
+    figs = {
+        "template.png": plot_template(template),
+        "ratio_scan.png": plot_ratio_scan(v_bss, xi_ck, ratio, fiducial=(-50.0, 5.0, fid)),
+        "radial.png": plot_radial(*radial_profile(template)),
+        "recovery.png": plot_recovery(template),
+    }
+    labels = {"edge_rolloff": "column from the edge",
+              "midline": "row (bloom stop below row 0)"}
+    for name, lab in labels.items():
+        if name in tables:
+            t = tables[name]
+            figs[f"{name}.png"] = plot_feature_profiles(t, xlabel=lab)
+            # contours of the pixels where the feature is strong
+            near = t[t["index"] < 8] if name == "edge_rolloff" else t[np.abs(t["index"] + 0.5) < 4]
+            figs[f"{name}_contours.png"] = plot_pixel_contours(
+                near, vertical=name == "edge_rolloff")
+    if "tearing" in tables:
+        t = tables["tearing"]
+        figs["tearing_contours.png"] = plot_pixel_contours(t)
+        b = int(np.min(t["i"])) + (int(np.max(t["i"])) - int(np.min(t["i"])) + 1) // 2
+        prof = t[t["i"] == b]
+        prof["index"] = prof["j"]
+        prof.meta["feature"] = f"tearing onset: column {b} (right of the weakened stop) " \
+                               "against row; setting = weakening f"
+        figs["tearing_profile.png"] = plot_feature_profiles(prof, xlabel="row j (stop "
+                                                           "weakened above row boundary 0)")
+        figs["tearing_onset.png"] = plot_tearing_onset(t)
+    if "bamboo" in tables:
+        t = tables["bamboo"]
+        prof = t.copy()
+        prof["index"] = prof["i"]
+        figs["bamboo.png"] = plot_feature_profiles(prof, xlabel="column i")
+        figs["bamboo_contours.png"] = plot_pixel_contours(t, vertical=True)
+    if "prnu" in tables:
+        figs["prnu.png"] = plot_structure_functions(tables["prnu"])
+    written = []
+    for fname, fig in figs.items():
+        written.append(save_figure(fig, os.path.join(out, fname)))
+    return written

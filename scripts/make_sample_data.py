@@ -11,6 +11,7 @@ Usage: ``python scripts/make_sample_data.py [--star] [--template]``
 
 import argparse
 import os
+import sys
 
 import galsim
 import numpy as np
@@ -18,6 +19,7 @@ from astropy.io import fits
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DATA = os.path.join(HERE, "..", "lsst_bfdrift", "data")
+sys.path.insert(0, os.path.join(HERE, ".."))  # this checkout's lsst_bfdrift, not an installed one
 
 
 def make_star(path):

@@ -47,6 +47,19 @@ def test_cli_quick(capsys, tmp_path):
     assert n["xi0_si"] > 0 and n["channel_depth_um"] > 0
     assert np.shape(n["ratio_scan"]["ratio_01_10"]) == (2, 2)
     for f in ("ratio_scan.png", "radial.png", "template.png", "reproduce.json",
-              "paper_template.fits"):
+              "paper_template.fits", "recovery.png", "edge_rolloff.png",
+              "edge_rolloff_contours.png", "midline.png", "midline_contours.png",
+              "tearing_contours.png", "tearing_profile.png", "tearing_onset.png", "bamboo.png",
+              "bamboo_contours.png", "prnu.png"):
         assert (tmp_path / f).exists()
+    feats = n["features"]
+    for key in ("edge_rolloff", "midline", "tearing_onset", "bamboo", "prnu"):
+        assert feats[key]
+    # the unweakened stop is the regular grid; the removed one distorts
+    assert feats["tearing_onset"]["f=0"]["max_abs_dA"] < 1e-3
+    assert feats["tearing_onset"]["f=1"]["max_abs_dA"] > 0.1
+    # clock jitter leaves no structure along the serial axis, channel stops
+    # none along the parallel axis
+    assert feats["prnu"]["jitter"]["D1_serial"] == 0.0
+    assert feats["prnu"]["channel_stop"]["D1_parallel"] == 0.0
     assert_allclose(n["A00"]["package"], PAPER["A00"], atol=2e-3)

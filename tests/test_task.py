@@ -16,14 +16,24 @@ from lsst_bfdrift.task import FLAG_BLOCKED, FLAG_EDGE
 
 @pytest.fixture(scope="module")
 def star():
-    """A bright star simulated photon by photon with moving boundaries (the
-    bundled template), and its twin binned on square pixels (the truth)."""
-    from lsst_bfdrift.template import load_default_template
-    t = load_default_template()
+    """A bright star simulated photon by photon with moving boundaries, its
+    twin binned on square pixels (the truth), and the template used.
+
+    The template is the bundled one with six times its displacements per
+    electron (d ln A00 ~ -7.7e-6 per e instead of the calibrated -1.28e-6),
+    so that 6e5 photons give a strong effect (> 1 % in size) in a few
+    seconds."""
+    from lsst_bfdrift.template import DistortionTemplate, load_default_template
+    d = load_default_template()
+    k = 6.0
+    tan = {n: None if getattr(d, n) is None else getattr(d, n) * k
+           for n in ("vedge_t", "hedge_t")}
+    t = DistortionTemplate(d.corner_d * k, d.vedge_d * k, d.hedge_d * k, d.fractions, d.charge,
+                           meta=d.meta, **tan)
     x, y = shoot_photons(galsim.Moffat(beta=3.5, fwhm=0.7), 600_000, seed=17)
     sim = StarSimulation(t, stamp_size=31, update_every=1000)
     sim.add(x + 15.2, y + 14.7)
-    return sim.image.copy(), sim.nominal_image.copy()
+    return sim.image.copy(), sim.nominal_image.copy(), t
 
 
 def test_swept_area_kernels_are_edge_integrals(small_template):
@@ -52,8 +62,8 @@ def test_transfer_conserves_and_densities(rng):
 
 def test_recovers_square_pixel_image(star):
     """Independent check: the photon-level simulation's square-pixel twin."""
-    image, truth = star
-    res = BrighterFatterDriftTask().run(image)
+    image, truth, tpl = star
+    res = BrighterFatterDriftTask(template=tpl).run(image)
     corr = res.exposure
     t_true = image_moments(truth, weight_sigma=3)["T"]
     t_rec = image_moments(image, weight_sigma=3)["T"]
@@ -64,7 +74,8 @@ def test_recovers_square_pixel_image(star):
     # the drift method beats the half-shift approximation here
     residuals = {}
     for method in ("astier23", "coulton18"):
-        task = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(method=method))
+        task = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(method=method),
+                                       template=tpl)
         t_m = image_moments(task.run(image).exposure, weight_sigma=3)["T"]
         residuals[method] = abs(t_m - t_true)
         # every method removes most of the effect (their ranking needs many stars:
