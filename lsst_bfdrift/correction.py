@@ -40,6 +40,8 @@ border carry no flux.
 import numpy as np
 from scipy import fft as sp_fft
 
+from ._edge_kernels import fused_transfer
+
 __all__ = ["swept_area_kernels", "SweptAreas", "edge_flux_density", "edge_transfer",
            "recorded_image", "correct_image", "correct_series", "correct_half_shift", "area_coefficients", "coulton18_kernel",
            "correct_coulton18"]
@@ -102,18 +104,19 @@ class SweptAreas:
         self.fkh = sp_fft.rfft2((kh * q).astype(self.dtype), self.fshape, workers=workers)
 
     def __call__(self, charge):
-        """Swept areas (sv of shape (ny, nx + 1), sh of shape (ny + 1, nx)), px^2."""
+        """Swept areas (sv of shape (ny, nx + 1), sh of shape (ny + 1, nx)), px^2.
+
+        Views into the padded transforms, in the operator's ``dtype``.
+        """
         fq = sp_fft.rfft2(np.asarray(charge, self.dtype), self.fshape, workers=self.workers)
         c, ny, nx = self.c, self.ny, self.nx
         prod = fq * self.fkv
         sv = sp_fft.irfft2(prod, self.fshape, workers=self.workers, overwrite_x=True)
-        sv = np.array(sv[c:c + ny, c:c + nx + 1], np.float64)
         np.multiply(fq, self.fkh, out=fq)
         del prod
         sh = sp_fft.irfft2(fq, self.fshape, workers=self.workers, overwrite_x=True)
         del fq
-        sh = np.array(sh[c:c + ny + 1, c:c + nx], np.float64)
-        return sv, sh
+        return sv[c:c + ny, c:c + nx + 1], sh[c:c + ny + 1, c:c + nx]
 
 
 def edge_flux_density(flux, *, mode="cubic4", blocked=None):
@@ -187,21 +190,29 @@ def recorded_image(flux, swept, *, order=3, density="cubic4", blocked=None, dens
     density, blocked
         See :func:`edge_flux_density`.
     densities : tuple, optional
-        (fv, fh) already computed for ``flux`` (saves recomputing them).
+        (fv, fh) already computed for ``flux``; by default the densities are
+        evaluated on the fly by a compiled kernel
+        (:func:`lsst_bfdrift._edge_kernels.fused_transfer`).
 
     Returns
     -------
     ndarray
     """
-    fv, fh = densities if densities is not None else \
-        edge_flux_density(flux, mode=density, blocked=blocked)
+    if density not in ("mean2", "cubic4"):
+        raise ValueError(f"flux density mode must be 'mean2' or 'cubic4', got {density!r}")
+    blk = np.zeros(np.shape(flux), bool) if blocked is None else np.asarray(blocked, bool)
     out = np.array(flux, float, copy=True)
-    term = out.copy()
+    src = out.copy()
+    term = out
     fact = 1.0
     for k in range(1, int(order)):
         fact *= k + 1
         sv, sh = swept(term)
-        term = edge_transfer(sv, sh, fv, fh)
+        if densities is not None:
+            term = edge_transfer(sv, sh, *densities)
+        else:
+            term = fused_transfer(sv, sh, src, blk, cubic=density == "cubic4")
+        del sv, sh
         out += term / fact  # term k of the series carries 1 / (k + 1)!
     return out
 
@@ -300,9 +311,10 @@ def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, nois
         limit = rtol * max(np.abs(img_eff).max(), 1e-300)
     converged = False
     it = 0
+    cubic = density == "cubic4"
     for it in range(1, int(max_iter) + 1):
-        fv, fh = edge_flux_density(flux, mode=density, blocked=blk)
-        resid = img_eff - recorded_image(flux, swept, order=order, densities=(fv, fh))
+        resid = recorded_image(flux, swept, order=order, density=density, blocked=blk)
+        np.subtract(img_eff, resid, out=resid)
         resid[blk] = 0.0
         if np.all(np.abs(resid) <= limit):
             converged = True  # F already solves I = R(F) to the tolerance
@@ -310,23 +322,32 @@ def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, nois
         # Newton-like step: (dR/dF)^-1 ~ 1 - G/2 to first order, which makes
         # the iteration converge much faster than F <- F + r where BF is strong.
         sv, sh = swept(resid)
-        flux += resid - 0.5 * edge_transfer(sv, sh, fv, fh)
+        step = fused_transfer(sv, sh, flux, blk, cubic=cubic)
+        del sv, sh
+        step *= -0.5
+        step += resid
+        flux += step
+        del step, resid
     flux[blk] = img[blk]
     return flux, it, converged
 
 
 def _series_block(img, blk, swept, order, density):
     """Second-order inverse series on one block (see :func:`correct_series`)."""
-    fv, fh = edge_flux_density(img, mode=density, blocked=blk)
+    cubic = density == "cubic4"
     sv, sh = swept(img)
-    b = edge_transfer(sv, sh, fv, fh)                      # B(I, I)
-    fvb, fhb = edge_flux_density(b, mode=density, blocked=blk)
+    b = fused_transfer(sv, sh, img, blk, cubic=cubic)      # B(I, I)
     out = img - 0.5 * b
-    out += 0.25 * edge_transfer(sv, sh, fvb, fhb)          # B(b, I) / 4
-    del sv, sh, fvb, fhb
+    tmp = fused_transfer(sv, sh, b, blk, cubic=cubic)      # B(b, I)
+    del sv, sh
+    tmp *= 0.25
+    out += tmp
     coef = 0.25 - (1.0 / 6.0 if order >= 3 else 0.0)
     svb, shb = swept(b)
-    out += coef * edge_transfer(svb, shb, fv, fh)          # B(I, b) (1/4 - 1/6)
+    fused_transfer(svb, shb, img, blk, cubic=cubic, out=tmp)  # B(I, b)
+    del svb, shb
+    tmp *= coef
+    out += tmp
     return out
 
 
@@ -420,9 +441,11 @@ def correct_half_shift(image, template, *, blocked=None, workers=1, dtype=np.flo
     blk = blk | ~np.isfinite(img)
     img_eff = np.where(np.isfinite(img), img, 0.0)
     swept = SweptAreas(template, img.shape, workers=workers, dtype=dtype)
-    fv, fh = edge_flux_density(img_eff, mode="mean2", blocked=blk)
     sv, sh = swept(img_eff)
-    flux = img_eff - 0.5 * edge_transfer(sv, sh, fv, fh)
+    flux = fused_transfer(sv, sh, img_eff, blk, cubic=False)
+    del sv, sh
+    flux *= -0.5
+    flux += img_eff
     flux[blk] = img[blk]
     return flux, 1, True
 
