@@ -9,9 +9,11 @@ gives an error entry for that file only; the others are still corrected.
 dask is an optional dependency (``pip install lsst_bfdrift[dask]``).
 """
 
+import contextlib
 import functools
 import json
 import os
+import threading
 
 import numpy as np
 
@@ -93,10 +95,29 @@ def correct_file(src, dst, config=None, *, overwrite=False):
             "flux_moved_sum": float(res.flux_moved.sum())}
 
 
+_NUMBA_LOCK = threading.Lock()
+
+
+def _numba_guard():
+    """A lock unless numba's threading layer is thread-safe (omp, tbb).
+
+    numba's fallback 'workqueue' layer must not launch parallel kernels from
+    several threads at once (dask workers as threads); before the first
+    parallel kernel has run the layer is unknown, so that run is locked too.
+    """
+    try:
+        import numba
+        layer = numba.threading_layer()
+    except (ImportError, ValueError):
+        layer = "unknown"
+    return _NUMBA_LOCK if layer in ("workqueue", "unknown") else contextlib.nullcontext()
+
+
 def _safe(src, dst, config_json, overwrite):
     """:func:`correct_file` with the error turned into a result entry."""
     try:
-        out = correct_file(src, dst, json.loads(config_json), overwrite=overwrite)
+        with _numba_guard():
+            out = correct_file(src, dst, json.loads(config_json), overwrite=overwrite)
         out["error"] = None
         return out
     except Exception as exc:  # noqa: BLE001 - reported per file, the others go on
