@@ -43,8 +43,8 @@ from scipy import fft as sp_fft
 from ._edge_kernels import fused_transfer
 
 __all__ = ["swept_area_kernels", "SweptAreas", "edge_flux_density", "edge_transfer",
-           "recorded_image", "correct_image", "correct_series", "correct_half_shift", "area_coefficients", "coulton18_kernel",
-           "correct_coulton18"]
+           "recorded_image", "correct_image", "correct_series", "correct_half_shift",
+           "area_coefficients", "coulton18_kernel", "correct_coulton18"]
 
 
 def _trapezoid(c0, samples, c1, fractions):

@@ -11,9 +11,10 @@ The sky must be collected through the sensor like the star: in a real
 exposure the star's shrunken pixels collect less sky too, and every
 correction (rightly) moves sky flux back along with the star's. Adding the
 sky to the images after the BF simulation (``sky_through_sensor=False``, the
-old behaviour) makes every correction over-correct by about
-``sky * dA / (star flux per pixel)``: 4-5 % of the size slope for a sky of
-1000 e (``docs/benchmarks.rst``). Every correction method is applied to the BF image, and its adaptive
+old behaviour) shifts every correction's residual size slope by about
+-4 % of the uncorrected slope for a sky of 1000 e (``docs/benchmarks.rst``).
+
+Every correction method is applied to the BF image, and its adaptive
 moments (galsim.hsm) are compared with those of the BF-free twin: the
 fractional size change dT/T and the ellipticity change de1, de2 are fitted
 against flux (straight lines through the origin, slopes per 1e5 e, errors
@@ -128,7 +129,8 @@ def draw_star_pairs(n_stars, *, sensor="lsst_itl_50_8", psf="moffat", fwhm=(0.6,
             noise = rng_sky.poisson(sky, (stamp, stamp)).astype(float)
             if sky_through_sensor:  # outside the region collected through the sensor
                 outside = np.ones((stamp, stamp), bool)
-                outside[c - 1 - r - margin:c + r + margin, c - 1 - r - margin:c + r + margin] = False
+                inner = slice(c - 1 - r - margin, c + r + margin)
+                outside[inner, inner] = False
                 noise = np.where(outside, noise, 0.0)
             out.append({"bf": images[0] + noise, "truth": images[1] + noise, "flux": f,
                         "fwhm": fw})
