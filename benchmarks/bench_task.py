@@ -55,9 +55,9 @@ def main():
     runs = (("astier23", "astier23", False, {}),
             ("astier23 float64", "astier23", False, {"fft_precision": "float64"}),
             ("drift", "drift", False, {}),
-            ("drift strip=512", "drift", False, {"strip": 512}),
+            ("drift no strips", "drift", False, {"strip": None}),
             ("drift old solver", "drift", False, {"fft_precision": "float64", "start": "image",
-                                                  "noise_tol": None}),
+                                                  "noise_tol": None, "strip": None}),
             ("drift+geometry", "drift", True, {}))
     for name, method, geometry, extra in runs:
         code = CHILD.format(root=root, size=args.size, method=method, geometry=geometry,

@@ -60,7 +60,7 @@ class BrighterFatterDriftConfig(Config):
                                 allowed={"float32": "single (half the time and memory)",
                                          "float64": "double"})
     strip = Field("rows per block for the drift solver (bounded memory); None: whole image",
-                  int, default=None, optional=True, check=lambda v: v >= 16)
+                  int, default=512, optional=True, check=lambda v: v >= 16)
     gain = Field("e/ADU for images in ADU (None: read GAIN from the header)", float,
                  default=None, optional=True, check=lambda v: v > 0)
     saturation = Field("level (e) at and above which pixels are blocked; None: no limit",
