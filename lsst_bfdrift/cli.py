@@ -25,7 +25,9 @@ Subcommands
     central counts, size, ellipticity and orientation with and without BF.
 ``bfdrift correct IN.fits OUT.fits [--config FILE] [--method M] [--json]``
     BrighterFatterDriftTask on a FITS image; several inputs with
-    ``--out-dir`` (processed in turn with a progress bar).
+    ``--out-dir`` (in turn, or on a dask cluster with ``--scheduler local`` or
+    ``--scheduler ADDRESS``; progress bar; a failed file is reported and the
+    others go on).
 ``bfdrift validate-stars [--n-stars N] [--psf moffat|kolmogorov] [--json]``
     Sky-like stars drawn by galsim.SiliconSensor (paired BF-free twins):
     size and ellipticity slopes against flux for uncorrected, coulton18,
@@ -312,8 +314,8 @@ def _cmd_star_sim(args):
 
 
 def _cmd_correct(args):
-    from .progress import ProgressBar
-    from .task import BrighterFatterDriftConfig, BrighterFatterDriftTask
+    from .batch import correct_files, output_pairs
+    from .task import BrighterFatterDriftConfig
     cfg = BrighterFatterDriftConfig() if args.config is None else \
         BrighterFatterDriftConfig.load(args.config)
     if args.method:
@@ -321,45 +323,33 @@ def _cmd_correct(args):
     if args.gain is not None:
         cfg.gain = args.gain
     cfg.compute_geometry = bool(args.geometry)
-    task = BrighterFatterDriftTask(config=cfg)
     files = list(args.inputs)
     if args.out_dir:
         os.makedirs(args.out_dir, exist_ok=True)
-        pairs = [(f, os.path.join(args.out_dir, os.path.basename(f))) for f in files]
+        pairs = output_pairs(files, args.out_dir)
     else:
         if len(files) != 2:
             raise ValueError("give IN.fits OUT.fits, or several inputs with --out-dir")
         pairs = [(files[0], files[1])]
-    results = []
-    with ProgressBar(len(pairs), "correct", enabled=not args.quiet) as bar:
-        for src, dst in pairs:
-            if os.path.abspath(src) == os.path.abspath(dst):
-                raise ValueError(f"refusing to overwrite the input {src}")
-            if os.path.exists(dst) and not args.overwrite:
-                raise FileExistsError(f"{dst} exists (use --overwrite)")
-            res = task.run(src)
-            from astropy.io import fits
-            hdus = [fits.PrimaryHDU(res.exposure.data.astype(np.float32), header=res.header),
-                    fits.ImageHDU(res.flux_moved.astype(np.float32), name="FLUX_MOVED"),
-                    fits.ImageHDU(res.flags.astype(np.int16), name="BFFLAGS")]
-            if res.area is not None:
-                for name in ("area", "centroid_x", "centroid_y", "e1", "e2"):
-                    hdus.append(fits.ImageHDU(getattr(res, name).astype(np.float32),
-                                              name=name.upper()))
-            with atomic_output(dst) as tmp:
-                fits.HDUList(hdus).writeto(tmp, overwrite=True, checksum=True)
-            results.append({"input": src, "output": dst, "iterations": res.iterations,
-                            "converged": res.converged,
-                            "flux_moved_abs_sum": float(np.abs(res.flux_moved).sum()),
-                            "flux_moved_sum": float(res.flux_moved.sum())})
-            bar(1)
+    for src, dst in pairs:
+        if os.path.abspath(src) == os.path.abspath(dst):
+            raise ValueError(f"refusing to overwrite the input {src}")
+    results = correct_files(pairs, cfg, scheduler=args.scheduler, overwrite=args.overwrite,
+                            n_workers=args.n_workers, processes=args.processes,
+                            progress=not args.quiet)
+    failed = [r for r in results if r["error"]]
     if args.json:
-        _print_json({"method": cfg.method, "files": results})
+        _print_json({"method": cfg.method, "files": results, "failed": len(failed)})
     else:
         for r in results:
-            print(f"{r['input']} -> {r['output']}: {r['iterations']} iterations, "
-                  f"converged={r['converged']}")
-    return 0
+            if r["error"]:
+                print(f"{r['input']}: FAILED: {r['error']}")
+            else:
+                print(f"{r['input']} -> {r['output']}: {r['iterations']} iterations, "
+                      f"converged={r['converged']}")
+    for r in failed:
+        print(f"bfdrift correct: {r['input']}: {r['error']}", file=sys.stderr)
+    return 1 if failed else 0
 
 
 def _cmd_validate_stars(args):
@@ -548,6 +538,11 @@ def build_parser():
     co.add_argument("--gain", type=float, help="e/ADU for images in ADU")
     co.add_argument("--geometry", action="store_true", help="also write the geometry maps")
     co.add_argument("--overwrite", action="store_true")
+    co.add_argument("--scheduler", help="dask: 'local' (LocalCluster) or a scheduler address "
+                    "(tcp://host:8786); default: serial")
+    co.add_argument("--n-workers", type=int, default=2, help="LocalCluster workers")
+    co.add_argument("--processes", action="store_true",
+                    help="LocalCluster workers as processes (default: threads)")
     co.add_argument("--json", action="store_true")
     co.add_argument("--quiet", action="store_true")
     co.set_defaults(func=_cmd_correct)

@@ -17,7 +17,16 @@ The first correction term alone is the usual "half the final shift"
 approximation; keeping ``order`` terms accounts for the time history of the
 boundaries (the collecting rates change while charge accumulates). F is found
 by iterating F <- F + (1 - G/2)(I - R(F)) (a Newton-like step with the
-first-order inverse of dR/dF). Every edge transfer is added
+first-order inverse of dR/dF), or, much faster, from the inverse series
+(:func:`correct_series`): writing G(F) = B(F, F) with B(f, Q) bilinear
+(densities from f, swept areas from Q) and b = B(I, I),
+
+    F = I - b/2 + B(b, I)/4 + (1/4 - 1/6) B(I, b) + O(B^3),
+
+which needs only two applications of the swept-area operator (the
+astier23 baseline needs one) and is exact to second order in the
+brighter-fatter strength; the neglected terms are ~|G/I|^3 ~ 3e-5 of the
+brightest pixels' flux, far below their Poisson noise. Every edge transfer is added
 to one pixel and subtracted from its neighbour, so the correction conserves
 flux exactly.
 
@@ -31,9 +40,11 @@ border carry no flux.
 import numpy as np
 from scipy import fft as sp_fft
 
+from ._edge_kernels import fused_transfer
+
 __all__ = ["swept_area_kernels", "SweptAreas", "edge_flux_density", "edge_transfer",
-           "recorded_image", "correct_image", "correct_half_shift", "area_coefficients", "coulton18_kernel",
-           "correct_coulton18"]
+           "recorded_image", "correct_image", "correct_series", "correct_half_shift",
+           "area_coefficients", "coulton18_kernel", "correct_coulton18"]
 
 
 def _trapezoid(c0, samples, c1, fractions):
@@ -71,9 +82,13 @@ class SweptAreas:
         (ny, nx) of the images.
     workers : int, optional
         FFT threads.
+    dtype : {numpy.float64, numpy.float32}, optional
+        Precision of the transforms (float32 halves time and memory; the
+        swept areas keep a relative accuracy ~1e-6 of the largest, see
+        ``docs/benchmarks.rst``).
     """
 
-    def __init__(self, template, shape, *, workers=1):
+    def __init__(self, template, shape, *, workers=1, dtype=np.float64):
         self.ny, self.nx = (int(v) for v in shape)
         self.c = template.center
         kv, kh = swept_area_kernels(template)
@@ -81,16 +96,26 @@ class SweptAreas:
         self.fshape = (sp_fft.next_fast_len(self.ny + n1 - 1, real=True),
                        sp_fft.next_fast_len(self.nx + n1 - 1, real=True))
         self.workers = workers
+        self.dtype = np.dtype(dtype)
+        if self.dtype not in (np.dtype(np.float64), np.dtype(np.float32)):
+            raise ValueError(f"dtype must be float64 or float32, got {dtype!r}")
         q = 1.0 / template.charge
-        self.fkv = sp_fft.rfft2(kv * q, self.fshape, workers=workers)
-        self.fkh = sp_fft.rfft2(kh * q, self.fshape, workers=workers)
+        self.fkv = sp_fft.rfft2((kv * q).astype(self.dtype), self.fshape, workers=workers)
+        self.fkh = sp_fft.rfft2((kh * q).astype(self.dtype), self.fshape, workers=workers)
 
     def __call__(self, charge):
-        """Swept areas (sv of shape (ny, nx + 1), sh of shape (ny + 1, nx)), px^2."""
-        fq = sp_fft.rfft2(charge, self.fshape, workers=self.workers)
+        """Swept areas (sv of shape (ny, nx + 1), sh of shape (ny + 1, nx)), px^2.
+
+        Views into the padded transforms, in the operator's ``dtype``.
+        """
+        fq = sp_fft.rfft2(np.asarray(charge, self.dtype), self.fshape, workers=self.workers)
         c, ny, nx = self.c, self.ny, self.nx
-        sv = sp_fft.irfft2(fq * self.fkv, self.fshape, workers=self.workers)
-        sh = sp_fft.irfft2(fq * self.fkh, self.fshape, workers=self.workers)
+        prod = fq * self.fkv
+        sv = sp_fft.irfft2(prod, self.fshape, workers=self.workers, overwrite_x=True)
+        np.multiply(fq, self.fkh, out=fq)
+        del prod
+        sh = sp_fft.irfft2(fq, self.fshape, workers=self.workers, overwrite_x=True)
+        del fq
         return sv[c:c + ny, c:c + nx + 1], sh[c:c + ny + 1, c:c + nx]
 
 
@@ -165,27 +190,36 @@ def recorded_image(flux, swept, *, order=3, density="cubic4", blocked=None, dens
     density, blocked
         See :func:`edge_flux_density`.
     densities : tuple, optional
-        (fv, fh) already computed for ``flux`` (saves recomputing them).
+        (fv, fh) already computed for ``flux``; by default the densities are
+        evaluated on the fly by a compiled kernel
+        (:func:`lsst_bfdrift._edge_kernels.fused_transfer`).
 
     Returns
     -------
     ndarray
     """
-    fv, fh = densities if densities is not None else \
-        edge_flux_density(flux, mode=density, blocked=blocked)
+    if density not in ("mean2", "cubic4"):
+        raise ValueError(f"flux density mode must be 'mean2' or 'cubic4', got {density!r}")
+    blk = np.zeros(np.shape(flux), bool) if blocked is None else np.asarray(blocked, bool)
     out = np.array(flux, float, copy=True)
-    term = out.copy()
+    src = out.copy()
+    term = out
     fact = 1.0
     for k in range(1, int(order)):
         fact *= k + 1
         sv, sh = swept(term)
-        term = edge_transfer(sv, sh, fv, fh)
+        if densities is not None:
+            term = edge_transfer(sv, sh, *densities)
+        else:
+            term = fused_transfer(sv, sh, src, blk, cubic=density == "cubic4")
+        del sv, sh
         out += term / fact  # term k of the series carries 1 / (k + 1)!
     return out
 
 
 def correct_image(image, template, *, order=3, density="cubic4", blocked=None, max_iter=10,
-                  rtol=1e-7, workers=1):
+                  rtol=1e-7, noise_tol=None, start="image", workers=1, dtype=np.float64,
+                  strip=None):
     """Flux that square pixels would have collected, from a recorded image.
 
     Parameters
@@ -207,45 +241,196 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
         Fixed-point iterations.
     rtol : float, optional
         Convergence: ``max |I - R(F)| <= rtol * max |I|``.
+    noise_tol : float, optional
+        Alternative convergence (used when given): ``|I - R(F)| <=
+        noise_tol * sqrt(max(I, 1))`` in every pixel, i.e. the model residual
+        is a small fraction of each pixel's Poisson noise (e).
+    start : {'image', 'series'}, optional
+        First guess: the recorded image, or the second-order inverse series
+        (:func:`correct_series`; usually leaves one or two iterations).
     workers : int, optional
         FFT threads.
+    dtype : {numpy.float64, numpy.float32}, optional
+        FFT precision (:class:`SweptAreas`).
+    strip : int, optional
+        Rows per block, each solved with a halo of ``4 (N + 3)`` rows (N =
+        template size) to bound memory. The solution's dependence on rows
+        beyond the halo is of third order in the BF strength (measured in
+        ``docs/benchmarks.rst``). None: whole image.
 
     Returns
     -------
     flux : ndarray
         Corrected image (e).
     iterations : int
+        Largest over the blocks.
     converged : bool
+        All blocks converged.
     """
+    if start not in ("image", "series"):
+        raise ValueError(f"start must be 'image' or 'series', got {start!r}")
+    kw = dict(order=order, density=density, max_iter=max_iter, rtol=rtol, noise_tol=noise_tol,
+              start=start, workers=workers, dtype=dtype)
     img = np.array(image, dtype=np.float64, copy=True)
+    if img.ndim != 2:
+        raise ValueError(f"image must be 2-d, got shape {img.shape}")
     blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
-    blk = blk | ~np.isfinite(img)
+    if blk.shape != img.shape:
+        raise ValueError(f"blocked shape {blk.shape} does not match image {img.shape}")
+    ny = img.shape[0]
+    if strip is None or int(strip) >= ny:
+        return _solve_block(img, template, blk, **kw)
+    strip = int(strip)
+    if strip < 1:
+        raise ValueError(f"strip must be positive, got {strip}")
+    halo = 4 * (template.size + 3)
+    flux = np.empty_like(img)
+    its, conv = 0, True
+    for r0 in range(0, ny, strip):
+        r1 = min(r0 + strip, ny)
+        a, z = max(r0 - halo, 0), min(r1 + halo, ny)
+        out, it, cv = _solve_block(img[a:z], template, blk[a:z], **kw)
+        flux[r0:r1] = out[r0 - a:r1 - a]
+        its, conv = max(its, it), conv and cv
+    return flux, its, conv
+
+
+def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, noise_tol, start,
+                 workers, dtype):
+    """Iterative solution of I = R(F) on one block (see :func:`correct_image`)."""
+    blk = blocked | ~np.isfinite(img)
     img_eff = np.where(np.isfinite(img), img, 0.0)
-    swept = SweptAreas(template, img.shape, workers=workers)
-    flux = img_eff.copy()
-    scale = max(np.abs(img_eff).max(), 1e-300)
+    swept = SweptAreas(template, img.shape, workers=workers, dtype=dtype)
+    if start == "series":
+        flux = _series_block(img_eff, blk, swept, order, density)
+    else:
+        flux = img_eff.copy()
+    if noise_tol is not None:
+        limit = float(noise_tol) * np.sqrt(np.maximum(img_eff, 1.0))
+    else:
+        limit = rtol * max(np.abs(img_eff).max(), 1e-300)
     converged = False
     it = 0
+    cubic = density == "cubic4"
     for it in range(1, int(max_iter) + 1):
-        fv, fh = edge_flux_density(flux, mode=density, blocked=blk)
-        resid = img_eff - recorded_image(flux, swept, order=order, densities=(fv, fh))
+        resid = recorded_image(flux, swept, order=order, density=density, blocked=blk)
+        np.subtract(img_eff, resid, out=resid)
         resid[blk] = 0.0
+        if np.all(np.abs(resid) <= limit):
+            converged = True  # F already solves I = R(F) to the tolerance
+            break
         # Newton-like step: (dR/dF)^-1 ~ 1 - G/2 to first order, which makes
         # the iteration converge much faster than F <- F + r where BF is strong.
         sv, sh = swept(resid)
-        flux += resid - 0.5 * edge_transfer(sv, sh, fv, fh)
-        if np.abs(resid).max() <= rtol * scale:
-            converged = True
-            break
+        step = fused_transfer(sv, sh, flux, blk, cubic=cubic)
+        del sv, sh
+        step *= -0.5
+        step += resid
+        flux += step
+        del step, resid
     flux[blk] = img[blk]
     return flux, it, converged
 
 
-def correct_half_shift(image, template, *, blocked=None, workers=1):
+def _series_block(img, blk, swept, order, density):
+    """Second-order inverse series on one block (see :func:`correct_series`)."""
+    cubic = density == "cubic4"
+    sv, sh = swept(img)
+    b = fused_transfer(sv, sh, img, blk, cubic=cubic)      # B(I, I)
+    out = img - 0.5 * b
+    tmp = fused_transfer(sv, sh, b, blk, cubic=cubic)      # B(b, I)
+    del sv, sh
+    tmp *= 0.25
+    out += tmp
+    coef = 0.25 - (1.0 / 6.0 if order >= 3 else 0.0)
+    svb, shb = swept(b)
+    fused_transfer(svb, shb, img, blk, cubic=cubic, out=tmp)  # B(I, b)
+    del svb, shb
+    tmp *= coef
+    out += tmp
+    return out
+
+
+def correct_series(image, template, *, order=3, density="mean2", blocked=None, workers=1,
+                   dtype=np.float64, strip=None):
+    """Flux that square pixels would have collected, by the inverse series.
+
+    Solves I = R(F) (the time-history model of :func:`recorded_image`) to
+    second order in the brighter-fatter strength without iterating:
+    F = I - b/2 + B(b, I)/4 + (1/4 - 1/6) B(I, b), b = B(I, I) (module
+    docstring). Two applications of the swept-area operator.
+
+    Parameters
+    ----------
+    image : ndarray
+        Recorded image (e); not modified.
+    template : DistortionTemplate
+        Green's function.
+    order : int, optional
+        Terms of the forward series (2: half final shift; >= 3: with the
+        time history; terms beyond 3 are third order and dropped).
+    density : {'mean2', 'cubic4'}, optional
+        Flux density at the edges.
+    blocked : ndarray of bool, optional
+        As for :func:`correct_image`.
+    workers : int, optional
+        FFT threads.
+    dtype : {numpy.float64, numpy.float32}, optional
+        FFT precision (:class:`SweptAreas`); the image arithmetic stays float64.
+    strip : int, optional
+        Rows per block. The result at a pixel depends on the image within
+        ``2 (N + 3)`` rows (N = template size), so blocks overlapping by that
+        halo give the full-frame result (to rounding) with memory bounded by
+        the block size. None: the whole image at once.
+
+    Returns
+    -------
+    flux : ndarray
+        Corrected image (e).
+    iterations : int
+        1.
+    converged : bool
+        True (no iteration).
+    """
+    img = np.array(image, dtype=np.float64, copy=True)
+    if img.ndim != 2:
+        raise ValueError(f"image must be 2-d, got shape {img.shape}")
+    blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
+    if blk.shape != img.shape:
+        raise ValueError(f"blocked shape {blk.shape} does not match image {img.shape}")
+    finite = np.isfinite(img)
+    blk = blk | ~finite
+    img_eff = np.where(finite, img, 0.0)
+    ny, nx = img.shape
+    if strip is None or int(strip) >= ny:
+        swept = SweptAreas(template, img.shape, workers=workers, dtype=dtype)
+        flux = _series_block(img_eff, blk, swept, order, density)
+    else:
+        strip = int(strip)
+        if strip < 1:
+            raise ValueError(f"strip must be positive, got {strip}")
+        halo = 2 * (template.size + 3)
+        flux = np.empty_like(img_eff)
+        cache = {}
+        for r0 in range(0, ny, strip):
+            r1 = min(r0 + strip, ny)
+            a, z = max(r0 - halo, 0), min(r1 + halo, ny)
+            shape = (z - a, nx)
+            if shape not in cache:
+                cache.clear()
+                cache[shape] = SweptAreas(template, shape, workers=workers, dtype=dtype)
+            out = _series_block(img_eff[a:z], blk[a:z], cache[shape], order, density)
+            flux[r0:r1] = out[r0 - a:r1 - a]
+    flux[blk] = img[blk]
+    return flux, 1, True
+
+
+def correct_half_shift(image, template, *, blocked=None, workers=1, dtype=np.float64):
     """One flux-conserving pass with half the final shift (Astier & Regnault 2023).
 
     F = I - G(I; I) / 2: swept areas and edge flux densities (two-pixel mean)
-    both from the recorded image; no iteration, as in the paper.
+    both from the recorded image; no iteration, as in the paper. ``dtype``
+    as for :class:`SweptAreas`.
 
     Returns
     -------
@@ -255,10 +440,12 @@ def correct_half_shift(image, template, *, blocked=None, workers=1):
     blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
     blk = blk | ~np.isfinite(img)
     img_eff = np.where(np.isfinite(img), img, 0.0)
-    swept = SweptAreas(template, img.shape, workers=workers)
-    fv, fh = edge_flux_density(img_eff, mode="mean2", blocked=blk)
+    swept = SweptAreas(template, img.shape, workers=workers, dtype=dtype)
     sv, sh = swept(img_eff)
-    flux = img_eff - 0.5 * edge_transfer(sv, sh, fv, fh)
+    flux = fused_transfer(sv, sh, img_eff, blk, cubic=False)
+    del sv, sh
+    flux *= -0.5
+    flux += img_eff
     flux[blk] = img[blk]
     return flux, 1, True
 

@@ -48,8 +48,19 @@ class BrighterFatterDriftConfig(Config):
                                    "cubic4": "four-point interpolation along the normal"})
     max_iter = Field("largest number of solver iterations", int, default=10,
                      check=lambda v: v >= 1)
-    rtol = Field("convergence: max |I - R(F)| / max |I|", float, default=1e-7,
-                 check=lambda v: 0 < v < 1)
+    rtol = Field("convergence: max |I - R(F)| / max |I| (when noise_tol is None)", float,
+                 default=1e-7, check=lambda v: 0 < v < 1)
+    noise_tol = Field("convergence: |I - R(F)| <= noise_tol * sqrt(I) in every pixel "
+                      "(fraction of the Poisson noise); None: use rtol", float, default=0.05,
+                      optional=True, check=lambda v: 0 < v < 1)
+    start = ChoiceField("first guess of the drift solver", str, default="series",
+                        allowed={"series": "second-order inverse series (two operator calls)",
+                                 "image": "the recorded image"})
+    fft_precision = ChoiceField("precision of the FFT convolutions", str, default="float32",
+                                allowed={"float32": "single (half the time and memory)",
+                                         "float64": "double"})
+    strip = Field("rows per block for the drift solver (bounded memory); None: whole image",
+                  int, default=512, optional=True, check=lambda v: v >= 16)
     gain = Field("e/ADU for images in ADU (None: read GAIN from the header)", float,
                  default=None, optional=True, check=lambda v: v > 0)
     saturation = Field("level (e) at and above which pixels are blocked; None: no limit",
@@ -148,9 +159,10 @@ class BrighterFatterDriftTask(Task):
             blocked |= np.where(np.isfinite(data), data, 0.0) >= cfg.saturation
         order = 2 if cfg.method == "astier23" else cfg.order
         density = "mean2" if cfg.method == "astier23" else cfg.density
+        dtype = np.float32 if cfg.fft_precision == "float32" else np.float64
         if cfg.method == "astier23":
             flux, iterations, converged = correct_half_shift(
-                data, self.template, blocked=blocked, workers=cfg.workers)
+                data, self.template, blocked=blocked, workers=cfg.workers, dtype=dtype)
         elif cfg.method == "coulton18":
             order = density = "n/a"
             kernel = coulton18_kernel(area_coefficients(self.template))
@@ -160,7 +172,8 @@ class BrighterFatterDriftTask(Task):
         else:
             flux, iterations, converged = correct_image(
                 data, self.template, order=order, density=density, blocked=blocked,
-                max_iter=cfg.max_iter, rtol=cfg.rtol, workers=cfg.workers)
+                max_iter=cfg.max_iter, rtol=cfg.rtol, noise_tol=cfg.noise_tol, start=cfg.start,
+                workers=cfg.workers, dtype=dtype, strip=cfg.strip)
         moved = np.where(blocked, 0.0, flux - np.where(np.isfinite(data), data, 0.0))
         flags = np.where(blocked, FLAG_BLOCKED, 0)
         c = self.template.center

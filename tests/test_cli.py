@@ -178,3 +178,52 @@ def test_correct(capsys, tmp_path):
     code, out, err = _run(capsys, "correct", sample_image_path(), "--out-dir",
                           str(tmp_path / "many"), "--method", "astier23", "--quiet", "--json")
     assert code == 0 and json.loads(out)["method"] == "astier23"
+
+
+@pytest.mark.slow
+def test_correct_many_files_on_dask_cluster(capsys, tmp_path):
+    """dask LocalCluster (threads) gives the serial outputs bit for bit; a
+    corrupt file fails alone; existing outputs are kept without --overwrite."""
+    from lsst_bfdrift.batch import correct_files, output_pairs
+    rng = np.random.default_rng(3)
+    src = tmp_path / "in"
+    src.mkdir()
+    names = []
+    for k in range(4):
+        img = rng.poisson(500.0, (48, 48)).astype(np.float32)
+        img[20:25, 18:23] += np.float32(3e4 * (k + 1))
+        path = src / f"img{k}.fits"
+        fits.PrimaryHDU(img).writeto(path)
+        names.append(str(path))
+    bad = src / "bad.fits"
+    bad.write_bytes(b"SIMPLE  = not a fits file")
+    names.insert(2, str(bad))
+    serial = correct_files(output_pairs(names, tmp_path / "serial"))
+    code, out, err = _run(capsys, "correct", *names, "--out-dir", str(tmp_path / "dask"),
+                          "--scheduler", "local", "--json", "--quiet")
+    assert code == 1 and "bad.fits" in err
+    res = json.loads(out)
+    assert res["failed"] == 1 and [r["input"] for r in res["files"]] == names
+    assert res["files"][2]["error"] and serial[2]["error"]
+    assert not (tmp_path / "dask" / "bad.fits").exists()
+    for r_serial, r_dask in zip(serial, res["files"]):
+        if r_serial["error"]:
+            continue
+        assert r_dask["error"] is None
+        with fits.open(r_serial["output"]) as a, fits.open(r_dask["output"]) as b:
+            assert np.array_equal(a[0].data, b[0].data)
+            assert np.array_equal(a["FLUX_MOVED"].data, b["FLUX_MOVED"].data)
+            with fits.open(r_serial["input"]) as s:
+                assert abs(float(a[0].data.sum()) - float(s[0].data.sum())) < 1e-4 * float(
+                    s[0].data.sum())
+    # no temporary files left behind (atomic writes)
+    assert not [p for p in (tmp_path / "dask").iterdir() if p.name.startswith(".tmp-")]
+    # outputs exist now: refused per file without --overwrite, replaced with it
+    before = (tmp_path / "dask" / "img0.fits").stat().st_mtime_ns
+    results = correct_files(output_pairs(names[:2], tmp_path / "dask"), scheduler=None)
+    assert all("exists" in r["error"] for r in results)
+    assert (tmp_path / "dask" / "img0.fits").stat().st_mtime_ns == before
+    results = correct_files(output_pairs(names[:2], tmp_path / "dask"), overwrite=True)
+    assert all(r["error"] is None for r in results)
+    with pytest.raises(ValueError, match="same output"):
+        output_pairs([names[0], names[0]], tmp_path)
