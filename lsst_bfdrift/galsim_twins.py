@@ -100,7 +100,7 @@ def sky_box(stamp, sky_radius, *, margin=SKY_MARGIN):
 
 
 def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale, sky=0.0,
-                     box=None, sky_mask=None, rng=None, updates=100, min_nrecalc=1e4):
+                     box=None, feed=0, sky_mask=None, rng=None, updates=100, min_nrecalc=1e4):
     """Accumulate the same photons (star plus in-sensor sky) at several BF strengths.
 
     Parameters
@@ -124,13 +124,26 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
         Sky level (e per pixel of nominal area) collected through the sensor
         inside ``box``; 0: no sky photons.
     box : tuple of float, optional
-        ``(lo, hi)``: the square (px, stamp coordinates) over which the sky
-        photons are spread uniformly (see :func:`sky_box`); required when
-        ``sky > 0``.
+        ``(lo, hi)``: the square (px, stamp coordinates, on pixel edges) over
+        which the sky photons are spread uniformly (see :func:`sky_box`);
+        required when ``sky > 0``.
+    feed : int, optional
+        0: one accumulation over the stamp; sky photons diffusing out of the
+        box are not balanced by sky diffusing in, which leaves a ring at the
+        box edge (about -20 % of the sky just inside, +20 % just outside for
+        lsst_itl_50_8). > 0: the box's pixels are accumulated in their own
+        image, with the sky photons spread ``feed`` px further out (they
+        diffuse in; those landing outside the box are dropped), so the sky
+        is uniform up to the box edge; the star's photons starting outside
+        the box are accumulated on the full stamp with the same strength (no
+        boundary shifts from the star's core there) and added. The star's
+        photons from inside the box that diffuse out of it are lost (its
+        surface brightness at the box edge times about 0.16 px per edge).
     sky_mask : ndarray of bool, optional
-        (stamp, stamp); sky photons falling in pixels where it is False are
+        (stamp, stamp); sky photons starting in pixels where it is False are
         dropped (their sky was collected already, e.g. by a neighbouring
-        star's box). The star's photons are always kept.
+        star's box). The star's photons, and sky photons outside the stamp,
+        are always kept.
     rng : numpy.random.Generator, optional
         Draws the number, the positions and the random arrival order of the
         sky photons among the star's (required; the star's photons are mixed
@@ -162,13 +175,26 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
         raise ValueError("rng (numpy Generator) is required: it orders the photons")
     if not float(updates) > 0:
         raise ValueError(f"updates must be positive, got {updates!r}")
+    feed = int(feed)
+    if feed < 0 or (feed and box is None):
+        raise ValueError(f"feed must be >= 0 and needs a box, got {feed!r}")
     stamp = int(stamp)
+    outer = None
+    if feed:
+        lo, hi = (float(v) for v in box)
+        i0, i1 = max(int(round(lo + 0.5)), 1), min(int(round(hi - 0.5)), stamp)
+        if i1 < i0:
+            raise ValueError(f"box {box} holds no pixel of a {stamp} px stamp")
+        ins = (x >= i0 - 0.5) & (x < i1 + 0.5) & (y >= i0 - 0.5) & (y < i1 + 0.5)
+        outer = (x[~ins], y[~ins], flux[~ins])
+        x, y, flux = x[ins], y[ins], flux[ins]
     n_star = x.size
     n_sky = 0
     if sky > 0:
         if box is None:
             raise ValueError("box (lo, hi) is required when sky > 0")
         lo, hi = (float(v) for v in box)
+        lo, hi = lo - feed, hi + feed
         n_sky = int(rng.poisson(float(sky) * (hi - lo) ** 2))
     order = rng.permutation(n_star + n_sky)
     xs = np.concatenate([x, rng.uniform(lo, hi, n_sky) if n_sky else np.empty(0)])[order]
@@ -182,7 +208,7 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
         ix = np.floor(xs - 0.5).astype(int)
         iy = np.floor(ys - 0.5).astype(int)
         inside = (ix >= 0) & (ix < stamp) & (iy >= 0) & (iy < stamp)
-        ok = np.zeros(xs.size, bool)
+        ok = np.ones(xs.size, bool)  # outside the stamp: kept (may diffuse in)
         ok[inside] = sky_mask[iy[inside], ix[inside]]
         keep = ~is_sky | ok
         xs, ys, fl = xs[keep], ys[keep], fl[keep]
@@ -192,7 +218,21 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
     for s in strengths:
         sens = galsim.SiliconSensor(sensor, strength=s, rng=galsim.BaseDeviate(int(seed)),
                                     nrecalc=max(float(min_nrecalc), n / float(updates)))
-        im = galsim.ImageD(stamp, stamp, scale=float(pixel_scale))
+        if feed:
+            im = galsim.ImageD(galsim.BoundsI(i0, i1, i0, i1), scale=float(pixel_scale))
+        else:
+            im = galsim.ImageD(stamp, stamp, scale=float(pixel_scale))
         sens.accumulate(galsim.PhotonArray(n, x=xs, y=ys, flux=fl), im)
+        if feed:
+            n_out = outer[0].size
+            full = galsim.ImageD(stamp, stamp, scale=float(pixel_scale))
+            if n_out:
+                sens_out = galsim.SiliconSensor(
+                    sensor, strength=s, rng=galsim.BaseDeviate(int(seed) + 1),
+                    nrecalc=max(float(min_nrecalc), n_out / float(updates)))
+                sens_out.accumulate(galsim.PhotonArray(n_out, x=outer[0], y=outer[1],
+                                                       flux=outer[2]), full)
+            full[im.bounds] += im
+            im = full
         images.append(im.array.copy())
     return images, n_sky
