@@ -4,6 +4,10 @@ A 1024 x 1024 field of 160 Moffat stars (FWHM 0.7" to 0.95" across x, PSF
 ellipticity varying over the field, 1e4 to 1.5e6 e, sky 800 e, read noise
 5 e) is drawn by galsim.SiliconSensor (lsst_itl_50_8) with strength 1, and
 with the same photons, diffusion and noise at strength 1e-9 (paired truth).
+The sky around each star is collected through the sensor with its photons
+(``simulate_star_field`` defaults). The corrections use the template
+imported from the same sensor file (``DistortionTemplate.from_galsim``), not
+the package default.
 
 1. ``validate_sky`` (no truth used) on the BF image with both correction
    routes, and on the BF-free twin (the null: no detection expected).

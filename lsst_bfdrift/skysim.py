@@ -8,11 +8,29 @@ pixels apart. Each star is drawn by photon shooting into its own stamp and
 its photons are accumulated by ``galsim.SiliconSensor`` with a chosen BF
 ``strength`` (1 = GalSim's sensor model; ~0 = no BF); the stamp is then
 added to the field. Neighbouring stars are far apart, so drawing them in
-separate stamps neglects only the BF interaction between stars (the sky's
-BF effect is uniform and is neglected too). With ``twin=True`` the same
-photons are also accumulated with ``strength=1e-9`` and the same sensor
-seed (identical diffusion; MODEL_NOTES section 8), and the same noise is
-added, giving a BF-free truth image.
+separate stamps neglects only the BF interaction between stars. With
+``twin=True`` the same photons are also accumulated with ``strength=1e-9``
+and the same sensor seed (identical diffusion; MODEL_NOTES section 8), and
+the same noise is added, giving a BF-free truth image.
+
+The sky around each star is collected through the sensor with the star's
+photons (:func:`lsst_bfdrift.galsim_twins.accumulate_twins`): in a real
+exposure the star's shrunken pixels collect less sky as well, and every
+correction (rightly) moves that sky flux back with the star's. Sky added
+after the BF simulation is flux the simulation never redistributed, and made
+both correction routes over-correct the size slope by 3-4 % on the field of
+``benchmarks/validate_sky.py`` (``docs/stars.rst``; +0.6 % and -0.2 %
+with it). Each star's box covers its central (2 ``sky_radius`` + 1)^2
+pixels plus a 3-pixel margin and is accumulated in its own image, with sky
+photons spread 3 px beyond it that diffuse in (those landing outside are
+dropped), so the sky is uniform up to the box edge (without this feed,
+diffusion leaves a -20 % / +20 % ring there). The same sky photons go into
+every strength; a pixel's sky is collected once (where the boxes of close
+neighbours overlap, which needs ``min_separation`` below the box side, the
+shared part is not fed and keeps a weak ring); outside the boxes the sky is
+a Poisson image, identical in all strengths (GalSim's boundaries reach 4
+pixels from an aggressor, so no pixel moves there). GalSim recomputes its
+boundaries about ``updates`` times per star.
 """
 
 import numpy as np
@@ -60,8 +78,8 @@ def _positions(rng, n, shape, margin, min_sep, max_tries=20000):
 def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=False,
                         sensor="lsst_itl_50_8", fwhm=(0.7, 0.95), e_range=0.04,
                         flux=(1e4, 1.5e6), sky=800.0, read_noise=5.0, min_separation=32,
-                        stamp=31, pixel_scale=0.2, beta_moffat=3.5, nrecalc=10000,
-                        seed=20151, progress=False):
+                        stamp=31, pixel_scale=0.2, beta_moffat=3.5, sky_through_sensor=True,
+                        sky_radius=8, updates=100, seed=20151, progress=False):
     """A star field drawn by galsim.SiliconSensor.
 
     Parameters
@@ -86,7 +104,7 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
     flux : tuple, optional
         Flux range (e), log-uniform.
     sky : float, optional
-        Sky level (e per pixel), Poisson.
+        Sky level (e per pixel of nominal area), Poisson.
     read_noise : float, optional
         Gaussian read noise (e rms).
     min_separation : float, optional
@@ -97,8 +115,19 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
         arcsec per px.
     beta_moffat : float, optional
         Moffat index.
-    nrecalc : float, optional
-        Photons between GalSim's boundary updates (GalSim's default, 1e4).
+    sky_through_sensor : bool, optional
+        True: the sky in each star's box is collected through the sensor with
+        the star's photons (random order); False: the whole sky is a Poisson
+        image added after the BF simulation (no BF on the sky; biases every
+        correction's residual, kept to demonstrate it).
+    sky_radius : int or None, optional
+        Half-side (px) of the box, beyond the central pixel, where the sky is
+        collected through the sensor (plus a 3-pixel margin); None: the whole
+        stamp (larger values are clipped to the stamp).
+    updates : float, optional
+        GalSim recomputes the boundaries every ``nrecalc = max(1e4, N /
+        updates)`` photons (N: a star's photons plus its sky photons); the
+        lag weakens the simulated effect by about 1 / ``updates``.
     seed : int, optional
         Seed of every random number.
     progress : bool, optional
@@ -123,11 +152,16 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
     req = [float(v) for v in np.atleast_1d(strength)]
     if not req or min(req) < 0:
         raise ValueError(f"strength must be >= 0, got {strength}")
+    if stamp % 2 != 1:
+        raise ValueError(f"stamp must be odd, got {stamp}")
+    if sky < 0 or not np.isfinite(sky):
+        raise ValueError(f"sky must be finite and >= 0, got {sky!r}")
     rng = np.random.default_rng(seed)
     half = stamp // 2
     pos = _positions(rng, int(n_stars), (ny, nx), half + 1, float(min_separation))
     strengths = [max(v, _NULL_STRENGTH) for v in req] + ([_NULL_STRENGTH] if twin else [])
     images = [np.zeros((ny, nx)) for _ in strengths]
+    collected = np.zeros((ny, nx), bool) if sky_through_sensor and sky > 0 else None
     rows = []
     from galsim.utilities import get_omp_threads, set_omp_threads
     n_threads = get_omp_threads()
@@ -136,10 +170,14 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
         # threads spin on a busy machine (measured 30x slower under load)
         set_omp_threads(1)
         _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_range, flux,
-              beta_moffat, stamp, half, pixel_scale, sensor, nrecalc)
+              beta_moffat, stamp, half, pixel_scale, sensor, float(sky), sky_radius, updates,
+              collected)
     finally:
         set_omp_threads(n_threads)
-    noise = rng.poisson(sky, (ny, nx)).astype(float) + rng.normal(0.0, read_noise, (ny, nx))
+    sky_img = rng.poisson(sky, (ny, nx)).astype(float)
+    if collected is not None:  # outside the boxes collected through the sensor
+        sky_img[collected] = 0.0
+    noise = sky_img + rng.normal(0.0, read_noise, (ny, nx))
     arr = np.array(rows, float).reshape(-1, 6)
     stars = QTable([arr[:, 0] * u.pix, arr[:, 1] * u.pix, arr[:, 2] * u.electron,
                     arr[:, 3] * u.arcsec, arr[:, 4], arr[:, 5]],
@@ -151,8 +189,17 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
 
 
 def _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_range, flux,
-          beta_moffat, stamp, half, pixel_scale, sensor, nrecalc):
-    """Draw every star into ``images`` (one per strength), appending truth rows."""
+          beta_moffat, stamp, half, pixel_scale, sensor, sky, sky_radius, updates, collected):
+    """Draw every star into ``images`` (one per strength), appending truth rows.
+
+    With ``collected`` (bool (ny, nx)), the sky in each star's box is collected
+    through the sensor and the box is marked in ``collected``.
+    """
+    from .galsim_twins import SKY_MARGIN, accumulate_twins, shoot_photons, sky_box
+
+    lo, hi, inner = sky_box(stamp, sky_radius)
+    # the sky photons do not change the stars (positions, fluxes, photons, sensor seeds)
+    rng_sky = rng.spawn(1)[0]
     with ProgressBar(len(pos), "galsim field", enabled=progress) as bar:
         for x, y in pos:
             f = float(np.exp(rng.uniform(np.log(flux[0]), np.log(flux[1]))))
@@ -162,20 +209,21 @@ def _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_r
             prof = galsim.Moffat(beta=beta_moffat, fwhm=fw).shear(e1=e1, e2=e2).withFlux(f)
             ix, iy = int(np.floor(x + 0.5)), int(np.floor(y + 0.5))
             s1, s2 = (int(v) for v in rng.integers(1, 2**30, 2))
-            img = galsim.ImageD(stamp, stamp, scale=pixel_scale)
-            prof.drawImage(img, method="phot", save_photons=True, rng=galsim.BaseDeviate(s1),
-                           offset=(x - ix, y - iy))
-            photons = img.photons
-            cen = img.true_center
-            for k, s in enumerate(strengths):
-                sens = galsim.SiliconSensor(sensor, strength=s, rng=galsim.BaseDeviate(s2),
-                                            nrecalc=float(nrecalc))
-                p = galsim.PhotonArray(photons.size())
-                p.copyFrom(photons)
-                p.x = p.x + cen.x
-                p.y = p.y + cen.y
-                im = galsim.ImageD(stamp, stamp, scale=pixel_scale)
-                sens.accumulate(p, im)
-                images[k][iy - half:iy + half + 1, ix - half:ix + half + 1] += im.array
+            px, py, pf = shoot_photons(prof, stamp, pixel_scale=pixel_scale, seed=s1,
+                                       offset=(x - ix, y - iy))
+            win = (slice(iy - half, iy + half + 1), slice(ix - half, ix + half + 1))
+            if collected is None:
+                ims, _ = accumulate_twins(px, py, pf, strengths, sensor=sensor, seed=s2,
+                                          stamp=stamp, pixel_scale=pixel_scale, rng=rng_sky,
+                                          updates=updates)
+            else:
+                # sky already collected by a closer neighbour's box is not collected twice
+                ims, _ = accumulate_twins(px, py, pf, strengths, sensor=sensor, seed=s2,
+                                          stamp=stamp, pixel_scale=pixel_scale, sky=sky,
+                                          box=(lo, hi), feed=SKY_MARGIN, sky_mask=~collected[win],
+                                          rng=rng_sky, updates=updates)
+                collected[win][inner, inner] = True
+            for k, im in enumerate(ims):
+                images[k][win] += im
             rows.append((x, y, f, fw, e1, e2))
             bar(1)

@@ -84,8 +84,7 @@ def draw_star_pairs(n_stars, *, sensor="lsst_itl_50_8", psf="moffat", fwhm=(0.6,
     list of dict
         ``bf``, ``truth`` (arrays, e), ``flux``, ``fwhm``.
     """
-    import galsim
-
+    from .galsim_twins import accumulate_twins, shoot_photons, sky_box
     from .stars import make_psf
 
     if int(n_stars) < 1:
@@ -101,35 +100,16 @@ def draw_star_pairs(n_stars, *, sensor="lsst_itl_50_8", psf="moffat", fwhm=(0.6,
             prof = make_psf(psf, fw, e=e, beta=beta).withFlux(f)
             s1, s2, s3 = (int(v) for v in rng.integers(1, 2**30, 3))
             rng_sky = np.random.default_rng(s3)  # the stars do not depend on the sky
-            img = galsim.ImageD(stamp, stamp, scale=pixel_scale)
-            prof.drawImage(img, method="phot", save_photons=True, rng=galsim.BaseDeviate(s1),
-                           offset=tuple(rng.uniform(-0.5, 0.5, 2)))
-            photons = img.photons
-            cen = img.true_center
-            n_star = photons.size()
-            n_sky, margin = 0, 3
-            c = (stamp + 1) // 2  # central pixel (1-based)
-            r = c - 1 if sky_radius is None else min(int(sky_radius), c - 1)
-            lo, hi = c - r - 0.5 - margin, c + r + 0.5 + margin
-            if sky_through_sensor and sky > 0:
-                n_sky = int(rng_sky.poisson(sky * (hi - lo) ** 2))
-            order = rng_sky.permutation(n_star + n_sky)
-            xs = np.concatenate([photons.x + cen.x, rng_sky.uniform(lo, hi, n_sky)])[order]
-            ys = np.concatenate([photons.y + cen.y, rng_sky.uniform(lo, hi, n_sky)])[order]
-            fl = np.concatenate([photons.flux, np.ones(n_sky)])[order]
-            images = []
-            for strength in (1.0, 1e-9):
-                sens = galsim.SiliconSensor(sensor, strength=strength,
-                                            rng=galsim.BaseDeviate(s2),
-                                            nrecalc=max(1e4, (n_star + n_sky) / updates))
-                p = galsim.PhotonArray(n_star + n_sky, x=xs, y=ys, flux=fl)
-                im = galsim.ImageD(stamp, stamp, scale=pixel_scale)
-                sens.accumulate(p, im)
-                images.append(im.array.copy())
+            x, y, fl = shoot_photons(prof, stamp, pixel_scale=pixel_scale, seed=s1,
+                                     offset=rng.uniform(-0.5, 0.5, 2))
+            lo, hi, inner = sky_box(stamp, sky_radius)
+            images, _ = accumulate_twins(
+                x, y, fl, (1.0, 1e-9), sensor=sensor, seed=s2, stamp=stamp,
+                pixel_scale=pixel_scale, sky=sky if sky_through_sensor else 0.0, box=(lo, hi),
+                rng=rng_sky, updates=updates)
             noise = rng_sky.poisson(sky, (stamp, stamp)).astype(float)
             if sky_through_sensor:  # outside the region collected through the sensor
                 outside = np.ones((stamp, stamp), bool)
-                inner = slice(c - 1 - r - margin, c + r + margin)
                 outside[inner, inner] = False
                 noise = np.where(outside, noise, 0.0)
             out.append({"bf": images[0] + noise, "truth": images[1] + noise, "flux": f,
