@@ -286,29 +286,40 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
     halo = 4 * (template.size + 3)
     flux = np.empty_like(img)
     its, conv = 0, True
+    cache = {}
     for r0 in range(0, ny, strip):
         r1 = min(r0 + strip, ny)
         a, z = max(r0 - halo, 0), min(r1 + halo, ny)
-        out, it, cv = _solve_block(img[a:z], template, blk[a:z], **kw)
+        shape = (z - a, img.shape[1])
+        if shape not in cache:
+            cache.clear()
+            cache[shape] = SweptAreas(template, shape, workers=workers, dtype=dtype)
+        out, it, cv = _solve_block(img[a:z], template, blk[a:z], swept=cache[shape], **kw)
         flux[r0:r1] = out[r0 - a:r1 - a]
         its, conv = max(its, it), conv and cv
     return flux, its, conv
 
 
 def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, noise_tol, start,
-                 workers, dtype):
+                 workers, dtype, swept=None):
     """Iterative solution of I = R(F) on one block (see :func:`correct_image`)."""
     blk = blocked | ~np.isfinite(img)
     img_eff = np.where(np.isfinite(img), img, 0.0)
-    swept = SweptAreas(template, img.shape, workers=workers, dtype=dtype)
-    if start == "series":
-        flux = _series_block(img_eff, blk, swept, order, density)
-    else:
-        flux = img_eff.copy()
+    if swept is None:
+        swept = SweptAreas(template, img.shape, workers=workers, dtype=dtype)
     if noise_tol is not None:
         limit = float(noise_tol) * np.sqrt(np.maximum(img_eff, 1.0))
     else:
         limit = rtol * max(np.abs(img_eff).max(), 1e-300)
+    if start == "series":
+        flux, (x2, x3) = _series_block(img_eff, blk, swept, order, density, terms=3)
+        ok = _apriori_ok(x2, x3, limit)
+        del x2, x3
+        if ok:  # the neglected terms are far below the tolerance: no check needed
+            flux[blk] = img[blk]
+            return flux, 0, True
+    else:
+        flux = img_eff.copy()
     converged = False
     it = 0
     cubic = density == "cubic4"
@@ -332,23 +343,74 @@ def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, nois
     return flux, it, converged
 
 
-def _series_block(img, blk, swept, order, density):
-    """Second-order inverse series on one block (see :func:`correct_series`)."""
+def _series_block(img, blk, swept, order, density, *, terms=2):
+    """Inverse series on one block (see :func:`correct_series`).
+
+    ``terms=2``: F = I + x1 + x2 (two operator applications); ``terms=3``
+    adds the third-order term x3 (three applications). Returns F and, for
+    ``terms=3``, (x2, x3) for the a-priori error estimate.
+    """
     cubic = density == "cubic4"
+    a3 = 1.0 / 6.0 if order >= 3 else 0.0
+    a4 = 1.0 / 24.0 if order >= 4 else 0.0
     sv, sh = swept(img)
     b = fused_transfer(sv, sh, img, blk, cubic=cubic)      # B(I, I)
     out = img - 0.5 * b
-    tmp = fused_transfer(sv, sh, b, blk, cubic=cubic)      # B(b, I)
-    del sv, sh
-    tmp *= 0.25
-    out += tmp
-    coef = 0.25 - (1.0 / 6.0 if order >= 3 else 0.0)
+    c = fused_transfer(sv, sh, b, blk, cubic=cubic)        # B(b, I)
     svb, shb = swept(b)
-    fused_transfer(svb, shb, img, blk, cubic=cubic, out=tmp)  # B(I, b)
+    d = fused_transfer(svb, shb, img, blk, cubic=cubic)    # B(I, b)
+    if terms < 3:
+        del sv, sh, svb, shb
+        c *= 0.25
+        out += c
+        d *= 0.25 - a3
+        out += d
+        return out, None
+    # x2 = c/4 + (1/4 - a3) d; third order (module docstring):
+    # x3 = -B(x2, I)/2 + (a3/2 - 1/8) B(b, b) + B(I, y),
+    # y = -x2/2 + (a3/2) (c + d) - a4 d.
+    x2 = 0.25 * c
+    x2 += (0.25 - a3) * d
+    out += x2
+    x3 = fused_transfer(svb, shb, b, blk, cubic=cubic)     # B(b, b)
     del svb, shb
-    tmp *= coef
-    out += tmp
-    return out
+    x3 *= 0.5 * a3 - 0.125
+    tmp = fused_transfer(sv, sh, x2, blk, cubic=cubic)     # B(x2, I)
+    del sv, sh
+    tmp *= -0.5
+    x3 += tmp
+    c += d
+    c *= 0.5 * a3
+    if a4:
+        c -= a4 * d
+    del d
+    c -= 0.5 * x2                                          # y
+    svy, shy = swept(c)
+    del c
+    fused_transfer(svy, shy, img, blk, cubic=cubic, out=tmp)  # B(I, y)
+    del svy, shy
+    x3 += tmp
+    out += x3
+    return out, (x2, x3)
+
+
+def _apriori_ok(x2, x3, limit):
+    """True when the neglected fourth-order term is far below ``limit``.
+
+    The series' terms shrink by r = max|x3| / max|x2| (the brighter-fatter
+    strength); the next term is estimated as r times the largest |x3| within
+    2 pixels, with a safety factor 4.
+    """
+    from scipy.ndimage import maximum_filter
+
+    m2 = np.abs(x2).max()
+    if m2 == 0.0:
+        return True
+    a3 = np.abs(x3)
+    r = a3.max() / m2
+    if 4.0 * r * a3.max() <= np.min(limit):
+        return True
+    return bool(np.all(4.0 * r * maximum_filter(a3, size=5, mode="nearest") <= limit))
 
 
 def correct_series(image, template, *, order=3, density="mean2", blocked=None, workers=1,
@@ -404,7 +466,7 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
     ny, nx = img.shape
     if strip is None or int(strip) >= ny:
         swept = SweptAreas(template, img.shape, workers=workers, dtype=dtype)
-        flux = _series_block(img_eff, blk, swept, order, density)
+        flux, _ = _series_block(img_eff, blk, swept, order, density)
     else:
         strip = int(strip)
         if strip < 1:
@@ -419,7 +481,7 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
             if shape not in cache:
                 cache.clear()
                 cache[shape] = SweptAreas(template, shape, workers=workers, dtype=dtype)
-            out = _series_block(img_eff[a:z], blk[a:z], cache[shape], order, density)
+            out, _ = _series_block(img_eff[a:z], blk[a:z], cache[shape], order, density)
             flux[r0:r1] = out[r0 - a:r1 - a]
     flux[blk] = img[blk]
     return flux, 1, True
