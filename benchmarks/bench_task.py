@@ -3,7 +3,11 @@
 Each configuration runs in its own subprocess. Memory is the peak RSS
 (``ru_maxrss``) of that process minus its RSS just before ``task.run`` (the
 input image and the imported libraries are the baseline), in units of the
-image's size (float64). Run from the repository root::
+image's size (float64). The children also count the applications of the
+swept-area operator (``SweptAreas.__call__``) and the FFTs (``rfft2`` /
+``irfft2`` calls, kernel transforms included) made inside
+:mod:`lsst_bfdrift.correction` during ``task.run``. Run from the repository
+root::
 
     python benchmarks/bench_task.py [--size 4096]
 
@@ -23,6 +27,24 @@ import json, os, resource, sys, time
 import numpy as np
 sys.path.insert(0, {root!r})
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask
+from lsst_bfdrift import correction as C
+count = dict(ops=0, ffts=0)
+_call = C.SweptAreas.__call__
+def _counted_call(self, q):
+    count["ops"] += 1
+    return _call(self, q)
+C.SweptAreas.__call__ = _counted_call
+_sp_fft = C.sp_fft
+class _FFT:
+    def __getattr__(self, name):
+        f = getattr(_sp_fft, name)
+        if name not in ("rfft2", "irfft2"):
+            return f
+        def counted(*a, **k):
+            count["ffts"] += 1
+            return f(*a, **k)
+        return counted
+C.sp_fft = _FFT()
 n = {size}
 rng = np.random.default_rng(1)
 img = rng.poisson(1200.0, (n, n)).astype(np.float64)   # sky
@@ -34,6 +56,7 @@ for k in range(400):                                     # stars, 1e4 to 1.5e6 e
 task = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(method={method!r},
                                compute_geometry={geometry}, workers=2, **{extra}))
 task.run(img[:64, :64])  # compile/warm up outside the timing
+count.update(ops=0, ffts=0)
 base = int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 t0 = time.perf_counter()
 res = task.run(img)
@@ -41,7 +64,8 @@ dt = time.perf_counter() - t0
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(json.dumps({{"seconds": dt, "peak_rss_mb": peak - base, "baseline_rss_mb": base,
                   "image_mb": img.nbytes / 2**20, "iterations": res.iterations,
-                  "converged": res.converged}}))
+                  "converged": res.converged, "operator_calls": count["ops"],
+                  "ffts": count["ffts"]}}))
 """
 
 
@@ -71,7 +95,8 @@ def main():
         lines.append(f"{name:17s} {r['seconds']:7.1f} s  ({r['seconds'] / base:5.2f}x astier23)  "
                      f"peak RSS - baseline {r['peak_rss_mb']:6.0f} MB = "
                      f"{r['peak_rss_mb'] / r['image_mb']:4.1f}"
-                     f" x image  iterations {r['iterations']} converged {r['converged']}")
+                     f" x image  operator calls {r['operator_calls']:3d}  FFTs {r['ffts']:3d}"
+                     f"  iterations {r['iterations']} converged {r['converged']}")
     text = "\n".join(lines) + "\n"
     print(text, end="")
     with open(args.out + ".json", "w") as fh:

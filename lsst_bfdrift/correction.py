@@ -283,26 +283,40 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
     strip = int(strip)
     if strip < 1:
         raise ValueError(f"strip must be positive, got {strip}")
-    halo = 4 * (template.size + 3)
+    # The third-order series at a pixel depends on the image within 3 (N + 3)
+    # rows; a block that needs the iteration is solved again with 4 (N + 3).
+    halos = (3 * (template.size + 3), 4 * (template.size + 3))
+    if start != "series":
+        halos = halos[1:]
     flux = np.empty_like(img)
     its, conv = 0, True
     cache = {}
     for r0 in range(0, ny, strip):
         r1 = min(r0 + strip, ny)
-        a, z = max(r0 - halo, 0), min(r1 + halo, ny)
-        shape = (z - a, img.shape[1])
-        if shape not in cache:
-            cache.clear()
-            cache[shape] = SweptAreas(template, shape, workers=workers, dtype=dtype)
-        out, it, cv = _solve_block(img[a:z], template, blk[a:z], swept=cache[shape], **kw)
+        for k, halo in enumerate(halos):
+            a, z = max(r0 - halo, 0), min(r1 + halo, ny)
+            shape = (z - a, img.shape[1])
+            if shape not in cache:
+                if len(cache) > 4:
+                    cache.clear()
+                cache[shape] = SweptAreas(template, shape, workers=workers, dtype=dtype)
+            last = k == len(halos) - 1
+            out, it, cv = _solve_block(img[a:z], template, blk[a:z], swept=cache[shape],
+                                       series_only=not last, **kw)
+            if out is not None:
+                break
         flux[r0:r1] = out[r0 - a:r1 - a]
         its, conv = max(its, it), conv and cv
     return flux, its, conv
 
 
 def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, noise_tol, start,
-                 workers, dtype, swept=None):
-    """Iterative solution of I = R(F) on one block (see :func:`correct_image`)."""
+                 workers, dtype, swept=None, series_only=False):
+    """Iterative solution of I = R(F) on one block (see :func:`correct_image`).
+
+    With ``series_only``, returns (None, 0, False) when the series alone is
+    not accurate enough instead of iterating.
+    """
     blk = blocked | ~np.isfinite(img)
     img_eff = np.where(np.isfinite(img), img, 0.0)
     if swept is None:
@@ -318,6 +332,8 @@ def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, nois
         if ok:  # the neglected terms are far below the tolerance: no check needed
             flux[blk] = img[blk]
             return flux, 0, True
+        if series_only:
+            return None, 0, False
     else:
         flux = img_eff.copy()
     converged = False
@@ -355,7 +371,8 @@ def _series_block(img, blk, swept, order, density, *, terms=2):
     a4 = 1.0 / 24.0 if order >= 4 else 0.0
     sv, sh = swept(img)
     b = fused_transfer(sv, sh, img, blk, cubic=cubic)      # B(I, I)
-    out = img - 0.5 * b
+    out = b * -0.5
+    out += img
     c = fused_transfer(sv, sh, b, blk, cubic=cubic)        # B(b, I)
     svb, shb = swept(b)
     d = fused_transfer(svb, shb, img, blk, cubic=cubic)    # B(I, b)
@@ -368,28 +385,27 @@ def _series_block(img, blk, swept, order, density, *, terms=2):
         return out, None
     # x2 = c/4 + (1/4 - a3) d; third order (module docstring):
     # x3 = -B(x2, I)/2 + (a3/2 - 1/8) B(b, b) + B(I, y),
-    # y = -x2/2 + (a3/2) (c + d) - a4 d.
-    x2 = 0.25 * c
+    # y = -x2/2 + (a3/2) (c + d) - a4 d = (a3/2 - 1/8) c + (a3 - a4 - 1/8) d.
+    x2 = c * 0.25
     x2 += (0.25 - a3) * d
     out += x2
     x3 = fused_transfer(svb, shb, b, blk, cubic=cubic)     # B(b, b)
-    del svb, shb
+    del svb, shb, b
     x3 *= 0.5 * a3 - 0.125
     tmp = fused_transfer(sv, sh, x2, blk, cubic=cubic)     # B(x2, I)
     del sv, sh
     tmp *= -0.5
     x3 += tmp
-    c += d
-    c *= 0.5 * a3
-    if a4:
-        c -= a4 * d
+    c *= 0.5 * a3 - 0.125
+    d *= a3 - a4 - 0.125
+    c += d                                                 # y
     del d
-    c -= 0.5 * x2                                          # y
     svy, shy = swept(c)
     del c
     fused_transfer(svy, shy, img, blk, cubic=cubic, out=tmp)  # B(I, y)
     del svy, shy
     x3 += tmp
+    del tmp
     out += x3
     return out, (x2, x3)
 
