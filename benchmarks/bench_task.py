@@ -79,6 +79,7 @@ def main():
     runs = (("astier23", "astier23", False, {}),
             ("astier23 float64", "astier23", False, {"fft_precision": "float64"}),
             ("drift", "drift", False, {}),
+            ("drift strip 1024", "drift", False, {"strip": 1024}),
             ("drift no strips", "drift", False, {"strip": None}),
             ("drift old solver", "drift", False, {"fft_precision": "float64", "start": "image",
                                                   "noise_tol": None, "strip": None}),
