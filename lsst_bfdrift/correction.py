@@ -25,8 +25,17 @@ first-order inverse of dR/dF), or, much faster, from the inverse series
 
 which needs only two applications of the swept-area operator (the
 astier23 baseline needs one) and is exact to second order in the
-brighter-fatter strength; the neglected terms are ~|G/I|^3 ~ 3e-5 of the
-brightest pixels' flux, far below their Poisson noise. Every edge transfer is added
+brighter-fatter strength. The third-order term (``docs/correction.rst``),
+with x2 = c/4 + (1/4 - a3) d, c = B(b, I), d = B(I, b), a3 = 1/6 (order >= 3),
+a4 = 1/24 (order >= 4), is
+
+    x3 = -B(x2, I)/2 + (a3/2 - 1/8) B(b, b) + B(I, y),
+    y = (a3/2 - 1/8) c + (a3 - a4 - 1/8) d,
+
+one more operator application (for y). :func:`correct_image` with
+``start='series'`` uses F = I - b/2 + x2 + x3 directly when an a-priori
+estimate of the fourth-order term is below the tolerance, and otherwise
+iterates from it. Every edge transfer is added
 to one pixel and subtracted from its neighbour, so the correction conserves
 flux exactly.
 
@@ -246,15 +255,20 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
         noise_tol * sqrt(max(I, 1))`` in every pixel, i.e. the model residual
         is a small fraction of each pixel's Poisson noise (e).
     start : {'image', 'series'}, optional
-        First guess: the recorded image, or the second-order inverse series
-        (:func:`correct_series`; usually leaves one or two iterations).
+        First guess: the recorded image, or the third-order inverse series
+        (three operator applications). With 'series' no forward-model check
+        is made (``iterations`` = 0) when the neglected fourth-order term,
+        estimated as 4 r max|x3| over 5 x 5 pixels with r = max|x3| / max|x2|,
+        is below the tolerance in every pixel; otherwise the iteration
+        starts from the series.
     workers : int, optional
         FFT threads.
     dtype : {numpy.float64, numpy.float32}, optional
         FFT precision (:class:`SweptAreas`).
     strip : int, optional
-        Rows per block, each solved with a halo of ``4 (N + 3)`` rows (N =
-        template size) to bound memory. The solution's dependence on rows
+        Rows per block, each solved with a halo of ``3 (N + 3)`` rows (N =
+        template size; series) or ``4 (N + 3)`` rows (blocks that need the
+        iteration, solved again) to bound memory. The solution's dependence on rows
         beyond the halo is of third order in the BF strength (measured in
         ``docs/benchmarks.rst``). None: whole image.
 
@@ -263,7 +277,7 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
     flux : ndarray
         Corrected image (e).
     iterations : int
-        Largest over the blocks.
+        Largest over the blocks (0: the series needed no check).
     converged : bool
         All blocks converged.
     """
