@@ -266,8 +266,9 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
     dtype : {numpy.float64, numpy.float32}, optional
         FFT precision (:class:`SweptAreas`).
     strip : int, optional
-        Rows per block, each solved with a halo of ``3 (N + 3)`` rows (N =
-        template size; series) or ``4 (N + 3)`` rows (blocks that need the
+        Rows per block, each solved with a halo of ``3 ((N + 1) // 2 + 2)``
+        rows (N = template size; the reach of the third-order series, so the
+        series is exact) or ``4 (N + 3)`` rows (blocks that need the
         iteration, solved again) to bound memory. The solution's dependence on rows
         beyond the halo is of third order in the BF strength (measured in
         ``docs/benchmarks.rst``). None: whole image.
@@ -297,9 +298,11 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
     strip = int(strip)
     if strip < 1:
         raise ValueError(f"strip must be positive, got {strip}")
-    # The third-order series at a pixel depends on the image within 3 (N + 3)
-    # rows; a block that needs the iteration is solved again with 4 (N + 3).
-    halos = (3 * (template.size + 3), 4 * (template.size + 3))
+    # One application of B reaches (N + 1) / 2 rows (swept areas) plus 2
+    # (edge densities); the third-order series nests three, so a halo of
+    # 3 ((N + 1) // 2 + 2) rows gives the whole-image result exactly. A block
+    # that needs the iteration is solved again with 4 (N + 3) rows.
+    halos = (3 * ((template.size + 1) // 2 + 2), 4 * (template.size + 3))
     if start != "series":
         halos = halos[1:]
     flux = np.empty_like(img)
