@@ -3,7 +3,12 @@
 Each configuration runs in its own subprocess. Memory is the peak RSS
 (``ru_maxrss``) of that process minus its RSS just before ``task.run`` (the
 input image and the imported libraries are the baseline), in units of the
-image's size (float64). Run from the repository root::
+image's size (float64). The children also count the applications of the
+swept-area operator (``SweptAreas.__call__``) and the FFTs (``rfft2`` /
+``irfft2`` calls, kernel transforms included) made inside
+:mod:`lsst_bfdrift.correction` during ``task.run``. Run from the repository
+root. ``warm`` is the faster of two more calls on the same image in the same
+process (FFT plans cached, memory pools warm; not for ``drift+geometry``)::
 
     python benchmarks/bench_task.py [--size 4096]
 
@@ -23,6 +28,24 @@ import json, os, resource, sys, time
 import numpy as np
 sys.path.insert(0, {root!r})
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask
+from lsst_bfdrift import correction as C
+count = dict(ops=0, ffts=0)
+_call = C.SweptAreas.__call__
+def _counted_call(self, q):
+    count["ops"] += 1
+    return _call(self, q)
+C.SweptAreas.__call__ = _counted_call
+_sp_fft = C.sp_fft
+class _FFT:
+    def __getattr__(self, name):
+        f = getattr(_sp_fft, name)
+        if name not in ("rfft2", "irfft2"):
+            return f
+        def counted(*a, **k):
+            count["ffts"] += 1
+            return f(*a, **k)
+        return counted
+C.sp_fft = _FFT()
 n = {size}
 rng = np.random.default_rng(1)
 img = rng.poisson(1200.0, (n, n)).astype(np.float64)   # sky
@@ -34,14 +57,22 @@ for k in range(400):                                     # stars, 1e4 to 1.5e6 e
 task = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(method={method!r},
                                compute_geometry={geometry}, workers=2, **{extra}))
 task.run(img[:64, :64])  # compile/warm up outside the timing
+count.update(ops=0, ffts=0)
 base = int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 t0 = time.perf_counter()
 res = task.run(img)
 dt = time.perf_counter() - t0
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+counted = dict(count)  # the timed call only
+warm = []
+for _ in range({repeat}):  # same shape again: FFT plans and memory pools warm
+    t0 = time.perf_counter()
+    task.run(img)
+    warm.append(time.perf_counter() - t0)
 print(json.dumps({{"seconds": dt, "peak_rss_mb": peak - base, "baseline_rss_mb": base,
                   "image_mb": img.nbytes / 2**20, "iterations": res.iterations,
-                  "converged": res.converged}}))
+                  "converged": res.converged, "operator_calls": counted["ops"],
+                  "ffts": counted["ffts"], "warm_seconds": min(warm) if warm else None}}))
 """
 
 
@@ -55,23 +86,28 @@ def main():
     runs = (("astier23", "astier23", False, {}),
             ("astier23 float64", "astier23", False, {"fft_precision": "float64"}),
             ("drift", "drift", False, {}),
+            ("drift strip 1024", "drift", False, {"strip": 1024}),
             ("drift no strips", "drift", False, {"strip": None}),
             ("drift old solver", "drift", False, {"fft_precision": "float64", "start": "image",
                                                   "noise_tol": None, "strip": None}),
             ("drift+geometry", "drift", True, {}))
     for name, method, geometry, extra in runs:
         code = CHILD.format(root=root, size=args.size, method=method, geometry=geometry,
-                            extra=extra)
+                            extra=extra, repeat=0 if geometry else 2)
         out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
                              text=True).stdout.strip().splitlines()[-1]
         rows[name] = json.loads(out)
     base = rows["astier23"]["seconds"]
+    wbase = rows["astier23"]["warm_seconds"]
     lines = [f"{args.size}x{args.size} image, {os.cpu_count()} cores"]
     for name, r in rows.items():
+        ws = r["warm_seconds"]
+        warm = "" if ws is None else f"; warm {ws:5.1f} s ({ws / wbase:5.2f}x)"
         lines.append(f"{name:17s} {r['seconds']:7.1f} s  ({r['seconds'] / base:5.2f}x astier23)  "
                      f"peak RSS - baseline {r['peak_rss_mb']:6.0f} MB = "
                      f"{r['peak_rss_mb'] / r['image_mb']:4.1f}"
-                     f" x image  iterations {r['iterations']} converged {r['converged']}")
+                     f" x image  operator calls {r['operator_calls']:3d}  FFTs {r['ffts']:3d}"
+                     f"  iterations {r['iterations']} converged {r['converged']}{warm}")
     text = "\n".join(lines) + "\n"
     print(text, end="")
     with open(args.out + ".json", "w") as fh:

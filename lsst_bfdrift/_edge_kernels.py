@@ -50,16 +50,59 @@ def _dh(f, blk, k, i, ny, cubic):
                     False, cubic)
 
 
+@numba.njit(cache=True, inline="always")
+def _fused_row_generic(sv, sh, f, blk, cubic, out, j):
+    """Row j, pixel by pixel (rows near blocked pixels)."""
+    ny, nx = f.shape
+    for i in range(nx):
+        tvl = _dv(f, blk, j, i, nx, cubic) * sv[j, i]
+        tvr = _dv(f, blk, j, i + 1, nx, cubic) * sv[j, i + 1]
+        thb = _dh(f, blk, j, i, ny, cubic) * sh[j, i]
+        tht = _dh(f, blk, j + 1, i, ny, cubic) * sh[j + 1, i]
+        out[j, i] = (tvr - tvl) + (tht - thb)
+
+
+@numba.njit(cache=True, inline="always")
+def _hrow(f, sh, k, ny, nx, cubic, th):
+    """th[i] = density x swept area of the horizontal edge k (no blocked pixels)."""
+    if k <= 0 or k >= ny:
+        for i in range(nx):
+            th[i] = 0.0
+    elif cubic and k >= 2 and k <= ny - 2:
+        for i in range(nx):
+            th[i] = ((-f[k - 2, i] + 9.0 * f[k - 1, i] + 9.0 * f[k, i] - f[k + 1, i]) / 16.0
+                     * sh[k, i])
+    else:
+        for i in range(nx):
+            th[i] = 0.5 * (f[k - 1, i] + f[k, i]) * sh[k, i]
+
+
 @numba.njit(parallel=True, cache=True)
-def _fused(sv, sh, f, blk, cubic, out):
+def _fused(sv, sh, f, blk, rowblk, cubic, out):
     ny, nx = f.shape
     for j in numba.prange(ny):
+        near = False
+        for r in range(max(j - 2, 0), min(j + 3, ny)):
+            near = near or rowblk[r]
+        if near:
+            _fused_row_generic(sv, sh, f, blk, cubic, out, j)
+            continue
+        # No blocked pixel within reach: straight loops over the row (vectorised).
+        tv = np.empty(nx + 1)
+        tv[0] = 0.0
+        tv[nx] = 0.0
+        for k in range(1, nx):
+            tv[k] = 0.5 * (f[j, k - 1] + f[j, k]) * sv[j, k]
+        if cubic and nx >= 4:
+            for k in range(2, nx - 1):
+                tv[k] = ((-f[j, k - 2] + 9.0 * f[j, k - 1] + 9.0 * f[j, k] - f[j, k + 1]) / 16.0
+                         * sv[j, k])
+        tb = np.empty(nx)
+        tt = np.empty(nx)
+        _hrow(f, sh, j, ny, nx, cubic, tb)
+        _hrow(f, sh, j + 1, ny, nx, cubic, tt)
         for i in range(nx):
-            tvl = _dv(f, blk, j, i, nx, cubic) * sv[j, i]
-            tvr = _dv(f, blk, j, i + 1, nx, cubic) * sv[j, i + 1]
-            thb = _dh(f, blk, j, i, ny, cubic) * sh[j, i]
-            tht = _dh(f, blk, j + 1, i, ny, cubic) * sh[j + 1, i]
-            out[j, i] = (tvr - tvl) + (tht - thb)
+            out[j, i] = (tv[i + 1] - tv[i]) + (tt[i] - tb[i])
 
 
 def fused_transfer(sv, sh, flux, blocked, *, cubic=False, out=None):
@@ -92,5 +135,5 @@ def fused_transfer(sv, sh, flux, blocked, *, cubic=False, out=None):
                          f"blocked {b.shape}")
     if out is None:
         out = np.empty((ny, nx))
-    _fused(sv, sh, f, b, bool(cubic), out)
+    _fused(sv, sh, f, b, b.any(axis=1), bool(cubic), out)
     return out

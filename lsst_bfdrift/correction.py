@@ -25,8 +25,17 @@ first-order inverse of dR/dF), or, much faster, from the inverse series
 
 which needs only two applications of the swept-area operator (the
 astier23 baseline needs one) and is exact to second order in the
-brighter-fatter strength; the neglected terms are ~|G/I|^3 ~ 3e-5 of the
-brightest pixels' flux, far below their Poisson noise. Every edge transfer is added
+brighter-fatter strength. The third-order term (``docs/correction.rst``),
+with x2 = c/4 + (1/4 - a3) d, c = B(b, I), d = B(I, b), a3 = 1/6 (order >= 3),
+a4 = 1/24 (order >= 4), is
+
+    x3 = -B(x2, I)/2 + (a3/2 - 1/8) B(b, b) + B(I, y),
+    y = (a3/2 - 1/8) c + (a3 - a4 - 1/8) d,
+
+one more operator application (for y). :func:`correct_image` with
+``start='series'`` uses F = I - b/2 + x2 + x3 directly when an a-priori
+estimate of the fourth-order term is below the tolerance, and otherwise
+iterates from it. Every edge transfer is added
 to one pixel and subtracted from its neighbour, so the correction conserves
 flux exactly.
 
@@ -246,15 +255,21 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
         noise_tol * sqrt(max(I, 1))`` in every pixel, i.e. the model residual
         is a small fraction of each pixel's Poisson noise (e).
     start : {'image', 'series'}, optional
-        First guess: the recorded image, or the second-order inverse series
-        (:func:`correct_series`; usually leaves one or two iterations).
+        First guess: the recorded image, or the third-order inverse series
+        (three operator applications). With 'series' no forward-model check
+        is made (``iterations`` = 0) when the neglected fourth-order term,
+        estimated as 4 r max|x3| over 5 x 5 pixels with r = max|x3| / max|x2|,
+        is below the tolerance in every pixel; otherwise the iteration
+        starts from the series.
     workers : int, optional
         FFT threads.
     dtype : {numpy.float64, numpy.float32}, optional
         FFT precision (:class:`SweptAreas`).
     strip : int, optional
-        Rows per block, each solved with a halo of ``4 (N + 3)`` rows (N =
-        template size) to bound memory. The solution's dependence on rows
+        Rows per block, each solved with a halo of ``3 ((N + 1) // 2 + 2)``
+        rows (N = template size; the reach of the third-order series, so the
+        series is exact) or ``4 (N + 3)`` rows (blocks that need the
+        iteration, solved again) to bound memory. The solution's dependence on rows
         beyond the halo is of third order in the BF strength (measured in
         ``docs/benchmarks.rst``). None: whole image.
 
@@ -263,7 +278,7 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
     flux : ndarray
         Corrected image (e).
     iterations : int
-        Largest over the blocks.
+        Largest over the blocks (0: the series needed no check).
     converged : bool
         All blocks converged.
     """
@@ -283,32 +298,61 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
     strip = int(strip)
     if strip < 1:
         raise ValueError(f"strip must be positive, got {strip}")
-    halo = 4 * (template.size + 3)
+    # One application of B reaches (N + 1) / 2 rows (swept areas) plus 2
+    # (edge densities); the third-order series nests three, so a halo of
+    # 3 ((N + 1) // 2 + 2) rows gives the whole-image result exactly. A block
+    # that needs the iteration is solved again with 4 (N + 3) rows.
+    halos = (3 * ((template.size + 1) // 2 + 2), 4 * (template.size + 3))
+    if start != "series":
+        halos = halos[1:]
     flux = np.empty_like(img)
     its, conv = 0, True
+    cache = {}
     for r0 in range(0, ny, strip):
         r1 = min(r0 + strip, ny)
-        a, z = max(r0 - halo, 0), min(r1 + halo, ny)
-        out, it, cv = _solve_block(img[a:z], template, blk[a:z], **kw)
+        for k, halo in enumerate(halos):
+            a, z = max(r0 - halo, 0), min(r1 + halo, ny)
+            shape = (z - a, img.shape[1])
+            if shape not in cache:
+                if len(cache) > 4:
+                    cache.clear()
+                cache[shape] = SweptAreas(template, shape, workers=workers, dtype=dtype)
+            last = k == len(halos) - 1
+            out, it, cv = _solve_block(img[a:z], template, blk[a:z], swept=cache[shape],
+                                       series_only=not last, **kw)
+            if out is not None:
+                break
         flux[r0:r1] = out[r0 - a:r1 - a]
         its, conv = max(its, it), conv and cv
     return flux, its, conv
 
 
 def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, noise_tol, start,
-                 workers, dtype):
-    """Iterative solution of I = R(F) on one block (see :func:`correct_image`)."""
+                 workers, dtype, swept=None, series_only=False):
+    """Iterative solution of I = R(F) on one block (see :func:`correct_image`).
+
+    With ``series_only``, returns (None, 0, False) when the series alone is
+    not accurate enough instead of iterating.
+    """
     blk = blocked | ~np.isfinite(img)
     img_eff = np.where(np.isfinite(img), img, 0.0)
-    swept = SweptAreas(template, img.shape, workers=workers, dtype=dtype)
-    if start == "series":
-        flux = _series_block(img_eff, blk, swept, order, density)
-    else:
-        flux = img_eff.copy()
+    if swept is None:
+        swept = SweptAreas(template, img.shape, workers=workers, dtype=dtype)
     if noise_tol is not None:
         limit = float(noise_tol) * np.sqrt(np.maximum(img_eff, 1.0))
     else:
         limit = rtol * max(np.abs(img_eff).max(), 1e-300)
+    if start == "series":
+        flux, (x2, x3) = _series_block(img_eff, blk, swept, order, density, terms=3)
+        ok = _apriori_ok(x2, x3, limit)
+        del x2, x3
+        if ok:  # the neglected terms are far below the tolerance: no check needed
+            flux[blk] = img[blk]
+            return flux, 0, True
+        if series_only:
+            return None, 0, False
+    else:
+        flux = img_eff.copy()
     converged = False
     it = 0
     cubic = density == "cubic4"
@@ -332,23 +376,74 @@ def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, nois
     return flux, it, converged
 
 
-def _series_block(img, blk, swept, order, density):
-    """Second-order inverse series on one block (see :func:`correct_series`)."""
+def _series_block(img, blk, swept, order, density, *, terms=2):
+    """Inverse series on one block (see :func:`correct_series`).
+
+    ``terms=2``: F = I + x1 + x2 (two operator applications); ``terms=3``
+    adds the third-order term x3 (three applications). Returns F and, for
+    ``terms=3``, (x2, x3) for the a-priori error estimate.
+    """
     cubic = density == "cubic4"
+    a3 = 1.0 / 6.0 if order >= 3 else 0.0
+    a4 = 1.0 / 24.0 if order >= 4 else 0.0
     sv, sh = swept(img)
     b = fused_transfer(sv, sh, img, blk, cubic=cubic)      # B(I, I)
-    out = img - 0.5 * b
-    tmp = fused_transfer(sv, sh, b, blk, cubic=cubic)      # B(b, I)
-    del sv, sh
-    tmp *= 0.25
-    out += tmp
-    coef = 0.25 - (1.0 / 6.0 if order >= 3 else 0.0)
+    out = b * -0.5
+    out += img
+    c = fused_transfer(sv, sh, b, blk, cubic=cubic)        # B(b, I)
     svb, shb = swept(b)
-    fused_transfer(svb, shb, img, blk, cubic=cubic, out=tmp)  # B(I, b)
-    del svb, shb
-    tmp *= coef
-    out += tmp
-    return out
+    d = fused_transfer(svb, shb, img, blk, cubic=cubic)    # B(I, b)
+    if terms < 3:
+        del sv, sh, svb, shb
+        c *= 0.25
+        out += c
+        d *= 0.25 - a3
+        out += d
+        return out, None
+    # x2 = c/4 + (1/4 - a3) d; third order (module docstring):
+    # x3 = -B(x2, I)/2 + (a3/2 - 1/8) B(b, b) + B(I, y),
+    # y = -x2/2 + (a3/2) (c + d) - a4 d = (a3/2 - 1/8) c + (a3 - a4 - 1/8) d.
+    x2 = c * 0.25
+    x2 += (0.25 - a3) * d
+    out += x2
+    x3 = fused_transfer(svb, shb, b, blk, cubic=cubic)     # B(b, b)
+    del svb, shb, b
+    x3 *= 0.5 * a3 - 0.125
+    tmp = fused_transfer(sv, sh, x2, blk, cubic=cubic)     # B(x2, I)
+    del sv, sh
+    tmp *= -0.5
+    x3 += tmp
+    c *= 0.5 * a3 - 0.125
+    d *= a3 - a4 - 0.125
+    c += d                                                 # y
+    del d
+    svy, shy = swept(c)
+    del c
+    fused_transfer(svy, shy, img, blk, cubic=cubic, out=tmp)  # B(I, y)
+    del svy, shy
+    x3 += tmp
+    del tmp
+    out += x3
+    return out, (x2, x3)
+
+
+def _apriori_ok(x2, x3, limit):
+    """True when the neglected fourth-order term is far below ``limit``.
+
+    The series' terms shrink by r = max|x3| / max|x2| (the brighter-fatter
+    strength); the next term is estimated as r times the largest |x3| within
+    2 pixels, with a safety factor 4.
+    """
+    from scipy.ndimage import maximum_filter
+
+    m2 = np.abs(x2).max()
+    if m2 == 0.0:
+        return True
+    a3 = np.abs(x3)
+    r = a3.max() / m2
+    if 4.0 * r * a3.max() <= np.min(limit):
+        return True
+    return bool(np.all(4.0 * r * maximum_filter(a3, size=5, mode="nearest") <= limit))
 
 
 def correct_series(image, template, *, order=3, density="mean2", blocked=None, workers=1,
@@ -404,7 +499,7 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
     ny, nx = img.shape
     if strip is None or int(strip) >= ny:
         swept = SweptAreas(template, img.shape, workers=workers, dtype=dtype)
-        flux = _series_block(img_eff, blk, swept, order, density)
+        flux, _ = _series_block(img_eff, blk, swept, order, density)
     else:
         strip = int(strip)
         if strip < 1:
@@ -419,7 +514,7 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
             if shape not in cache:
                 cache.clear()
                 cache[shape] = SweptAreas(template, shape, workers=workers, dtype=dtype)
-            out = _series_block(img_eff[a:z], blk[a:z], cache[shape], order, density)
+            out, _ = _series_block(img_eff[a:z], blk[a:z], cache[shape], order, density)
             flux[r0:r1] = out[r0 - a:r1 - a]
     flux[blk] = img[blk]
     return flux, 1, True

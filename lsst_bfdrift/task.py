@@ -27,7 +27,8 @@ FLAG_BLOCKED = 1
 FLAG_EDGE = 2
 
 _METHODS = {
-    "drift": "time-history series of the template's swept areas (order >= 3), iterated",
+    "drift": "time-history series of the template's swept areas (order >= 3), inverted by "
+             "a third-order series",
     "astier23": "Astier & Regnault 2023: per-electron boundary shifts (the template's swept "
                 "areas), half the final shift, two-pixel flux density, one pass",
     "coulton18": "Coulton et al. 2018: kernel with Laplacian equal to the template's a_ij, "
@@ -54,7 +55,8 @@ class BrighterFatterDriftConfig(Config):
                       "(fraction of the Poisson noise); None: use rtol", float, default=0.05,
                       optional=True, check=lambda v: 0 < v < 1)
     start = ChoiceField("first guess of the drift solver", str, default="series",
-                        allowed={"series": "second-order inverse series (two operator calls)",
+                        allowed={"series": "third-order inverse series (three operator calls), "
+                                                  "iterated only if an a-priori bound requires",
                                  "image": "the recorded image"})
     fft_precision = ChoiceField("precision of the FFT convolutions", str, default="float32",
                                 allowed={"float32": "single (half the time and memory)",

@@ -225,3 +225,57 @@ def test_fused_transfer_matches_separate_steps(rng):
         assert abs(got.sum()) < 1e-8 * np.abs(got).sum()
     with pytest.raises(ValueError, match="shapes"):
         fused_transfer(sh, sv, f, blk)
+
+
+def _scaled_template(k):
+    """The bundled template with k times its displacements per electron."""
+    from lsst_bfdrift.template import DistortionTemplate, load_default_template
+    d = load_default_template()
+    tan = {n: None if getattr(d, n) is None else getattr(d, n) * k
+           for n in ("vedge_t", "hedge_t")}
+    return DistortionTemplate(d.corner_d * k, d.vedge_d * k, d.hedge_d * k, d.fractions,
+                              d.charge, meta=d.meta, **tan)
+
+
+def test_third_order_series_against_tight_reference(field, monkeypatch):
+    """The default drift solver (third-order inverse series, no forward-model
+    check) agrees with the solution iterated from the image to 1e-12 within
+    0.02 of the Poisson noise, in 3 operator applications per block; its
+    error falls as the 4th power of the BF strength (2nd-order series: 3rd)."""
+    from lsst_bfdrift import correction as C
+    ok = np.isfinite(field)
+    sig = np.sqrt(np.maximum(field[ok], 1.0))
+    calls = []
+    orig = C.SweptAreas.__call__
+    monkeypatch.setattr(C.SweptAreas, "__call__", lambda self, q: calls.append(1) or orig(self, q))
+    errs3, errs2, abs3 = [], [], []
+    for k in (1.0, 2.0):
+        t = _scaled_template(k)
+        ref, it, conv = C.correct_image(field, t, density="mean2", start="image", rtol=1e-12,
+                                        max_iter=60)
+        assert conv and it > 3
+        calls.clear()
+        fast, it, conv = C.correct_image(field, t, density="mean2", noise_tol=0.05,
+                                         start="series", dtype=np.float32, strip=40)
+        assert conv and it == 0  # the a-priori bound made the check unnecessary
+        assert len(calls) == 3 * 3  # 3 strips of 40 rows, 3 applications each
+        errs3.append(np.max(np.abs(fast - ref)[ok] / sig))
+        ser2, _, _ = C.correct_series(field, t)
+        errs2.append(np.max(np.abs(ser2 - ref)[ok]))
+        e64, _, _ = C.correct_image(field, t, density="mean2", noise_tol=0.05, start="series")
+        s64, _, _ = C.correct_image(field, t, density="mean2", noise_tol=0.05, start="series",
+                                    strip=40)
+        assert_allclose(s64[ok], e64[ok], rtol=0, atol=1e-12 * np.nanmax(field))  # exact halo
+        abs3.append(np.max(np.abs(e64 - ref)[ok]))
+        assert np.isnan(fast[50, 10])
+    assert errs3[0] < 0.02 and errs3[1] < 0.05
+    assert abs3[0] < 0.2 * errs2[0]  # the third-order term helps
+    assert 5.0 < errs2[1] / errs2[0] < 12.0  # ~2^3: the 2nd-order series' error is 3rd order
+    assert 11.0 < abs3[1] / abs3[0] < 24.0  # ~2^4: the 3rd-order series' error is 4th order
+    # a tolerance the series cannot meet a priori falls back to the iteration
+    tight, it, conv = C.correct_image(field, _scaled_template(1.0), density="mean2",
+                                      noise_tol=1e-4, strip=40, max_iter=20)
+    ref1, _, _ = C.correct_image(field, _scaled_template(1.0), density="mean2",
+                                 start="image", rtol=1e-12, max_iter=60)
+    assert conv and it >= 1
+    assert np.max(np.abs(tight - ref1)[ok] / sig) < 1e-3
