@@ -1,0 +1,268 @@
+r"""Probe: do validate-stars residuals depend on GalSim's boundary-update cadence?
+
+Investigation script (no library change). Re-draws the bright Moffat stars of
+``benchmarks/validate_stars.py`` (same seed 20151, same 200-star random
+sequence, same per-star seeds; only stars with flux >= ``--fmin`` are
+simulated) through ``galsim.SiliconSensor`` (BF twin strength 1 and BF-free
+twin strength 1e-9, same photons and sensor seed) with
+
+* the default cadence: ``updates=100``, ``min_nrecalc=1e4`` (as validate-stars);
+* a fast cadence: ``updates=1000``, ``min_nrecalc=100`` (about 1000 boundary
+  updates per exposure);
+* a faster one: ``updates=3000``, ``min_nrecalc=30`` (convergence check);
+* GalSim ``qdist=4`` (boundary changes computed one pixel further out than
+  the default 3) at the default and the 1000-update cadence
+  (``updates:min_nrecalc:qdist``);
+
+and measures the residual size and e1 slopes of every correction method with
+the area-matched GalSim template, plus (same pairs, no redraw) the template
+imported with ``match_areas=False``. Run from the repository root::
+
+    python benchmarks/probe_validation_cadence.py --cadences \
+        100:1e4 1000:100 3000:30 1000:100:4 100:1e4:4
+    python benchmarks/probe_validation_cadence.py --qdist-templates --cadences \
+        1000:100:4 100:1e4:4
+
+(the second call re-reads the pairs saved in /tmp by the first, and corrects
+the qdist=4 pairs with the template area-matched to GalSim qdist=4). The
+"paired" lines are slopes of per-star differences between two runs of the
+same stars (or two methods on the same images), which cancel the star-to-star
+scatter that dominates the single-run errors. Writes
+``benchmarks/probe_validation_cadence_results.txt`` / ``.json``.
+"""
+
+import argparse
+import contextlib
+import functools
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))
+
+from lsst_bfdrift.galsim_twins import accumulate_twins, shoot_photons, sky_box  # noqa: E402
+from lsst_bfdrift.stars import make_psf  # noqa: E402
+from lsst_bfdrift.template import DistortionTemplate  # noqa: E402
+from lsst_bfdrift.validation import _moments, _slope, validate_stars  # noqa: E402
+
+METHODS = ("coulton18", "astier23", "drift")
+
+
+@contextlib.contextmanager
+def galsim_qdist(qdist):
+    """Temporarily make galsim.SiliconSensor default to ``qdist`` (probe only)."""
+    import galsim
+    orig = galsim.SiliconSensor
+    if qdist is not None:
+        galsim.SiliconSensor = functools.partial(orig, qdist=int(qdist))
+    try:
+        yield
+    finally:
+        galsim.SiliconSensor = orig
+
+
+def bright_pairs(*, n_stars=200, fmin=3e5, nmax=None, updates=100, min_nrecalc=1e4, qdist=None,
+                 sensor="lsst_itl_50_8", fwhm=(0.6, 0.9), emax=0.05, flux=(1e4, 1.5e6),
+                 sky=1000.0, stamp=41, pixel_scale=0.2, seed=20151, sky_radius=8):
+    """Same random sequence as validation.draw_star_pairs (Moffat, sky through the sensor),
+    simulating only stars with flux >= fmin."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n_stars):
+        f = float(np.exp(rng.uniform(np.log(flux[0]), np.log(flux[1]))))
+        fw = float(rng.uniform(*fwhm))
+        e = float(rng.uniform(0, emax))
+        beta = float(rng.uniform(0, 180))
+        s1, s2, s3 = (int(v) for v in rng.integers(1, 2**30, 3))
+        offset = rng.uniform(-0.5, 0.5, 2)
+        if f < fmin or (nmax is not None and len(out) >= nmax):
+            continue
+        prof = make_psf("moffat", fw, e=e, beta=beta).withFlux(f)
+        rng_sky = np.random.default_rng(s3)
+        x, y, fl = shoot_photons(prof, stamp, pixel_scale=pixel_scale, seed=s1, offset=offset)
+        lo, hi, inner = sky_box(stamp, sky_radius)
+        with galsim_qdist(qdist):
+            images, _ = accumulate_twins(
+                x, y, fl, (1.0, 1e-9), sensor=sensor, seed=s2, stamp=stamp,
+                pixel_scale=pixel_scale, sky=sky, box=(lo, hi), rng=rng_sky, updates=updates,
+                min_nrecalc=min_nrecalc)
+        noise = rng_sky.poisson(sky, (stamp, stamp)).astype(float)
+        outside = np.ones((stamp, stamp), bool)
+        outside[inner, inner] = False
+        noise = np.where(outside, noise, 0.0)
+        out.append({"bf": images[0] + noise, "truth": images[1] + noise, "flux": f, "fwhm": fw,
+                    "index": i})
+    return out
+
+
+def table(title, res, lines):
+    unc = res["uncorrected"]["size_slope"]
+    uerr = res["uncorrected"]["e_slope"]
+    lines.append(title)
+    for k, v in res.items():
+        lines.append(
+            f"  {k:12s} size slope {v['size_slope']:+.3e} +- {v['size_slope_err']:.1e} "
+            f"({100 * v['size_slope'] / unc:+6.2f} +- {100 * v['size_slope_err'] / unc:.2f}"
+            f" % of uncorrected)  e1 slope {v['e_slope']:+.2e} +- {v['e_slope_err']:.1e} "
+            f"({100 * v['e_slope'] / uerr:+6.1f} +- {100 * v['e_slope_err'] / abs(uerr):.1f} %)"
+            f"  n={v['n_stars']}")
+    d, a = res["drift"]["size_slope"], res["astier23"]["size_slope"]
+    lines.append(f"  |drift|/|astier23| (size) = {abs(d) / abs(a):.2f}")
+    print("\n".join(lines[-(len(res) + 2):]), flush=True)
+
+
+def per_star_rows(pairs, template, sky=1000.0):
+    """Per-star (dT/T, de1) of each method against the twin, as in validate_stars.
+
+    Returns (flux / 1e5, {name: (n, 2) array}) for the stars measurable in every image.
+    """
+    from lsst_bfdrift.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
+    tasks = {m: BrighterFatterDriftTask(
+        config=BrighterFatterDriftConfig(method=m, compute_geometry=False), template=template)
+        for m in METHODS}
+    fl, rows = [], {k: [] for k in ("uncorrected",) + METHODS}
+    for p in pairs:
+        truth = _moments(p["truth"], sky)
+        meas = {"uncorrected": _moments(p["bf"], sky)}
+        for m, t in tasks.items():
+            meas[m] = _moments(t.run(p["bf"]).exposure, sky)
+        if truth is None or any(v is None for v in meas.values()):
+            fl.append(np.nan)
+            for k in rows:
+                rows[k].append((np.nan, np.nan))
+            continue
+        fl.append(p["flux"] / 1e5)
+        for k, v in meas.items():
+            rows[k].append((v[0] / truth[0] - 1.0, v[1] - truth[1]))
+    return np.array(fl), {k: np.array(v) for k, v in rows.items()}
+
+
+def paired(base, other, label, lines):
+    """Slope (per 1e5 e) of the per-star change between two runs of the same stars."""
+    fb, rb = base
+    fo, ro = other
+    ok = np.isfinite(fb) & np.isfinite(fo)
+    unc = _slope(fb[ok], rb["uncorrected"][ok, 0])[0]
+    ue1 = _slope(fb[ok], rb["uncorrected"][ok, 1])[0]
+    lines.append(f" paired change {label} (same {ok.sum()} stars; % of the first run's "
+                 f"uncorrected slope)")
+    res = {}
+    for k in rb:
+        ds, dse = _slope(fb[ok], ro[k][ok, 0] - rb[k][ok, 0])
+        de, dee = _slope(fb[ok], ro[k][ok, 1] - rb[k][ok, 1])
+        res[k] = {"size": ds, "size_err": dse, "e1": de, "e1_err": dee}
+        lines.append(f"  {k:12s} d(size slope) {100 * ds / unc:+6.2f} +- {100 * dse / unc:.2f} %"
+                     f"   d(e1 slope) {100 * de / ue1:+6.1f} +- {100 * dee / abs(ue1):.1f} %")
+    print("\n".join(lines[-(len(rb) + 1):]), flush=True)
+    return res
+
+
+def qdist_templates(args):
+    """Saved pairs drawn with GalSim qdist=q, corrected with the template area-matched to q."""
+    with open(args.out + ".json") as fh:
+        out = json.load(fh)
+    with open(args.out + ".txt") as fh:
+        lines = fh.read().splitlines()
+    for cad in args.cadences:
+        parts = cad.split(":")
+        if len(parts) < 3:
+            continue
+        qd = int(parts[2])
+        d = np.load(f"/tmp/probe5_pairs_{cad.replace(':', '_')}.npz")
+        pairs = [{"bf": b, "truth": t, "flux": float(f)}
+                 for b, t, f in zip(d["bf"], d["truth"], d["flux"])]
+        with galsim_qdist(qd):
+            tpl_q = DistortionTemplate.from_galsim("lsst_itl_50_8", match_areas=True)
+        tag = f"pairs of {cad}, template match_areas=True with GalSim qdist={qd}"
+        res = validate_stars(pairs, tpl_q)
+        table(f" {tag}", res, lines)
+        out["runs"][cad][f"match_areas_qdist{qd}"] = res
+        tpl_m = DistortionTemplate.from_galsim("lsst_itl_50_8", match_areas=True)
+        out["runs"][cad][f"paired_template_qdist{qd}"] = paired(
+            per_star_rows(pairs, tpl_m), per_star_rows(pairs, tpl_q),
+            f"template qdist={qd}-matched minus qdist=3-matched, {cad}", lines)
+    with open(args.out + ".json", "w") as fh:
+        json.dump(out, fh, indent=2)
+    with open(args.out + ".txt", "w") as fh:
+        fh.write("\n".join(lines) + "\n")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--fmin", type=float, default=3e5)
+    ap.add_argument("--nmax", type=int, default=None)
+    ap.add_argument("--cadences", nargs="+", default=["100:1e4", "1000:100"],
+                    help="updates:min_nrecalc[:qdist] per run")
+    ap.add_argument("--out", default=os.path.join(HERE, "probe_validation_cadence_results"))
+    ap.add_argument("--qdist-templates", action="store_true",
+                    help="only: re-evaluate the saved qdist=4 pairs (from a previous run) with "
+                         "the template area-matched to GalSim qdist=4, appending to the results")
+    args = ap.parse_args()
+    if args.qdist_templates:
+        return qdist_templates(args)
+    tpl_m = DistortionTemplate.from_galsim("lsst_itl_50_8", match_areas=True)
+    tpl_n = DistortionTemplate.from_galsim("lsst_itl_50_8", match_areas=False)
+    lines = [f"Moffat stars of validate_stars (seed 20151, 200-star sequence), flux >= "
+             f"{args.fmin:g} e, sky 1000 e through the sensor, lsst_itl_50_8"]
+    out = {"fmin": args.fmin, "runs": {}}
+    for cad in args.cadences:
+        parts = cad.split(":")
+        upd, mn = float(parts[0]), float(parts[1])
+        qd = int(parts[2]) if len(parts) > 2 else None
+        t0 = time.process_time()
+        w0 = time.time()
+        pairs = bright_pairs(fmin=args.fmin, nmax=args.nmax, updates=upd, min_nrecalc=mn,
+                             qdist=qd)
+        t_draw, w_draw = time.process_time() - t0, time.time() - w0
+        t0 = time.process_time()
+        res_m = validate_stars(pairs, tpl_m)
+        t_val = time.process_time() - t0
+        tag = f"updates={upd:g}, min_nrecalc={mn:g}, qdist={qd or 3}"
+        lines.append(f"[{tag}] draw {t_draw:.0f} s CPU ({w_draw:.0f} s wall), "
+                     f"validate {t_val:.0f} s CPU, {len(pairs)} stars "
+                     f"(flux {min(p['flux'] for p in pairs):.3g}-"
+                     f"{max(p['flux'] for p in pairs):.3g} e)")
+        table(f" template match_areas=True, {tag}", res_m, lines)
+        run = {"updates": upd, "min_nrecalc": mn, "qdist": qd or 3, "draw_cpu_s": t_draw,
+               "validate_cpu_s": t_val, "match_areas_true": res_m,
+               "indices": [p["index"] for p in pairs]}
+        res_n = validate_stars(pairs, tpl_n)
+        table(f" template match_areas=False, {tag}", res_n, lines)
+        run["match_areas_false"] = res_n
+        rows = per_star_rows(pairs, tpl_m)
+        fl, rr = rows
+        ok = np.isfinite(fl)
+        unc = _slope(fl[ok], rr["uncorrected"][ok, 0])[0]
+        ue1 = _slope(fl[ok], rr["uncorrected"][ok, 1])[0]
+        for m in ("drift", "coulton18"):
+            ds, dse = _slope(fl[ok], rr[m][ok, 0] - rr["astier23"][ok, 0])
+            de, dee = _slope(fl[ok], rr[m][ok, 1] - rr["astier23"][ok, 1])
+            run[f"{m}_minus_astier23"] = {"size": ds, "size_err": dse, "e1": de, "e1_err": dee}
+            lines.append(f" paired {m} minus astier23 residual (match_areas=True, {tag}): size "
+                         f"{100 * ds / unc:+.2f} +- {100 * dse / unc:.2f} %, e1 "
+                         f"{100 * de / ue1:+.1f} +- {100 * dee / abs(ue1):.1f} % of uncorrected")
+            print(lines[-1], flush=True)
+        run["paired_template"] = paired(rows, per_star_rows(pairs, tpl_n),
+                                        f"template match_areas=False minus True, {tag}", lines)
+        if cad != args.cadences[0]:
+            run["paired_vs_first"] = paired(first_rows, rows,
+                                            f"{tag} minus {args.cadences[0]}", lines)
+        else:
+            first_rows = rows
+        out["runs"][cad] = run
+        np.savez_compressed(f"/tmp/probe5_pairs_{cad.replace(':', '_')}.npz",
+                            bf=np.array([p["bf"] for p in pairs]),
+                            truth=np.array([p["truth"] for p in pairs]),
+                            flux=np.array([p["flux"] for p in pairs]))
+        with open(args.out + ".json", "w") as fh:
+            json.dump(out, fh, indent=2)
+        with open(args.out + ".txt", "w") as fh:
+            fh.write("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()
