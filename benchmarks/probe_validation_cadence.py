@@ -44,7 +44,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from lsst_bfdrift.galsim_twins import accumulate_twins, shoot_photons, sky_box  # noqa: E402
+from lsst_bfdrift.galsim_twins import accumulate_twins, shoot_stamp_photons, sky_box  # noqa: E402
 from lsst_bfdrift.stars import make_psf  # noqa: E402
 from lsst_bfdrift.template import DistortionTemplate  # noqa: E402
 from lsst_bfdrift.validation import _moments, _slope, validate_stars  # noqa: E402
@@ -83,7 +83,7 @@ def bright_pairs(*, n_stars=200, fmin=3e5, nmax=None, updates=100, min_nrecalc=1
             continue
         prof = make_psf("moffat", fw, e=e, beta=beta).withFlux(f)
         rng_sky = np.random.default_rng(s3)
-        x, y, fl = shoot_photons(prof, stamp, pixel_scale=pixel_scale, seed=s1, offset=offset)
+        x, y, fl = shoot_stamp_photons(prof, stamp, pixel_scale=pixel_scale, seed=s1, offset=offset)
         lo, hi, inner = sky_box(stamp, sky_radius)
         with galsim_qdist(qdist):
             images, _ = accumulate_twins(

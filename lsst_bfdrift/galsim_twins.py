@@ -29,14 +29,18 @@ by up to one interval, which weakens the simulated effect by about
 
 import numpy as np
 
-__all__ = ["shoot_photons", "sky_box", "accumulate_twins"]
+__all__ = ["shoot_stamp_photons", "sky_box", "accumulate_twins"]
 
 #: pixels added on each side of the sky box, so that diffusion is balanced at its border
 SKY_MARGIN = 3
 
 
-def shoot_photons(profile, stamp, *, pixel_scale, seed, offset=(0.0, 0.0)):
+def shoot_stamp_photons(profile, stamp, *, pixel_scale, seed, offset=(0.0, 0.0)):
     """Photon-shoot a GalSim profile into a square stamp and return its photons.
+
+    Positions are in the stamp's pixel frame, with the profile's flux
+    (unlike :func:`lsst_bfdrift.stars.shoot_photons`, which returns a given
+    number of unit conversions relative to the profile's centre).
 
     Parameters
     ----------
@@ -107,7 +111,7 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
     ----------
     x, y, flux : array_like
         The star's photons: positions in the stamp's pixel coordinates (px,
-        GalSim convention) and fluxes (e), e.g. from :func:`shoot_photons`.
+        GalSim convention) and fluxes (e), e.g. from :func:`shoot_stamp_photons`.
     strengths : sequence of float
         ``galsim.SiliconSensor`` strengths, all positive (1 = the sensor
         file's BF; use a tiny value such as 1e-9 for "no BF").

@@ -195,7 +195,7 @@ def _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_r
     With ``collected`` (bool (ny, nx)), the sky in each star's box is collected
     through the sensor and the box is marked in ``collected``.
     """
-    from .galsim_twins import SKY_MARGIN, accumulate_twins, shoot_photons, sky_box
+    from .galsim_twins import SKY_MARGIN, accumulate_twins, shoot_stamp_photons, sky_box
 
     lo, hi, inner = sky_box(stamp, sky_radius)
     # the sky photons do not change the stars (positions, fluxes, photons, sensor seeds)
@@ -209,7 +209,7 @@ def _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_r
             prof = galsim.Moffat(beta=beta_moffat, fwhm=fw).shear(e1=e1, e2=e2).withFlux(f)
             ix, iy = int(np.floor(x + 0.5)), int(np.floor(y + 0.5))
             s1, s2 = (int(v) for v in rng.integers(1, 2**30, 2))
-            px, py, pf = shoot_photons(prof, stamp, pixel_scale=pixel_scale, seed=s1,
+            px, py, pf = shoot_stamp_photons(prof, stamp, pixel_scale=pixel_scale, seed=s1,
                                        offset=(x - ix, y - iy))
             win = (slice(iy - half, iy + half + 1), slice(ix - half, ix + half + 1))
             if collected is None:

@@ -84,7 +84,7 @@ def draw_star_pairs(n_stars, *, sensor="lsst_itl_50_8", psf="moffat", fwhm=(0.6,
     list of dict
         ``bf``, ``truth`` (arrays, e), ``flux``, ``fwhm``.
     """
-    from .galsim_twins import accumulate_twins, shoot_photons, sky_box
+    from .galsim_twins import accumulate_twins, shoot_stamp_photons, sky_box
     from .stars import make_psf
 
     if int(n_stars) < 1:
@@ -100,7 +100,7 @@ def draw_star_pairs(n_stars, *, sensor="lsst_itl_50_8", psf="moffat", fwhm=(0.6,
             prof = make_psf(psf, fw, e=e, beta=beta).withFlux(f)
             s1, s2, s3 = (int(v) for v in rng.integers(1, 2**30, 3))
             rng_sky = np.random.default_rng(s3)  # the stars do not depend on the sky
-            x, y, fl = shoot_photons(prof, stamp, pixel_scale=pixel_scale, seed=s1,
+            x, y, fl = shoot_stamp_photons(prof, stamp, pixel_scale=pixel_scale, seed=s1,
                                      offset=rng.uniform(-0.5, 0.5, 2))
             lo, hi, inner = sky_box(stamp, sky_radius)
             images, _ = accumulate_twins(

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from lsst_bfdrift.galsim_twins import accumulate_twins, shoot_photons, sky_box
+from lsst_bfdrift.galsim_twins import accumulate_twins, shoot_stamp_photons, sky_box
 from lsst_bfdrift.skysim import simulate_star_field
 
 SENSOR = "lsst_itl_50_8"
@@ -61,7 +61,7 @@ def test_fed_box_has_uniform_sky_up_to_its_edge():
 def test_twins_share_photons_and_differ_only_by_bf():
     """Both strengths get the same photons: equal totals; the BF twin moved charge."""
     prof = galsim.Moffat(beta=3.5, fwhm=0.8).withFlux(3e5)
-    x, y, f = shoot_photons(prof, 21, pixel_scale=0.2, seed=4)
+    x, y, f = shoot_stamp_photons(prof, 21, pixel_scale=0.2, seed=4)
     assert_allclose(f.sum(), 3e5, rtol=5e-3)
     assert_allclose([x.mean(), y.mean()], [11.0, 11.0], atol=0.02)  # true centre of 21 px
     lo, hi, inner = sky_box(21, 4)
