@@ -4,9 +4,11 @@ Each configuration runs in its own subprocess. Memory is the peak RSS
 (``ru_maxrss``) of that process minus its RSS just before ``task.run`` (the
 input image and the imported libraries are the baseline), in units of the
 image's size (float64). The children also count the applications of the
-swept-area operator (``SweptAreas.__call__``) and the FFTs (``rfft2`` /
-``irfft2`` calls, kernel transforms included) made inside
-:mod:`lsst_bfdrift.correction` during ``task.run``. Run from the repository
+swept-area operator (``SweptAreas.__call__`` and batched window stacks,
+``SweptAreas.apply_stack``) and the FFTs (``rfft2`` / ``irfft2`` calls,
+kernel transforms included) made inside :mod:`lsst_bfdrift.swept` and
+:mod:`lsst_bfdrift.correction` during ``task.run``. The Task keeps its
+operators (kernel transforms) between calls, for every method alike. Run from the repository
 root. ``warm`` is the faster of two more calls on the same image in the same
 process (FFT plans cached, memory pools warm; not for ``drift+geometry``)::
 
@@ -35,7 +37,8 @@ def _counted_call(self, q):
     count["ops"] += 1
     return _call(self, q)
 C.SweptAreas.__call__ = _counted_call
-_sp_fft = C.sp_fft
+from lsst_bfdrift import swept as SW
+_sp_fft = SW.sp_fft
 class _FFT:
     def __getattr__(self, name):
         f = getattr(_sp_fft, name)
@@ -45,7 +48,12 @@ class _FFT:
             count["ffts"] += 1
             return f(*a, **k)
         return counted
-C.sp_fft = _FFT()
+SW.sp_fft = C.sp_fft = _FFT()
+_stack = SW.SweptAreas.apply_stack
+def _counted_stack(self, q):
+    count["ops"] += 1
+    return _stack(self, q)
+SW.SweptAreas.apply_stack = _counted_stack
 n = {size}
 rng = np.random.default_rng(1)
 img = rng.poisson(1200.0, (n, n)).astype(np.float64)   # sky
@@ -72,7 +80,8 @@ for _ in range({repeat}):  # same shape again: FFT plans and memory pools warm
 print(json.dumps({{"seconds": dt, "peak_rss_mb": peak - base, "baseline_rss_mb": base,
                   "image_mb": img.nbytes / 2**20, "iterations": res.iterations,
                   "converged": res.converged, "operator_calls": counted["ops"],
-                  "ffts": counted["ffts"], "warm_seconds": min(warm) if warm else None}}))
+                  "ffts": counted["ffts"], "warm_seconds": min(warm) if warm else None,
+                  "solver": res.header.get("BFSOLVER", "n/a")}}))
 """
 
 
@@ -84,12 +93,15 @@ def main():
     root = os.path.dirname(HERE)
     rows = {}
     runs = (("astier23", "astier23", False, {}),
+            ("astier23 no strips", "astier23", False, {"strip": None}),
             ("astier23 float64", "astier23", False, {"fft_precision": "float64"}),
             ("drift", "drift", False, {}),
+            ("drift dense", "drift", False, {"sparse": False}),
             ("drift strip 1024", "drift", False, {"strip": 1024}),
             ("drift no strips", "drift", False, {"strip": None}),
             ("drift old solver", "drift", False, {"fft_precision": "float64", "start": "image",
-                                                  "noise_tol": None, "strip": None}),
+                                                  "noise_tol": None, "strip": None,
+                                                  "sparse": False}),
             ("drift+geometry", "drift", True, {}))
     for name, method, geometry, extra in runs:
         code = CHILD.format(root=root, size=args.size, method=method, geometry=geometry,
@@ -102,12 +114,15 @@ def main():
     lines = [f"{args.size}x{args.size} image, {os.cpu_count()} cores"]
     for name, r in rows.items():
         ws = r["warm_seconds"]
-        warm = "" if ws is None else f"; warm {ws:5.1f} s ({ws / wbase:5.2f}x)"
-        lines.append(f"{name:17s} {r['seconds']:7.1f} s  ({r['seconds'] / base:5.2f}x astier23)  "
+        warm = "" if ws is None else f"; warm {ws:5.2f} s ({ws / wbase:5.2f}x)"
+        lines.append(f"{name:17s} {r['seconds']:7.2f} s  ({r['seconds'] / base:5.2f}x astier23)  "
                      f"peak RSS - baseline {r['peak_rss_mb']:6.0f} MB = "
                      f"{r['peak_rss_mb'] / r['image_mb']:4.1f}"
                      f" x image  operator calls {r['operator_calls']:3d}  FFTs {r['ffts']:3d}"
-                     f"  iterations {r['iterations']} converged {r['converged']}{warm}")
+                     f"  iterations {r['iterations']} converged {r['converged']} solver {r['solver']}{warm}")
+    ns = rows["astier23 no strips"]
+    lines.append(f"drift / astier23 no strips: {rows['drift']['seconds'] / ns['seconds']:.2f}x first "
+                 f"call, {rows['drift']['warm_seconds'] / ns['warm_seconds']:.2f}x warm")
     text = "\n".join(lines) + "\n"
     print(text, end="")
     with open(args.out + ".json", "w") as fh:

@@ -8,6 +8,8 @@ through blocked pixels or the border). Same arithmetic as
 full-size temporaries.
 """
 
+import types
+
 import numba
 import numpy as np
 
@@ -77,8 +79,7 @@ def _hrow(f, sh, k, ny, nx, cubic, th):
             th[i] = 0.5 * (f[k - 1, i] + f[k, i]) * sh[k, i]
 
 
-@numba.njit(parallel=True, cache=True)
-def _fused(sv, sh, f, blk, rowblk, cubic, out):
+def _fused_py(sv, sh, f, blk, rowblk, cubic, out):
     ny, nx = f.shape
     for j in numba.prange(ny):
         near = False
@@ -103,6 +104,23 @@ def _fused(sv, sh, f, blk, rowblk, cubic, out):
         _hrow(f, sh, j + 1, ny, nx, cubic, tt)
         for i in range(nx):
             out[j, i] = (tv[i + 1] - tv[i]) + (tt[i] - tb[i])
+
+
+def _named(fn, name):
+    """A copy of ``fn`` under another name (numba's on-disk cache is keyed by
+    the qualified name, so two compilations of one function would collide)."""
+    g = types.FunctionType(fn.__code__, fn.__globals__, name, fn.__defaults__, fn.__closure__)
+    g.__qualname__ = name
+    return g
+
+
+_fused = numba.njit(parallel=True, cache=True)(_named(_fused_py, "_fused_parallel"))
+# One thread for small arrays: a parallel region costs a thread wake-up
+# (up to a scheduler time slice, ~8 ms, on a busy machine), far more than the work.
+_fused_serial = numba.njit(cache=True)(_named(_fused_py, "_fused_serial"))
+
+#: Pixels below which :func:`fused_transfer` runs on one thread.
+SERIAL_BELOW = 1 << 18
 
 
 def fused_transfer(sv, sh, flux, blocked, *, cubic=False, out=None):
@@ -135,5 +153,10 @@ def fused_transfer(sv, sh, flux, blocked, *, cubic=False, out=None):
                          f"blocked {b.shape}")
     if out is None:
         out = np.empty((ny, nx))
-    _fused(sv, sh, f, b, b.any(axis=1), bool(cubic), out)
+    # numba's dispatch of non-contiguous ('A') arrays costs ~8 ms a call
+    # (measured, numba 0.68), more than copying them
+    sv = np.ascontiguousarray(sv)
+    sh = np.ascontiguousarray(sh)
+    kernel = _fused_serial if ny * nx < SERIAL_BELOW else _fused
+    kernel(sv, sh, f, b, b.any(axis=1), bool(cubic), out)
     return out

@@ -3,7 +3,7 @@
 Model of image formation (flux F per pixel with square pixels, recorded
 image I): while charge Q collects, every pixel edge has swept an area
 S_e = L_e[Q] (linear in Q: a convolution of the charge with the template's
-swept-area kernel, :func:`swept_area_kernels`), and the collection rate of a
+swept-area kernel, :func:`~lsst_bfdrift.swept.swept_area_kernels`), and the collection rate of a
 pixel is its flux plus, for each edge, the flux density f_e at that edge
 times the area the edge has swept outward. With tau the exposure fraction,
 
@@ -50,82 +50,12 @@ import numpy as np
 from scipy import fft as sp_fft
 
 from ._edge_kernels import fused_transfer
+from .sparse_series import apriori_ok, sparse_series
+from .swept import OperatorCache, SweptAreas, swept_area_kernels
 
-__all__ = ["swept_area_kernels", "SweptAreas", "edge_flux_density", "edge_transfer",
+__all__ = ["edge_flux_density", "edge_transfer",
            "recorded_image", "correct_image", "correct_series", "correct_half_shift",
            "area_coefficients", "coulton18_kernel", "correct_coulton18"]
-
-
-def _trapezoid(c0, samples, c1, fractions):
-    """Integral over [0, 1] of the piecewise-linear profile through the knots."""
-    s = np.concatenate([[0.0], fractions, [1.0]])
-    vals = np.concatenate([c0[..., None], samples, c1[..., None]], axis=-1)
-    return np.sum(0.5 * (vals[..., 1:] + vals[..., :-1]) * np.diff(s), axis=-1)
-
-
-def swept_area_kernels(template):
-    """Areas swept by the template's edges (px^2 per template charge).
-
-    Returns
-    -------
-    kv : ndarray, shape (N, N + 1)
-        Vertical edges (left edge of pixel offset (I - c, J - c)); positive
-        when the edge moved towards +x.
-    kh : ndarray, shape (N + 1, N)
-        Horizontal edges (bottom edge); positive when moved towards +y.
-    """
-    t = template
-    kv = _trapezoid(t.corner_d[:-1, :, 0], t.vedge_d, t.corner_d[1:, :, 0], t.fractions)
-    kh = _trapezoid(t.corner_d[:, :-1, 1], t.hedge_d, t.corner_d[:, 1:, 1], t.fractions)
-    return kv, kh
-
-
-class SweptAreas:
-    """Linear operator Q -> swept areas of every edge of an image (FFT).
-
-    Parameters
-    ----------
-    template : DistortionTemplate
-        Green's function.
-    shape : tuple of int
-        (ny, nx) of the images.
-    workers : int, optional
-        FFT threads.
-    dtype : {numpy.float64, numpy.float32}, optional
-        Precision of the transforms (float32 halves time and memory; the
-        swept areas keep a relative accuracy ~1e-6 of the largest, see
-        ``docs/benchmarks.rst``).
-    """
-
-    def __init__(self, template, shape, *, workers=1, dtype=np.float64):
-        self.ny, self.nx = (int(v) for v in shape)
-        self.c = template.center
-        kv, kh = swept_area_kernels(template)
-        n1 = template.size + 1
-        self.fshape = (sp_fft.next_fast_len(self.ny + n1 - 1, real=True),
-                       sp_fft.next_fast_len(self.nx + n1 - 1, real=True))
-        self.workers = workers
-        self.dtype = np.dtype(dtype)
-        if self.dtype not in (np.dtype(np.float64), np.dtype(np.float32)):
-            raise ValueError(f"dtype must be float64 or float32, got {dtype!r}")
-        q = 1.0 / template.charge
-        self.fkv = sp_fft.rfft2((kv * q).astype(self.dtype), self.fshape, workers=workers)
-        self.fkh = sp_fft.rfft2((kh * q).astype(self.dtype), self.fshape, workers=workers)
-
-    def __call__(self, charge):
-        """Swept areas (sv of shape (ny, nx + 1), sh of shape (ny + 1, nx)), px^2.
-
-        Views into the padded transforms, in the operator's ``dtype``.
-        """
-        fq = sp_fft.rfft2(np.asarray(charge, self.dtype), self.fshape, workers=self.workers)
-        c, ny, nx = self.c, self.ny, self.nx
-        prod = fq * self.fkv
-        sv = sp_fft.irfft2(prod, self.fshape, workers=self.workers, overwrite_x=True)
-        np.multiply(fq, self.fkh, out=fq)
-        del prod
-        sh = sp_fft.irfft2(fq, self.fshape, workers=self.workers, overwrite_x=True)
-        del fq
-        return sv[c:c + ny, c:c + nx + 1], sh[c:c + ny + 1, c:c + nx]
 
 
 def edge_flux_density(flux, *, mode="cubic4", blocked=None):
@@ -228,7 +158,7 @@ def recorded_image(flux, swept, *, order=3, density="cubic4", blocked=None, dens
 
 def correct_image(image, template, *, order=3, density="cubic4", blocked=None, max_iter=10,
                   rtol=1e-7, noise_tol=None, start="image", workers=1, dtype=np.float64,
-                  strip=None):
+                  strip=None, sparse=False, cache=None, info=None):
     """Flux that square pixels would have collected, from a recorded image.
 
     Parameters
@@ -264,7 +194,7 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
     workers : int, optional
         FFT threads.
     dtype : {numpy.float64, numpy.float32}, optional
-        FFT precision (:class:`SweptAreas`).
+        FFT precision (:class:`~lsst_bfdrift.swept.SweptAreas`).
     strip : int, optional
         Rows per block, each solved with a halo of ``3 ((N + 1) // 2 + 2)``
         rows (N = template size; the reach of the third-order series, so the
@@ -272,6 +202,18 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
         iteration, solved again) to bound memory. The solution's dependence on rows
         beyond the halo is of third order in the BF strength (measured in
         ``docs/benchmarks.rst``). None: whole image.
+    sparse : bool, optional
+        With ``start='series'``: compute the second- and third-order terms
+        only in windows around the sources that need them
+        (:func:`lsst_bfdrift.sparse_series.sparse_series`, one full operator
+        application instead of three, with a bound on what is left out);
+        falls back to the dense series when its checks fail.
+    cache : OperatorCache, optional
+        Operators to reuse (kernel transforms kept between calls); must have
+        been made for ``template``, ``workers`` and ``dtype``.
+    info : dict, optional
+        Filled with ``solver`` ('sparse' or 'dense') and, for the sparse
+        solver, its window statistics.
 
     Returns
     -------
@@ -292,12 +234,25 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
     blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
     if blk.shape != img.shape:
         raise ValueError(f"blocked shape {blk.shape} does not match image {img.shape}")
+    if strip is not None and int(strip) < 1:
+        raise ValueError(f"strip must be positive, got {strip}")
+    ops = _operators(cache, template, workers, dtype)
+    info = {} if info is None else info
+    info["solver"] = "dense"
+    if sparse and start == "series":
+        eff = np.where(np.isfinite(img), img, 0.0)
+        full_blk = blk | ~np.isfinite(img)
+        flux = sparse_series(eff, full_blk, ops, noise_tol=noise_tol, rtol=rtol, order=order,
+                             density=density, strip=None if strip is None else int(strip),
+                             info=info)
+        if flux is not None:
+            info["solver"] = "sparse"
+            flux[full_blk] = img[full_blk]
+            return flux, 0, True
     ny = img.shape[0]
     if strip is None or int(strip) >= ny:
-        return _solve_block(img, template, blk, **kw)
+        return _solve_block(img, template, blk, swept=ops(img.shape), **kw)
     strip = int(strip)
-    if strip < 1:
-        raise ValueError(f"strip must be positive, got {strip}")
     # One application of B reaches (N + 1) / 2 rows (swept areas) plus 2
     # (edge densities); the third-order series nests three, so a halo of
     # 3 ((N + 1) // 2 + 2) rows gives the whole-image result exactly. A block
@@ -307,24 +262,36 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
         halos = halos[1:]
     flux = np.empty_like(img)
     its, conv = 0, True
-    cache = {}
     for r0 in range(0, ny, strip):
         r1 = min(r0 + strip, ny)
         for k, halo in enumerate(halos):
             a, z = max(r0 - halo, 0), min(r1 + halo, ny)
-            shape = (z - a, img.shape[1])
-            if shape not in cache:
-                if len(cache) > 4:
-                    cache.clear()
-                cache[shape] = SweptAreas(template, shape, workers=workers, dtype=dtype)
             last = k == len(halos) - 1
-            out, it, cv = _solve_block(img[a:z], template, blk[a:z], swept=cache[shape],
+            out, it, cv = _solve_block(img[a:z], template, blk[a:z],
+                                       swept=ops((z - a, img.shape[1])),
                                        series_only=not last, **kw)
             if out is not None:
                 break
         flux[r0:r1] = out[r0 - a:r1 - a]
         its, conv = max(its, it), conv and cv
     return flux, its, conv
+
+
+def _operators(cache, template, workers, dtype):
+    """``cache`` if it serves these settings, else a new :class:`OperatorCache`."""
+    if cache is not None:
+        if not isinstance(cache, OperatorCache) or not cache.matches(template, workers, dtype):
+            raise ValueError("cache must be an OperatorCache made for this template, "
+                             "workers and dtype")
+        return cache
+    return OperatorCache(template, workers=workers, dtype=dtype)
+
+
+def _limit(img_eff, noise_tol, rtol):
+    """Tolerance per pixel (e): noise-based array or rtol x max |I| (scalar)."""
+    if noise_tol is not None:
+        return float(noise_tol) * np.sqrt(np.maximum(img_eff, 1.0))
+    return rtol * max(np.abs(img_eff).max(), 1e-300)
 
 
 def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, noise_tol, start,
@@ -338,13 +305,10 @@ def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, nois
     img_eff = np.where(np.isfinite(img), img, 0.0)
     if swept is None:
         swept = SweptAreas(template, img.shape, workers=workers, dtype=dtype)
-    if noise_tol is not None:
-        limit = float(noise_tol) * np.sqrt(np.maximum(img_eff, 1.0))
-    else:
-        limit = rtol * max(np.abs(img_eff).max(), 1e-300)
+    limit = _limit(img_eff, noise_tol, rtol)
     if start == "series":
         flux, (x2, x3) = _series_block(img_eff, blk, swept, order, density, terms=3)
-        ok = _apriori_ok(x2, x3, limit)
+        ok = apriori_ok(x2, x3, limit)
         del x2, x3
         if ok:  # the neglected terms are far below the tolerance: no check needed
             flux[blk] = img[blk]
@@ -427,25 +391,6 @@ def _series_block(img, blk, swept, order, density, *, terms=2):
     return out, (x2, x3)
 
 
-def _apriori_ok(x2, x3, limit):
-    """True when the neglected fourth-order term is far below ``limit``.
-
-    The series' terms shrink by r = max|x3| / max|x2| (the brighter-fatter
-    strength); the next term is estimated as r times the largest |x3| within
-    2 pixels, with a safety factor 4.
-    """
-    from scipy.ndimage import maximum_filter
-
-    m2 = np.abs(x2).max()
-    if m2 == 0.0:
-        return True
-    a3 = np.abs(x3)
-    r = a3.max() / m2
-    if 4.0 * r * a3.max() <= np.min(limit):
-        return True
-    return bool(np.all(4.0 * r * maximum_filter(a3, size=5, mode="nearest") <= limit))
-
-
 def correct_series(image, template, *, order=3, density="mean2", blocked=None, workers=1,
                    dtype=np.float64, strip=None):
     """Flux that square pixels would have collected, by the inverse series.
@@ -471,7 +416,7 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
     workers : int, optional
         FFT threads.
     dtype : {numpy.float64, numpy.float32}, optional
-        FFT precision (:class:`SweptAreas`); the image arithmetic stays float64.
+        FFT precision (:class:`~lsst_bfdrift.swept.SweptAreas`); the image arithmetic stays float64.
     strip : int, optional
         Rows per block. The result at a pixel depends on the image within
         ``2 (N + 3)`` rows (N = template size), so blocks overlapping by that
@@ -520,25 +465,43 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
     return flux, 1, True
 
 
-def correct_half_shift(image, template, *, blocked=None, workers=1, dtype=np.float64):
+def correct_half_shift(image, template, *, blocked=None, workers=1, dtype=np.float64,
+                       strip=None, cache=None):
     """One flux-conserving pass with half the final shift (Astier & Regnault 2023).
 
     F = I - G(I; I) / 2: swept areas and edge flux densities (two-pixel mean)
     both from the recorded image; no iteration, as in the paper. ``dtype``
-    as for :class:`SweptAreas`.
+    as for :class:`~lsst_bfdrift.swept.SweptAreas`. ``strip`` (rows per block, overlapping by
+    ``(N + 1) // 2 + 2`` rows, which gives the whole-image result exactly)
+    and ``cache`` as for :func:`correct_image`.
 
     Returns
     -------
     flux, iterations (1), converged (True)
     """
     img = np.array(image, dtype=np.float64, copy=True)
+    if img.ndim != 2:
+        raise ValueError(f"image must be 2-d, got shape {img.shape}")
     blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
+    if blk.shape != img.shape:
+        raise ValueError(f"blocked shape {blk.shape} does not match image {img.shape}")
     blk = blk | ~np.isfinite(img)
     img_eff = np.where(np.isfinite(img), img, 0.0)
-    swept = SweptAreas(template, img.shape, workers=workers, dtype=dtype)
-    sv, sh = swept(img_eff)
-    flux = fused_transfer(sv, sh, img_eff, blk, cubic=False)
-    del sv, sh
+    ops = _operators(cache, template, workers, dtype)
+    ny = img.shape[0]
+    strip = ny if strip is None else int(strip)
+    if strip < 1:
+        raise ValueError(f"strip must be positive, got {strip}")
+    halo = (template.size + 1) // 2 + 2
+    flux = np.empty_like(img_eff)
+    for r0 in range(0, ny, strip):
+        r1 = min(r0 + strip, ny)
+        a, z = max(r0 - halo, 0), min(r1 + halo, ny)
+        sv, sh = ops((z - a, img.shape[1]))(img_eff[a:z])
+        t = fused_transfer(sv, sh, img_eff[a:z], blk[a:z], cubic=False)
+        del sv, sh
+        flux[r0:r1] = t[r0 - a:r1 - a]
+        del t
     flux *= -0.5
     flux += img_eff
     flux[blk] = img[blk]

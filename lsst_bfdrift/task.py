@@ -16,6 +16,7 @@ from .config import ChoiceField, Config, Field, Struct, Task
 from .correction import (area_coefficients, correct_coulton18, correct_half_shift,
                          correct_image, coulton18_kernel)
 from .superpose import moment_maps
+from .swept import OperatorCache
 from .template import DistortionTemplate, load_default_template
 
 __all__ = ["BrighterFatterDriftConfig", "BrighterFatterDriftTask", "FLAG_BLOCKED",
@@ -61,8 +62,11 @@ class BrighterFatterDriftConfig(Config):
     fft_precision = ChoiceField("precision of the FFT convolutions", str, default="float32",
                                 allowed={"float32": "single (half the time and memory)",
                                          "float64": "double"})
-    strip = Field("rows per block for the drift solver (bounded memory); None: whole image",
-                  int, default=512, optional=True, check=lambda v: v >= 16)
+    strip = Field("rows per block for the drift and astier23 solvers (bounded memory); "
+                  "None: whole image", int, default=512, optional=True, check=lambda v: v >= 16)
+    sparse = Field("drift with start='series': second- and third-order terms only in windows "
+                   "around the sources that need them (bounded error; dense fallback)", bool,
+                   default=True)
     gain = Field("e/ADU for images in ADU (None: read GAIN from the header)", float,
                  default=None, optional=True, check=lambda v: v > 0)
     saturation = Field("level (e) at and above which pixels are blocked; None: no limit",
@@ -133,6 +137,15 @@ class BrighterFatterDriftTask(Task):
             self.template = load_default_template()
         else:
             self.template = DistortionTemplate.load(self.config.template)
+        self._cache = None
+
+    def _operators(self, dtype):
+        """Swept-area operators of the template, kept between calls to run()."""
+        c = self._cache
+        if c is None or not c.matches(self.template, self.config.workers, dtype):
+            c = self._cache = OperatorCache(self.template, workers=self.config.workers,
+                                            dtype=dtype)
+        return c
 
     def run(self, exposure):
         """Correct ``exposure``.
@@ -164,7 +177,8 @@ class BrighterFatterDriftTask(Task):
         dtype = np.float32 if cfg.fft_precision == "float32" else np.float64
         if cfg.method == "astier23":
             flux, iterations, converged = correct_half_shift(
-                data, self.template, blocked=blocked, workers=cfg.workers, dtype=dtype)
+                data, self.template, blocked=blocked, workers=cfg.workers, dtype=dtype,
+                strip=cfg.strip, cache=self._operators(dtype))
         elif cfg.method == "coulton18":
             order = density = "n/a"
             kernel = coulton18_kernel(area_coefficients(self.template))
@@ -172,10 +186,12 @@ class BrighterFatterDriftTask(Task):
                 data, kernel, blocked=blocked, max_iter=cfg.max_iter, rtol=cfg.rtol,
                 workers=cfg.workers)
         else:
+            solver = {}
             flux, iterations, converged = correct_image(
                 data, self.template, order=order, density=density, blocked=blocked,
                 max_iter=cfg.max_iter, rtol=cfg.rtol, noise_tol=cfg.noise_tol, start=cfg.start,
-                workers=cfg.workers, dtype=dtype, strip=cfg.strip)
+                workers=cfg.workers, dtype=dtype, strip=cfg.strip, sparse=cfg.sparse,
+                cache=self._operators(dtype), info=solver)
         moved = np.where(blocked, 0.0, flux - np.where(np.isfinite(data), data, 0.0))
         flags = np.where(blocked, FLAG_BLOCKED, 0)
         c = self.template.center
@@ -198,6 +214,8 @@ class BrighterFatterDriftTask(Task):
         header["BFDENS"] = (density, "edge flux density estimate")
         header["BFITER"] = (iterations, "solver iterations")
         header["BFCONV"] = (bool(converged), "solver converged")
+        if cfg.method == "drift":
+            header["BFSOLVER"] = (solver.get("solver", "dense"), "drift series: sparse or dense")
         header["BFQTMPL"] = (self.template.charge, "template aggressor charge (e)")
         header["BFTMPL"] = (os.path.basename(str(cfg.template or "bundled default"))[-40:],
                             "BF template file")
