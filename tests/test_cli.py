@@ -227,3 +227,34 @@ def test_correct_many_files_on_dask_cluster(capsys, tmp_path):
     assert all(r["error"] is None for r in results)
     with pytest.raises(ValueError, match="same output"):
         output_pairs([names[0], names[0]], tmp_path)
+
+
+@pytest.mark.slow
+def test_correct_files_through_a_scheduler_address(capsys, tmp_path):
+    """``--scheduler ADDRESS``: a dask scheduler with a worker in another
+    process, reached by its tcp address, gives the serial outputs bit for bit."""
+    from distributed import LocalCluster
+
+    from lsst_bfdrift.batch import correct_files, output_pairs
+    rng = np.random.default_rng(8)
+    names = []
+    for k in range(2):
+        img = rng.poisson(800.0, (40, 40)).astype(np.float32)
+        img[15:20, 15:20] += np.float32(5e4)
+        path = tmp_path / f"star{k}.fits"
+        fits.PrimaryHDU(img).writeto(path)
+        names.append(str(path))
+    serial = correct_files(output_pairs(names, tmp_path / "serial"))
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, protocol="tcp",
+                      dashboard_address=None) as cluster:
+        address = cluster.scheduler_address
+        assert address.startswith("tcp://")
+        code, out, err = _run(capsys, "correct", *names, "--out-dir", str(tmp_path / "remote"),
+                              "--scheduler", address, "--json", "--quiet")
+    assert code == 0, err
+    res = json.loads(out)
+    assert res["failed"] == 0 and [r["input"] for r in res["files"]] == names
+    for r_serial, r_remote in zip(serial, res["files"]):
+        with fits.open(r_serial["output"]) as a, fits.open(r_remote["output"]) as b:
+            assert np.array_equal(a[0].data, b[0].data)
+            assert a[0].header["BFMETHOD"] == b[0].header["BFMETHOD"]
