@@ -209,3 +209,24 @@ def test_fused_transfer_serial_and_parallel_agree(rng, monkeypatch):
     assert_allclose(serial, parallel, rtol=0, atol=0)
     ref = C.edge_transfer(sv, sh, *C.edge_flux_density(f, mode="cubic4", blocked=blk))
     assert_allclose(serial, ref, rtol=1e-12, atol=1e-9)
+
+
+def test_task_uses_windows_and_keeps_its_operators(sky_field):
+    from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask
+    img, blocked = sky_field
+    task = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(compute_geometry=False,
+                                                                    workers=1))
+    res = task.run(np.where(blocked, np.nan, img))
+    assert res.header["BFSOLVER"] == "sparse"
+    ops = task._cache
+    n_ops = len(ops._ops)
+    again = task.run(np.where(blocked, np.nan, img))
+    assert task._cache is ops and len(ops._ops) == n_ops  # kernel transforms reused
+    assert np.array_equal(res.exposure, again.exposure, equal_nan=True)
+    dense = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(
+        compute_geometry=False, workers=1, sparse=False)).run(np.where(blocked, np.nan, img))
+    assert dense.header["BFSOLVER"] == "dense"
+    ok = np.isfinite(img) & ~blocked
+    lim = 0.05 * np.sqrt(img[ok])
+    assert np.max(np.abs(res.exposure - dense.exposure)[ok] / lim) < 0.1
+    assert abs(res.flux_moved.sum()) < 1e-9 * np.nansum(img)
