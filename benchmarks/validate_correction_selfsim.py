@@ -1,11 +1,18 @@
 """Correction methods on stars simulated photon by photon with moving boundaries.
 
 Truth: the same photons binned on square pixels (paired, so the comparison is
-free of photon noise in the truth). Prints, for each method, the residual
-size excess after correction as a fraction of the uncorrected growth, with
-its error over the stars, and writes ``benchmarks/selfsim_results.txt``.
+free of photon noise in the truth); the simulation and the corrections use
+the same (bundled) template, so what remains is the error of the correction
+model itself. For each PSF width, prints for every method the residual size
+excess after correction as a fraction of the uncorrected growth (mean and
+error over the stars), with two size measures: adaptive moments (HSM, the
+measure of ``bfdrift validate-stars``) and fixed Gaussian-weight moments
+(sigma = 3 px). The "paired" lines give the per-star differences between
+two methods on the same images, free of the star-to-star scatter. Writes
+``benchmarks/selfsim_results.txt``::
 
-    python benchmarks/validate_correction_selfsim.py [--stars 8] [--flux 1e6]
+    python benchmarks/validate_correction_selfsim.py [--stars 12] [--flux 1e6] \
+        [--fwhm 0.7 0.9]
 """
 
 import argparse
@@ -20,38 +27,58 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
 from lsst_bfdrift.stars import StarSimulation, image_moments, shoot_photons  # noqa: E402
 from lsst_bfdrift.template import load_default_template  # noqa: E402
+from lsst_bfdrift.validation import _moments  # noqa: E402
+
+VARIANTS = {"drift": dict(method="drift"),
+            "drift cubic4": dict(method="drift", density="cubic4"),
+            "astier23": dict(method="astier23"),
+            "coulton18": dict(method="coulton18")}
+MEASURES = {"adaptive": lambda a: _moments(a, 0.0)[0],
+            "fixed s=3": lambda a: image_moments(a, weight_sigma=3)["T"]}
 
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--stars", type=int, default=8)
+    ap.add_argument("--stars", type=int, default=12)
     ap.add_argument("--flux", type=float, default=1e6)
-    ap.add_argument("--fwhm", type=float, default=0.7)
+    ap.add_argument("--fwhm", type=float, nargs="+", default=[0.7, 0.9])
     a = ap.parse_args()
     t = load_default_template()
-    rng = np.random.default_rng(9)
-    out = {}
-    methods = ("drift", "astier23", "coulton18")
     tasks = {m: BrighterFatterDriftTask(config=BrighterFatterDriftConfig(
-        method=m, compute_geometry=False)) for m in methods}
-    for k in range(a.stars):
-        x, y = shoot_photons(galsim.Moffat(beta=3.5, fwhm=a.fwhm), int(a.flux), seed=100 + k)
-        off = rng.uniform(-0.5, 0.5, 2)
-        sim = StarSimulation(t, stamp_size=31, update_every=1000)
-        sim.add(x + 15 + off[0], y + 15 + off[1])
-        img, truth = sim.image, sim.nominal_image
-        t0 = image_moments(truth, weight_sigma=3)["T"]
-        ti = image_moments(img, weight_sigma=3)["T"]
-        out.setdefault("uncorrected dT/T", []).append((ti - t0) / t0)
-        for m in methods:
-            tc = image_moments(tasks[m].run(img).exposure, weight_sigma=3)["T"]
-            out.setdefault(m, []).append((tc - t0) / (ti - t0))
-    lines = [f"{a.stars} Moffat stars, FWHM {a.fwhm} arcsec, {a.flux:.3g} e, bundled template; "
-             "residual size excess / uncorrected growth (mean +- error of the mean):"]
-    for k, v in out.items():
-        lines.append(f"  {k:18s} {np.mean(v):+.4f} +- {np.std(v, ddof=1) / np.sqrt(len(v)):.4f}")
+        compute_geometry=False, **kw)) for m, kw in VARIANTS.items()}
+    lines = [f"{a.stars} Moffat stars (beta 3.5) of {a.flux:.3g} e per width, bundled template "
+             "in the simulation and the corrections, 1000 boundary updates per star; residual "
+             "size excess / uncorrected growth (mean +- error of the mean)"]
+    for fwhm in a.fwhm:
+        rng = np.random.default_rng(9)
+        res = {(ms, m): [] for ms in MEASURES for m in VARIANTS}
+        unc = {ms: [] for ms in MEASURES}
+        for k in range(a.stars):
+            x, y = shoot_photons(galsim.Moffat(beta=3.5, fwhm=fwhm), int(a.flux), seed=100 + k)
+            off = rng.uniform(-0.5, 0.5, 2)
+            sim = StarSimulation(t, stamp_size=31, update_every=int(a.flux // 1000))
+            sim.add(x + 15 + off[0], y + 15 + off[1])
+            img, truth = sim.image, sim.nominal_image
+            corrected = {m: task.run(img).exposure for m, task in tasks.items()}
+            for ms, f in MEASURES.items():
+                t0, ti = f(truth), f(img)
+                unc[ms].append((ti - t0) / t0)
+                for m, c in corrected.items():
+                    res[(ms, m)].append((f(c) - t0) / (ti - t0))
+        for ms in MEASURES:
+            u = np.array(unc[ms])
+            lines.append(f"FWHM {fwhm} arcsec, {ms} moments: uncorrected dT/T "
+                         f"{u.mean():+.5f} +- {u.std(ddof=1) / np.sqrt(len(u)):.5f}")
+            for m in VARIANTS:
+                v = np.array(res[(ms, m)])
+                lines.append(f"  {m:14s} {100 * v.mean():+6.2f} +- "
+                             f"{100 * v.std(ddof=1) / np.sqrt(len(v)):.2f} %")
+            for m in ("drift", "drift cubic4"):
+                d = np.array(res[(ms, m)]) - np.array(res[(ms, "astier23")])
+                lines.append(f"  paired {m} - astier23 {100 * d.mean():+6.2f} +- "
+                             f"{100 * d.std(ddof=1) / np.sqrt(len(d)):.2f} %")
+        print("\n".join(lines[-(2 * (len(VARIANTS) + 3)):]), flush=True)
     text = "\n".join(lines) + "\n"
-    print(text, end="")
     with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "selfsim_results.txt"),
               "w") as fh:
         fh.write(text)
