@@ -11,8 +11,8 @@ measure of ``bfdrift validate-stars``) and fixed Gaussian-weight moments
 two methods on the same images, free of the star-to-star scatter. Writes
 ``benchmarks/selfsim_results.txt``::
 
-    python benchmarks/validate_correction_selfsim.py [--stars 12] [--flux 1e6] \
-        [--fwhm 0.7 0.9]
+    python benchmarks/validate_correction_selfsim.py [--grid 4] [--flux 1e6] \
+        [--fwhm 0.6 0.7 0.9]
 """
 
 import argparse
@@ -31,6 +31,7 @@ from lsst_bfdrift.validation import _moments  # noqa: E402
 
 VARIANTS = {"drift": dict(method="drift"),
             "drift cubic4": dict(method="drift", density="cubic4"),
+            "drift fv4": dict(method="drift", density="fv4"),
             "astier23": dict(method="astier23"),
             "coulton18": dict(method="coulton18")}
 MEASURES = {"adaptive": lambda a: _moments(a, 0.0)[0],
@@ -39,23 +40,25 @@ MEASURES = {"adaptive": lambda a: _moments(a, 0.0)[0],
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--stars", type=int, default=12)
+    ap.add_argument("--grid", type=int, default=4,
+                    help="sub-pixel centres on a grid x grid lattice (grid^2 stars per width)")
     ap.add_argument("--flux", type=float, default=1e6)
-    ap.add_argument("--fwhm", type=float, nargs="+", default=[0.7, 0.9])
+    ap.add_argument("--fwhm", type=float, nargs="+", default=[0.6, 0.7, 0.9])
     a = ap.parse_args()
     t = load_default_template()
     tasks = {m: BrighterFatterDriftTask(config=BrighterFatterDriftConfig(
         compute_geometry=False, **kw)) for m, kw in VARIANTS.items()}
-    lines = [f"{a.stars} Moffat stars (beta 3.5) of {a.flux:.3g} e per width, bundled template "
+    g = (np.arange(a.grid) + 0.5) / a.grid - 0.5
+    offsets = [(ox, oy) for ox in g for oy in g]  # balanced over the pixel phase
+    lines = [f"{len(offsets)} Moffat stars (beta 3.5) of {a.flux:.3g} e per width, centres on a "
+             f"{a.grid} x {a.grid} sub-pixel grid, bundled template "
              "in the simulation and the corrections, 1000 boundary updates per star; residual "
              "size excess / uncorrected growth (mean +- error of the mean)"]
     for fwhm in a.fwhm:
-        rng = np.random.default_rng(9)
         res = {(ms, m): [] for ms in MEASURES for m in VARIANTS}
         unc = {ms: [] for ms in MEASURES}
-        for k in range(a.stars):
+        for k, off in enumerate(offsets):
             x, y = shoot_photons(galsim.Moffat(beta=3.5, fwhm=fwhm), int(a.flux), seed=100 + k)
-            off = rng.uniform(-0.5, 0.5, 2)
             sim = StarSimulation(t, stamp_size=31, update_every=int(a.flux // 1000))
             sim.add(x + 15 + off[0], y + 15 + off[1])
             img, truth = sim.image, sim.nominal_image
@@ -73,7 +76,7 @@ def main():
                 v = np.array(res[(ms, m)])
                 lines.append(f"  {m:14s} {100 * v.mean():+6.2f} +- "
                              f"{100 * v.std(ddof=1) / np.sqrt(len(v)):.2f} %")
-            for m in ("drift", "drift cubic4"):
+            for m in ("drift", "drift cubic4", "drift fv4"):
                 d = np.array(res[(ms, m)]) - np.array(res[(ms, "astier23")])
                 lines.append(f"  paired {m} - astier23 {100 * d.mean():+6.2f} +- "
                              f"{100 * d.std(ddof=1) / np.sqrt(len(d)):.2f} %")

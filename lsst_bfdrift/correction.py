@@ -41,15 +41,17 @@ flux exactly.
 
 The flux density at an edge is the mean of the two pixels beside it
 (``'mean2'``) or a four-point interpolation along the edge normal,
-(-F_{-2} + 9 F_{-1} + 9 F_{+1} - F_{+2}) / 16 (``'cubic4'``), which follows the
-curvature of a star's profile. Edges touching masked pixels or the image
-border carry no flux.
+(-F_{-2} + 9 F_{-1} + 9 F_{+1} - F_{+2}) / 16 (``'cubic4'``, the interpolation
+of point values), or the fourth-order finite-volume reconstruction from
+pixel averages, (-F_{-2} + 7 F_{-1} + 7 F_{+1} - F_{+2}) / 12 (``'fv4'``,
+exact for a cubic profile), which follow the curvature of a star's profile.
+Edges touching masked pixels or the image border carry no flux.
 """
 
 import numpy as np
 from scipy import fft as sp_fft
 
-from ._edge_kernels import fused_transfer
+from ._edge_kernels import density_weight, fused_transfer
 from .sparse_series import apriori_ok, sparse_series
 from .swept import OperatorCache, SweptAreas, swept_area_kernels
 
@@ -65,7 +67,7 @@ def edge_flux_density(flux, *, mode="cubic4", blocked=None):
     ----------
     flux : ndarray, shape (ny, nx)
         Flux per pixel (e).
-    mode : {'mean2', 'cubic4'}
+    mode : {'mean2', 'cubic4', 'fv4'}
         Two-pixel mean or four-point interpolation along the edge normal
         (falls back to the mean where the outer pixels are missing).
     blocked : ndarray of bool, optional
@@ -78,8 +80,7 @@ def edge_flux_density(flux, *, mode="cubic4", blocked=None):
     fh : ndarray, shape (ny + 1, nx)
         Density at the bottom edge of each pixel row (0 on the border).
     """
-    if mode not in ("mean2", "cubic4"):
-        raise ValueError(f"flux density mode must be 'mean2' or 'cubic4', got {mode!r}")
+    wo = density_weight(mode)
     f = np.asarray(flux, float)
     ny, nx = f.shape
     blk = np.zeros(f.shape, bool) if blocked is None else np.asarray(blocked, bool)
@@ -89,8 +90,8 @@ def edge_flux_density(flux, *, mode="cubic4", blocked=None):
         mean = 0.5 * (a[..., :-1] + a[..., 1:])
         ok = ~(b[..., :-1] | b[..., 1:])
         out = np.where(ok, mean, 0.0)
-        if mode == "cubic4" and a.shape[-1] >= 4:
-            cub = (-a[..., :-3] + 9 * a[..., 1:-2] + 9 * a[..., 2:-1] - a[..., 3:]) / 16.0
+        if wo != 0.0 and a.shape[-1] >= 4:
+            cub = wo * (a[..., :-3] + a[..., 3:]) + (0.5 - wo) * (a[..., 1:-2] + a[..., 2:-1])
             okc = ok[..., 1:-1] & ~(b[..., :-3] | b[..., 3:])
             out[..., 1:-1] = np.where(okc, cub, out[..., 1:-1])
         return out
@@ -137,8 +138,7 @@ def recorded_image(flux, swept, *, order=3, density="cubic4", blocked=None, dens
     -------
     ndarray
     """
-    if density not in ("mean2", "cubic4"):
-        raise ValueError(f"flux density mode must be 'mean2' or 'cubic4', got {density!r}")
+    density_weight(density)  # checks the name
     blk = np.zeros(np.shape(flux), bool) if blocked is None else np.asarray(blocked, bool)
     out = np.array(flux, float, copy=True)
     src = out.copy()
@@ -150,7 +150,7 @@ def recorded_image(flux, swept, *, order=3, density="cubic4", blocked=None, dens
         if densities is not None:
             term = edge_transfer(sv, sh, *densities)
         else:
-            term = fused_transfer(sv, sh, src, blk, cubic=density == "cubic4")
+            term = fused_transfer(sv, sh, src, blk, cubic=density)
         del sv, sh
         out += term / fact  # term k of the series carries 1 / (k + 1)!
     return out
@@ -169,7 +169,7 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
         Green's function.
     order : int, optional
         Terms of the time-history series (2 = half final shift).
-    density : {'mean2', 'cubic4'}, optional
+    density : {'mean2', 'cubic4', 'fv4'}, optional
         Flux density at the edges.
     blocked : ndarray of bool, optional
         Pixels that neither give nor receive flux (masked, saturated, NaN);
@@ -319,7 +319,7 @@ def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, nois
         flux = img_eff.copy()
     converged = False
     it = 0
-    cubic = density == "cubic4"
+    cubic = density
     for it in range(1, int(max_iter) + 1):
         resid = recorded_image(flux, swept, order=order, density=density, blocked=blk)
         np.subtract(img_eff, resid, out=resid)
@@ -347,7 +347,7 @@ def _series_block(img, blk, swept, order, density, *, terms=2):
     adds the third-order term x3 (three applications). Returns F and, for
     ``terms=3``, (x2, x3) for the a-priori error estimate.
     """
-    cubic = density == "cubic4"
+    cubic = density
     a3 = 1.0 / 6.0 if order >= 3 else 0.0
     a4 = 1.0 / 24.0 if order >= 4 else 0.0
     sv, sh = swept(img)
@@ -409,7 +409,7 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
     order : int, optional
         Terms of the forward series (2: half final shift; >= 3: with the
         time history; terms beyond 3 are third order and dropped).
-    density : {'mean2', 'cubic4'}, optional
+    density : {'mean2', 'cubic4', 'fv4'}, optional
         Flux density at the edges.
     blocked : ndarray of bool, optional
         As for :func:`correct_image`.

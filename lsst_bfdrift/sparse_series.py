@@ -294,7 +294,7 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         ``rtol * max abs(I)`` for every pixel.
     order : int, optional
         Terms of the forward series.
-    density : {'mean2', 'cubic4'}, optional
+    density : {'mean2', 'cubic4', 'fv4'}, optional
         Edge flux density.
     strip : int or None, optional
         Rows per block of the first operator application.
@@ -310,7 +310,7 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         Corrected image (e), or None when the dense solver must be used.
     """
     info = {} if info is None else info
-    cubic = density == "cubic4"
+    cubic = density
     a3 = 1.0 / 6.0 if order >= 3 else 0.0
     a4 = 1.0 / 24.0 if order >= 4 else 0.0
     reach = (ops.template.size + 1) // 2 + 3

@@ -45,9 +45,11 @@ class BrighterFatterDriftConfig(Config):
     method = ChoiceField("correction method", str, default="drift", allowed=_METHODS)
     order = Field("terms of the time-history series for method 'drift' (2 = half shift)",
                   int, default=3, check=lambda v: 2 <= v <= 8)
-    density = ChoiceField("flux density at pixel edges", str, default="mean2",
+    density = ChoiceField("flux density at pixel edges (drift)", str, default="fv4",
                           allowed={"mean2": "mean of the two pixels beside the edge",
-                                   "cubic4": "four-point interpolation along the normal"})
+                                   "cubic4": "four-point interpolation along the normal",
+                                   "fv4": "four-point finite-volume reconstruction from "
+                                          "pixel averages"})
     max_iter = Field("largest number of solver iterations", int, default=10,
                      check=lambda v: v >= 1)
     rtol = Field("convergence: max |I - R(F)| / max |I| (when noise_tol is None)", float,

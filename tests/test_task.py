@@ -218,9 +218,9 @@ def test_fused_transfer_matches_separate_steps(rng):
     blk = np.zeros(f.shape, bool)
     blk[4, 5] = blk[0, 3] = True
     sv, sh = rng.normal(size=(9, 12)), rng.normal(size=(10, 11))
-    for mode in ("mean2", "cubic4"):
+    for mode in ("mean2", "cubic4", "fv4"):
         ref = edge_transfer(sv, sh, *edge_flux_density(f, mode=mode, blocked=blk))
-        got = fused_transfer(sv.astype(np.float32), sh, f, blk, cubic=mode == "cubic4")
+        got = fused_transfer(sv.astype(np.float32), sh, f, blk, cubic=mode)
         assert_allclose(got, ref.astype(np.float64), rtol=1e-6, atol=1e-6 * np.abs(ref).max())
         assert abs(got.sum()) < 1e-8 * np.abs(got).sum()
     with pytest.raises(ValueError, match="shapes"):
@@ -279,3 +279,22 @@ def test_third_order_series_against_tight_reference(field, monkeypatch):
                                  start="image", rtol=1e-12, max_iter=60)
     assert conv and it >= 1
     assert np.max(np.abs(tight - ref1)[ok] / sig) < 1e-3
+
+
+def test_fv4_density_is_exact_for_cubic_profiles():
+    """Pixel averages of a cubic profile: 'fv4' gives the profile's value on
+    every interior edge with a full stencil (exact), 'cubic4' and 'mean2' do
+    not; along both axes."""
+    x = np.arange(12.0)
+    p = np.polynomial.Polynomial([3.0, -2.0, 0.7, 0.05])
+    avg = p.integ()(x + 1.0) - p.integ()(x)        # average over [k, k + 1]
+    img = np.tile(avg, (6, 1))
+    fv, fh = edge_flux_density(img, mode="fv4")
+    assert_allclose(fv[:, 2:-2], np.tile(p(x[2:-1]), (6, 1)), rtol=1e-12)
+    gv, gh = edge_flux_density(img.T.copy(), mode="fv4")
+    assert_allclose(gh[2:-2, :], np.tile(p(x[2:-1]), (6, 1)).T, rtol=1e-12)
+    for mode in ("cubic4", "mean2"):
+        other, _ = edge_flux_density(img, mode=mode)
+        assert np.max(np.abs(other[:, 2:-2] - p(x[2:-1]))) > 1e-3
+    with pytest.raises(ValueError, match="density mode"):
+        edge_flux_density(img, mode="quintic")
