@@ -19,11 +19,11 @@ Bound for what is left out. For a charge image g whose largest value
 within the template's reach of a pixel p is G, every swept area at p is at
 most K G (K: the largest sum of abs(kernel) over one edge,
 :attr:`~lsst_bfdrift.swept.OperatorCache.kernel_abs_sum`) and every edge
-density at most 1.25 max abs(I) within 2 pixels (the four-point stencil), so
-abs(B(I, g)(p)) <= 5 K max abs(I) G and abs(B(g, I)(p)) <= 5 K max abs(I) G. With
-r = K max abs(I) (< 0.2 for any sensor this package models), abs(c) <= 5 r max abs(b),
+density at most 4/3 max abs(I) within 2 pixels (the four-point stencils), so
+abs(B(I, g)(p)) <= 5.4 K max abs(I) G and abs(B(g, I)(p)) <= 5.4 K max abs(I) G. With
+r = K max abs(I) (< 0.2 for any sensor this package models), abs(c) <= 5.4 r max abs(b),
 and the terms left out where b is at most beta are bounded by
-abs(c)/4 + abs(d)/12 + abs(x3) <= (1.25 + 0.42 + O(r)) r beta < 2 r beta. A cell of
+abs(c)/4 + abs(d)/12 + abs(x3) <= (1.34 + 0.45 + O(r)) r beta < 2 r beta. A cell of
 ``cell`` x ``cell`` pixels is *active* when
 
     safety K max abs(I) max abs(b) > min limit,

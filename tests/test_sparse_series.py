@@ -114,7 +114,7 @@ def test_window_boxes_cover_and_do_not_overlap(rng):
     assert S.window_boxes(np.zeros((3, 3), bool), (48, 48)) == []
 
 
-@pytest.mark.parametrize("density", ["mean2", "cubic4"])
+@pytest.mark.parametrize("density", ["mean2", "cubic4", "fv4"])
 def test_sparse_equals_dense_series_within_the_bound(sky_field, density):
     """The windowed series differs from the dense third-order series by far
     less than its bound (0.1 x tolerance), conserves flux exactly, leaves
