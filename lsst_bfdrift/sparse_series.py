@@ -52,7 +52,7 @@ from ._edge_kernels import fused_transfer
 __all__ = ["first_order_terms", "active_cells", "window_boxes", "apriori_ok", "sparse_series"]
 
 
-def first_order_terms(img, blocked, ops, *, strip, cubic):
+def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None):
     """b = B(I, I), F1 = I - b/2 and the swept areas of I, by strips of rows.
 
     Parameters
@@ -66,8 +66,11 @@ def first_order_terms(img, blocked, ops, *, strip, cubic):
     strip : int or None
         Rows per block (None: whole image). Blocks overlap by
         ``(N + 1) // 2 + 2`` rows, which makes b exact.
-    cubic : bool
-        Four-point edge densities.
+    cubic : bool or str
+        Edge flux density (see :func:`lsst_bfdrift._edge_kernels.fused_transfer`).
+    stop : callable, optional
+        Called as ``stop(b, r1)`` after each block (rows ``0..r1-1`` of ``b``
+        done); when it returns True the work is abandoned and None returned.
 
     Returns
     -------
@@ -96,6 +99,8 @@ def first_order_terms(img, blocked, ops, *, strip, cubic):
         top = r1 + 1 if r1 == ny else r1  # the last block also owns the top edge row
         sh[r0:top] = bsh[r0 - a:top - a]
         del bsv, bsh, bb
+        if stop is not None and r1 < ny and stop(b, r1):
+            return None
     return b, first, sv, sh
 
 
@@ -323,7 +328,25 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
             return np.full((y1 - y0, x1 - x0), scalar)
         return float(noise_tol) * np.sqrt(np.maximum(img[y0:y1, x0:x1], 1.0))
 
-    b, out, sv, sh = first_order_terms(img, blocked, ops, strip=strip, cubic=cubic)
+    ny = img.shape[0]
+
+    def stop(b_done, r1):
+        # the windows cover at least the active cells: once a quarter of the
+        # rows shows more than max_fraction of them active (a flat, a crowded
+        # field), the dense solver will be needed; stop early
+        rows = (r1 // cell) * cell
+        if rows < ny // 4:
+            return False
+        act = active_cells(img[:rows], b_done[:rows], ops.kernel_abs_sum, noise_tol=noise_tol,
+                           limit=scalar, cell=cell, safety=safety)
+        return act.mean() > max_fraction
+
+    terms = first_order_terms(img, blocked, ops, strip=strip, cubic=cubic, stop=stop)
+    if terms is None:
+        info.update(windows=None, window_fraction=None, dilate=dilate,
+                    reason=f"more than {max_fraction:.0%} of the cells need the higher orders")
+        return None
+    b, out, sv, sh = terms
     act = active_cells(img, b, ops.kernel_abs_sum, noise_tol=noise_tol, limit=scalar,
                        cell=cell, safety=safety)
     for grow in range(3):

@@ -166,6 +166,12 @@ def test_sparse_falls_back_to_dense_on_flats():
                               sparse=True, info=info)
     b, _, _ = C.correct_image(flat, t, density="mean2", noise_tol=0.05, start="series")
     assert info["solver"] == "dense" and "windows cover" in info["reason"]
+    # in strips, the attempt stops after a quarter of the rows
+    info = {}
+    c, _, _ = C.correct_image(flat, t, density="mean2", noise_tol=0.05, start="series",
+                              sparse=True, info=info, strip=16)
+    assert info["solver"] == "dense" and "cells need" in info["reason"]
+    assert_allclose(c, b, rtol=0, atol=1e-9 * flat.max())
     assert_allclose(a, b, rtol=0, atol=0)
 
 
