@@ -10,15 +10,7 @@ from scipy.signal import convolve2d
 from lsst_bfdrift import correction as C
 from lsst_bfdrift import sparse_series as S
 from lsst_bfdrift.swept import OperatorCache, SweptAreas, swept_area_kernels
-from lsst_bfdrift.template import DistortionTemplate, load_default_template
-
-
-def _scaled(k):
-    d = load_default_template()
-    tan = {n: None if getattr(d, n) is None else getattr(d, n) * k
-           for n in ("vedge_t", "hedge_t")}
-    return DistortionTemplate(d.corner_d * k, d.vedge_d * k, d.hedge_d * k, d.fractions,
-                              d.charge, meta=d.meta, **tan)
+from lsst_bfdrift.template import load_default_template
 
 
 @pytest.fixture(scope="module")
@@ -143,7 +135,7 @@ def test_sparse_against_iterated_reference(sky_field):
     Poisson noise of the solution iterated to 1e-12 (the dense series'
     accuracy, tests/test_task.py)."""
     img, blocked = sky_field
-    t = _scaled(1.0)
+    t = load_default_template()
     ok = np.isfinite(img) & ~blocked
     ref, _, conv = C.correct_image(img, t, density="mean2", start="image", rtol=1e-12,
                                    max_iter=60, blocked=blocked)
