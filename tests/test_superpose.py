@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
+from lsst_bfdrift.config import Struct
 from lsst_bfdrift.geometry import pixel_polygons, polygon_moments
 from lsst_bfdrift.superpose import check_charge_image, moment_maps, superpose_boundaries
 
@@ -287,3 +288,30 @@ def test_float32_ffts(small_template, rng):
 def test_bad_geometry_options(small_template, kw, exc, match):
     with pytest.raises(exc, match=match):
         moment_maps(small_template, np.zeros((6, 6)), **kw)
+
+
+def test_task_geometry_samples(default_template, small_template, rng):
+    from lsst_bfdrift.config import FieldValidationError
+    from lsst_bfdrift.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
+    q = _star_field(48, 1e6, rng)
+    full = moment_maps(default_template, q)
+    res = {}
+    for ns in (None, 8):
+        cfg = BrighterFatterDriftConfig(geometry_samples=ns, fft_precision="float64")
+        res[ns] = BrighterFatterDriftTask(cfg, template=default_template).run(q)
+    assert_allclose(res[None].area, full.area, rtol=1e-13)
+    red = moment_maps(default_template, q, samples=8)
+    assert_allclose(res[8].e2, red.e2, rtol=1e-12, atol=1e-15)
+    assert np.abs(res[8].area - full.area).max() < 1e-4 * np.abs(full.area - 1).max()
+    # the default: 8 samples in single precision, same accuracy statement
+    dflt = BrighterFatterDriftTask(template=default_template).run(q)
+    assert BrighterFatterDriftConfig().geometry_samples == 8
+    err = _relative_errors(Struct(dx=dflt.centroid_x, dy=dflt.centroid_y, area=dflt.area,
+                                  e1=dflt.e1, e2=dflt.e2), full)
+    assert max(err["area"], err["dx"], err["dy"], err["e1"]) < 1e-4 and err["e2"] < 1e-3, err
+    # a template with fewer samples than asked for is used as it is
+    small = BrighterFatterDriftTask(BrighterFatterDriftConfig(fft_precision="float64"),
+                                    template=small_template).run(q[:20, :20])
+    assert_allclose(small.area, moment_maps(small_template, q[:20, :20]).area, rtol=1e-13)
+    with pytest.raises(FieldValidationError, match="geometry_samples"):
+        BrighterFatterDriftConfig(geometry_samples=0).validate()
