@@ -10,7 +10,7 @@ remains the reference the tests compare against.
 import numba
 import numpy as np
 
-__all__ = ["grid_moments"]
+__all__ = ["stack_moments"]
 
 
 @numba.njit(cache=True, inline="always")
@@ -28,74 +28,86 @@ def _acc(xa, ya, xb, yb, s):
 
 
 @numba.njit(parallel=True, cache=True)
-def grid_moments(corners, vedge, hedge, fr, vt, ht, has_t, j0, out):
-    """Moments of every pixel of a block from its shared boundaries.
+def stack_moments(st, ns, has_t, ro, co, fr, out):
+    """Moments of every pixel of a block from its superposed boundary channels.
 
     Parameters
     ----------
-    corners : (ny + 1, nx + 1, 2) absolute corner positions (pixel units)
-    vedge : (ny, nx + 1, ns) x of column-boundary samples
-    hedge : (ny + 1, nx, ns) y of row-boundary samples
+    st : (nch, rows, cols) displacement channels (pixel units), float32 or
+        float64: corner dx, corner dy, ns column-boundary samples (x),
+        ns row-boundary samples (y), then (if ``has_t``) ns tangential
+        column-boundary and ns tangential row-boundary samples. Corner
+        (J, I) of the block and the edges of pixel (J, I) are read at
+        ``st[:, J + ro, I + co]``.
+    ns : int, samples per edge
+    has_t : bool, whether the tangential channels are present
+    ro, co : int, row and column offsets of the block's first corner in ``st``
     fr : (ns,) sample fractions
-    vt, ht : tangential displacements (same shapes as vedge, hedge)
-    has_t : bool, whether vt and ht are used
-    j0 : int, row index of the block's first pixel (pixel (i, j) centred on (i, j))
     out : (8, ny, nx) output: area, dx, dy, ixx, iyy, ixy, e1, e2
+
+    Each pixel's polygon is built relative to its nominal centre (corners at
+    +-0.5 plus their displacements), so no precision is lost to the pixel's
+    position in the image.
     """
-    ny = vedge.shape[0]
-    nx = hedge.shape[1]
-    ns = fr.shape[0]
+    ny = out.shape[1]
+    nx = out.shape[2]
+    ov = 2
+    oh = 2 + ns
+    ovt = 2 + 2 * ns
+    oht = 2 + 3 * ns
     for J in numba.prange(ny):
         s = np.empty(6)
+        a = J + ro
+        b = J + 1 + ro
         for I in range(nx):
-            ox = float(I)
-            oy = float(J + j0)
+            L = I + co
+            R = I + 1 + co
             s[:] = 0.0
             # clockwise: LL, up the left edge, UL, along the top, UR, down the
             # right edge, LR, back along the bottom
-            px = corners[J, I, 0] - ox
-            py = corners[J, I, 1] - oy
+            px = -0.5 + st[0, a, L]
+            py = -0.5 + st[1, a, L]
             x0, y0 = px, py
             for k in range(ns):
-                qx = vedge[J, I, k] - ox
-                qy = -0.5 + fr[k] + (vt[J, I, k] if has_t else 0.0)
+                qx = -0.5 + st[ov + k, a, L]
+                qy = -0.5 + fr[k] + (st[ovt + k, a, L] if has_t else 0.0)
                 _acc(px, py, qx, qy, s)
                 px, py = qx, qy
-            qx = corners[J + 1, I, 0] - ox
-            qy = corners[J + 1, I, 1] - oy
+            qx = -0.5 + st[0, b, L]
+            qy = 0.5 + st[1, b, L]
             _acc(px, py, qx, qy, s)
             px, py = qx, qy
             for k in range(ns):
-                qx = -0.5 + fr[k] + (ht[J + 1, I, k] if has_t else 0.0)
-                qy = hedge[J + 1, I, k] - oy
+                qx = -0.5 + fr[k] + (st[oht + k, b, L] if has_t else 0.0)
+                qy = 0.5 + st[oh + k, b, L]
                 _acc(px, py, qx, qy, s)
                 px, py = qx, qy
-            qx = corners[J + 1, I + 1, 0] - ox
-            qy = corners[J + 1, I + 1, 1] - oy
+            qx = 0.5 + st[0, b, R]
+            qy = 0.5 + st[1, b, R]
             _acc(px, py, qx, qy, s)
             px, py = qx, qy
             for k in range(ns - 1, -1, -1):
-                qx = vedge[J, I + 1, k] - ox
-                qy = -0.5 + fr[k] + (vt[J, I + 1, k] if has_t else 0.0)
+                qx = 0.5 + st[ov + k, a, R]
+                qy = -0.5 + fr[k] + (st[ovt + k, a, R] if has_t else 0.0)
                 _acc(px, py, qx, qy, s)
                 px, py = qx, qy
-            qx = corners[J, I + 1, 0] - ox
-            qy = corners[J, I + 1, 1] - oy
+            qx = 0.5 + st[0, a, R]
+            qy = -0.5 + st[1, a, R]
             _acc(px, py, qx, qy, s)
             px, py = qx, qy
             for k in range(ns - 1, -1, -1):
-                qx = -0.5 + fr[k] + (ht[J, I, k] if has_t else 0.0)
-                qy = hedge[J, I, k] - oy
+                qx = -0.5 + fr[k] + (st[oht + k, a, L] if has_t else 0.0)
+                qy = -0.5 + st[oh + k, a, L]
                 _acc(px, py, qx, qy, s)
                 px, py = qx, qy
             _acc(px, py, x0, y0, s)
-            a = s[0]
-            cx = s[4] / a
-            cy = s[5] / a
-            ixx = s[1] / a - cx * cx
-            iyy = s[2] / a - cy * cy
-            ixy = s[3] / a - cx * cy
-            out[0, J, I] = a
+            ar = s[0]
+            cx = s[4] / ar
+            cy = s[5] / ar
+            ixx = s[1] / ar - cx * cx
+            iyy = s[2] / ar - cy * cy
+            ixy = s[3] / ar - cx * cy
+            out[0, J, I] = ar
             out[1, J, I] = cx
             out[2, J, I] = cy
             out[3, J, I] = ixx

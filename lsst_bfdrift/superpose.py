@@ -194,11 +194,11 @@ class _Convolver:
 
     The kernels (every boundary channel, divided by the template charge) are
     transformed once per padded block shape and kept as one stacked array;
-    the block's transform is multiplied by groups of ``group`` kernels and
-    transformed back in one batched call.
+    the block's transform is multiplied by all of them and transformed back
+    in one batched call.
     """
 
-    def __init__(self, template, *, dtype=np.float64, group=8):
+    def __init__(self, template, *, dtype=np.float64):
         self.t = template
         self.dtype = np.dtype(dtype)
         n1 = template.size + 1
@@ -214,7 +214,6 @@ class _Convolver:
             k[o:o + ns, :-1, :] = np.moveaxis(template.vedge_t, -1, 0)
             k[o + ns:o + 2 * ns, :, :-1] = np.moveaxis(template.hedge_t, -1, 0)
         self.kernels = (k / template.charge).astype(self.dtype)
-        self.group = max(int(group), 1)
         self._cache = {}
 
     def kernel_ffts(self, shape, workers=1):
@@ -224,60 +223,60 @@ class _Convolver:
                                               workers=workers)
         return self._cache[shape]
 
-    def channels(self, block, workers=1):
-        """Yield (first channel, stack of full convolutions) group by group."""
+    def stack(self, block, workers=1):
+        """Full convolutions of ``block`` with every kernel, shape (nch, rows, cols)."""
         n1 = self.t.size + 1
         shape = (sp_fft.next_fast_len(block.shape[0] + n1 - 1, real=True),
                  sp_fft.next_fast_len(block.shape[1] + n1 - 1, real=True))
         fk = self.kernel_ffts(shape, workers)
         fb = sp_fft.rfft2(block.astype(self.dtype, copy=False), shape, workers=workers)
-        for g0 in range(0, fk.shape[0], self.group):
-            prod = fk[g0:g0 + self.group] * fb
-            yield g0, sp_fft.irfft2(prod, shape, axes=(-2, -1), workers=workers,
-                                    overwrite_x=True)
+        prod = fk * fb
+        del fb
+        return sp_fft.irfft2(prod, shape, axes=(-2, -1), workers=workers, overwrite_x=True)
 
 
-def _block_displacements(conv, charge, r0, r1, workers=1, absolute=False):
-    """Boundary displacements (or positions) for pixel rows r0..r1-1.
+def _block_stack(conv, charge, r0, r1, workers=1):
+    """Displacement channels reaching pixel rows r0..r1-1, and the row offset.
 
-    Returns corners (r1 - r0 + 1, nx + 1, 2), vedge (r1 - r0, nx + 1, ns),
-    hedge (r1 - r0 + 1, nx, ns), vedge_t, hedge_t (None without tangential
-    displacements), float64, C-contiguous. With ``absolute`` the nominal
-    positions are added (the block's first pixel row is r0).
+    Corner (J, r0 + I) and the edges of pixel (r0 + J, I) are at
+    ``stack[:, J + ro, I + c]`` (c the template's centre).
     """
-    t = conv.t
-    c, ns = t.center, t.edge_samples
-    ny, nx = charge.shape
-    nr = r1 - r0
+    c = conv.t.center
+    ny = charge.shape[0]
     # Aggressor rows that can reach corner rows r0..r1: ja in [r0 - c, r1 + c].
     a0 = max(r0 - c - 1, 0)
     a1 = min(r1 + c + 1, ny)
     # D[J] = F[J + c] in full-image rows; in block rows F_b[m] with m = J + c - a0.
-    rc = slice(r0 + c - a0, r1 + 1 + c - a0)
-    rv = slice(r0 + c - a0, r1 + c - a0)
+    return conv.stack(charge[a0:a1], workers=workers), r0 + c - a0
+
+
+def _block_displacements(conv, charge, r0, r1, workers=1):
+    """Absolute boundary positions of pixel rows r0..r1-1 (float64).
+
+    Returns corners (r1 - r0 + 1, nx + 1, 2), vedge (r1 - r0, nx + 1, ns),
+    hedge (r1 - r0 + 1, nx, ns), vedge_t, hedge_t (None without tangential
+    displacements).
+    """
+    t = conv.t
+    c, ns = t.center, t.edge_samples
+    nx = charge.shape[1]
+    st, ro = _block_stack(conv, charge, r0, r1, workers)
+    rc, rv = slice(ro, ro + r1 - r0 + 1), slice(ro, ro + r1 - r0)
     cc, ch = slice(c, c + nx + 1), slice(c, c + nx)
-    tang = t.vedge_t is not None
-    cd = np.empty((nr + 1, nx + 1, 2))
-    v = np.empty((nr, nx + 1, ns))
-    h = np.empty((nr + 1, nx, ns))
-    vt = np.empty((nr, nx + 1, ns)) if tang else None
-    ht = np.empty((nr + 1, nx, ns)) if tang else None
-    # channel -> (output array, sample, rows, columns)
-    targets = [(cd, 0, rc, cc), (cd, 1, rc, cc)]
-    targets += [(v, s, rv, cc) for s in range(ns)] + [(h, s, rc, ch) for s in range(ns)]
-    if tang:
-        targets += [(vt, s, rv, cc) for s in range(ns)] + [(ht, s, rc, ch) for s in range(ns)]
-    for g0, full in conv.channels(charge[a0:a1], workers=workers):
-        for m in range(full.shape[0]):
-            arr, s, rows, cols = targets[g0 + m]
-            arr[..., s] = full[m, rows, cols]
-    if absolute:
-        xs = np.arange(nx + 1) - 0.5
-        ys = np.arange(r0, r1 + 1) - 0.5
-        cd[..., 0] += xs
-        cd[..., 1] += ys[:, None]
-        v += xs[None, :, None]
-        h += ys[:, None, None]
+
+    def take(first, rows, cols):
+        return np.moveaxis(st[first:first + ns, rows, cols], 0, -1).astype(np.float64)
+
+    xs = np.arange(nx + 1) - 0.5
+    ys = np.arange(r0, r1 + 1) - 0.5
+    cd = np.moveaxis(st[:2, rc, cc], 0, -1).astype(np.float64)
+    cd[..., 0] += xs
+    cd[..., 1] += ys[:, None]
+    v = take(2, rv, cc) + xs[None, :, None]
+    h = take(2 + ns, rc, ch) + ys[:, None, None]
+    vt = ht = None
+    if t.vedge_t is not None:
+        vt, ht = take(2 + 2 * ns, rv, cc), take(2 + 3 * ns, rc, ch)
     return cd, v, h, vt, ht
 
 
@@ -303,8 +302,7 @@ def superpose_boundaries(template, charge, *, mask=None, workers=1):
     """
     q = check_charge_image(charge, mask=mask)
     conv = _Convolver(template)
-    cd, v, h, vt, ht = _block_displacements(conv, q, 0, q.shape[0], workers=workers,
-                                            absolute=True)
+    cd, v, h, vt, ht = _block_displacements(conv, q, 0, q.shape[0], workers=workers)
     grid = BoundaryGrid(0, 0, cd, v, h, template.fractions)
     grid.vedge_t, grid.hedge_t = vt, ht
     return grid
@@ -355,10 +353,12 @@ def moment_maps(template, charge, *, mask=None, samples=None, strip=256, workers
         time falls with the number of boundary channels, 2 + 2 ``samples``).
         None (default): the template's own samples, exact.
     strip : int, optional
-        Rows per block (memory ~ 8 * strip * width * (4 + 2 ns) bytes for
-        ns samples per edge). The moments are evaluated by a compiled kernel
-        (:mod:`lsst_bfdrift._kernels`) that builds each pixel's polygon on the
-        fly.
+        Rows per block: the block's 2 + 2 ns boundary channels (ns samples
+        per edge, twice that with tangential displacements) are transformed
+        together, about 2 * (strip + 2 N) * width * (2 + 2 ns) * itemsize
+        bytes at once, plus the kernels' transforms (half that). The moments
+        are evaluated by a compiled kernel (:mod:`lsst_bfdrift._kernels`) that
+        builds each pixel's polygon on the fly from the channels.
     workers : int, optional
         FFT threads.
     dtype : {numpy.float64, numpy.float32}, optional
@@ -371,7 +371,7 @@ def moment_maps(template, charge, *, mask=None, samples=None, strip=256, workers
     -------
     MomentMaps
     """
-    from ._kernels import grid_moments
+    from ._kernels import stack_moments
 
     if np.dtype(dtype) not in (np.dtype(np.float64), np.dtype(np.float32)):
         raise ValueError(f"dtype must be float64 or float32, got {dtype!r}")
@@ -385,19 +385,16 @@ def moment_maps(template, charge, *, mask=None, samples=None, strip=256, workers
     conv = _Convolver(template, dtype=dtype)
     out = MomentMaps(q.shape)
     fr = np.ascontiguousarray(template.fractions)
-    dummy = np.zeros((1, 1, 1))
+    ns, has_t = template.edge_samples, template.vedge_t is not None
     res = np.empty((8, min(strip, ny), nx))
     for r0 in range(0, ny, strip):
         r1 = min(r0 + strip, ny)
-        cd, v, h, vt, ht = _block_displacements(conv, q, r0, r1, workers=workers,
-                                                absolute=True)
-        has_t = vt is not None
-        part = res[:, :r1 - r0] if r1 - r0 == res.shape[1] else np.empty((8, r1 - r0, nx))
-        grid_moments(cd, v, h, fr, vt if has_t else dummy, ht if has_t else dummy, has_t, r0,
-                     part)
+        st, ro = _block_stack(conv, q, r0, r1, workers)
+        part = res if r1 - r0 == res.shape[1] else np.empty((8, r1 - r0, nx))
+        stack_moments(st, ns, has_t, ro, template.center, fr, part)
+        del st
         for k, name in enumerate(MomentMaps._names):
             getattr(out, name)[r0:r1] = part[k]
-        del cd, v, h, vt, ht
         if progress is not None:
             progress(r1 - r0)
     return out
