@@ -6,9 +6,11 @@ default template (21 x 21, 32 samples per edge) used as it is, and with its
 edge profiles resampled to fewer samples (``samples=k``, moment-preserving,
 :func:`~lsst_bfdrift.superpose.resample_template`), in double and single
 precision FFTs. ``previous code`` is ``moment_maps`` as of commit
-``b7eead9`` (one unbatched FFT per channel, full template), loaded from git
-when available. Every configuration runs in its own process, one after the
-other in one run (compare ratios only); memory is the peak RSS
+``b7eead9`` (one unbatched FFT per channel, full template; its
+``superpose.py`` and ``_kernels.py`` read with ``git show``), when git is
+available. Every configuration runs in its own process, one after the
+other in one run (compare ratios only; CPU seconds, ``time.process_time`` of
+the process, depend less on other jobs than wall-clock seconds); memory is the peak RSS
 (``ru_maxrss``) minus the RSS just before the call (image and libraries
 loaded), in units of the float64 image.
 
@@ -37,7 +39,7 @@ ROOT = os.path.dirname(HERE)
 BASELINE_COMMIT = "b7eead9"
 
 CHILD = r"""
-import json, os, resource, sys, time, types
+import importlib.util, json, os, resource, sys, time
 import numpy as np
 sys.path.insert(0, {root!r})
 from lsst_bfdrift.template import load_default_template
@@ -45,10 +47,13 @@ import lsst_bfdrift.superpose as S
 n, kind, samples, dtype, tmp, prev = {size}, {kind!r}, {samples!r}, {dtype!r}, {tmp!r}, {prev!r}
 mm = S.moment_maps
 kw = dict(workers=2)
-if prev is not None:
-    mod = types.ModuleType("lsst_bfdrift._superpose_previous")
-    mod.__package__ = "lsst_bfdrift"
-    exec(compile(prev, "superpose_previous.py", "exec"), mod.__dict__)
+if prev:
+    for name in ("_kernels_previous", "_superpose_previous"):
+        spec = importlib.util.spec_from_file_location("lsst_bfdrift." + name,
+                                                      os.path.join(tmp, name + ".py"))
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = mod
+        spec.loader.exec_module(mod)
     mm = mod.moment_maps
 else:
     kw.update(samples=samples, dtype=np.dtype(dtype))
@@ -66,15 +71,15 @@ else:
 tpl = load_default_template()
 mm(tpl, img[:64, :64], **kw)   # compiled kernels loaded outside the timing
 base = int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-t0 = time.perf_counter()
+c0, t0 = time.process_time(), time.perf_counter()
 maps = mm(tpl, img, **kw)
-dt = time.perf_counter() - t0
+dt, cpu = time.perf_counter() - t0, time.process_time() - c0
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 names = ("area", "dx", "dy", "e1", "e2")
 nominal = dict(area=1.0, dx=0.0, dy=0.0, e1=0.0, e2=0.0)
 ref_path = os.path.join(tmp, kind + "_{{}}.npy")
 acc = {{}}
-if samples is None and dtype == "float64" and prev is None:
+if samples is None and dtype == "float64" and not prev:
     for k in names:
         np.save(ref_path.format(k), getattr(maps, k))
 else:
@@ -85,17 +90,24 @@ else:
         acc[k] = dict(max=float(np.abs(d).max() / np.abs(sig).max()),
                       rms=float(np.sqrt(np.mean(d**2) / np.mean(sig**2))),
                       signal_max=float(np.abs(sig).max()))
-print(json.dumps(dict(seconds=dt, peak_rss_mb=peak - base, image_mb=img.nbytes / 2**20,
+print(json.dumps(dict(seconds=dt, cpu_seconds=cpu, peak_rss_mb=peak - base, image_mb=img.nbytes / 2**20,
                       accuracy=acc, area_sum_minus_npix=float(maps.area.sum() - n * n))))
 """
 
 
-def _previous_source():
+def _write_previous(tmp):
+    """Write superpose.py and _kernels.py of BASELINE_COMMIT into ``tmp``; False if no git."""
     try:
-        return subprocess.run(["git", "show", f"{BASELINE_COMMIT}:lsst_bfdrift/superpose.py"],
-                              cwd=ROOT, check=True, capture_output=True, text=True).stdout
+        for path, name in (("lsst_bfdrift/_kernels.py", "_kernels_previous"),
+                           ("lsst_bfdrift/superpose.py", "_superpose_previous")):
+            src = subprocess.run(["git", "show", f"{BASELINE_COMMIT}:{path}"], cwd=ROOT,
+                                 check=True, capture_output=True, text=True).stdout
+            src = src.replace("from ._kernels import", "from ._kernels_previous import")
+            with open(os.path.join(tmp, name + ".py"), "w") as fh:
+                fh.write(src)
     except (OSError, subprocess.CalledProcessError):
-        return None
+        return False
+    return True
 
 
 def main():
@@ -103,11 +115,12 @@ def main():
     ap.add_argument("--size", type=int, default=4096)
     ap.add_argument("--out", default=os.path.join(HERE, "geometry_results"))
     args = ap.parse_args()
-    prev = _previous_source()
+    tmp = tempfile.mkdtemp(prefix="bench_geometry_")
+    prev = _write_previous(tmp)
     # (label, image, samples, dtype, previous code); the full float64 run of
     # each image comes first: it writes the reference maps
     runs = [("full 32, float64", "stars", None, "float64", False)]
-    if prev is not None:
+    if prev:
         runs.append((f"previous code ({BASELINE_COMMIT})", "stars", None, "float64", True))
     runs += [("full 32, float32", "stars", None, "float32", False),
              ("samples 8, float64", "stars", 8, "float64", False),
@@ -118,15 +131,15 @@ def main():
              ("samples 8, float32 (Task)", "flat", 8, "float32", False),
              ("samples 6, float32", "flat", 6, "float32", False),
              ("samples 4, float32", "flat", 4, "float32", False)]
-    tmp = tempfile.mkdtemp(prefix="bench_geometry_")
     rows = []
     try:
         for label, kind, samples, dtype, use_prev in runs:
             code = CHILD.format(root=ROOT, size=args.size, kind=kind, samples=samples,
-                                dtype=dtype, tmp=tmp, prev=prev if use_prev else None)
-            out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
-                                 text=True).stdout.strip().splitlines()[-1]
-            r = json.loads(out)
+                                dtype=dtype, tmp=tmp, prev=use_prev)
+            proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+            if proc.returncode:
+                sys.exit(f"{kind} {label} failed:\n{proc.stderr[-3000:]}")
+            r = json.loads(proc.stdout.strip().splitlines()[-1])
             r.update(label=label, image=kind, samples=samples, dtype=dtype)
             rows.append(r)
             print(f"  done: {kind} {label}: {r['seconds']:.1f} s", file=sys.stderr, flush=True)
@@ -137,16 +150,18 @@ def main():
              f"default template (21x21, 32 samples per edge); load average {load:.1f} at the end"]
     for kind in ("stars", "flat"):
         sel = [r for r in rows if r["image"] == kind]
-        base = sel[0]["seconds"]
+        base, cbase = sel[0]["seconds"], sel[0]["cpu_seconds"]
         title = ("sky 1000 e + 400 stars 1e4-1.5e6 e" if kind == "stars"
                  else "flat 1e5 e (Poisson)")
-        lines.append(f"{title}: max (rms) |map - full 32 float64| / max (rms) |signal|")
+        lines.append(f"{title}: wall and CPU seconds (speed-up against the first line), "
+                     f"memory; max (rms) |map - full 32 float64| / max (rms) |signal|")
         for r in sel:
             acc = r["accuracy"]
             err = "  ".join(f"{k} {acc[k]['max']:.1e} ({acc[k]['rms']:.1e})" for k in acc)
-            lines.append(f"  {r['label']:26s} {r['seconds']:6.1f} s ({base / r['seconds']:5.2f}x "
-                         f"faster)  peak RSS - baseline {r['peak_rss_mb']:6.0f} MB = "
-                         f"{r['peak_rss_mb'] / r['image_mb']:5.1f} x image"
+            lines.append(f"  {r['label']:26s} {r['seconds']:5.1f} s ({base / r['seconds']:5.2f}x), "
+                         f"CPU {r['cpu_seconds']:5.1f} s ({cbase / r['cpu_seconds']:5.2f}x)  "
+                         f"peak RSS - baseline {r['peak_rss_mb']:5.0f} MB = "
+                         f"{r['peak_rss_mb'] / r['image_mb']:4.1f} x image"
                          + (f"  {err}" if err else "  (reference)"))
         sig = next((r["accuracy"] for r in sel if r["accuracy"]), {})
         if sig:

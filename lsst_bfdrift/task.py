@@ -74,13 +74,12 @@ class BrighterFatterDriftConfig(Config):
     saturation = Field("level (e) at and above which pixels are blocked; None: no limit",
                        float, default=None, optional=True, check=lambda v: v > 0)
     compute_geometry = Field("compute area, centroid and ellipticity maps", bool, default=True)
-    geometry_samples = Field("samples per pixel edge for the geometry maps: the template's edge "
-                             "profiles are resampled keeping each edge's swept area and first "
-                             "two moments (error second order in the displacements, ~1e-5 of "
-                             "the signal for area and centroid, ~2e-4 for e2, 4x faster with "
-                             "the 32-sample default; see superpose.resample_template); "
-                             "templates with no more samples are used as they are; None: "
-                             "the template's own samples", int, default=8, optional=True,
+    geometry_samples = Field("samples per pixel edge for the geometry maps (template edges "
+                             "resampled keeping swept areas and moments to first order: "
+                             "~1e-5 of the signal for area and centroid, ~2e-4 for e2, 5x "
+                             "less CPU than the 32-sample default; superpose.resample_template);"
+                             " templates with no more samples are used as they are; None: the "
+                             "template's own", int, default=8, optional=True,
                              check=lambda v: v >= 1)
     workers = Field("FFT threads", int, default=2, check=lambda v: v >= 1)
 
