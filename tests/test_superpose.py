@@ -315,3 +315,19 @@ def test_task_geometry_samples(default_template, small_template, rng):
     assert_allclose(small.area, moment_maps(small_template, q[:20, :20]).area, rtol=1e-13)
     with pytest.raises(FieldValidationError, match="geometry_samples"):
         BrighterFatterDriftConfig(geometry_samples=0).validate()
+
+
+def test_kernel_works_in_double_precision_on_single_precision_channels(default_template, rng):
+    """float32 FFT output: the polygons are still built in float64 (same maps as
+    the same channels converted to float64 first)."""
+    from lsst_bfdrift._kernels import stack_moments
+    from lsst_bfdrift.superpose import _block_stack, _Convolver, resample_template
+    t = resample_template(default_template, 8)
+    q = _star_field(40, 1.5e6, rng)
+    st, ro = _block_stack(_Convolver(t, dtype=np.float32), q, 0, 40)
+    assert st.dtype == np.float32
+    fr = np.ascontiguousarray(t.fractions)
+    out32, out64 = np.empty((8, 40, 40)), np.empty((8, 40, 40))
+    stack_moments(st, 8, False, ro, t.center, fr, out32)
+    stack_moments(st.astype(np.float64), 8, False, ro, t.center, fr, out64)
+    assert_allclose(out32, out64, rtol=0, atol=1e-15)
