@@ -238,8 +238,9 @@ class _Convolver:
 def _block_stack(conv, charge, r0, r1, workers=1):
     """Displacement channels reaching pixel rows r0..r1-1, and the row offset.
 
-    Corner (J, r0 + I) and the edges of pixel (r0 + J, I) are at
-    ``stack[:, J + ro, I + c]`` (c the template's centre).
+    Corner (r0 + J, I) (the lower left one of pixel (r0 + J, I)) and the
+    edges of pixel (r0 + J, I) are at ``stack[:, J + ro, I + c]`` (c the
+    template's centre), in the channel order of :class:`_Convolver`.
     """
     c = conv.t.center
     ny = charge.shape[0]

@@ -76,7 +76,7 @@ class BrighterFatterDriftConfig(Config):
     compute_geometry = Field("compute area, centroid and ellipticity maps", bool, default=True)
     geometry_samples = Field("samples per pixel edge for the geometry maps (template edges "
                              "resampled keeping swept areas and moments to first order: "
-                             "~1e-5 of the signal for area and centroid, ~2e-4 for e2, 5x "
+                             "~1e-5 of the signal for area and centroid, ~2e-4 for e2, 4x "
                              "less CPU than the 32-sample default; superpose.resample_template);"
                              " templates with no more samples are used as they are; None: the "
                              "template's own", int, default=8, optional=True,
