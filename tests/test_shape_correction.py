@@ -86,7 +86,8 @@ def test_task_geometry_rebuilds_the_footprint_moments():
     exact = footprint_moments(maps)
     res = BrighterFatterDriftTask(template=tpl).run(arr)
     rebuilt = footprint_moments(res)
-    assert_allclose(rebuilt["dx"], exact["dx"], atol=1e-12)
+    # the Task's geometry uses its single-precision FFTs: ~1e-7 of the largest shift
+    assert_allclose(rebuilt["dx"], exact["dx"], rtol=0, atol=1e-6 * np.abs(exact["dx"]).max())
     # T_p = A_p / 6 is exact to second order in the distortion (|S - S0| ~ 1e-3 here)
     scale = np.max(np.abs(exact["sxx"]))
     assert scale > 1e-4
