@@ -14,7 +14,6 @@ import numpy as np
 from scipy import fft as sp_fft
 
 from .boundaries import BoundaryGrid
-from .geometry import pixel_polygons, polygon_moments
 
 __all__ = ["MomentMaps", "check_charge_image", "superpose_boundaries", "moment_maps",
            "resample_template"]
