@@ -277,16 +277,16 @@ def edge_integrals(template):
     return kv, kh
 
 
-def _galsim_layout(template, half, pad, qdist):
+def _galsim_layout(template, half, pad, qdist, charge):
     """GalSim's edge polylines (:mod:`lsst_bfdrift._galsim_rules`) of a stamp of
-    side 2 (half + pad) + 1 with the template's charge in the central pixel."""
+    side 2 (half + pad) + 1 with ``charge`` (e) in the central pixel."""
     from ._galsim_rules import add_templates_galsim, galsim_edge_templates, nominal_edges
 
     big = 2 * (half + pad) + 1
     tv, th = galsim_edge_templates(template, qdist=qdist)
     V, H = nominal_edges(big, big, template.fractions)
     dq = np.zeros((big, big))
-    dq[big // 2, big // 2] = template.charge
+    dq[big // 2, big // 2] = charge
     add_templates_galsim(dq, 1.0 / template.charge, template.center, V, H, tv, th)
     return V, H
 
@@ -332,20 +332,20 @@ def _band_points(widths, cells, rng):
     return out
 
 
-def _moves_galsim(name, template, half, cells, qdist, seed):
+def _moves_galsim(name, template, half, cells, qdist, seed, charge):
     """moves[j, i, b, a]: area (px^2) of nominal pixel (i, j) that galsim.SiliconSensor
     assigns to pixel (i + a - 1, j + b - 1), pixel indices -half..half -> 0..2 half.
 
     The points of nominal pixels three apart are accumulated together (GalSim
     assigns a conversion to its nominal pixel or one of the eight neighbours,
     so each pixel's count comes from one sampled pixel), with diffusion off
-    and the boundaries frozen at those of the file's charge in pixel (0, 0).
+    and the boundaries frozen at those of ``charge`` e in pixel (0, 0).
     """
     import galsim
 
     pad = 3  # GalSim's stamp-edge rules and fixed top/right boundaries stay far away
     big = 2 * (half + pad) + 1
-    V, H = _galsim_layout(template, half, pad, qdist)
+    V, H = _galsim_layout(template, half, pad, qdist, charge)
     pts = _band_points(1.5 * _band_widths(V, H, half, pad), cells,
                        np.random.default_rng(seed))
     moves = np.zeros((2 * half + 1, 2 * half + 1, 3, 3))
@@ -359,11 +359,11 @@ def _moves_galsim(name, template, half, cells, qdist, seed):
                                           qdist=int(qdist), rng=galsim.BaseDeviate(int(seed)))
             img = galsim.ImageD(big, big)
             img.setCenter(0, 0)
-            img[0, 0] = template.charge
+            img[0, 0] = charge
             sensor.accumulate(galsim.PhotonArray(x.size, x=x, y=y, flux=np.full(x.size, w)),
                               img)
             got = img.array.copy()
-            got[half + pad, half + pad] -= template.charge
+            got[half + pad, half + pad] -= charge
             got = got[pad - 1:pad + 2 * half + 2, pad - 1:pad + 2 * half + 2]  # half + 1 ring
             for j, i in sub:
                 moves[j, i] = got[j:j + 3, i:i + 3]
@@ -371,7 +371,7 @@ def _moves_galsim(name, template, half, cells, qdist, seed):
     return moves
 
 
-def _moves_rules(template, half, cells, qdist, seed):
+def _moves_rules(template, half, cells, qdist, seed, charge):
     """As :func:`_moves_galsim`, with the re-implementation of GalSim's layout and
     rule (:mod:`lsst_bfdrift._galsim_rules`); a point found in no pixel counts
     half to its nominal pixel and half to the first neighbour tried (GalSim's
@@ -380,7 +380,7 @@ def _moves_rules(template, half, cells, qdist, seed):
 
     pad = 3
     big = 2 * (half + pad) + 1
-    V, H = _galsim_layout(template, half, pad, qdist)
+    V, H = _galsim_layout(template, half, pad, qdist, charge)
     box = np.empty((big, big, 4))
     galsim_boxes(V, H, 0, big, 0, big, box)
     pts = _band_points(1.5 * _band_widths(V, H, half, pad), cells,
@@ -449,10 +449,10 @@ def transfers_from_moves(moves):
 
 
 def galsim_effective_moves(name, *, template=None, engine="galsim", cells=2000, margin=2,
-                           qdist=3, seed=20151):
+                           qdist=3, seed=20151, charge=None):
     """Where galsim.SiliconSensor sends the points of each nominal pixel.
 
-    With the file's aggressor charge in pixel (0, 0) and the boundaries
+    With ``charge`` e (default: the file's) in pixel (0, 0) and the boundaries
     frozen, points over the template's footprint plus ``margin`` pixels are
     assigned to pixels by GalSim's rule: nominal pixel first, then the
     neighbours, with per-edge (not tiling) corner copies; a point found in
@@ -487,6 +487,8 @@ def galsim_effective_moves(name, *, template=None, engine="galsim", cells=2000, 
     seed : int, optional
         Seed of the points within their cells and of GalSim's random choice
         for points found in no pixel.
+    charge : float, optional
+        Aggressor charge (e); default the file's (the template's).
 
     Returns
     -------
@@ -504,13 +506,16 @@ def galsim_effective_moves(name, *, template=None, engine="galsim", cells=2000, 
         from .template import DistortionTemplate
         template = read_galsim_sensor(DistortionTemplate, name)
     half = template.center + int(margin)
+    charge = template.charge if charge is None else float(charge)
+    if not (np.isfinite(charge) and charge > 0):
+        raise ValueError(f"charge must be positive, got {charge!r}")
     if engine == "galsim":
-        return _moves_galsim(name, template, half, int(cells), qdist, seed)
-    return _moves_rules(template, half, int(cells), qdist, seed)
+        return _moves_galsim(name, template, half, int(cells), qdist, seed, charge)
+    return _moves_rules(template, half, int(cells), qdist, seed, charge)
 
 
 def match_galsim_transfers(template, name, *, engine="galsim", cells=2000, margin=2,
-                           qdist=3, seed=20151):
+                           qdist=3, seed=20151, charge=None):
     """Adjust the edge samples so that every edge's swept area is GalSim's effective one.
 
     GalSim's pixels do not tile (per-edge corner copies), and a conversion is
@@ -533,6 +538,11 @@ def match_galsim_transfers(template, name, *, engine="galsim", cells=2000, margi
         GalSim sensor name.
     engine, cells, margin, qdist, seed
         See :func:`galsim_effective_moves`.
+    charge : float, optional
+        Aggressor charge (e) at which the transfers are measured, then
+        scaled linearly to the template's charge; default the template's.
+        GalSim's polygons move linearly with charge but the areas its rule
+        moves near the non-tiling corners do not quite (second order).
 
     Returns
     -------
@@ -542,8 +552,11 @@ def match_galsim_transfers(template, name, *, engine="galsim", cells=2000, margi
         outside the template's footprint (px^2, dropped).
     """
     moves = galsim_effective_moves(name, template=template, engine=engine,
-                                   cells=cells, margin=margin, qdist=qdist, seed=seed)
+                                   cells=cells, margin=margin, qdist=qdist, seed=seed,
+                                   charge=charge)
     tv, th = transfers_from_moves(moves)
+    scale = 1.0 if charge is None else template.charge / float(charge)
+    tv, th = tv * scale, th * scale
     n, mg = template.size, int(margin)
     kv_t = tv[mg:mg + n, mg:mg + n + 1]
     kh_t = th[mg:mg + n + 1, mg:mg + n]
@@ -560,6 +573,7 @@ def match_galsim_transfers(template, name, *, engine="galsim", cells=2000, margi
     meta["transfer_matched"] = {
         "engine": engine, "cells": int(cells), "margin": int(margin),
         "qdist": int(qdist), "seed": int(seed),
+        "charge": template.charge if charge is None else float(charge),
         "max_sample_change_px": float(max(np.abs(vedge - template.vedge_d).max(),
                                           np.abs(hedge - template.hedge_d).max())),
         "max_outside_transfer_px2": float(max(np.abs(outside_v).max(),
