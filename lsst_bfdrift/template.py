@@ -570,7 +570,8 @@ class DistortionTemplate:
 
     # -- GalSim -----------------------------------------------------------------
     @classmethod
-    def from_galsim(cls, name="lsst_itl_50_8", *, match_areas=None, match=None, qdist=3):
+    def from_galsim(cls, name="lsst_itl_50_8", *, match_areas=None, match=None, qdist=3,
+                    transfer_charge=1e4, transfer_cells=4000):
         """Import one of GalSim's sensor distortion files (Poisson_CCD output).
 
         Parameters
@@ -589,12 +590,24 @@ class DistortionTemplate:
             swept area equals the area galsim.SiliconSensor effectively moves
             across it (its non-tiling pixels and nominal-pixel-first rule,
             :func:`~lsst_bfdrift.galsim_io.match_galsim_transfers`); the
-            pixel areas then equal GalSim's effective areas (what a flat
-            measures). 'none': each edge and corner is taken from the pixel
-            nearest the aggressor.
+            swept-area kernels' pixel areas then equal GalSim's effective
+            areas (what a flat measures). 'none': each edge and corner is
+            taken from the pixel nearest the aggressor.
         qdist : int, optional
             GalSim's ``qdist`` of the simulation to match (its default 3);
             used by ``match='transfers'``.
+        transfer_charge : float, optional
+            Aggressor charge (e) at which ``match='transfers'`` measures
+            GalSim's transfers, scaled linearly to the file's charge. GalSim's
+            effective transfers per electron are not quite constant (its rule
+            near the non-tiling corners): the central pixel's area change per
+            1e5 e is -0.1070, -0.1068, -0.1062 and -0.1044 px^2 at 3e3, 1e4,
+            3e4 and 1e5 e. The corrections are linear in the charge, so the
+            default takes the small-charge limit (1e4 e); the file's own
+            charge is ``transfer_charge=None``.
+        transfer_cells : int, optional
+            Sampling cells per pixel side of the transfer measurement
+            (:func:`~lsst_bfdrift.galsim_io.galsim_effective_moves`).
 
         Returns
         -------
@@ -618,7 +631,8 @@ class DistortionTemplate:
         if match == "areas":
             tpl = match_galsim_areas(tpl, name)
         elif match == "transfers":
-            tpl = match_galsim_transfers(tpl, name, qdist=qdist)
+            tpl = match_galsim_transfers(tpl, name, qdist=qdist, charge=transfer_charge,
+                                         cells=transfer_cells)
         tpl.meta["galsim_match"] = match
         return tpl
 

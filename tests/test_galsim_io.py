@@ -181,3 +181,24 @@ def test_bad_options():
         galsim_io.galsim_effective_moves(NAME, cells=3)
     with pytest.raises(ValueError, match="charge"):
         galsim_io.galsim_effective_moves(NAME, charge=-1.0)
+
+
+@pytest.mark.slow
+def test_from_galsim_transfers_default_is_small_charge_limit(raw):
+    """match='transfers' measures at 1e4 e and scales to the file's charge; the
+    central pixel's effective area change per 1e5 e is then larger in size than
+    at the file's own 1e5 e (GalSim's rule is slightly non-linear)."""
+    tpl = DistortionTemplate.from_galsim(NAME, match="transfers", transfer_cells=1000)
+    meta = tpl.meta["transfer_matched"]
+    assert tpl.meta["galsim_match"] == "transfers" and meta["charge"] == 1e4
+    assert tpl.charge == raw.charge
+    mv = galsim_io.galsim_effective_moves(NAME, template=raw, cells=1000, charge=1e4)
+    tv, th = galsim_io.transfers_from_moves(mv)
+    kv, kh = swept_area_kernels(tpl)
+    n, s = tpl.size, raw.charge / 1e4
+    assert_allclose(kv, s * tv[2:2 + n, 2:2 + n + 1], atol=1e-12)
+    assert_allclose(kh, s * th[2:2 + n + 1, 2:2 + n], atol=1e-12)
+    c = tpl.center
+    small = kernel_areas(tpl)[c, c] - 1.0
+    at_file = kernel_areas(galsim_io.match_galsim_transfers(raw, NAME, cells=CELLS))[c, c] - 1.0
+    assert -0.110 < small < -0.105 and -0.106 < at_file < -0.102 and small < at_file
