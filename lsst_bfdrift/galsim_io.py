@@ -322,10 +322,12 @@ def _band_points(widths, cells, rng):
     for (j, i), w in np.ndenumerate(widths):
         nb = min(int(np.ceil(w / h)) + 2, cells // 2)
         k = np.arange(cells)
-        edge = (k < nb) | (k >= cells - nb)
-        ky, kx = np.meshgrid(k, k, indexing="ij")
-        sel = edge[ky] | edge[kx]
-        ky, kx = ky[sel], kx[sel]
+        side = np.concatenate([k[:nb], k[cells - nb:]])
+        mid = k[nb:cells - nb]
+        # row-major: nb full rows, the middle rows' edge cells, nb full rows
+        ky = np.concatenate([np.repeat(k[:nb], cells), np.repeat(mid, side.size),
+                             np.repeat(k[cells - nb:], cells)])
+        kx = np.concatenate([np.tile(k, nb), np.tile(side, mid.size), np.tile(k, nb)])
         x = (kx + rng.random(kx.size)) * h - 0.5
         y = (ky + rng.random(ky.size)) * h - 0.5
         out[j, i] = (x, y, ((cells - 2 * nb) * h) ** 2 if cells > 2 * nb else 0.0)
