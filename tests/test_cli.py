@@ -227,3 +227,19 @@ def test_correct_many_files_on_dask_cluster(capsys, tmp_path):
     assert all(r["error"] is None for r in results)
     with pytest.raises(ValueError, match="same output"):
         output_pairs([names[0], names[0]], tmp_path)
+
+
+def test_validate_stars_defaults(capsys):
+    """validate-stars defaults to converged GalSim updates and the transfer-matched
+    import (benchmarks/probe_validation_cadence_results.txt, docs/benchmarks.rst)."""
+    import inspect
+
+    from lsst_bfdrift.cli import build_parser
+    from lsst_bfdrift.validation import draw_star_pairs
+    args = build_parser().parse_args(["validate-stars"])
+    assert (args.match, args.updates, args.min_nrecalc) == ("transfers", 1000.0, 100.0)
+    sig = inspect.signature(draw_star_pairs).parameters
+    assert (sig["updates"].default, sig["min_nrecalc"].default) == (1000, 100)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["validate-stars", "--match", "polygons"])
+    assert "invalid choice" in capsys.readouterr().err
