@@ -291,22 +291,17 @@ def _galsim_layout(template, half, pad, qdist, charge):
     return V, H
 
 
-def _band_widths(V, H, half, pad):
+def _band_widths(V, H, half, pad, fractions):
     """Largest vertex displacement (px) of each pixel polygon of the layout,
     pixels -half..half; beyond it from the nominal square's boundary every
     point lies inside the polygon (and GalSim assigns it to its nominal pixel)."""
-    v0, h0 = _nominal_like(V, H)
+    from ._galsim_rules import nominal_edges
+
+    v0, h0 = nominal_edges(V.shape[0], H.shape[1], fractions)
     dv = np.abs(V - v0).max(axis=(2, 3))
     dh = np.abs(H - h0).max(axis=(2, 3))
     w = np.maximum(np.maximum(dv[:, :-1], dv[:, 1:]), np.maximum(dh[:-1, :], dh[1:, :]))
     return w[pad:pad + 2 * half + 1, pad:pad + 2 * half + 1]
-
-
-def _nominal_like(V, H):
-    from ._galsim_rules import nominal_edges
-
-    f = V[0, 0, 1:-1, 1] - V[0, 0, 0, 1]  # the layout's first pixel edge is undistorted
-    return nominal_edges(V.shape[0], H.shape[1], f)
 
 
 def _band_points(widths, cells, rng):
@@ -348,7 +343,7 @@ def _moves_galsim(name, template, half, cells, qdist, seed, charge):
     pad = 3  # GalSim's stamp-edge rules and fixed top/right boundaries stay far away
     big = 2 * (half + pad) + 1
     V, H = _galsim_layout(template, half, pad, qdist, charge)
-    pts = _band_points(1.5 * _band_widths(V, H, half, pad), cells,
+    pts = _band_points(1.5 * _band_widths(V, H, half, pad, template.fractions), cells,
                        np.random.default_rng(seed))
     moves = np.zeros((2 * half + 1, 2 * half + 1, 3, 3))
     w = 1.0 / cells**2
@@ -385,7 +380,7 @@ def _moves_rules(template, half, cells, qdist, seed, charge):
     V, H = _galsim_layout(template, half, pad, qdist, charge)
     box = np.empty((big, big, 4))
     galsim_boxes(V, H, 0, big, 0, big, box)
-    pts = _band_points(1.5 * _band_widths(V, H, half, pad), cells,
+    pts = _band_points(1.5 * _band_widths(V, H, half, pad, template.fractions), cells,
                        np.random.default_rng(seed))
     moves = np.zeros((2 * half + 1, 2 * half + 1, 3, 3))
     w = 0.5 / cells**2
