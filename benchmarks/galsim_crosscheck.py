@@ -13,7 +13,9 @@ every ``nrecalc`` conversions in all of them:
 * ``ours``: :class:`lsst_bfdrift.stars.StarSimulation` with the template
   imported from the same sensor file: shared (tiling) boundaries with the
   corners matched to GalSim's pixel areas (``match_areas=True``, the
-  default import); shared boundaries with every edge and corner taken from
+  default import); shared boundaries with the edge samples matched to
+  GalSim's effective per-edge transfers (``match='transfers'``, measured at
+  1e4 e, and ``match_transfers_1e5`` at the file's 1e5 e); shared boundaries with every edge and corner taken from
   the pixel nearest the aggressor (``match_areas=False``); and GalSim's own
   layout and assignment rule (``layout='galsim'``: per-edge polylines with
   their own corner copies, nominal pixel first, random fallback);
@@ -105,6 +107,11 @@ def default_variants():
     raw = DistortionTemplate.from_galsim(SENSOR, match_areas=False)
     return {"match_areas": (DistortionTemplate.from_galsim(SENSOR, match_areas=True), "shared",
                             None, False),
+            "match_transfers": (DistortionTemplate.from_galsim(SENSOR, match="transfers"),
+                                "shared", None, False),
+            "match_transfers_1e5": (DistortionTemplate.from_galsim(
+                SENSOR, match="transfers", transfer_charge=None, transfer_cells=2000),
+                "shared", None, False),
             "nearest_pixel": (raw, "shared", None, False),
             "galsim_layout_q3_exactbox": (raw, "galsim", 3, False),
             "galsim_layout_q3": (raw, "galsim", 3, True),

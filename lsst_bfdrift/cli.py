@@ -31,7 +31,10 @@ Subcommands
 ``bfdrift validate-stars [--n-stars N] [--psf moffat|kolmogorov] [--json]``
     Sky-like stars drawn by galsim.SiliconSensor (paired BF-free twins):
     size and ellipticity slopes against flux for uncorrected, coulton18,
-    astier23 and drift, with errors.
+    astier23 and drift, with errors. Defaults: the sensor's template imported
+    with ``--match transfers``, about 1000 GalSim boundary updates per
+    exposure (``--updates 1000 --min-nrecalc 100``; converged, see
+    ``benchmarks/probe_validation_cadence_results.txt``).
 ``bfdrift reproduce [--json] [--out DIR] [--quick]``
     The paper's numbers next to the calibrated model's (A00..A11, ratio,
     radial slopes, neighbour recovery, fall-off), the V_BSS ratio scan, and
@@ -355,17 +358,19 @@ def _cmd_correct(args):
 def _cmd_validate_stars(args):
     from .template import DistortionTemplate
     from .validation import draw_star_pairs, validate_stars
-    tpl = DistortionTemplate.from_galsim(args.sensor) if args.template is None else \
-        DistortionTemplate.load(args.template)
+    tpl = DistortionTemplate.from_galsim(args.sensor, match=args.match) \
+        if args.template is None else DistortionTemplate.load(args.template)
     pairs = draw_star_pairs(args.n_stars, sensor=args.sensor, psf=args.psf, sky=args.sky,
-                            seed=args.seed, progress=not args.quiet)
+                            seed=args.seed, updates=args.updates,
+                            min_nrecalc=args.min_nrecalc, progress=not args.quiet)
     res = validate_stars(pairs, tpl, sky=args.sky, progress=not args.quiet)
     unc = res["uncorrected"]["size_slope"]
     for k, v in res.items():
         v["size_slope_fraction_of_uncorrected"] = v["size_slope"] / unc if unc else None
     out = {"sensor": args.sensor, "psf": args.psf, "n_stars": args.n_stars,
            "units": "slopes per 1e5 e: fractional change of T = Ixx + Iyy, change of e1/e2",
-           "template": args.template or f"galsim:{args.sensor}", **res}
+           "template": args.template or f"galsim:{args.sensor} (match={args.match!r})",
+           "updates": args.updates, "min_nrecalc": args.min_nrecalc, **res}
     if args.json:
         _print_json(out)
     else:
@@ -552,6 +557,12 @@ def build_parser():
     vs.add_argument("--psf", default="moffat", help="moffat, kolmogorov or gaussian")
     vs.add_argument("--sensor", default="lsst_itl_50_8", help="GalSim sensor name")
     vs.add_argument("--template", help="template for the corrections (default: the sensor's)")
+    vs.add_argument("--match", default="transfers", choices=("transfers", "areas", "none"),
+                    help="import of the sensor's file when no --template (from_galsim)")
+    vs.add_argument("--updates", type=float, default=1000.0,
+                    help="GalSim boundary updates per exposure (1000: converged)")
+    vs.add_argument("--min-nrecalc", type=float, default=100.0,
+                    help="smallest GalSim nrecalc (photons)")
     vs.add_argument("--sky", type=float, default=1000.0, help="sky level (e per pixel)")
     vs.add_argument("--seed", type=int, default=20151)
     vs.add_argument("--json", action="store_true")

@@ -21,7 +21,8 @@ import numpy as np
 from astropy.table import Table
 
 __all__ = ["galsim_sensor_files", "read_galsim_config", "galsim_nominal_vertices",
-           "galsim_vertex_table", "read_galsim_sensor", "match_galsim_areas"]
+           "galsim_vertex_table", "read_galsim_sensor", "match_galsim_areas", "edge_integrals",
+           "galsim_effective_moves", "transfers_from_moves", "match_galsim_transfers"]
 
 
 def galsim_sensor_files(name):
@@ -235,5 +236,346 @@ def match_galsim_areas(template, name):
     meta = dict(template.meta)
     meta["area_matched"] = float(np.abs(total).max())
     return type(template)(cd, template.vedge_d, template.hedge_d, template.fractions,
+                          template.charge, vedge_t=template.vedge_t, hedge_t=template.hedge_t,
+                          meta=meta, pixel_table=template._pixel_table)
+
+
+# -- effective transfers -------------------------------------------------------
+
+_ENGINES = ("galsim", "rules")
+
+
+def _trapezoid_weights(fractions):
+    """Weights w_k of the interior knots in the trapezoid integral over [0, 1]."""
+    s = np.concatenate([[0.0], np.asarray(fractions, float), [1.0]])
+    return 0.5 * (s[2:] - s[:-2])
+
+
+def edge_integrals(template):
+    """Normal displacement of every template edge integrated along it (px^2).
+
+    The trapezoid integral of the piecewise-linear profile through the two
+    corners and the edge samples (the quantity
+    :func:`lsst_bfdrift.correction.swept_area_kernels` uses as swept area).
+
+    Returns
+    -------
+    kv : ndarray, shape (N, N + 1)
+        Vertical edges, positive towards +x.
+    kh : ndarray, shape (N + 1, N)
+        Horizontal edges, positive towards +y.
+    """
+    t = template
+    s = np.concatenate([[0.0], t.fractions, [1.0]])
+
+    def integ(c0, samples, c1):
+        vals = np.concatenate([c0[..., None], samples, c1[..., None]], axis=-1)
+        return np.sum(0.5 * (vals[..., 1:] + vals[..., :-1]) * np.diff(s), axis=-1)
+
+    kv = integ(t.corner_d[:-1, :, 0], t.vedge_d, t.corner_d[1:, :, 0])
+    kh = integ(t.corner_d[:, :-1, 1], t.hedge_d, t.corner_d[:, 1:, 1])
+    return kv, kh
+
+
+def _galsim_layout(template, half, pad, qdist, charge):
+    """GalSim's edge polylines (:mod:`lsst_bfdrift._galsim_rules`) of a stamp of
+    side 2 (half + pad) + 1 with ``charge`` (e) in the central pixel."""
+    from ._galsim_rules import add_templates_galsim, galsim_edge_templates, nominal_edges
+
+    big = 2 * (half + pad) + 1
+    tv, th = galsim_edge_templates(template, qdist=qdist)
+    V, H = nominal_edges(big, big, template.fractions)
+    dq = np.zeros((big, big))
+    dq[big // 2, big // 2] = charge
+    add_templates_galsim(dq, 1.0 / template.charge, template.center, V, H, tv, th)
+    return V, H
+
+
+def _band_widths(V, H, half, pad, fractions):
+    """Largest vertex displacement (px) of each pixel polygon of the layout,
+    pixels -half..half; beyond it from the nominal square's boundary every
+    point lies inside the polygon (and GalSim assigns it to its nominal pixel)."""
+    from ._galsim_rules import nominal_edges
+
+    v0, h0 = nominal_edges(V.shape[0], H.shape[1], fractions)
+    dv = np.abs(V - v0).max(axis=(2, 3))
+    dh = np.abs(H - h0).max(axis=(2, 3))
+    w = np.maximum(np.maximum(dv[:, :-1], dv[:, 1:]), np.maximum(dh[:-1, :], dh[1:, :]))
+    return w[pad:pad + 2 * half + 1, pad:pad + 2 * half + 1]
+
+
+def _band_points(widths, cells, rng):
+    """Stratified points (one uniform random point per cell of side 1 / cells) of
+    the band of each nominal pixel within ``widths`` (px, rounded up to whole
+    cells plus two) of its boundary.
+
+    Returns, per pixel (j, i) of ``widths``: x, y relative to the pixel centre
+    and the interior area (px^2) left out (always the nominal pixel's).
+    """
+    h = 1.0 / cells
+    out = {}
+    for (j, i), w in np.ndenumerate(widths):
+        nb = min(int(np.ceil(w / h)) + 2, cells // 2)
+        k = np.arange(cells)
+        side = np.concatenate([k[:nb], k[cells - nb:]])
+        mid = k[nb:cells - nb]
+        # row-major: nb full rows, the middle rows' edge cells, nb full rows
+        ky = np.concatenate([np.repeat(k[:nb], cells), np.repeat(mid, side.size),
+                             np.repeat(k[cells - nb:], cells)])
+        kx = np.concatenate([np.tile(k, nb), np.tile(side, mid.size), np.tile(k, nb)])
+        x = (kx + rng.random(kx.size)) * h - 0.5
+        y = (ky + rng.random(ky.size)) * h - 0.5
+        out[j, i] = (x, y, ((cells - 2 * nb) * h) ** 2 if cells > 2 * nb else 0.0)
+    return out
+
+
+def _moves_galsim(name, template, half, cells, qdist, seed, charge):
+    """moves[j, i, b, a]: area (px^2) of nominal pixel (i, j) that galsim.SiliconSensor
+    assigns to pixel (i + a - 1, j + b - 1), pixel indices -half..half -> 0..2 half.
+
+    The points of nominal pixels three apart are accumulated together (GalSim
+    assigns a conversion to its nominal pixel or one of the eight neighbours,
+    so each pixel's count comes from one sampled pixel), with diffusion off
+    and the boundaries frozen at those of ``charge`` e in pixel (0, 0).
+    """
+    import galsim
+
+    pad = 3  # GalSim's stamp-edge rules and fixed top/right boundaries stay far away
+    big = 2 * (half + pad) + 1
+    V, H = _galsim_layout(template, half, pad, qdist, charge)
+    pts = _band_points(1.5 * _band_widths(V, H, half, pad, template.fractions), cells,
+                       np.random.default_rng(seed))
+    moves = np.zeros((2 * half + 1, 2 * half + 1, 3, 3))
+    w = 1.0 / cells**2
+    for oy in range(3):
+        for ox in range(3):
+            sub = [(j, i) for j in range(oy, 2 * half + 1, 3) for i in range(ox, 2 * half + 1, 3)]
+            x = np.concatenate([pts[p][0] + p[1] - half for p in sub])
+            y = np.concatenate([pts[p][1] + p[0] - half for p in sub])
+            sensor = galsim.SiliconSensor(name, diffusion_factor=0.0, nrecalc=1e18,
+                                          qdist=int(qdist), rng=galsim.BaseDeviate(int(seed)))
+            img = galsim.ImageD(big, big)
+            img.setCenter(0, 0)
+            img[0, 0] = charge
+            sensor.accumulate(galsim.PhotonArray(x.size, x=x, y=y, flux=np.full(x.size, w)),
+                              img)
+            got = img.array.copy()
+            got[half + pad, half + pad] -= charge
+            got = got[pad - 1:pad + 2 * half + 2, pad - 1:pad + 2 * half + 2]  # half + 1 ring
+            for j, i in sub:
+                moves[j, i] = got[j:j + 3, i:i + 3]
+                moves[j, i, 1, 1] += pts[j, i][2]
+    return moves
+
+
+def _moves_rules(template, half, cells, qdist, seed, charge):
+    """As :func:`_moves_galsim`, with the re-implementation of GalSim's layout and
+    rule (:mod:`lsst_bfdrift._galsim_rules`); a point found in no pixel counts
+    half to its nominal pixel and half to the first neighbour tried (GalSim's
+    expectation). Same points as :func:`_moves_galsim` for the same seed."""
+    from ._galsim_rules import galsim_boxes, locate_galsim
+
+    pad = 3
+    big = 2 * (half + pad) + 1
+    V, H = _galsim_layout(template, half, pad, qdist, charge)
+    box = np.empty((big, big, 4))
+    galsim_boxes(V, H, 0, big, 0, big, box)
+    pts = _band_points(1.5 * _band_widths(V, H, half, pad, template.fractions), cells,
+                       np.random.default_rng(seed))
+    moves = np.zeros((2 * half + 1, 2 * half + 1, 3, 3))
+    w = 0.5 / cells**2
+    for (j, i), (sx, sy, interior) in pts.items():
+        px, py = sx + (i + pad), sy + (j + pad)
+        oi = np.empty(px.size, np.int64)
+        oj = np.empty(px.size, np.int64)
+        for u in (0.75, 0.25):
+            locate_galsim(px, py, np.full(px.size, u), V, H, box, oi, oj)
+            np.add.at(moves[j, i], (oj - (j + pad) + 1, oi - (i + pad) + 1), w)
+        moves[j, i, 1, 1] += interior
+    return moves
+
+
+def transfers_from_moves(moves):
+    """Net area crossing each edge between nominal neighbours (px^2).
+
+    A point of nominal pixel A assigned to a side neighbour B crosses the edge
+    A|B. One assigned to a diagonal neighbour D is split in halves between the
+    two paths through the pixels beside both (A -> (D_x, A_y) -> D and
+    A -> (A_x, D_y) -> D), so that every pixel's net gain is kept exactly.
+
+    Parameters
+    ----------
+    moves : ndarray, shape (M, M, 3, 3)
+        From :func:`galsim_effective_moves`.
+
+    Returns
+    -------
+    tv : ndarray, shape (M, M + 1)
+        Vertical edges (``tv[j, i]``: left edge of pixel i), net area moved
+        to the left pixel, i.e. positive when the edge moved towards +x.
+    th : ndarray, shape (M + 1, M)
+        Horizontal edges (bottom edge of pixel j), positive towards +y.
+    """
+    m = moves.shape[0]
+    tv = np.zeros((m, m + 1))
+    th = np.zeros((m + 1, m))
+
+    def cross_x(j, i, sx, a):  # a moved from column i to i + sx in row j
+        tv[j, i + (sx > 0)] -= sx * a
+
+    def cross_y(j, i, sy, a):
+        th[j + (sy > 0), i] -= sy * a
+
+    for j in range(m):
+        for i in range(m):
+            for b in range(3):
+                for a in range(3):
+                    sx, sy, amt = a - 1, b - 1, moves[j, i, b, a]
+                    if amt == 0.0 or (sx == 0 and sy == 0):
+                        continue
+                    if sy == 0:
+                        cross_x(j, i, sx, amt)
+                    elif sx == 0:
+                        cross_y(j, i, sy, amt)
+                    else:
+                        cross_x(j, i, sx, 0.5 * amt)
+                        cross_y(j, i + sx, sy, 0.5 * amt)
+                        cross_y(j, i, sy, 0.5 * amt)
+                        cross_x(j + sy, i, sx, 0.5 * amt)
+    return tv, th
+
+
+def galsim_effective_moves(name, *, template=None, engine="galsim", cells=2000, margin=2,
+                           qdist=3, seed=20151, charge=None):
+    """Where galsim.SiliconSensor sends the points of each nominal pixel.
+
+    With ``charge`` e (default: the file's) in pixel (0, 0) and the boundaries
+    frozen, points over the template's footprint plus ``margin`` pixels are
+    assigned to pixels by GalSim's rule: nominal pixel first, then the
+    neighbours, with per-edge (not tiling) corner copies; a point found in
+    no pixel goes to the nominal pixel or the first neighbour tried with
+    equal probability. Each pixel is cut into ``cells`` x ``cells`` cells;
+    only the cells of a band along its boundary, 1.5 times as wide as the
+    largest displacement of its polygon's vertices (plus two cells), get a
+    point each (uniform in the cell: stratified sampling, so that an edge
+    parallel to the cells leaves no systematic error; about ``cells**-1.5``
+    px^2 of random error per edge); the interior, inside the polygon, is the
+    nominal pixel's.
+
+    Parameters
+    ----------
+    name : str
+        GalSim sensor name.
+    template : DistortionTemplate, optional
+        The file's template (``read_galsim_sensor``); needed by
+        ``engine='rules'``, read when None.
+    engine : {'galsim', 'rules'}, optional
+        'galsim': galsim.SiliconSensor itself (diffusion off, no boundary
+        update during the accumulation, nine accumulations of pixels three
+        apart). 'rules': the re-implementation
+        :mod:`lsst_bfdrift._galsim_rules` (same layout and rule, deterministic
+        expectation of the random choice).
+    cells : int, optional
+        Sampling cells per pixel side.
+    margin : int, optional
+        Pixels sampled beyond the template's footprint on each side.
+    qdist : int, optional
+        GalSim's ``qdist`` (its default 3; must match the simulation).
+    seed : int, optional
+        Seed of the points within their cells and of GalSim's random choice
+        for points found in no pixel.
+    charge : float, optional
+        Aggressor charge (e); default the file's (the template's).
+
+    Returns
+    -------
+    moves : ndarray, shape (M, M, 3, 3), M = N + 2 margin
+        ``moves[j, i, b, a]``: area (px^2) of nominal pixel (i - h, j - h)
+        (h = M // 2) assigned to pixel (i - h + a - 1, j - h + b - 1).
+    """
+    if engine not in _ENGINES:
+        raise ValueError(f"engine must be one of {_ENGINES}, got {engine!r}")
+    if int(cells) != cells or cells < 10:
+        raise ValueError(f"cells must be an integer >= 10, got {cells!r}")
+    if int(margin) != margin or margin < 1:
+        raise ValueError(f"margin must be an integer >= 1, got {margin!r}")
+    if template is None:
+        from .template import DistortionTemplate
+        template = read_galsim_sensor(DistortionTemplate, name)
+    half = template.center + int(margin)
+    charge = template.charge if charge is None else float(charge)
+    if not (np.isfinite(charge) and charge > 0):
+        raise ValueError(f"charge must be positive, got {charge!r}")
+    if engine == "galsim":
+        return _moves_galsim(name, template, half, int(cells), qdist, seed, charge)
+    return _moves_rules(template, half, int(cells), qdist, seed, charge)
+
+
+def match_galsim_transfers(template, name, *, engine="galsim", cells=2000, margin=2,
+                           qdist=3, seed=20151, charge=None):
+    """Adjust the edge samples so that every edge's swept area is GalSim's effective one.
+
+    GalSim's pixels do not tile (per-edge corner copies), and a conversion is
+    tested in its nominal pixel first, so the charge GalSim effectively moves
+    across an edge is not what its polygons' areas imply. This measures the
+    net area moved across every edge between nominal neighbours
+    (:func:`galsim_effective_moves`, :func:`transfers_from_moves`) and shifts
+    each edge's normal samples by the minimum-norm amount (corners and
+    tangential displacements untouched) that makes the trapezoid integral of
+    its normal displacement (:func:`edge_integrals`, the swept-area kernel of
+    the corrections) equal to it. Pixel areas implied by the kernels then
+    equal GalSim's effective areas, conservation included (every transfer
+    leaves one pixel and enters its neighbour).
+
+    Parameters
+    ----------
+    template : DistortionTemplate
+        The file's template (``merge='nearest'``, :func:`read_galsim_sensor`).
+    name : str
+        GalSim sensor name.
+    engine, cells, margin, qdist, seed
+        See :func:`galsim_effective_moves`.
+    charge : float, optional
+        Aggressor charge (e) at which the transfers are measured, then
+        scaled linearly to the template's charge; default the template's.
+        GalSim's polygons move linearly with charge but the areas its rule
+        moves near the non-tiling corners do not quite (second order).
+
+    Returns
+    -------
+    DistortionTemplate
+        Adjusted copy; ``meta['transfer_matched']`` records the options, the
+        largest sample change (px) and the largest effective transfer found
+        outside the template's footprint (px^2, dropped).
+    """
+    moves = galsim_effective_moves(name, template=template, engine=engine,
+                                   cells=cells, margin=margin, qdist=qdist, seed=seed,
+                                   charge=charge)
+    tv, th = transfers_from_moves(moves)
+    scale = 1.0 if charge is None else template.charge / float(charge)
+    tv, th = tv * scale, th * scale
+    n, mg = template.size, int(margin)
+    kv_t = tv[mg:mg + n, mg:mg + n + 1]
+    kh_t = th[mg:mg + n + 1, mg:mg + n]
+    outside_v = tv.copy()
+    outside_v[mg:mg + n, mg:mg + n + 1] = 0.0
+    outside_h = th.copy()
+    outside_h[mg:mg + n + 1, mg:mg + n] = 0.0
+    kv0, kh0 = edge_integrals(template)
+    w = _trapezoid_weights(template.fractions)
+    unit = w / np.sum(w * w)  # minimum-norm sample shift per unit of integral
+    vedge = template.vedge_d + (kv_t - kv0)[..., None] * unit
+    hedge = template.hedge_d + (kh_t - kh0)[..., None] * unit
+    meta = dict(template.meta)
+    meta["transfer_matched"] = {
+        "engine": engine, "cells": int(cells), "margin": int(margin),
+        "qdist": int(qdist), "seed": int(seed),
+        "charge": template.charge if charge is None else float(charge),
+        "max_sample_change_px": float(max(np.abs(vedge - template.vedge_d).max(),
+                                          np.abs(hedge - template.hedge_d).max())),
+        "max_outside_transfer_px2": float(max(np.abs(outside_v).max(),
+                                              np.abs(outside_h).max())),
+    }
+    return type(template)(template.corner_d, vedge, hedge, template.fractions,
                           template.charge, vedge_t=template.vedge_t, hedge_t=template.hedge_t,
                           meta=meta, pixel_table=template._pixel_table)

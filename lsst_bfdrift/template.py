@@ -570,7 +570,8 @@ class DistortionTemplate:
 
     # -- GalSim -----------------------------------------------------------------
     @classmethod
-    def from_galsim(cls, name="lsst_itl_50_8", *, match_areas=True):
+    def from_galsim(cls, name="lsst_itl_50_8", *, match_areas=None, match=None, qdist=3,
+                    transfer_charge=1e4, transfer_cells=4000):
         """Import one of GalSim's sensor distortion files (Poisson_CCD output).
 
         Parameters
@@ -579,7 +580,34 @@ class DistortionTemplate:
             Sensor name in galsim's ``share/sensors`` (e.g. ``lsst_itl_50_8``)
             or a path without extension to a ``.cfg``/``.dat`` pair.
         match_areas : bool, optional
-            See below.
+            Former switch, kept: True is ``match='areas'``, False is
+            ``match='none'``.
+        match : {'areas', 'transfers', 'none'}, optional
+            'areas' (the default): the shared corners are moved so that every
+            pixel polygon's area equals GalSim's own
+            (:func:`~lsst_bfdrift.galsim_io.match_galsim_areas`).
+            'transfers': the edge samples are shifted so that every edge's
+            swept area equals the area galsim.SiliconSensor effectively moves
+            across it (its non-tiling pixels and nominal-pixel-first rule,
+            :func:`~lsst_bfdrift.galsim_io.match_galsim_transfers`); the
+            swept-area kernels' pixel areas then equal GalSim's effective
+            areas (what a flat measures). 'none': each edge and corner is
+            taken from the pixel nearest the aggressor.
+        qdist : int, optional
+            GalSim's ``qdist`` of the simulation to match (its default 3);
+            used by ``match='transfers'``.
+        transfer_charge : float, optional
+            Aggressor charge (e) at which ``match='transfers'`` measures
+            GalSim's transfers, scaled linearly to the file's charge. GalSim's
+            effective transfers per electron are not quite constant (its rule
+            near the non-tiling corners): the central pixel's area change per
+            1e5 e is -0.1070, -0.1068, -0.1062 and -0.1044 px^2 at 3e3, 1e4,
+            3e4 and 1e5 e. The corrections are linear in the charge, so the
+            default takes the small-charge limit (1e4 e); the file's own
+            charge is ``transfer_charge=None``.
+        transfer_cells : int, optional
+            Sampling cells per pixel side of the transfer measurement
+            (:func:`~lsst_bfdrift.galsim_io.galsim_effective_moves`).
 
         Returns
         -------
@@ -587,16 +615,26 @@ class DistortionTemplate:
             Charge ``CollectedCharge_0_0`` of the file; sample fractions are
             GalSim's tan-spaced vertex positions; tangential displacements kept.
             The per-pixel table keeps the file's vertices exactly
-            (``polygons(per_pixel=True)``).
-        match_areas : bool, optional
-            Adjust the shared corners so that every pixel area equals
-            GalSim's own (:func:`~lsst_bfdrift.galsim_io.match_galsim_areas`);
-            otherwise each edge and corner is taken from the pixel nearest
-            the aggressor.
+            (``polygons(per_pixel=True)``). ``meta['galsim_match']`` records
+            the match.
         """
-        from .galsim_io import match_galsim_areas, read_galsim_sensor
+        from .galsim_io import match_galsim_areas, match_galsim_transfers, read_galsim_sensor
+        if match_areas is not None:
+            implied = "areas" if match_areas else "none"
+            if match is not None and match != implied:
+                raise ValueError(f"match={match!r} contradicts match_areas={match_areas!r}")
+            match = implied
+        match = "areas" if match is None else match
+        if match not in ("areas", "transfers", "none"):
+            raise ValueError(f"match must be 'areas', 'transfers' or 'none', got {match!r}")
         tpl = read_galsim_sensor(cls, name)
-        return match_galsim_areas(tpl, name) if match_areas else tpl
+        if match == "areas":
+            tpl = match_galsim_areas(tpl, name)
+        elif match == "transfers":
+            tpl = match_galsim_transfers(tpl, name, qdist=qdist, charge=transfer_charge,
+                                         cells=transfer_cells)
+        tpl.meta["galsim_match"] = match
+        return tpl
 
 
 def _json_default(obj):

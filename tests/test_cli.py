@@ -258,3 +258,19 @@ def test_correct_files_through_a_scheduler_address(capsys, tmp_path):
         with fits.open(r_serial["output"]) as a, fits.open(r_remote["output"]) as b:
             assert np.array_equal(a[0].data, b[0].data)
             assert a[0].header["BFMETHOD"] == b[0].header["BFMETHOD"]
+
+
+def test_validate_stars_defaults(capsys):
+    """validate-stars defaults to converged GalSim updates and the transfer-matched
+    import (benchmarks/probe_validation_cadence_results.txt, docs/benchmarks.rst)."""
+    import inspect
+
+    from lsst_bfdrift.cli import build_parser
+    from lsst_bfdrift.validation import draw_star_pairs
+    args = build_parser().parse_args(["validate-stars"])
+    assert (args.match, args.updates, args.min_nrecalc) == ("transfers", 1000.0, 100.0)
+    sig = inspect.signature(draw_star_pairs).parameters
+    assert (sig["updates"].default, sig["min_nrecalc"].default) == (1000, 100)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["validate-stars", "--match", "polygons"])
+    assert "invalid choice" in capsys.readouterr().err

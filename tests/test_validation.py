@@ -13,7 +13,10 @@ def test_slope_through_origin():
 
 @pytest.mark.slow
 def test_corrections_remove_most_of_the_galsim_bf_slope():
-    pairs = draw_star_pairs(20, flux=(3e5, 1.5e6), sky=0.0, seed=7)
+    # GalSim's former cadence (about 100 boundary updates): 10 times cheaper than the
+    # converged default, and its 1 % weaker effect is far inside the 15 % bound
+    pairs = draw_star_pairs(20, flux=(3e5, 1.5e6), sky=0.0, seed=7, updates=100,
+                            min_nrecalc=1e4)
     assert all(p["bf"].shape == (41, 41) for p in pairs)
     res = validate_stars(pairs, DistortionTemplate.from_galsim("lsst_itl_50_8"), sky=0.0)
     unc = res["uncorrected"]["size_slope"]
@@ -36,7 +39,8 @@ def test_sky_collected_through_the_sensor():
     the simulated region, and the BF twin differs only near the star."""
     import numpy as np
     sky = 400.0
-    (p,) = draw_star_pairs(1, flux=(2e5, 2e5), sky=sky, stamp=25, sky_radius=4, seed=3)
+    (p,) = draw_star_pairs(1, flux=(2e5, 2e5), sky=sky, stamp=25, sky_radius=4, seed=3,
+                           updates=100, min_nrecalc=1e4)
     bf, truth = p["bf"], p["truth"]
     n_pix = 25 * 25
     # same photons in both (only pixels that lost photons off the edge may differ)
