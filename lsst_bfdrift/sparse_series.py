@@ -79,14 +79,17 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None):
     sv : ndarray, shape (ny, nx + 1)
     sh : ndarray, shape (ny + 1, nx)
         Swept areas of the image's edges (px^2, operator precision).
+        ``b``, ``sv`` and ``sh`` are work arrays of ``ops``
+        (:meth:`~lsst_bfdrift.swept.OperatorCache.scratch`), overwritten by
+        the next call.
     """
     ny, nx = img.shape
     strip = ny if strip is None else min(int(strip), ny)
     halo = (ops.template.size + 1) // 2 + 2
-    b = np.empty((ny, nx))
+    b = ops.scratch("b", (ny, nx), np.float64)
     first = np.empty((ny, nx))
-    sv = np.empty((ny, nx + 1), ops.dtype)
-    sh = np.empty((ny + 1, nx), ops.dtype)
+    sv = ops.scratch("sv", (ny, nx + 1), ops.dtype)
+    sh = ops.scratch("sh", (ny + 1, nx), ops.dtype)
     for r0 in range(0, ny, strip):
         r1 = min(r0 + strip, ny)
         a, z = max(r0 - halo, 0), min(r1 + halo, ny)
@@ -330,13 +333,17 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
 
     ny = img.shape[0]
 
+    checked = []
+
     def stop(b_done, r1):
-        # the windows cover at least the active cells: once a quarter of the
-        # rows shows more than max_fraction of them active (a flat, a crowded
-        # field), the dense solver will be needed; stop early
+        # the windows cover at least the active cells: when the first quarter
+        # of the rows shows more than max_fraction of them active (a flat, a
+        # crowded field), the dense solver will be needed; stop early (one
+        # check, so that the cost stays a quarter of one cell pass)
         rows = (r1 // cell) * cell
-        if rows < ny // 4:
+        if checked or rows < ny // 4:
             return False
+        checked.append(rows)
         act = active_cells(img[:rows], b_done[:rows], ops.kernel_abs_sum, noise_tol=noise_tol,
                            limit=scalar, cell=cell, safety=safety)
         return act.mean() > max_fraction

@@ -137,6 +137,7 @@ class OperatorCache:
         self.dtype = np.dtype(dtype)
         self.max_shapes = int(max_shapes)
         self._ops = {}
+        self._scratch = {}
         kv, kh = swept_area_kernels(template)
         #: Largest sum of abs(kernel) over one edge (px^2 per electron): a bound
         #: on abs(swept area) per electron of the largest abs(charge) in reach.
@@ -152,6 +153,19 @@ class OperatorCache:
             op = SweptAreas(self.template, shape, workers=self.workers, dtype=self.dtype)
             self._ops[shape] = op
         return op
+
+    def scratch(self, name, shape, dtype):
+        """A work array kept between calls (contents undefined).
+
+        Large temporaries of the windowed series (the first-order transfer
+        and the swept areas of the whole image) are reused from one exposure
+        to the next instead of being allocated (and page-faulted) anew.
+        """
+        key = (name, tuple(int(v) for v in shape), np.dtype(dtype))
+        buf = self._scratch.get(name)
+        if buf is None or (buf.shape, buf.dtype) != key[1:]:
+            buf = self._scratch[name] = np.empty(key[1], key[2])
+        return buf
 
     def matches(self, template, workers, dtype):
         """True if this cache serves ``template`` with these settings."""

@@ -171,7 +171,7 @@ class BrighterFatterDriftTask(Task):
             ``exposure`` (corrected, same type as given; mask and uncertainty
             carried), ``area``, ``centroid_x``, ``centroid_y`` (shift from the
             pixel centre, px), ``e1``, ``e2`` (None if ``compute_geometry`` is
-            off), ``flux_moved`` (e; sums to zero), ``flags`` (bits
+            off), ``flux_moved`` (e; sums to zero), ``flags`` (uint8, bits
             FLAG_BLOCKED, FLAG_EDGE), ``iterations``, ``converged``.
         """
         cfg = self.config
@@ -201,16 +201,17 @@ class BrighterFatterDriftTask(Task):
                 max_iter=cfg.max_iter, rtol=cfg.rtol, noise_tol=cfg.noise_tol, start=cfg.start,
                 workers=cfg.workers, dtype=dtype, strip=cfg.strip, sparse=cfg.sparse,
                 cache=self._operators(dtype), info=solver)
-        moved = np.where(blocked, 0.0, flux - np.where(np.isfinite(data), data, 0.0))
-        flags = np.where(blocked, FLAG_BLOCKED, 0)
+        finite_data = np.where(np.isfinite(data), data, 0.0)
+        moved = flux - finite_data
+        moved[blocked] = 0.0
+        flags = blocked.astype(np.uint8)  # FLAG_BLOCKED = 1
         c = self.template.center
-        edge = np.zeros(data.shape, bool)
-        edge[:c], edge[-c:], edge[:, :c], edge[:, -c:] = True, True, True, True
-        flags = flags | np.where(edge, FLAG_EDGE, 0)
+        for sl in (np.s_[:c], np.s_[-c:], np.s_[:, :c], np.s_[:, -c:]):
+            flags[sl] |= FLAG_EDGE
         geom = dict(area=None, centroid_x=None, centroid_y=None, e1=None, e2=None)
         if cfg.compute_geometry:
             ns = cfg.geometry_samples
-            maps = moment_maps(self.template, np.where(np.isfinite(data), data, 0.0),
+            maps = moment_maps(self.template, finite_data,
                                workers=cfg.workers, dtype=dtype,
                                samples=None if ns is None else min(ns, self.template.edge_samples))
             geom = dict(area=maps.area, centroid_x=maps.dx, centroid_y=maps.dy, e1=maps.e1,
