@@ -9,8 +9,9 @@ swept-area operator (``SweptAreas.__call__`` and batched window stacks,
 kernel transforms included) made inside :mod:`lsst_bfdrift.swept` and
 :mod:`lsst_bfdrift.correction` during ``task.run``. The Task keeps its
 operators (kernel transforms) between calls, for every method alike. Run from the repository
-root. ``warm`` is the faster of two more calls on the same image in the same
-process (FFT plans cached, memory pools warm; not for ``drift+geometry``)::
+root. ``warm`` is the median of seven more calls on the same image in the same
+process (operators and work arrays kept by the Task, memory pools warm; not
+for ``drift+geometry``), with their spread (min-max)::
 
     python benchmarks/bench_task.py [--size 4096]
 
@@ -80,7 +81,9 @@ for _ in range({repeat}):  # same shape again: FFT plans and memory pools warm
 print(json.dumps({{"seconds": dt, "peak_rss_mb": peak - base, "baseline_rss_mb": base,
                   "image_mb": img.nbytes / 2**20, "iterations": res.iterations,
                   "converged": res.converged, "operator_calls": counted["ops"],
-                  "ffts": counted["ffts"], "warm_seconds": min(warm) if warm else None,
+                  "ffts": counted["ffts"],
+                  "warm_seconds": float(np.median(warm)) if warm else None,
+                  "warm_min": min(warm) if warm else None, "warm_max": max(warm) if warm else None,
                   "solver": res.header.get("BFSOLVER", "n/a")}}))
 """
 
@@ -105,7 +108,7 @@ def main():
             ("drift+geometry", "drift", True, {}))
     for name, method, geometry, extra in runs:
         code = CHILD.format(root=root, size=args.size, method=method, geometry=geometry,
-                            extra=extra, repeat=0 if geometry else 2)
+                            extra=extra, repeat=0 if geometry else 7)
         out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
                              text=True).stdout.strip().splitlines()[-1]
         rows[name] = json.loads(out)
@@ -114,7 +117,8 @@ def main():
     lines = [f"{args.size}x{args.size} image, {os.cpu_count()} cores"]
     for name, r in rows.items():
         ws = r["warm_seconds"]
-        warm = "" if ws is None else f"; warm {ws:5.2f} s ({ws / wbase:5.2f}x)"
+        warm = "" if ws is None else (f"; warm {ws:5.2f} s ({ws / wbase:5.2f}x, "
+                                      f"{r['warm_min']:.2f}-{r['warm_max']:.2f} s)")
         lines.append(f"{name:17s} {r['seconds']:7.2f} s  ({r['seconds'] / base:5.2f}x astier23)  "
                      f"peak RSS - baseline {r['peak_rss_mb']:6.0f} MB = "
                      f"{r['peak_rss_mb'] / r['image_mb']:4.1f}"

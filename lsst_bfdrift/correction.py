@@ -228,7 +228,7 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
         raise ValueError(f"start must be 'image' or 'series', got {start!r}")
     kw = dict(order=order, density=density, max_iter=max_iter, rtol=rtol, noise_tol=noise_tol,
               start=start, workers=workers, dtype=dtype)
-    img = np.array(image, dtype=np.float64, copy=True)
+    img = np.asarray(image, dtype=np.float64)  # read only below: no copy needed
     if img.ndim != 2:
         raise ValueError(f"image must be 2-d, got shape {img.shape}")
     blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
@@ -240,14 +240,19 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
     info = {} if info is None else info
     info["solver"] = "dense"
     if sparse and start == "series":
-        eff = np.where(np.isfinite(img), img, 0.0)
-        full_blk = blk | ~np.isfinite(img)
+        finite = np.isfinite(img)
+        if finite.all():  # the common case: no copies
+            eff, full_blk = img, blk
+        else:
+            eff, full_blk = np.where(finite, img, 0.0), blk | ~finite
+        del finite
         flux = sparse_series(eff, full_blk, ops, noise_tol=noise_tol, rtol=rtol, order=order,
                              density=density, strip=None if strip is None else int(strip),
                              info=info)
         if flux is not None:
             info["solver"] = "sparse"
-            flux[full_blk] = img[full_blk]
+            if full_blk.any():
+                flux[full_blk] = img[full_blk]
             return flux, 0, True
     ny = img.shape[0]
     if strip is None or int(strip) >= ny:

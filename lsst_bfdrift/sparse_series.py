@@ -53,7 +53,7 @@ __all__ = ["first_order_terms", "active_cells", "window_boxes", "apriori_ok", "s
 
 
 def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None):
-    """b = B(I, I), F1 = I - b/2 and the swept areas of I, by strips of rows.
+    """F1 = I - b/2 (b = B(I, I)) and the swept areas of I, by strips of rows.
 
     Parameters
     ----------
@@ -69,24 +69,24 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None):
     cubic : bool or str
         Edge flux density (see :func:`lsst_bfdrift._edge_kernels.fused_transfer`).
     stop : callable, optional
-        Called as ``stop(b, r1)`` after each block (rows ``0..r1-1`` of ``b``
-        done); when it returns True the work is abandoned and None returned.
+        Called as ``stop(first, r1)`` after each block (rows ``0..r1-1`` of
+        ``first`` done); when it returns True the work is abandoned and None
+        returned.
 
     Returns
     -------
-    b, first : ndarray, shape (ny, nx), float64
-        First-order transfer and first-order corrected image (e).
+    first : ndarray, shape (ny, nx), float64
+        First-order corrected image (e); the first-order transfer is
+        b = 2 (I - first) (exact to rounding: no copy of b is kept).
     sv : ndarray, shape (ny, nx + 1)
     sh : ndarray, shape (ny + 1, nx)
-        Swept areas of the image's edges (px^2, operator precision).
-        ``b``, ``sv`` and ``sh`` are work arrays of ``ops``
-        (:meth:`~lsst_bfdrift.swept.OperatorCache.scratch`), overwritten by
-        the next call.
+        Swept areas of the image's edges (px^2, operator precision): work
+        arrays of ``ops`` (:meth:`~lsst_bfdrift.swept.OperatorCache.scratch`),
+        overwritten by the next call.
     """
     ny, nx = img.shape
     strip = ny if strip is None else min(int(strip), ny)
     halo = (ops.template.size + 1) // 2 + 2
-    b = ops.scratch("b", (ny, nx), np.float64)
     first = np.empty((ny, nx))
     sv = ops.scratch("sv", (ny, nx + 1), ops.dtype)
     sh = ops.scratch("sh", (ny + 1, nx), ops.dtype)
@@ -95,21 +95,21 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None):
         a, z = max(r0 - halo, 0), min(r1 + halo, ny)
         bsv, bsh = ops((z - a, nx))(img[a:z])
         bb = fused_transfer(bsv, bsh, img[a:z], blocked[a:z], cubic=cubic)
-        b[r0:r1] = bb[r0 - a:r1 - a]
         np.multiply(bb[r0 - a:r1 - a], -0.5, out=first[r0:r1])
         first[r0:r1] += img[r0:r1]
         sv[r0:r1] = bsv[r0 - a:r1 - a]
         top = r1 + 1 if r1 == ny else r1  # the last block also owns the top edge row
         sh[r0:top] = bsh[r0 - a:top - a]
         del bsv, bsh, bb
-        if stop is not None and r1 < ny and stop(b, r1):
+        if stop is not None and r1 < ny and stop(first, r1):
             return None
-    return b, first, sv, sh
+    return first, sv, sh
 
 
 @numba.njit(parallel=True, cache=True)
-def _cell_stats(img, b, cell, imax, imin, bmax):
-    """Per cell: max abs(I), min I, max abs(b)."""
+def _cell_stats(img, x, from_first, cell, imax, imin, bmax):
+    """Per cell: max abs(I), min I, max abs(b), with b = x or, if
+    ``from_first``, b = 2 (I - x)."""
     ny, nx = img.shape
     my, mx = imax.shape
     for cy in numba.prange(my):
@@ -120,12 +120,13 @@ def _cell_stats(img, b, cell, imax, imin, bmax):
                     v = img[j, i]
                     hi = max(hi, abs(v))
                     lo = min(lo, v)
-                    bm = max(bm, abs(b[j, i]))
+                    bv = 2.0 * (v - x[j, i]) if from_first else x[j, i]
+                    bm = max(bm, abs(bv))
             imax[cy, cx], imin[cy, cx], bmax[cy, cx] = hi, lo, bm
 
 
 def active_cells(img, b, kernel_abs_sum, *, noise_tol=None, limit=None, cell=16,
-                 safety=20.0):
+                 safety=20.0, from_first=False):
     """Cells whose first-order transfer needs the higher-order terms.
 
     Parameters
@@ -142,6 +143,9 @@ def active_cells(img, b, kernel_abs_sum, *, noise_tol=None, limit=None, cell=16,
         Cell size (px).
     safety : float, optional
         Factor of the bound.
+    from_first : bool, optional
+        ``b`` is the first-order corrected image F1 and the transfer is
+        2 (I - F1).
 
     Returns
     -------
@@ -150,8 +154,8 @@ def active_cells(img, b, kernel_abs_sum, *, noise_tol=None, limit=None, cell=16,
     ny, nx = img.shape
     shape = (-(-ny // cell), -(-nx // cell))
     imax, imin, bmax = np.empty(shape), np.empty(shape), np.empty(shape)
-    _cell_stats(np.ascontiguousarray(img, float), np.ascontiguousarray(b, float), int(cell),
-                imax, imin, bmax)
+    _cell_stats(np.ascontiguousarray(img, float), np.ascontiguousarray(b, float),
+                bool(from_first), int(cell), imax, imin, bmax)
     if noise_tol is not None:
         lmin = float(noise_tol) * np.sqrt(np.maximum(imin, 1.0))
     else:
@@ -210,7 +214,7 @@ def apriori_ok(x2, x3, limit):
     return bool(np.all(4.0 * r * ndimage.maximum_filter(a3, size=5, mode="nearest") <= limit))
 
 
-def _window_terms(ops, boxes, img, blk, b, sv, sh, a3, a4, cubic):
+def _window_terms(ops, boxes, img, blk, first, sv, sh, a3, a4, cubic):
     """Per window: the terms beyond first order (c/4 + (1/4 - a3) d + x3),
     x2 and x3, in ``boxes`` order."""
     groups = {}
@@ -226,13 +230,15 @@ def _window_terms(ops, boxes, img, blk, b, sv, sh, a3, a4, cubic):
         stack = np.zeros((len(ks),) + shape)
         for m, k in enumerate(ks):
             y0, y1, x0, x1 = boxes[k]
-            stack[m, :y1 - y0, :x1 - x0] = b[y0:y1, x0:x1]
+            np.subtract(img[y0:y1, x0:x1], first[y0:y1, x0:x1],
+                        out=stack[m, :y1 - y0, :x1 - x0])
+            stack[m, :y1 - y0, :x1 - x0] *= 2.0                              # b
         svb, shb = op.apply_stack(stack)
         ds = []
         for m, k in enumerate(ks):
             y0, y1, x0, x1 = boxes[k]
             h, w = y1 - y0, x1 - x0
-            iw, kw, bw = img[y0:y1, x0:x1], blk[y0:y1, x0:x1], b[y0:y1, x0:x1]
+            iw, kw, bw = img[y0:y1, x0:x1], blk[y0:y1, x0:x1], stack[m, :h, :w].copy()
             svw, shw = sv[y0:y1, x0:x1 + 1], sh[y0:y1 + 1, x0:x1]
             sbv, sbh = svb[m, :h, :w + 1], shb[m, :h + 1, :w]
             c = fused_transfer(svw, shw, bw, kw, cubic=cubic)                 # B(b, I)
@@ -335,7 +341,7 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
 
     checked = []
 
-    def stop(b_done, r1):
+    def stop(first_done, r1):
         # the windows cover at least the active cells: when the first quarter
         # of the rows shows more than max_fraction of them active (a flat, a
         # crowded field), the dense solver will be needed; stop early (one
@@ -344,8 +350,9 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         if checked or rows < ny // 4:
             return False
         checked.append(rows)
-        act = active_cells(img[:rows], b_done[:rows], ops.kernel_abs_sum, noise_tol=noise_tol,
-                           limit=scalar, cell=cell, safety=safety)
+        act = active_cells(img[:rows], first_done[:rows], ops.kernel_abs_sum,
+                           noise_tol=noise_tol, limit=scalar, cell=cell, safety=safety,
+                           from_first=True)
         return act.mean() > max_fraction
 
     terms = first_order_terms(img, blocked, ops, strip=strip, cubic=cubic, stop=stop)
@@ -353,8 +360,9 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         info.update(windows=None, window_fraction=None, dilate=dilate,
                     reason=f"more than {max_fraction:.0%} of the cells need the higher orders")
         return None
-    b, out, sv, sh = terms
-    act = active_cells(img, b, ops.kernel_abs_sum, noise_tol=noise_tol, limit=scalar,
+    out, sv, sh = terms
+    act = active_cells(img, out, ops.kernel_abs_sum, from_first=True, noise_tol=noise_tol,
+                       limit=scalar,
                        cell=cell, safety=safety)
     for grow in range(3):
         boxes = window_boxes(act, img.shape, cell=cell, dilate=dilate + grow)
@@ -363,7 +371,7 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         if frac > max_fraction:
             info["reason"] = f"windows cover {frac:.0%} of the image"
             return None
-        extra, x2s, x3s = _window_terms(ops, boxes, img, blocked, b, sv, sh, a3, a4, cubic)
+        extra, x2s, x3s = _window_terms(ops, boxes, img, blocked, out, sv, sh, a3, a4, cubic)
         lims = [tolerance(*bx) for bx in boxes]
         if all(_ring_ok(e, bx, img.shape, lim, ring_fraction)
                for e, bx, lim in zip(extra, boxes, lims)):
