@@ -79,7 +79,8 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
                         sensor="lsst_itl_50_8", fwhm=(0.7, 0.95), e_range=0.04,
                         flux=(1e4, 1.5e6), sky=800.0, read_noise=5.0, min_separation=32,
                         stamp=31, pixel_scale=0.2, beta_moffat=3.5, sky_through_sensor=True,
-                        sky_radius=8, updates=100, seed=20151, progress=False):
+                        sky_radius=8, updates=1000, min_nrecalc=100, seed=20151,
+                        progress=False):
     """A star field drawn by galsim.SiliconSensor.
 
     Parameters
@@ -125,9 +126,13 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
         collected through the sensor (plus a 3-pixel margin); None: the whole
         stamp (larger values are clipped to the stamp).
     updates : float, optional
-        GalSim recomputes the boundaries every ``nrecalc = max(1e4, N /
-        updates)`` photons (N: a star's photons plus its sky photons); the
-        lag weakens the simulated effect by about 1 / ``updates``.
+        GalSim recomputes the boundaries every ``nrecalc = max(min_nrecalc,
+        N / updates)`` photons (N: a star's photons plus its sky photons).
+        The default, about 1000 updates per star, is converged
+        (``benchmarks/probe_validation_cadence_results.txt``: 100 updates
+        weaken the simulated effect by about 1 %).
+    min_nrecalc : float, optional
+        Smallest ``nrecalc`` (photons).
     seed : int, optional
         Seed of every random number.
     progress : bool, optional
@@ -171,7 +176,7 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
         set_omp_threads(1)
         _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_range, flux,
               beta_moffat, stamp, half, pixel_scale, sensor, float(sky), sky_radius, updates,
-              collected)
+              min_nrecalc, collected)
     finally:
         set_omp_threads(n_threads)
     sky_img = rng.poisson(sky, (ny, nx)).astype(float)
@@ -189,7 +194,8 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
 
 
 def _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_range, flux,
-          beta_moffat, stamp, half, pixel_scale, sensor, sky, sky_radius, updates, collected):
+          beta_moffat, stamp, half, pixel_scale, sensor, sky, sky_radius, updates, min_nrecalc,
+          collected):
     """Draw every star into ``images`` (one per strength), appending truth rows.
 
     With ``collected`` (bool (ny, nx)), the sky in each star's box is collected
@@ -215,13 +221,14 @@ def _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_r
             if collected is None:
                 ims, _ = accumulate_twins(px, py, pf, strengths, sensor=sensor, seed=s2,
                                           stamp=stamp, pixel_scale=pixel_scale, rng=rng_sky,
-                                          updates=updates)
+                                          updates=updates, min_nrecalc=min_nrecalc)
             else:
                 # sky already collected by a closer neighbour's box is not collected twice
                 ims, _ = accumulate_twins(px, py, pf, strengths, sensor=sensor, seed=s2,
                                           stamp=stamp, pixel_scale=pixel_scale, sky=sky,
                                           box=(lo, hi), feed=SKY_MARGIN, sky_mask=~collected[win],
-                                          rng=rng_sky, updates=updates)
+                                          rng=rng_sky, updates=updates,
+                                          min_nrecalc=min_nrecalc)
                 collected[win][inner, inner] = True
             for k, im in enumerate(ims):
                 images[k][win] += im

@@ -14,12 +14,12 @@ def paired_fields():
     """Three 320 x 320 fields of 22 stars with BF strength 0, 5 and 10 (seeded).
 
     The sky is collected through the sensor in 13 x 13 px (+3 px margin) around
-    each star, with 50 boundary updates per star (library defaults: 17 x 17 and
-    100), which keeps the drawing at about 2.2x the time of sky added afterwards
-    (3.1x with the defaults).
+    each star, with about 50 boundary updates per star (library defaults: 17 x 17
+    and 1000), which keeps the drawing at about 2.2x the time of sky added afterwards
+    (3.1x with 100 updates; more with the defaults).
     """
     return simulate_star_field((320, 320), 22, strength=STRENGTHS, flux=(2e4, 1.5e6),
-                               sky_radius=6, updates=50, seed=20157)
+                               sky_radius=6, updates=50, min_nrecalc=1e4, seed=20157)
 
 
 @functools.lru_cache(maxsize=None)

@@ -116,7 +116,8 @@ def test_field_sky_is_level_across_the_boxes_and_stars_do_not_depend_on_it():
     star's box (no diffusion ring), and the stars (positions, fluxes) are the
     same with the sky added afterwards."""
     sky = 800.0
-    kw = dict(strength=1.0, flux=(1e4, 2e4), sky=sky, read_noise=0.0, seed=6, sky_radius=4)
+    kw = dict(strength=1.0, flux=(1e4, 2e4), sky=sky, read_noise=0.0, seed=6, sky_radius=4,
+              updates=100, min_nrecalc=1e4)
     a = simulate_star_field((96, 96), 2, **kw)
     b = simulate_star_field((96, 96), 2, sky_through_sensor=False, **kw)
     for k in ("x", "y", "flux"):
