@@ -9,6 +9,8 @@ correcting many exposures (or strips of one) transforms the kernels once.
 Used by :mod:`lsst_bfdrift.correction` and :mod:`lsst_bfdrift.sparse_series`.
 """
 
+import threading
+
 import numpy as np
 from scipy import fft as sp_fft
 
@@ -137,7 +139,7 @@ class OperatorCache:
         self.dtype = np.dtype(dtype)
         self.max_shapes = int(max_shapes)
         self._ops = {}
-        self._scratch = {}
+        self._scratch = threading.local()
         kv, kh = swept_area_kernels(template)
         #: Largest sum of abs(kernel) over one edge (px^2 per electron): a bound
         #: on abs(swept area) per electron of the largest abs(charge) in reach.
@@ -157,14 +159,17 @@ class OperatorCache:
     def scratch(self, name, shape, dtype):
         """A work array kept between calls (contents undefined).
 
-        Large temporaries of the windowed series (the first-order transfer
-        and the swept areas of the whole image) are reused from one exposure
-        to the next instead of being allocated (and page-faulted) anew.
+        Large temporaries of the windowed series (the swept areas of the
+        whole image) are reused from one exposure to the next instead of
+        being allocated (and page-faulted) anew; each thread has its own.
         """
-        key = (name, tuple(int(v) for v in shape), np.dtype(dtype))
-        buf = self._scratch.get(name)
-        if buf is None or (buf.shape, buf.dtype) != key[1:]:
-            buf = self._scratch[name] = np.empty(key[1], key[2])
+        shape, dtype = tuple(int(v) for v in shape), np.dtype(dtype)
+        store = getattr(self._scratch, "arrays", None)
+        if store is None:  # one set per thread: a Task may run in several threads
+            store = self._scratch.arrays = {}
+        buf = store.get(name)
+        if buf is None or (buf.shape, buf.dtype) != (shape, dtype):
+            buf = store[name] = np.empty(shape, dtype)
         return buf
 
     def matches(self, template, workers, dtype):

@@ -228,3 +228,20 @@ def test_task_uses_windows_and_keeps_its_operators(sky_field):
     lim = 0.05 * np.sqrt(img[ok])
     assert np.max(np.abs(res.exposure - dense.exposure)[ok] / lim) < 0.1
     assert abs(res.flux_moved.sum()) < 1e-9 * np.nansum(img)
+
+
+def test_one_task_in_several_threads(sky_field):
+    """A Task shared by threads (as in a dask worker) gives each image the
+    result it gets alone: the work arrays are per thread."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask
+    img, _ = sky_field
+    imgs = [np.nan_to_num(img), np.nan_to_num(img[::-1].copy()), np.nan_to_num(img.T.copy())]
+    task = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(compute_geometry=False,
+                                                                    workers=1))
+    alone = [task.run(a).exposure for a in imgs]
+    with ThreadPoolExecutor(3) as pool:
+        together = list(pool.map(lambda a: task.run(a).exposure, imgs * 2))
+    for k, out in enumerate(together):
+        assert np.array_equal(out, alone[k % 3])
