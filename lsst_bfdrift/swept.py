@@ -140,6 +140,7 @@ class OperatorCache:
         self.max_shapes = int(max_shapes)
         self._ops = {}
         self._scratch = threading.local()
+        self._lock = threading.Lock()
         kv, kh = swept_area_kernels(template)
         #: Largest sum of abs(kernel) over one edge (px^2 per electron): a bound
         #: on abs(swept area) per electron of the largest abs(charge) in reach.
@@ -148,12 +149,13 @@ class OperatorCache:
     def __call__(self, shape):
         """The operator for images of ``shape`` (built on first use)."""
         shape = (int(shape[0]), int(shape[1]))
-        op = self._ops.get(shape)
-        if op is None:
-            if len(self._ops) >= self.max_shapes:
-                self._ops.pop(next(iter(self._ops)))
-            op = SweptAreas(self.template, shape, workers=self.workers, dtype=self.dtype)
-            self._ops[shape] = op
+        with self._lock:  # shared by the threads of a dask worker
+            op = self._ops.get(shape)
+            if op is None:
+                if len(self._ops) >= self.max_shapes:
+                    self._ops.pop(next(iter(self._ops)))
+                op = SweptAreas(self.template, shape, workers=self.workers, dtype=self.dtype)
+                self._ops[shape] = op
         return op
 
     def scratch(self, name, shape, dtype):
