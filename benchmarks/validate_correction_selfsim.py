@@ -12,7 +12,7 @@ two methods on the same images, free of the star-to-star scatter. Writes
 ``benchmarks/selfsim_results.txt``::
 
     python benchmarks/validate_correction_selfsim.py [--grid 4] [--flux 1e6] \
-        [--fwhm 0.6 0.7 0.9]
+        [--fwhm 0.6 0.7 0.9] [--psf moffat kolmogorov]
 """
 
 import argparse
@@ -29,9 +29,9 @@ from lsst_bfdrift.stars import StarSimulation, image_moments, shoot_photons  # n
 from lsst_bfdrift.template import load_default_template  # noqa: E402
 from lsst_bfdrift.validation import _moments  # noqa: E402
 
-VARIANTS = {"drift": dict(method="drift"),
+VARIANTS = {"drift": dict(method="drift"),  # default density 'fv4'
             "drift cubic4": dict(method="drift", density="cubic4"),
-            "drift fv4": dict(method="drift", density="fv4"),
+            "drift mean2": dict(method="drift", density="mean2"),
             "astier23": dict(method="astier23"),
             "coulton18": dict(method="coulton18")}
 MEASURES = {"adaptive": lambda a: _moments(a, 0.0)[0],
@@ -44,21 +44,26 @@ def main():
                     help="sub-pixel centres on a grid x grid lattice (grid^2 stars per width)")
     ap.add_argument("--flux", type=float, default=1e6)
     ap.add_argument("--fwhm", type=float, nargs="+", default=[0.6, 0.7, 0.9])
+    ap.add_argument("--psf", nargs="+", default=["moffat", "kolmogorov"],
+                    choices=["moffat", "kolmogorov"])
     a = ap.parse_args()
     t = load_default_template()
     tasks = {m: BrighterFatterDriftTask(config=BrighterFatterDriftConfig(
         compute_geometry=False, **kw)) for m, kw in VARIANTS.items()}
     g = (np.arange(a.grid) + 0.5) / a.grid - 0.5
     offsets = [(ox, oy) for ox in g for oy in g]  # balanced over the pixel phase
-    lines = [f"{len(offsets)} Moffat stars (beta 3.5) of {a.flux:.3g} e per width, centres on a "
+    lines = [f"{len(offsets)} stars (Moffat beta 3.5, Kolmogorov) of {a.flux:.3g} e per PSF and "
+             f"width, centres on a "
              f"{a.grid} x {a.grid} sub-pixel grid, bundled template "
              "in the simulation and the corrections, 1000 boundary updates per star; residual "
              "size excess / uncorrected growth (mean +- error of the mean)"]
-    for fwhm in a.fwhm:
+    for psf, fwhm in [(p, w) for p in a.psf for w in a.fwhm]:
         res = {(ms, m): [] for ms in MEASURES for m in VARIANTS}
         unc = {ms: [] for ms in MEASURES}
         for k, off in enumerate(offsets):
-            x, y = shoot_photons(galsim.Moffat(beta=3.5, fwhm=fwhm), int(a.flux), seed=100 + k)
+            prof = (galsim.Kolmogorov(fwhm=fwhm) if psf == "kolmogorov"
+                    else galsim.Moffat(beta=3.5, fwhm=fwhm))
+            x, y = shoot_photons(prof, int(a.flux), seed=100 + k)
             sim = StarSimulation(t, stamp_size=31, update_every=int(a.flux // 1000))
             sim.add(x + 15 + off[0], y + 15 + off[1])
             img, truth = sim.image, sim.nominal_image
@@ -70,13 +75,13 @@ def main():
                     res[(ms, m)].append((f(c) - t0) / (ti - t0))
         for ms in MEASURES:
             u = np.array(unc[ms])
-            lines.append(f"FWHM {fwhm} arcsec, {ms} moments: uncorrected dT/T "
+            lines.append(f"{psf} FWHM {fwhm} arcsec, {ms} moments: uncorrected dT/T "
                          f"{u.mean():+.5f} +- {u.std(ddof=1) / np.sqrt(len(u)):.5f}")
             for m in VARIANTS:
                 v = np.array(res[(ms, m)])
                 lines.append(f"  {m:14s} {100 * v.mean():+6.2f} +- "
                              f"{100 * v.std(ddof=1) / np.sqrt(len(v)):.2f} %")
-            for m in ("drift", "drift cubic4", "drift fv4"):
+            for m in ("drift", "drift cubic4", "drift mean2"):
                 d = np.array(res[(ms, m)]) - np.array(res[(ms, "astier23")])
                 lines.append(f"  paired {m} - astier23 {100 * d.mean():+6.2f} +- "
                              f"{100 * d.std(ddof=1) / np.sqrt(len(d)):.2f} %")
