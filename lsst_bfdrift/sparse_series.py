@@ -225,22 +225,27 @@ def _window_terms(ops, boxes, img, blk, first, sv, sh, a3, a4, cubic):
     for shape, ks in groups.items():
         # windows are zero-padded to a few standard shapes (the convolution
         # of a zero-padded window is the window's own), so that operators
-        # and their kernel transforms are shared
+        # and their kernel transforms are shared; every window's arrays are
+        # made contiguous once (the compiled transfer needs them so)
         op = ops(shape)
-        stack = np.zeros((len(ks),) + shape)
+        stack = np.zeros((len(ks),) + shape, op.dtype)
+        win = []
         for m, k in enumerate(ks):
             y0, y1, x0, x1 = boxes[k]
-            np.subtract(img[y0:y1, x0:x1], first[y0:y1, x0:x1],
-                        out=stack[m, :y1 - y0, :x1 - x0])
-            stack[m, :y1 - y0, :x1 - x0] *= 2.0                              # b
+            iw = np.ascontiguousarray(img[y0:y1, x0:x1])
+            bw = iw - first[y0:y1, x0:x1]
+            bw *= 2.0                                                         # b
+            stack[m, :y1 - y0, :x1 - x0] = bw
+            win.append((iw, bw, np.ascontiguousarray(blk[y0:y1, x0:x1]),
+                        np.ascontiguousarray(sv[y0:y1, x0:x1 + 1]),
+                        np.ascontiguousarray(sh[y0:y1 + 1, x0:x1])))
         svb, shb = op.apply_stack(stack)
         ds = []
         for m, k in enumerate(ks):
-            y0, y1, x0, x1 = boxes[k]
-            h, w = y1 - y0, x1 - x0
-            iw, kw, bw = img[y0:y1, x0:x1], blk[y0:y1, x0:x1], stack[m, :h, :w].copy()
-            svw, shw = sv[y0:y1, x0:x1 + 1], sh[y0:y1 + 1, x0:x1]
-            sbv, sbh = svb[m, :h, :w + 1], shb[m, :h + 1, :w]
+            iw, bw, kw, svw, shw = win[m]
+            h, w = iw.shape
+            sbv = np.ascontiguousarray(svb[m, :h, :w + 1])
+            sbh = np.ascontiguousarray(shb[m, :h + 1, :w])
             c = fused_transfer(svw, shw, bw, kw, cubic=cubic)                 # B(b, I)
             d = fused_transfer(sbv, sbh, iw, kw, cubic=cubic)                 # B(I, b)
             x2 = c * 0.25 + (0.25 - a3) * d
@@ -252,12 +257,12 @@ def _window_terms(ops, boxes, img, blk, first, sv, sh, a3, a4, cubic):
         del svb, shb
         svy, shy = op.apply_stack(stack)
         for m, k in enumerate(ks):
-            y0, y1, x0, x1 = boxes[k]
-            h, w = y1 - y0, x1 - x0
-            x3s[k] += fused_transfer(svy[m, :h, :w + 1], shy[m, :h + 1, :w], img[y0:y1, x0:x1],
-                                     blk[y0:y1, x0:x1], cubic=cubic)          # B(I, y)
+            iw, bw, kw, svw, shw = win[m]
+            h, w = iw.shape
+            x3s[k] += fused_transfer(svy[m, :h, :w + 1], shy[m, :h + 1, :w], iw, kw,
+                                     cubic=cubic)                              # B(I, y)
             extra[k] = ds[m] + x3s[k]
-        del svy, shy, stack, ds
+        del svy, shy, stack, ds, win
     return extra, x2s, x3s
 
 
