@@ -196,11 +196,13 @@ def _cmd_maps(args):
         image = image * args.gain
     tpl = _load_template(args.template)
     with ProgressBar(image.shape[0], "maps", enabled=not args.quiet) as bar:
-        maps = moment_maps(tpl, image, mask=bad, workers=2, progress=bar)
+        samples = None if args.samples is None else min(args.samples, tpl.edge_samples)
+        maps = moment_maps(tpl, image, mask=bad, workers=2, progress=bar, samples=samples)
     summary = {
         "image": os.path.abspath(path), "shape": list(image.shape),
         "template": args.template or "default",
         "template_charge": tpl.charge,
+        "edge_samples": tpl.edge_samples if samples is None else samples,
         "masked_pixels": int(bad.sum()),
         "max_charge": float(np.nanmax(np.where(bad, np.nan, image))),
         "area_min": float(maps.area.min()), "area_max": float(maps.area.max()),
@@ -210,6 +212,7 @@ def _cmd_maps(args):
     }
     if args.out:
         header["BFTEMPL"] = (str(args.template or "default")[-60:], "lsst_bfdrift template")
+        header["BFGSAMP"] = (summary["edge_samples"], "edge samples of the geometry")
         _write_maps(args.out, maps, header)
         summary["out"] = os.path.abspath(args.out)
     if args.plot:
@@ -610,6 +613,9 @@ def build_parser():
     m.add_argument("--gain", type=float, help="e/ADU if the image is in ADU")
     m.add_argument("--out", help="write the maps to this FITS file")
     m.add_argument("--plot", help="write a PNG of the maps")
+    m.add_argument("--samples", type=int, default=None,
+                   help="resample the template's edges to this many samples (faster; 8 "
+                        "keeps the maps within ~1e-5 of the full ones); default: all")
     m.add_argument("--json", action="store_true")
     m.add_argument("--quiet", action="store_true")
     m.set_defaults(func=_cmd_maps)

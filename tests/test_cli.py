@@ -68,6 +68,22 @@ def test_maps_on_sample(capsys, tmp_path):
         assert hdul["AREA"].data.min() == pytest.approx(s["area_min"])
 
 
+def test_maps_with_resampled_edges(capsys, tmp_path):
+    """--samples 8 gives the full maps to ~1e-5 of their signal and records
+    the sample count; nonsense values are refused."""
+    full, fast = tmp_path / "full.fits", tmp_path / "fast.fits"
+    assert _run(capsys, "maps", "--quiet", "--json", "--out", str(full))[0] == 0
+    code, out, _ = _run(capsys, "maps", "--quiet", "--json", "--samples", "8", "--out",
+                        str(fast))
+    assert code == 0 and json.loads(out)["edge_samples"] == 8
+    with fits.open(full) as a, fits.open(fast) as b:
+        assert b[0].header["BFGSAMP"] == 8 and a[0].header["BFGSAMP"] == 32
+        signal = np.abs(a["AREA"].data - 1.0).max()
+        assert np.abs(b["AREA"].data - a["AREA"].data).max() < 1e-3 * signal
+    code, _, err = _run(capsys, "maps", "--quiet", "--samples", "0")
+    assert code == 2 and "samples" in err
+
+
 def test_maps_masks_nan_pixels(capsys, tmp_path):
     img = np.full((20, 20), 1000.0)
     img[10, 10] = 5e4
