@@ -228,6 +228,11 @@ class BrighterFatterDriftTask(Task):
         header["BFCONV"] = (bool(converged), "solver converged")
         if cfg.method == "drift":
             header["BFSOLVER"] = (solver.get("solver", "dense"), "drift series: sparse or dense")
+        if cfg.compute_geometry:
+            ns = self.template.edge_samples
+            if cfg.geometry_samples is not None:
+                ns = min(cfg.geometry_samples, ns)
+            header["BFGSAMP"] = (ns, "edge samples of the geometry maps")
         header["BFQTMPL"] = (self.template.charge, "template aggressor charge (e)")
         header["BFTMPL"] = (os.path.basename(str(cfg.template or "bundled default"))[-40:],
                             "BF template file")

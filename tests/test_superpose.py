@@ -300,6 +300,8 @@ def test_task_geometry_samples(default_template, small_template, rng):
         cfg = BrighterFatterDriftConfig(geometry_samples=ns, fft_precision="float64")
         res[ns] = BrighterFatterDriftTask(cfg, template=default_template).run(q)
     assert_allclose(res[None].area, full.area, rtol=1e-13)
+    assert res[None].header["BFGSAMP"] == default_template.edge_samples
+    assert res[8].header["BFGSAMP"] == 8
     red = moment_maps(default_template, q, samples=8)
     assert_allclose(res[8].e2, red.e2, rtol=1e-12, atol=1e-15)
     assert np.abs(res[8].area - full.area).max() < 1e-4 * np.abs(full.area - 1).max()
@@ -313,6 +315,7 @@ def test_task_geometry_samples(default_template, small_template, rng):
     small = BrighterFatterDriftTask(BrighterFatterDriftConfig(fft_precision="float64"),
                                     template=small_template).run(q[:20, :20])
     assert_allclose(small.area, moment_maps(small_template, q[:20, :20]).area, rtol=1e-13)
+    assert small.header["BFGSAMP"] == small_template.edge_samples
     with pytest.raises(FieldValidationError, match="geometry_samples"):
         BrighterFatterDriftConfig(geometry_samples=0).validate()
 
