@@ -378,8 +378,11 @@ def _cmd_validate_stars(args):
         _print_json(out)
     else:
         for k, v in res.items():
+            paired = ("" if "size_slope_minus_astier23" not in v else
+                      f"  paired minus astier23 {v['size_slope_minus_astier23']:+.2e} +- "
+                      f"{v['size_slope_minus_astier23_err']:.1e}")
             print(f"{k:12s} size slope {v['size_slope']:+.2e} +- {v['size_slope_err']:.1e}  "
-                  f"e1 slope {v['e_slope']:+.2e} +- {v['e_slope_err']:.1e}")
+                  f"e1 slope {v['e_slope']:+.2e} +- {v['e_slope_err']:.1e}{paired}")
     return 0
 
 

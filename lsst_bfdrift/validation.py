@@ -169,7 +169,11 @@ def validate_stars(pairs, template, *, methods=("coulton18", "astier23", "drift"
     dict
         For ``uncorrected`` and each method: ``size_slope`` (fractional change
         of T = Ixx + Iyy per 1e5 e) and ``e_slope`` (change of e1 per 1e5 e),
-        ``e2_slope``, their ``*_err``, and ``n_stars`` used.
+        ``e2_slope``, their ``*_err``, and ``n_stars`` used; for the methods
+        other than ``astier23`` (when it is compared) also
+        ``size_slope_minus_astier23`` and its error, the slope of the per-star
+        difference (paired on the same images, so far more precise than the
+        difference of the two slopes).
     """
     from .task import BrighterFatterDriftConfig, BrighterFatterDriftTask
 
@@ -193,6 +197,7 @@ def validate_stars(pairs, template, *, methods=("coulton18", "astier23", "drift"
     if len(fluxes) < 3:
         raise RuntimeError(f"only {len(fluxes)} stars had measurable moments; need >= 3")
     out = {}
+    ref = np.array(rows["astier23"]) if "astier23" in rows else None
     for k, v in rows.items():
         v = np.array(v)
         s, se = _slope(fluxes, v[:, 0])
@@ -200,4 +205,8 @@ def validate_stars(pairs, template, *, methods=("coulton18", "astier23", "drift"
         e2, e2e = _slope(fluxes, v[:, 2])
         out[k] = {"size_slope": s, "size_slope_err": se, "e_slope": e1, "e_slope_err": e1e,
                   "e2_slope": e2, "e2_slope_err": e2e, "n_stars": len(fluxes)}
+        if ref is not None and k not in ("uncorrected", "astier23"):
+            # paired: slope of the per-star difference, free of the star-to-star scatter
+            d, de = _slope(fluxes, v[:, 0] - ref[:, 0])
+            out[k].update(size_slope_minus_astier23=d, size_slope_minus_astier23_err=de)
     return out

@@ -1,6 +1,7 @@
 """Tests of lsst_bfdrift.validation on stars drawn by galsim.SiliconSensor."""
 
 import pytest
+from numpy.testing import assert_allclose
 
 from lsst_bfdrift.template import DistortionTemplate
 from lsst_bfdrift.validation import _slope, draw_star_pairs, validate_stars
@@ -25,6 +26,13 @@ def test_corrections_remove_most_of_the_galsim_bf_slope():
     for m in ("coulton18", "astier23", "drift"):
         assert abs(res[m]["size_slope"]) < 0.15 * unc  # >= 85 % removed
     assert res["drift"]["n_stars"] >= 17
+    # the paired slope is the slope of the per-star difference: by linearity it
+    # equals the difference of the slopes, with a far smaller error
+    d = res["drift"]
+    assert_allclose(d["size_slope_minus_astier23"],
+                    d["size_slope"] - res["astier23"]["size_slope"], rtol=1e-9, atol=1e-15)
+    assert d["size_slope_minus_astier23_err"] < 0.8 * d["size_slope_err"]  # measured 0.66
+    assert "size_slope_minus_astier23" not in res["astier23"]
 
 
 def test_needs_stars():
