@@ -118,8 +118,10 @@ def _named(fn, name):
 
 
 _fused = numba.njit(parallel=True, cache=True)(_named(_fused_py, "_fused_parallel"))
-# One thread for small arrays: a parallel region costs a thread wake-up
-# (up to a scheduler time slice, ~8 ms, on a busy machine), far more than the work.
+# One thread for small arrays (the windows of the windowed series): a parallel
+# region needs the other thread awake, which on a busy machine can take a
+# scheduler time slice, far more than the work (on a quiet one the two are
+# alike: benchmarks/profile_drift_results.txt).
 _fused_serial = numba.njit(cache=True)(_named(_fused_py, "_fused_serial"))
 
 #: Outer weight w of the four-point densities (w, 1/2 - w, 1/2 - w, w).
@@ -174,10 +176,6 @@ def fused_transfer(sv, sh, flux, blocked, *, cubic=False, out=None):
                          f"blocked {b.shape}")
     if out is None:
         out = np.empty((ny, nx))
-    # numba's dispatch of non-contiguous ('A') arrays costs ~8 ms a call
-    # (measured, numba 0.68), more than copying them
-    sv = np.ascontiguousarray(sv)
-    sh = np.ascontiguousarray(sh)
     kernel = _fused_serial if ny * nx < SERIAL_BELOW else _fused
     kernel(sv, sh, f, b, b.any(axis=1), density_weight(cubic), out)
     return out

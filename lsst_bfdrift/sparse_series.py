@@ -225,8 +225,7 @@ def _window_terms(ops, boxes, img, blk, first, sv, sh, a3, a4, cubic):
     for shape, ks in groups.items():
         # windows are zero-padded to a few standard shapes (the convolution
         # of a zero-padded window is the window's own), so that operators
-        # and their kernel transforms are shared; every window's arrays are
-        # made contiguous once (the compiled transfer needs them so)
+        # and their kernel transforms are shared
         op = ops(shape)
         stack = np.zeros((len(ks),) + shape, op.dtype)
         win = []
@@ -237,15 +236,13 @@ def _window_terms(ops, boxes, img, blk, first, sv, sh, a3, a4, cubic):
             bw *= 2.0                                                         # b
             stack[m, :y1 - y0, :x1 - x0] = bw
             win.append((iw, bw, np.ascontiguousarray(blk[y0:y1, x0:x1]),
-                        np.ascontiguousarray(sv[y0:y1, x0:x1 + 1]),
-                        np.ascontiguousarray(sh[y0:y1 + 1, x0:x1])))
+                        sv[y0:y1, x0:x1 + 1], sh[y0:y1 + 1, x0:x1]))
         svb, shb = op.apply_stack(stack)
         ds = []
         for m, k in enumerate(ks):
             iw, bw, kw, svw, shw = win[m]
             h, w = iw.shape
-            sbv = np.ascontiguousarray(svb[m, :h, :w + 1])
-            sbh = np.ascontiguousarray(shb[m, :h + 1, :w])
+            sbv, sbh = svb[m, :h, :w + 1], shb[m, :h + 1, :w]
             c = fused_transfer(svw, shw, bw, kw, cubic=cubic)                 # B(b, I)
             d = fused_transfer(sbv, sbh, iw, kw, cubic=cubic)                 # B(I, b)
             x2 = c * 0.25 + (0.25 - a3) * d

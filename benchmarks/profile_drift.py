@@ -1,0 +1,152 @@
+"""Where the drift solver's time goes, against astier23 (issue 5 performance).
+
+Complements ``bench_task.py`` (one process per configuration) with
+in-process figures on the same 4096 x 4096 field (sky 1200 e, 400 stars):
+
+1. the two Tasks alternated eight times (warm): median and fastest call of
+   each and their ratios;
+2. the windowed series (``sparse_series``) split into its first-order pass
+   (the astier23 pass), the activity test and the windows, median of five
+   calls, with the number of windows and the fraction of the image they cover;
+3. a bright flat (1e5 e, 2048 x 2048): the dense series alone against the
+   windowed attempt that gives up and falls back to it;
+4. the compiled edge transfer on a 64 x 64 window, one thread against the
+   parallel kernel (median per call).
+
+Run from the repository root::
+
+    python benchmarks/profile_drift.py
+
+Prints and writes ``benchmarks/profile_drift_results.txt``.
+"""
+
+import os
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))
+
+from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
+from lsst_bfdrift import _edge_kernels as E  # noqa: E402
+from lsst_bfdrift import correction as C  # noqa: E402
+from lsst_bfdrift import sparse_series as S  # noqa: E402
+from lsst_bfdrift.swept import OperatorCache  # noqa: E402
+from lsst_bfdrift.template import load_default_template  # noqa: E402
+
+
+def star_field(n=4096, seed=1):
+    """The field of bench_task.py."""
+    rng = np.random.default_rng(seed)
+    img = rng.poisson(1200.0, (n, n)).astype(np.float64)
+    yy, xx = np.mgrid[-8:9, -8:9]
+    for _ in range(400):
+        x, y = rng.integers(20, n - 20, 2)
+        f = 10 ** rng.uniform(4, np.log10(1.5e6))
+        img[y - 8:y + 9, x - 8:x + 9] += f * np.exp(-0.5 * (xx**2 + yy**2) / 1.5**2) / (
+            2 * np.pi * 1.5**2)
+    return img
+
+
+def timed(f, *a, **k):
+    t0 = time.perf_counter()
+    out = f(*a, **k)
+    return out, time.perf_counter() - t0
+
+
+def main():
+    lines = [f"4096 x 4096 field of bench_task.py, {os.cpu_count()} cores, 2 FFT threads"]
+    img = star_field()
+    t = load_default_template()
+    # 1. alternating Tasks
+    tasks = {m: BrighterFatterDriftTask(config=BrighterFatterDriftConfig(
+        method=m, compute_geometry=False, workers=2)) for m in ("drift", "astier23")}
+    for task in tasks.values():
+        task.run(img)
+    times = {m: [] for m in tasks}
+    for _ in range(8):
+        for m, task in tasks.items():
+            times[m].append(timed(task.run, img)[1])
+    md = {m: float(np.median(v)) for m, v in times.items()}
+    mn = {m: float(np.min(v)) for m, v in times.items()}
+    lines.append(f"1. Tasks alternated 8 times: drift median {md['drift']:.3f} s (fastest "
+                 f"{mn['drift']:.3f} s), astier23 median {md['astier23']:.3f} s (fastest "
+                 f"{mn['astier23']:.3f} s); ratio of medians {md['drift'] / md['astier23']:.2f}x, "
+                 f"of fastest calls {mn['drift'] / mn['astier23']:.2f}x")
+    # 2. parts of the windowed series
+    ops = OperatorCache(t, workers=2, dtype=np.float32)
+    blk = np.zeros(img.shape, bool)
+    parts = {"first-order pass": [], "activity test": [], "windows": []}
+    wrapped = {"first-order pass": "first_order_terms", "activity test": "active_cells",
+               "windows": "_window_terms"}
+    orig = {k: getattr(S, v) for k, v in wrapped.items()}
+    acc = {}
+
+    def wrap(name):
+        def g(*a, **k):
+            out, dt = timed(orig[name], *a, **k)
+            acc[name] = acc.get(name, 0.0) + dt
+            return out
+        return g
+
+    for k, v in wrapped.items():
+        setattr(S, v, wrap(k))
+    try:
+        totals = []
+        for r in range(6):
+            acc.clear()
+            info = {}
+            _, dt = timed(S.sparse_series, img, blk, ops, noise_tol=0.05, density="fv4",
+                          info=info)
+            if r:  # the first call builds the window operators
+                totals.append(dt)
+                for k in parts:
+                    parts[k].append(acc.get(k, 0.0))
+    finally:
+        for k, v in wrapped.items():
+            setattr(S, v, orig[k])
+    lines.append(f"2. windowed series, median of 5 calls: total {np.median(totals):.3f} s = "
+                 + ", ".join(f"{k} {np.median(v):.3f} s" for k, v in parts.items())
+                 + f"; {info['windows']} windows covering {100 * info['window_fraction']:.1f} %"
+                 " of the image")
+    # 3. bright flat: fallback cost
+    rng = np.random.default_rng(2)
+    flat = rng.poisson(1e5, (2048, 2048)).astype(float)
+    kw = dict(density="fv4", noise_tol=0.05, start="series", dtype=np.float32, strip=512,
+              workers=2, cache=OperatorCache(t, workers=2, dtype=np.float32))
+    C.correct_image(flat, t, **kw)
+    dense, attempt = [], []
+    for _ in range(3):
+        dense.append(timed(C.correct_image, flat, t, **kw)[1])
+        info = {}
+        attempt.append(timed(C.correct_image, flat, t, sparse=True, info=info, **kw)[1])
+    lines.append(f"3. flat 1e5 e, 2048 x 2048: dense series {np.median(dense):.3f} s, windowed "
+                 f"attempt + fallback {np.median(attempt):.3f} s "
+                 f"({np.median(attempt) / np.median(dense):.2f}x; solver {info['solver']}: "
+                 f"{info['reason']})")
+    # 4. small-window edge transfer, one thread against the parallel kernel
+    rng = np.random.default_rng(3)
+    f = rng.uniform(0, 1e4, (64, 64))
+    b = np.zeros(f.shape, bool)
+    sv = rng.normal(size=(64, 65)).astype(np.float32)
+    sh = rng.normal(size=(65, 64)).astype(np.float32)
+    res = {}
+    for name, kern in (("one thread", E._fused_serial), ("parallel", E._fused)):
+        out = np.empty(f.shape)
+        kern(sv, sh, f, b, b.any(axis=1), E.density_weight("fv4"), out)
+        res[name] = np.median([timed(kern, sv, sh, f, b, b.any(axis=1),
+                                     E.density_weight("fv4"), out)[1] for _ in range(50)])
+    lines.append(f"4. edge transfer on a 64 x 64 window, median of 50 calls: one thread "
+                 f"{1e3 * res['one thread']:.3f} ms, parallel {1e3 * res['parallel']:.3f} ms")
+    load = os.getloadavg()[0]
+    lines.append(f"load average {load:.1f} at the end")
+    text = "\n".join(lines) + "\n"
+    print(text, end="")
+    with open(os.path.join(HERE, "profile_drift_results.txt"), "w") as fh:
+        fh.write(text)
+
+
+if __name__ == "__main__":
+    main()
