@@ -52,7 +52,7 @@ import numpy as np
 from scipy import fft as sp_fft
 
 from ._edge_kernels import density_weight, fused_transfer
-from .sparse_series import apriori_ok, sparse_series
+from .sparse_series import apriori_ok, first_order_terms, sparse_series
 from .swept import OperatorCache, SweptAreas, swept_area_kernels
 
 __all__ = ["edge_flux_density", "edge_transfer",
@@ -492,23 +492,12 @@ def correct_half_shift(image, template, *, blocked=None, workers=1, dtype=np.flo
         raise ValueError(f"blocked shape {blk.shape} does not match image {img.shape}")
     blk = blk | ~np.isfinite(img)
     img_eff = np.where(np.isfinite(img), img, 0.0)
-    ops = _operators(cache, template, workers, dtype)
-    ny = img.shape[0]
-    strip = ny if strip is None else int(strip)
-    if strip < 1:
+    if strip is not None and int(strip) < 1:
         raise ValueError(f"strip must be positive, got {strip}")
-    halo = (template.size + 1) // 2 + 2
-    flux = np.empty_like(img_eff)
-    for r0 in range(0, ny, strip):
-        r1 = min(r0 + strip, ny)
-        a, z = max(r0 - halo, 0), min(r1 + halo, ny)
-        sv, sh = ops((z - a, img.shape[1]))(img_eff[a:z])
-        t = fused_transfer(sv, sh, img_eff[a:z], blk[a:z], cubic=False)
-        del sv, sh
-        flux[r0:r1] = t[r0 - a:r1 - a]
-        del t
-    flux *= -0.5
-    flux += img_eff
+    ops = _operators(cache, template, workers, dtype)
+    # the first-order pass of the windowed series is exactly this pass
+    flux, _, _ = first_order_terms(img_eff, blk, ops, strip=strip, cubic="mean2",
+                                   keep_swept=False)
     flux[blk] = img[blk]
     return flux, 1, True
 

@@ -52,7 +52,7 @@ from ._edge_kernels import fused_transfer
 __all__ = ["first_order_terms", "active_cells", "window_boxes", "apriori_ok", "sparse_series"]
 
 
-def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None):
+def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=True):
     """F1 = I - b/2 (b = B(I, I)) and the swept areas of I, by strips of rows.
 
     Parameters
@@ -72,6 +72,9 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None):
         Called as ``stop(first, r1)`` after each block (rows ``0..r1-1`` of
         ``first`` done); when it returns True the work is abandoned and None
         returned.
+    keep_swept : bool, optional
+        Keep the swept areas (False: ``sv`` and ``sh`` are returned as None;
+        the astier23 pass needs only ``first``).
 
     Returns
     -------
@@ -88,8 +91,8 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None):
     strip = ny if strip is None else min(int(strip), ny)
     halo = (ops.template.size + 1) // 2 + 2
     first = np.empty((ny, nx))
-    sv = ops.scratch("sv", (ny, nx + 1), ops.dtype)
-    sh = ops.scratch("sh", (ny + 1, nx), ops.dtype)
+    sv = ops.scratch("sv", (ny, nx + 1), ops.dtype) if keep_swept else None
+    sh = ops.scratch("sh", (ny + 1, nx), ops.dtype) if keep_swept else None
     for r0 in range(0, ny, strip):
         r1 = min(r0 + strip, ny)
         a, z = max(r0 - halo, 0), min(r1 + halo, ny)
@@ -97,9 +100,10 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None):
         bb = fused_transfer(bsv, bsh, img[a:z], blocked[a:z], cubic=cubic)
         np.multiply(bb[r0 - a:r1 - a], -0.5, out=first[r0:r1])
         first[r0:r1] += img[r0:r1]
-        sv[r0:r1] = bsv[r0 - a:r1 - a]
-        top = r1 + 1 if r1 == ny else r1  # the last block also owns the top edge row
-        sh[r0:top] = bsh[r0 - a:top - a]
+        if keep_swept:
+            sv[r0:r1] = bsv[r0 - a:r1 - a]
+            top = r1 + 1 if r1 == ny else r1  # the last block also owns the top edge row
+            sh[r0:top] = bsh[r0 - a:top - a]
         del bsv, bsh, bb
         if stop is not None and r1 < ny and stop(first, r1):
             return None
