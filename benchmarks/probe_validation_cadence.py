@@ -47,7 +47,7 @@ sys.path.insert(0, os.path.dirname(HERE))
 from lsst_bfdrift.galsim_twins import accumulate_twins, shoot_stamp_photons, sky_box  # noqa: E402
 from lsst_bfdrift.stars import make_psf  # noqa: E402
 from lsst_bfdrift.template import DistortionTemplate  # noqa: E402
-from lsst_bfdrift.validation import _moments, _slope, validate_stars  # noqa: E402
+from lsst_bfdrift.validation import _slope, per_star_residuals, residual_slopes  # noqa: E402
 
 METHODS = ("coulton18", "astier23", "drift")
 
@@ -116,29 +116,9 @@ def table(title, res, lines):
 
 
 def per_star_rows(pairs, template, sky=1000.0):
-    """Per-star (dT/T, de1) of each method against the twin, as in validate_stars.
-
-    Returns (flux / 1e5, {name: (n, 2) array}) for the stars measurable in every image.
-    """
-    from lsst_bfdrift.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
-    tasks = {m: BrighterFatterDriftTask(
-        config=BrighterFatterDriftConfig(method=m, compute_geometry=False), template=template)
-        for m in METHODS}
-    fl, rows = [], {k: [] for k in ("uncorrected",) + METHODS}
-    for p in pairs:
-        truth = _moments(p["truth"], sky)
-        meas = {"uncorrected": _moments(p["bf"], sky)}
-        for m, t in tasks.items():
-            meas[m] = _moments(t.run(p["bf"]).exposure, sky)
-        if truth is None or any(v is None for v in meas.values()):
-            fl.append(np.nan)
-            for k in rows:
-                rows[k].append((np.nan, np.nan))
-            continue
-        fl.append(p["flux"] / 1e5)
-        for k, v in meas.items():
-            rows[k].append((v[0] / truth[0] - 1.0, v[1] - truth[1]))
-    return np.array(fl), {k: np.array(v) for k, v in rows.items()}
+    """Per-star residuals of each method against the twin
+    (:func:`lsst_bfdrift.validation.per_star_residuals`; NaN where unmeasurable)."""
+    return per_star_residuals(pairs, template, methods=METHODS, sky=sky)
 
 
 def paired(base, other, label, lines):
@@ -178,12 +158,13 @@ def qdist_templates(args):
         with galsim_qdist(qd):
             tpl_q = DistortionTemplate.from_galsim("lsst_itl_50_8", match_areas=True)
         tag = f"pairs of {cad}, template match_areas=True with GalSim qdist={qd}"
-        res = validate_stars(pairs, tpl_q)
+        rows_q = per_star_rows(pairs, tpl_q)
+        res = residual_slopes(*rows_q)
         table(f" {tag}", res, lines)
         out["runs"][cad][f"match_areas_qdist{qd}"] = res
         tpl_m = DistortionTemplate.from_galsim("lsst_itl_50_8", match_areas=True)
         out["runs"][cad][f"paired_template_qdist{qd}"] = paired(
-            per_star_rows(pairs, tpl_m), per_star_rows(pairs, tpl_q),
+            per_star_rows(pairs, tpl_m), rows_q,
             f"template qdist={qd}-matched minus qdist=3-matched, {cad}", lines)
     with open(args.out + ".json", "w") as fh:
         json.dump(out, fh, indent=2)
@@ -219,7 +200,8 @@ def main():
                              qdist=qd)
         t_draw, w_draw = time.process_time() - t0, time.time() - w0
         t0 = time.process_time()
-        res_m = validate_stars(pairs, tpl_m)
+        rows = per_star_rows(pairs, tpl_m)
+        res_m = residual_slopes(*rows)
         t_val = time.process_time() - t0
         tag = f"updates={upd:g}, min_nrecalc={mn:g}, qdist={qd or 3}"
         lines.append(f"[{tag}] draw {t_draw:.0f} s CPU ({w_draw:.0f} s wall), "
@@ -230,10 +212,10 @@ def main():
         run = {"updates": upd, "min_nrecalc": mn, "qdist": qd or 3, "draw_cpu_s": t_draw,
                "validate_cpu_s": t_val, "match_areas_true": res_m,
                "indices": [p["index"] for p in pairs]}
-        res_n = validate_stars(pairs, tpl_n)
+        rows_n = per_star_rows(pairs, tpl_n)
+        res_n = residual_slopes(*rows_n)
         table(f" template match_areas=False, {tag}", res_n, lines)
         run["match_areas_false"] = res_n
-        rows = per_star_rows(pairs, tpl_m)
         fl, rr = rows
         ok = np.isfinite(fl)
         unc = _slope(fl[ok], rr["uncorrected"][ok, 0])[0]
@@ -246,7 +228,7 @@ def main():
                          f"{100 * ds / unc:+.2f} +- {100 * dse / unc:.2f} %, e1 "
                          f"{100 * de / ue1:+.1f} +- {100 * dee / abs(ue1):.1f} % of uncorrected")
             print(lines[-1], flush=True)
-        run["paired_template"] = paired(rows, per_star_rows(pairs, tpl_n),
+        run["paired_template"] = paired(rows, rows_n,
                                         f"template match_areas=False minus True, {tag}", lines)
         if cad != args.cadences[0]:
             run["paired_vs_first"] = paired(first_rows, rows,

@@ -38,8 +38,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
 from lsst_bfdrift.template import DistortionTemplate  # noqa: E402
-from lsst_bfdrift.validation import (_moments, _slope, draw_star_pairs,  # noqa: E402
-                                     validate_stars)
+from lsst_bfdrift.validation import (_slope, draw_star_pairs,  # noqa: E402
+                                     per_star_residuals, residual_slopes)
 
 METHODS = ("coulton18", "astier23", "drift")
 
@@ -68,25 +68,11 @@ def load_or_draw(psf, args):
 
 
 def per_star_rows(pairs, template, sky):
-    """Per-star (dT/T, de1) of each method against the BF-free twin (NaN: unmeasurable)."""
-    from lsst_bfdrift.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
-    tasks = {m: BrighterFatterDriftTask(
-        config=BrighterFatterDriftConfig(method=m, compute_geometry=False), template=template)
-        for m in METHODS}
-    # the drift series with astier23's two-pixel density: the time history alone
-    tasks["drift mean2"] = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(
-        method="drift", density="mean2", compute_geometry=False), template=template)
-    fl, rows = [], {k: [] for k in ("uncorrected",) + tuple(tasks)}
-    for p in pairs:
-        truth = _moments(p["truth"], sky)
-        meas = {"uncorrected": _moments(p["bf"], sky)}
-        for m, t in tasks.items():
-            meas[m] = _moments(t.run(p["bf"]).exposure, sky)
-        ok = truth is not None and all(v is not None for v in meas.values())
-        fl.append(p["flux"] / 1e5 if ok else np.nan)
-        for k, v in meas.items():
-            rows[k].append((v[0] / truth[0] - 1.0, v[1] - truth[1]) if ok else (np.nan, np.nan))
-    return np.array(fl), {k: np.array(v) for k, v in rows.items()}
+    """Per-star residuals of the three methods and of drift with astier23's
+    two-pixel density (the time history alone), NaN where unmeasurable."""
+    methods = {m: {"method": m} for m in METHODS}
+    methods["drift mean2"] = {"method": "drift", "density": "mean2"}
+    return per_star_residuals(pairs, template, methods=methods, sky=sky, progress=True)
 
 
 def paired_slope(fl, a, b):
@@ -132,7 +118,8 @@ def main():
         out["psfs"][psf] = {}
         rows = {}
         for name, tpl in templates.items():
-            res = validate_stars(pairs, tpl, sky=args.sky, progress=True)
+            fl, rr = rows[name] = per_star_rows(pairs, tpl, args.sky)
+            res = residual_slopes(fl, {k: rr[k] for k in ("uncorrected",) + METHODS})
             unc = res["uncorrected"]["size_slope"]
             uerr = res["uncorrected"]["e_slope"]
             lines.append(f" template match={name!r}")
@@ -145,7 +132,6 @@ def main():
                     f"{v['e_slope']:+.2e} +- {v['e_slope_err']:.1e} "
                     f"({100 * v['e_slope'] / uerr:+6.1f} +- {100 * v['e_slope_err'] / abs(uerr):.1f}"
                     f" %)  n={v['n_stars']}")
-            fl, rr = rows[name] = per_star_rows(pairs, tpl, args.sky)
             ds, dse = paired_slope(fl, rr["drift"][:, 0], rr["astier23"][:, 0])
             de, dee = paired_slope(fl, rr["drift"][:, 1], rr["astier23"][:, 1])
             res["drift_minus_astier23"] = {"size_slope": ds, "size_slope_err": dse,

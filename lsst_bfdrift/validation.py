@@ -25,7 +25,7 @@ import numpy as np
 
 from .progress import ProgressBar
 
-__all__ = ["draw_star_pairs", "validate_stars"]
+__all__ = ["draw_star_pairs", "per_star_residuals", "residual_slopes", "validate_stars"]
 
 
 def draw_star_pairs(n_stars, *, sensor="lsst_itl_50_8", psf="moffat", fwhm=(0.6, 0.9),
@@ -147,9 +147,97 @@ def _slope(x, y):
     return float(s), float(err)
 
 
+def per_star_residuals(pairs, template, *, methods=("coulton18", "astier23", "drift"),
+                       sky=1000.0, progress=False):
+    """Per-star size and ellipticity residuals before and after each correction.
+
+    Parameters
+    ----------
+    pairs : list of dict
+        From :func:`draw_star_pairs`.
+    template : DistortionTemplate
+        Green's function used by the corrections.
+    methods : sequence of str or dict, optional
+        Task methods to compare, or a mapping label -> Task config overrides
+        (e.g. ``{"drift mean2": {"method": "drift", "density": "mean2"}}``).
+    sky : float, optional
+        Sky level subtracted before measuring moments (e).
+    progress : bool, optional
+        Progress bar.
+
+    Returns
+    -------
+    fluxes : ndarray, shape (n,)
+        Star fluxes per 1e5 e (NaN for a star unmeasurable in any image).
+    rows : dict
+        For ``uncorrected`` and each label, an (n, 3) array of
+        T / T_truth - 1, e1 - e1_truth and e2 - e2_truth (NaN likewise).
+    """
+    from .task import BrighterFatterDriftConfig, BrighterFatterDriftTask
+
+    configs = (dict(methods) if isinstance(methods, dict)
+               else {m: {"method": m} for m in methods})
+    tasks = {k: BrighterFatterDriftTask(
+        config=BrighterFatterDriftConfig(compute_geometry=False, **kw), template=template)
+        for k, kw in configs.items()}
+    rows = {k: [] for k in ("uncorrected",) + tuple(tasks)}
+    fluxes = []
+    with ProgressBar(len(pairs), "validate", enabled=progress) as bar:
+        for p in pairs:
+            truth = _moments(p["truth"], sky)
+            meas = {"uncorrected": _moments(p["bf"], sky)}
+            for m, t in tasks.items():
+                meas[m] = _moments(t.run(p["bf"]).exposure, sky)
+            bar(1)
+            ok = truth is not None and all(v is not None for v in meas.values())
+            fluxes.append(p["flux"] / 1e5 if ok else np.nan)
+            for k, v in meas.items():
+                rows[k].append((v[0] / truth[0] - 1.0, v[1] - truth[1], v[2] - truth[2])
+                               if ok else (np.nan,) * 3)
+    return np.array(fluxes, float), {k: np.array(v, float).reshape(-1, 3)
+                                     for k, v in rows.items()}
+
+
+def residual_slopes(fluxes, rows):
+    """Slopes through the origin of :func:`per_star_residuals` (measurable stars).
+
+    Returns
+    -------
+    dict
+        For each key of ``rows``: ``size_slope`` (fractional change of
+        T = Ixx + Iyy per 1e5 e) and ``e_slope`` (change of e1 per 1e5 e),
+        ``e2_slope``, their ``*_err``, and ``n_stars`` used; for the keys
+        other than ``uncorrected`` and ``astier23`` (when present) also
+        ``size_slope_minus_astier23`` and its error, the slope of the per-star
+        difference (paired on the same images, so far more precise than the
+        difference of the two slopes).
+    """
+    ok = np.isfinite(fluxes)
+    n = int(ok.sum())
+    if n < 3:
+        raise RuntimeError(f"only {n} stars had measurable moments; need >= 3")
+    f = fluxes[ok]
+    ref = rows["astier23"][ok] if "astier23" in rows else None
+    out = {}
+    for k, v in rows.items():
+        v = v[ok]
+        s, se = _slope(f, v[:, 0])
+        e1, e1e = _slope(f, v[:, 1])
+        e2, e2e = _slope(f, v[:, 2])
+        out[k] = {"size_slope": s, "size_slope_err": se, "e_slope": e1, "e_slope_err": e1e,
+                  "e2_slope": e2, "e2_slope_err": e2e, "n_stars": n}
+        if ref is not None and k not in ("uncorrected", "astier23"):
+            # paired: slope of the per-star difference, free of the star-to-star scatter
+            d, de = _slope(f, v[:, 0] - ref[:, 0])
+            out[k].update(size_slope_minus_astier23=d, size_slope_minus_astier23_err=de)
+    return out
+
+
 def validate_stars(pairs, template, *, methods=("coulton18", "astier23", "drift"), sky=1000.0,
                    progress=False):
     """Size and ellipticity slopes before and after each correction.
+
+    :func:`per_star_residuals` then :func:`residual_slopes`.
 
     Parameters
     ----------
@@ -167,46 +255,7 @@ def validate_stars(pairs, template, *, methods=("coulton18", "astier23", "drift"
     Returns
     -------
     dict
-        For ``uncorrected`` and each method: ``size_slope`` (fractional change
-        of T = Ixx + Iyy per 1e5 e) and ``e_slope`` (change of e1 per 1e5 e),
-        ``e2_slope``, their ``*_err``, and ``n_stars`` used; for the methods
-        other than ``astier23`` (when it is compared) also
-        ``size_slope_minus_astier23`` and its error, the slope of the per-star
-        difference (paired on the same images, so far more precise than the
-        difference of the two slopes).
+        See :func:`residual_slopes`.
     """
-    from .task import BrighterFatterDriftConfig, BrighterFatterDriftTask
-
-    tasks = {m: BrighterFatterDriftTask(
-        config=BrighterFatterDriftConfig(method=m, compute_geometry=False), template=template)
-        for m in methods}
-    rows = {k: [] for k in ("uncorrected",) + tuple(methods)}
-    fluxes = []
-    with ProgressBar(len(pairs), "validate", enabled=progress) as bar:
-        for p in pairs:
-            truth = _moments(p["truth"], sky)
-            meas = {"uncorrected": _moments(p["bf"], sky)}
-            for m, t in tasks.items():
-                meas[m] = _moments(t.run(p["bf"]).exposure, sky)
-            bar(1)
-            if truth is None or any(v is None for v in meas.values()):
-                continue
-            fluxes.append(p["flux"] / 1e5)
-            for k, v in meas.items():
-                rows[k].append((v[0] / truth[0] - 1.0, v[1] - truth[1], v[2] - truth[2]))
-    if len(fluxes) < 3:
-        raise RuntimeError(f"only {len(fluxes)} stars had measurable moments; need >= 3")
-    out = {}
-    ref = np.array(rows["astier23"]) if "astier23" in rows else None
-    for k, v in rows.items():
-        v = np.array(v)
-        s, se = _slope(fluxes, v[:, 0])
-        e1, e1e = _slope(fluxes, v[:, 1])
-        e2, e2e = _slope(fluxes, v[:, 2])
-        out[k] = {"size_slope": s, "size_slope_err": se, "e_slope": e1, "e_slope_err": e1e,
-                  "e2_slope": e2, "e2_slope_err": e2e, "n_stars": len(fluxes)}
-        if ref is not None and k not in ("uncorrected", "astier23"):
-            # paired: slope of the per-star difference, free of the star-to-star scatter
-            d, de = _slope(fluxes, v[:, 0] - ref[:, 0])
-            out[k].update(size_slope_minus_astier23=d, size_slope_minus_astier23_err=de)
-    return out
+    return residual_slopes(*per_star_residuals(pairs, template, methods=methods, sky=sky,
+                                               progress=progress))
