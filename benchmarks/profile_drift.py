@@ -6,8 +6,10 @@ in-process figures on the same 4096 x 4096 field (sky 1200 e, 400 stars):
 1. the two Tasks alternated eight times (warm): median and fastest call of
    each and their ratios;
 2. the windowed series (``sparse_series``) split into its first-order pass
-   (the astier23 pass), the activity test and the windows, median of five
-   calls, with the number of windows and the fraction of the image they cover;
+   (the astier23 pass, keeping the swept areas and gathering the cell
+   statistics), the activity test and the windows, median of five calls,
+   with the number of windows and the fraction of the image they cover, and
+   the astier23 pass alone (``correct_half_shift``) in the same loop;
 3. a bright flat (1e5 e, 2048 x 2048): the dense series alone against the
    windowed attempt that gives up and falls back to it;
 4. the compiled edge transfer on a 64 x 64 window, one thread against the
@@ -78,9 +80,10 @@ def main():
     # 2. parts of the windowed series
     ops = OperatorCache(t, workers=2, dtype=np.float32)
     blk = np.zeros(img.shape, bool)
-    parts = {"first-order pass": [], "activity test": [], "windows": []}
-    wrapped = {"first-order pass": "first_order_terms", "activity test": "active_cells",
-               "windows": "_window_terms"}
+    parts = {"first-order pass (with the cell statistics)": [], "activity test": [],
+             "windows": []}
+    wrapped = {"first-order pass (with the cell statistics)": "first_order_terms",
+               "activity test": "active_from_stats", "windows": "_window_terms"}
     orig = {k: getattr(S, v) for k, v in wrapped.items()}
     acc = {}
 
@@ -94,14 +97,17 @@ def main():
     for k, v in wrapped.items():
         setattr(S, v, wrap(k))
     try:
-        totals = []
+        totals, half = [], []
         for r in range(6):
             acc.clear()
             info = {}
             _, dt = timed(S.sparse_series, img, blk, ops, noise_tol=0.05, density="fv4",
                           info=info)
+            _, dh = timed(C.correct_half_shift, img, t, blocked=blk, workers=2,
+                          dtype=np.float32, strip=512, cache=ops)
             if r:  # the first call builds the window operators
                 totals.append(dt)
+                half.append(dh)
                 for k in parts:
                     parts[k].append(acc.get(k, 0.0))
     finally:
@@ -110,7 +116,8 @@ def main():
     lines.append(f"2. windowed series, median of 5 calls: total {np.median(totals):.3f} s = "
                  + ", ".join(f"{k} {np.median(v):.3f} s" for k, v in parts.items())
                  + f"; {info['windows']} windows covering {100 * info['window_fraction']:.1f} %"
-                 " of the image")
+                 f" of the image; astier23 pass alone (correct_half_shift) {np.median(half):.3f} s"
+                 f" (ratio {np.median(totals) / np.median(half):.2f}x)")
     # 3. bright flat: fallback cost
     rng = np.random.default_rng(2)
     flat = rng.poisson(1e5, (2048, 2048)).astype(float)

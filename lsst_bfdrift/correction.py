@@ -52,7 +52,7 @@ import numpy as np
 from scipy import fft as sp_fft
 
 from ._edge_kernels import density_weight, fused_transfer
-from .sparse_series import apriori_ok, first_order_terms, sparse_series
+from .sparse_series import apriori_ok, first_order_terms, sparse_series, tolerance
 from .swept import OperatorCache, SweptAreas, swept_area_kernels
 
 __all__ = ["edge_flux_density", "edge_transfer",
@@ -240,12 +240,7 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
     info = {} if info is None else info
     info["solver"] = "dense"
     if sparse and start == "series":
-        finite = np.isfinite(img)
-        if finite.all():  # the common case: no copies
-            eff, full_blk = img, blk
-        else:
-            eff, full_blk = np.where(finite, img, 0.0), blk | ~finite
-        del finite
+        eff, full_blk = _finite(img, blk)
         flux = sparse_series(eff, full_blk, ops, noise_tol=noise_tol, rtol=rtol, order=order,
                              density=density, strip=None if strip is None else int(strip),
                              info=info)
@@ -295,8 +290,17 @@ def _operators(cache, template, workers, dtype):
 def _limit(img_eff, noise_tol, rtol):
     """Tolerance per pixel (e): noise-based array or rtol x max |I| (scalar)."""
     if noise_tol is not None:
-        return float(noise_tol) * np.sqrt(np.maximum(img_eff, 1.0))
+        return tolerance(img_eff, noise_tol)
     return rtol * max(np.abs(img_eff).max(), 1e-300)
+
+
+def _finite(img, blocked):
+    """Image with non-finite pixels set to 0 and the blocked mask including
+    them; ``img`` and ``blocked`` themselves (no copies) when all are finite."""
+    finite = np.isfinite(img)
+    if finite.all():
+        return img, blocked
+    return np.where(finite, img, 0.0), blocked | ~finite
 
 
 def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, noise_tol, start,
@@ -306,8 +310,7 @@ def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, nois
     With ``series_only``, returns (None, 0, False) when the series alone is
     not accurate enough instead of iterating.
     """
-    blk = blocked | ~np.isfinite(img)
-    img_eff = np.where(np.isfinite(img), img, 0.0)
+    img_eff, blk = _finite(img, blocked)
     if swept is None:
         swept = SweptAreas(template, img.shape, workers=workers, dtype=dtype)
     limit = _limit(img_eff, noise_tol, rtol)
@@ -437,15 +440,13 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
     converged : bool
         True (no iteration).
     """
-    img = np.array(image, dtype=np.float64, copy=True)
+    img = np.asarray(image, dtype=np.float64)  # read only below: no copy needed
     if img.ndim != 2:
         raise ValueError(f"image must be 2-d, got shape {img.shape}")
     blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
     if blk.shape != img.shape:
         raise ValueError(f"blocked shape {blk.shape} does not match image {img.shape}")
-    finite = np.isfinite(img)
-    blk = blk | ~finite
-    img_eff = np.where(finite, img, 0.0)
+    img_eff, blk = _finite(img, blk)
     ny, nx = img.shape
     if strip is None or int(strip) >= ny:
         swept = SweptAreas(template, img.shape, workers=workers, dtype=dtype)
@@ -484,20 +485,19 @@ def correct_half_shift(image, template, *, blocked=None, workers=1, dtype=np.flo
     -------
     flux, iterations (1), converged (True)
     """
-    img = np.array(image, dtype=np.float64, copy=True)
+    img = np.asarray(image, dtype=np.float64)  # read only below: no copy needed
     if img.ndim != 2:
         raise ValueError(f"image must be 2-d, got shape {img.shape}")
     blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
     if blk.shape != img.shape:
         raise ValueError(f"blocked shape {blk.shape} does not match image {img.shape}")
-    blk = blk | ~np.isfinite(img)
-    img_eff = np.where(np.isfinite(img), img, 0.0)
     if strip is not None and int(strip) < 1:
         raise ValueError(f"strip must be positive, got {strip}")
+    img_eff, blk = _finite(img, blk)
     ops = _operators(cache, template, workers, dtype)
     # the first-order pass of the windowed series is exactly this pass
-    flux, _, _ = first_order_terms(img_eff, blk, ops, strip=strip, cubic="mean2",
-                                   keep_swept=False)
+    flux = first_order_terms(img_eff, blk, ops, strip=strip, cubic="mean2",
+                             keep_swept=False)[0]
     flux[blk] = img[blk]
     return flux, 1, True
 

@@ -47,12 +47,14 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-from ._edge_kernels import fused_transfer
+from ._edge_kernels import _fused_serial, density_weight, fused_transfer
 
-__all__ = ["first_order_terms", "active_cells", "window_boxes", "apriori_ok", "sparse_series"]
+__all__ = ["first_order_terms", "active_cells", "active_from_stats", "tolerance", "window_boxes",
+           "apriori_ok", "sparse_series"]
 
 
-def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=True):
+def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=True,
+                      cell=None):
     """F1 = I - b/2 (b = B(I, I)) and the swept areas of I, by strips of rows.
 
     Parameters
@@ -69,12 +71,16 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=
     cubic : bool or str
         Edge flux density (see :func:`lsst_bfdrift._edge_kernels.fused_transfer`).
     stop : callable, optional
-        Called as ``stop(first, r1)`` after each block (rows ``0..r1-1`` of
-        ``first`` done); when it returns True the work is abandoned and None
-        returned.
+        Called as ``stop(r1, stats)`` after each block (rows ``0..r1-1``
+        done; ``stats`` as returned, None without ``cell``); when it returns
+        True the work is abandoned and None returned.
     keep_swept : bool, optional
         Keep the swept areas (False: ``sv`` and ``sh`` are returned as None;
         the astier23 pass needs only ``first``).
+    cell : int, optional
+        Also gather, per ``cell`` x ``cell`` cell, max abs(I), min I and
+        max abs(b) (the statistics of :func:`active_cells`) while each block
+        is in cache.
 
     Returns
     -------
@@ -86,6 +92,9 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=
         Swept areas of the image's edges (px^2, operator precision): work
         arrays of ``ops`` (:meth:`~lsst_bfdrift.swept.OperatorCache.scratch`),
         overwritten by the next call.
+    stats : tuple of ndarray or None
+        ``(imax, imin, bmax)``, each of shape ``(ceil(ny / cell),
+        ceil(nx / cell))``; None without ``cell``.
     """
     ny, nx = img.shape
     strip = ny if strip is None else min(int(strip), ny)
@@ -93,21 +102,55 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=
     first = np.empty((ny, nx))
     sv = ops.scratch("sv", (ny, nx + 1), ops.dtype) if keep_swept else None
     sh = ops.scratch("sh", (ny + 1, nx), ops.dtype) if keep_swept else None
+    if cell is None:
+        stats, cs, arrs = None, 1, (np.empty((1, 1)),) * 3
+    else:
+        cs = int(cell)
+        shape = (-(-ny // cs), -(-nx // cs))
+        stats = arrs = (np.zeros(shape), np.full(shape, np.inf), np.zeros(shape))
+    img_c = np.ascontiguousarray(img, dtype=np.float64)
     for r0 in range(0, ny, strip):
         r1 = min(r0 + strip, ny)
         a, z = max(r0 - halo, 0), min(r1 + halo, ny)
         bsv, bsh = ops((z - a, nx))(img[a:z])
         bb = fused_transfer(bsv, bsh, img[a:z], blocked[a:z], cubic=cubic)
-        np.multiply(bb[r0 - a:r1 - a], -0.5, out=first[r0:r1])
-        first[r0:r1] += img[r0:r1]
+        _finish_rows(img_c, bb, a, r0, r1, first, cs, *arrs, stats is not None)
         if keep_swept:
             sv[r0:r1] = bsv[r0 - a:r1 - a]
             top = r1 + 1 if r1 == ny else r1  # the last block also owns the top edge row
             sh[r0:top] = bsh[r0 - a:top - a]
         del bsv, bsh, bb
-        if stop is not None and r1 < ny and stop(first, r1):
+        if stop is not None and r1 < ny and stop(r1, stats):
             return None
-    return first, sv, sh
+    return first, sv, sh, stats
+
+
+@numba.njit(parallel=True, cache=True)
+def _finish_rows(img, bb, off, r0, r1, first, cell, imax, imin, bmax, do_stats):
+    """Rows r0..r1-1: first = I - b/2 (b = ``bb`` shifted by ``off`` rows)
+    and, if ``do_stats``, the cell statistics of those rows accumulated into
+    ``imax`` (max abs(I)), ``imin`` (min I) and ``bmax`` (max abs(b))."""
+    nx = img.shape[1]
+    for cy in numba.prange(r0 // cell, (r1 - 1) // cell + 1):
+        ja, jb = max(cy * cell, r0), min((cy + 1) * cell, r1)
+        if not do_stats:
+            for j in range(ja, jb):
+                for i in range(nx):
+                    first[j, i] = img[j, i] - 0.5 * bb[j - off, i]
+            continue
+        hi, lo, bm = imax[cy].copy(), imin[cy].copy(), bmax[cy].copy()
+        for j in range(ja, jb):  # row by row: the arrays are read as they lie in memory
+            for cx in range(hi.size):
+                h, w, m = hi[cx], lo[cx], bm[cx]
+                for i in range(cx * cell, min((cx + 1) * cell, nx)):
+                    v = img[j, i]
+                    bv = bb[j - off, i]
+                    first[j, i] = v - 0.5 * bv
+                    h = max(h, abs(v))
+                    w = min(w, v)
+                    m = max(m, abs(bv))
+                hi[cx], lo[cx], bm[cx] = h, w, m
+        imax[cy], imin[cy], bmax[cy] = hi, lo, bm
 
 
 @numba.njit(parallel=True, cache=True)
@@ -160,13 +203,27 @@ def active_cells(img, b, kernel_abs_sum, *, noise_tol=None, limit=None, cell=16,
     imax, imin, bmax = np.empty(shape), np.empty(shape), np.empty(shape)
     _cell_stats(np.ascontiguousarray(img, float), np.ascontiguousarray(b, float),
                 bool(from_first), int(cell), imax, imin, bmax)
+    return active_from_stats(imax, imin, bmax, kernel_abs_sum, noise_tol=noise_tol,
+                             limit=limit, safety=safety)
+
+
+def active_from_stats(imax, imin, bmax, kernel_abs_sum, *, noise_tol=None, limit=None,
+                      safety=20.0):
+    """:func:`active_cells` from the cell statistics (max abs(I), min I,
+    max abs(b) per cell, as gathered by :func:`first_order_terms`)."""
     if noise_tol is not None:
-        lmin = float(noise_tol) * np.sqrt(np.maximum(imin, 1.0))
+        lmin = tolerance(imin, noise_tol)
     else:
-        lmin = np.full(shape, float(limit))
+        lmin = np.full(imax.shape, float(limit))
     imax = ndimage.maximum_filter(imax, size=5, mode="nearest")
     lmin = ndimage.minimum_filter(lmin, size=5, mode="nearest")
     return safety * kernel_abs_sum * imax * bmax > lmin
+
+
+def tolerance(img, noise_tol):
+    """Per-pixel tolerance ``noise_tol * sqrt(max(I, 1))`` (e): the chosen
+    fraction of each pixel's Poisson noise."""
+    return float(noise_tol) * np.sqrt(np.maximum(img, 1.0))
 
 
 def window_boxes(active, shape, *, cell=16, dilate=1):
@@ -226,6 +283,15 @@ def _window_terms(ops, boxes, img, blk, first, sv, sh, a3, a4, cubic):
         groups.setdefault((_nice(y1 - y0), _nice(x1 - x0)), []).append(k)
     extra, x2s, x3s = [None] * len(boxes), [None] * len(boxes), [None] * len(boxes)
     k1 = 0.5 * a3 - 0.125
+    w = density_weight(cubic)
+
+    def transfer(sv_, sh_, f, kw, rows):
+        # fused_transfer's one-thread kernel called directly: the windows are
+        # small, their inputs contiguous and checked once per window
+        out = np.empty(f.shape)
+        _fused_serial(sv_, sh_, f, kw, rows, w, out)
+        return out
+
     for shape, ks in groups.items():
         # windows are zero-padded to a few standard shapes (the convolution
         # of a zero-padded window is the window's own), so that operators
@@ -239,29 +305,32 @@ def _window_terms(ops, boxes, img, blk, first, sv, sh, a3, a4, cubic):
             bw = iw - first[y0:y1, x0:x1]
             bw *= 2.0                                                         # b
             stack[m, :y1 - y0, :x1 - x0] = bw
-            win.append((iw, bw, np.ascontiguousarray(blk[y0:y1, x0:x1]),
-                        sv[y0:y1, x0:x1 + 1], sh[y0:y1 + 1, x0:x1]))
+            kw = np.ascontiguousarray(blk[y0:y1, x0:x1])
+            win.append((iw, bw, kw, kw.any(axis=1),
+                        np.ascontiguousarray(sv[y0:y1, x0:x1 + 1]),
+                        np.ascontiguousarray(sh[y0:y1 + 1, x0:x1])))
         svb, shb = op.apply_stack(stack)
         ds = []
         for m, k in enumerate(ks):
-            iw, bw, kw, svw, shw = win[m]
-            h, w = iw.shape
-            sbv, sbh = svb[m, :h, :w + 1], shb[m, :h + 1, :w]
-            c = fused_transfer(svw, shw, bw, kw, cubic=cubic)                 # B(b, I)
-            d = fused_transfer(sbv, sbh, iw, kw, cubic=cubic)                 # B(I, b)
+            iw, bw, kw, rows, svw, shw = win[m]
+            h, wd = iw.shape
+            sbv = np.ascontiguousarray(svb[m, :h, :wd + 1])
+            sbh = np.ascontiguousarray(shb[m, :h + 1, :wd])
+            c = transfer(svw, shw, bw, kw, rows)                              # B(b, I)
+            d = transfer(sbv, sbh, iw, kw, rows)                              # B(I, b)
             x2 = c * 0.25 + (0.25 - a3) * d
-            x3 = k1 * fused_transfer(sbv, sbh, bw, kw, cubic=cubic)           # B(b, b)
-            x3 -= 0.5 * fused_transfer(svw, shw, x2, kw, cubic=cubic)         # B(x2, I)
-            stack[m, :h, :w] = k1 * c + (a3 - a4 - 0.125) * d                  # y
+            x3 = k1 * transfer(sbv, sbh, bw, kw, rows)                        # B(b, b)
+            x3 -= 0.5 * transfer(svw, shw, x2, kw, rows)                      # B(x2, I)
+            stack[m, :h, :wd] = k1 * c + (a3 - a4 - 0.125) * d                 # y
             ds.append(x2)
             x2s[k], x3s[k] = x2, x3
         del svb, shb
         svy, shy = op.apply_stack(stack)
         for m, k in enumerate(ks):
-            iw, bw, kw, svw, shw = win[m]
-            h, w = iw.shape
-            x3s[k] += fused_transfer(svy[m, :h, :w + 1], shy[m, :h + 1, :w], iw, kw,
-                                     cubic=cubic)                              # B(I, y)
+            iw, bw, kw, rows, svw, shw = win[m]
+            h, wd = iw.shape
+            x3s[k] += transfer(np.ascontiguousarray(svy[m, :h, :wd + 1]),
+                               np.ascontiguousarray(shy[m, :h + 1, :wd]), iw, kw, rows)  # B(I, y)
             extra[k] = ds[m] + x3s[k]
         del svy, shy, stack, ds, win
     return extra, x2s, x3s
@@ -338,38 +407,37 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         raise ValueError(f"cell must be at least {reach} px for this template, got {cell}")
     scalar = None if noise_tol is not None else rtol * max(np.abs(img).max(), 1e-300)
 
-    def tolerance(y0, y1, x0, x1):
+    def window_limit(y0, y1, x0, x1):
         if scalar is not None:
             return np.full((y1 - y0, x1 - x0), scalar)
-        return float(noise_tol) * np.sqrt(np.maximum(img[y0:y1, x0:x1], 1.0))
+        return tolerance(img[y0:y1, x0:x1], noise_tol)
 
     ny = img.shape[0]
 
+    def active(stats):
+        return active_from_stats(*stats, ops.kernel_abs_sum, noise_tol=noise_tol, limit=scalar,
+                                 safety=safety)
+
     checked = []
 
-    def stop(first_done, r1):
+    def stop(r1, stats):
         # the windows cover at least the active cells: when the first quarter
         # of the rows shows more than max_fraction of them active (a flat, a
         # crowded field), the dense solver will be needed; stop early (one
         # check, so that the cost stays a quarter of one cell pass)
-        rows = (r1 // cell) * cell
-        if checked or rows < ny // 4:
+        rows = r1 // cell
+        if checked or rows * cell < ny // 4:
             return False
         checked.append(rows)
-        act = active_cells(img[:rows], first_done[:rows], ops.kernel_abs_sum,
-                           noise_tol=noise_tol, limit=scalar, cell=cell, safety=safety,
-                           from_first=True)
-        return act.mean() > max_fraction
+        return active(tuple(x[:rows] for x in stats)).mean() > max_fraction
 
-    terms = first_order_terms(img, blocked, ops, strip=strip, cubic=cubic, stop=stop)
+    terms = first_order_terms(img, blocked, ops, strip=strip, cubic=cubic, stop=stop, cell=cell)
     if terms is None:
         info.update(windows=None, window_fraction=None, dilate=dilate,
                     reason=f"more than {max_fraction:.0%} of the cells need the higher orders")
         return None
-    out, sv, sh = terms
-    act = active_cells(img, out, ops.kernel_abs_sum, from_first=True, noise_tol=noise_tol,
-                       limit=scalar,
-                       cell=cell, safety=safety)
+    out, sv, sh, stats = terms
+    act = active(stats)
     for grow in range(3):
         boxes = window_boxes(act, img.shape, cell=cell, dilate=dilate + grow)
         frac = sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in boxes) / img.size
@@ -378,7 +446,7 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
             info["reason"] = f"windows cover {frac:.0%} of the image"
             return None
         extra, x2s, x3s = _window_terms(ops, boxes, img, blocked, out, sv, sh, a3, a4, cubic)
-        lims = [tolerance(*bx) for bx in boxes]
+        lims = [window_limit(*bx) for bx in boxes]
         if all(_ring_ok(e, bx, img.shape, lim, ring_fraction)
                for e, bx, lim in zip(extra, boxes, lims)):
             break

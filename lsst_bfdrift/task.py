@@ -85,7 +85,8 @@ class BrighterFatterDriftConfig(Config):
 
 
 def _unpack(exposure, gain_cfg):
-    """data (float64 copy, e), mask, uncertainty, meta, unit, gain, kind."""
+    """data (float64, e; no copy when possible), mask, uncertainty, meta, unit, gain,
+    kind."""
     kind = "ndarray"
     mask = unc = None
     meta = fits.Header()
@@ -103,13 +104,13 @@ def _unpack(exposure, gain_cfg):
         kind = "path"
     elif isinstance(exposure, NDData):
         kind = "ccddata" if isinstance(exposure, CCDData) else "nddata"
-        data = np.array(exposure.data, dtype=np.float64)
+        data = _as_float64(exposure.data)
         mask = None if exposure.mask is None else np.array(exposure.mask, bool)
         unc = exposure.uncertainty
         meta = fits.Header(exposure.meta) if exposure.meta else fits.Header()
         unit = exposure.unit if exposure.unit is not None else u.electron
     else:
-        data = np.array(exposure, dtype=np.float64)
+        data = _as_float64(exposure)
     if data.ndim != 2:
         raise ValueError(f"exposure must be a 2-d image, got shape {data.shape}")
     if mask is not None and mask.shape != data.shape:
@@ -124,7 +125,16 @@ def _unpack(exposure, gain_cfg):
             raise ValueError(f"gain must be positive, got {gain}")
     elif unit not in (u.electron, u.dimensionless_unscaled):
         raise ValueError(f"exposure unit must be electron or adu, got {unit}")
-    return data * gain, mask, unc, meta, unit, gain, kind
+    return (data if gain == 1.0 else data * gain), mask, unc, meta, unit, gain, kind
+
+
+def _as_float64(array):
+    """``array`` as float64, a copy only if the dtype differs. Nothing below
+    writes into it (the caller's data are never modified; checked by
+    ``tests/test_task.py::test_input_untouched_and_not_aliased``). It is not
+    made read-only: numba compiles read-only arrays as another type, which
+    would double the kernels' compilations."""
+    return np.asarray(array, dtype=np.float64)
 
 
 class BrighterFatterDriftTask(Task):
@@ -176,11 +186,14 @@ class BrighterFatterDriftTask(Task):
         """
         cfg = self.config
         data, mask, unc, meta, unit, gain, kind = _unpack(exposure, cfg.gain)
-        blocked = ~np.isfinite(data)
+        finite = np.isfinite(data)
+        all_finite = bool(finite.all())
+        finite_data = data if all_finite else np.where(finite, data, 0.0)
+        blocked = np.logical_not(finite, out=finite)
         if mask is not None:
             blocked |= mask
         if cfg.saturation is not None:
-            blocked |= np.where(np.isfinite(data), data, 0.0) >= cfg.saturation
+            blocked |= finite_data >= cfg.saturation
         order = 2 if cfg.method == "astier23" else cfg.order
         density = "mean2" if cfg.method == "astier23" else cfg.density
         dtype = np.float32 if cfg.fft_precision == "float32" else np.float64
@@ -201,7 +214,6 @@ class BrighterFatterDriftTask(Task):
                 max_iter=cfg.max_iter, rtol=cfg.rtol, noise_tol=cfg.noise_tol, start=cfg.start,
                 workers=cfg.workers, dtype=dtype, strip=cfg.strip, sparse=cfg.sparse,
                 cache=self._operators(dtype), info=solver)
-        finite_data = np.where(np.isfinite(data), data, 0.0)
         moved = flux - finite_data
         moved[blocked] = 0.0
         flags = blocked.astype(np.uint8)  # FLAG_BLOCKED = 1
@@ -236,7 +248,7 @@ class BrighterFatterDriftTask(Task):
         header["BFQTMPL"] = (self.template.charge, "template aggressor charge (e)")
         header["BFTMPL"] = (os.path.basename(str(cfg.template or "bundled default"))[-40:],
                             "BF template file")
-        out_data = flux / gain
+        out_data = flux if gain == 1.0 else flux / gain  # flux: a new array of the solver
         if kind in ("ccddata", "nddata"):
             new_mask = blocked if mask is None else (mask | blocked)
             cls = CCDData if kind == "ccddata" else NDData

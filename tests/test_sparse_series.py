@@ -92,6 +92,35 @@ def test_active_cells_match_numpy_reference(rng):
     assert 0 < ref.sum() < ref.size  # the test exercises both outcomes
 
 
+@pytest.mark.parametrize("strip", [None, 40, 37])
+def test_first_order_pass_gathers_the_cell_statistics(rng, strip):
+    """The statistics gathered block by block during the first-order pass
+    (blocks not aligned with the cells for strip=37) equal plain numpy ones
+    over the finished image, and the pass itself equals the dense
+    half-shift I - B(I, I)/2."""
+    t = load_default_template()
+    img = rng.uniform(0, 5e4, (101, 70))
+    img[30:34, 40:44] += 4e5
+    blk = np.zeros(img.shape, bool)
+    blk[50, 10:14] = True
+    ops = OperatorCache(t, dtype=np.float64)
+    first, sv, sh, (imax, imin, bmax) = S.first_order_terms(img, blk, ops, strip=strip,
+                                                            cubic="fv4", cell=16)
+    sv_ref, sh_ref = SweptAreas(t, img.shape)(img)
+    b_ref = C.fused_transfer(sv_ref, sh_ref, img, blk, cubic="fv4")
+    assert_allclose(first, img - 0.5 * b_ref, rtol=0, atol=1e-9 * np.abs(b_ref).max())
+    assert_allclose(sv, sv_ref, rtol=0, atol=1e-12 * np.abs(sv_ref).max())
+    assert_allclose(sh, sh_ref, rtol=0, atol=1e-12 * np.abs(sh_ref).max())
+    assert imax.shape == (7, 5)
+    for j in range(7):
+        for i in range(5):
+            s = (slice(16 * j, 16 * j + 16), slice(16 * i, 16 * i + 16))
+            assert imax[j, i] == np.abs(img[s]).max()
+            assert imin[j, i] == img[s].min()
+            assert_allclose(bmax[j, i], np.abs(b_ref[s]).max(), rtol=1e-9)
+    assert S.first_order_terms(img, blk, ops, strip=strip, cubic="fv4")[3] is None
+
+
 def test_window_boxes_cover_and_do_not_overlap(rng):
     for trial in range(20):
         act = rng.random((12, 15)) < 0.06

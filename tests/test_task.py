@@ -85,6 +85,25 @@ def test_recovers_square_pixel_image(star):
     assert abs(corr[15, 15] - truth[15, 15]) < 0.2 * abs(image[15, 15] - truth[15, 15])
 
 
+@pytest.mark.parametrize("method", ["drift", "astier23", "coulton18"])
+def test_input_untouched_and_not_aliased(star, method):
+    """The Task reads the caller's float64 array without copying it: the
+    array must stay unchanged and writeable, and nothing returned may share
+    its memory (also for CCDData in electrons, where no gain is applied)."""
+    cfg = BrighterFatterDriftConfig(method=method, compute_geometry=False)
+    for wrap in (lambda a: a, lambda a: CCDData(a, unit=u.electron)):
+        image = star[0].copy()
+        image[5, 7] = np.nan
+        before = image.copy()
+        res = BrighterFatterDriftTask(config=cfg).run(wrap(image))
+        assert np.array_equal(image, before, equal_nan=True) and image.flags.writeable
+        out = res.exposure if isinstance(res.exposure, np.ndarray) else res.exposure.data
+        for arr in (out, res.flux_moved):
+            assert not np.shares_memory(arr, image)
+        out[0, 0] = -1.0  # the result is the caller's to modify
+        assert image[0, 0] == before[0, 0]
+
+
 def test_flux_conservation_and_input_untouched(star):
     image = star[0]
     before = image.copy()
