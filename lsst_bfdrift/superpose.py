@@ -321,21 +321,27 @@ class MomentMaps:
         Central second moments (px^2; nominal 1/12, 1/12, 0).
     e1, e2 : ndarray
         Ellipticity of the pixel's second moments.
+
+    A map that was not requested (``moment_maps(..., maps=...)``) is None.
     """
 
     _names = ("area", "dx", "dy", "ixx", "iyy", "ixy", "e1", "e2")
 
-    def __init__(self, shape):
+    def __init__(self, shape, names=None):
+        names = self._names if names is None else tuple(names)
+        unknown = sorted(set(names) - set(self._names))
+        if unknown:
+            raise ValueError(f"unknown maps {unknown}; choose from {list(self._names)}")
         for k in self._names:
-            setattr(self, k, np.empty(shape))
+            setattr(self, k, np.empty(shape) if k in names else None)
 
     def as_dict(self):
-        """The maps by name."""
-        return {k: getattr(self, k) for k in self._names}
+        """The maps by name (those computed)."""
+        return {k: getattr(self, k) for k in self._names if getattr(self, k) is not None}
 
 
 def moment_maps(template, charge, *, mask=None, samples=None, strip=256, workers=1,
-                dtype=np.float64, progress=None):
+                dtype=np.float64, progress=None, maps=None):
     """Area, centroid-shift and ellipticity maps of a charge image's pixels.
 
     Parameters
@@ -366,6 +372,10 @@ def moment_maps(template, charge, *, mask=None, samples=None, strip=256, workers
         always evaluated in float64).
     progress : callable, optional
         Called with the number of rows finished.
+    maps : sequence of str, optional
+        Names of the maps to keep (of ``area, dx, dy, ixx, iyy, ixy, e1,
+        e2``); the others are None. Each kept map is one float64 image of
+        memory. None: all eight.
 
     Returns
     -------
@@ -383,7 +393,7 @@ def moment_maps(template, charge, *, mask=None, samples=None, strip=256, workers
     ny, nx = q.shape
     strip = int(strip)
     conv = _Convolver(template, dtype=dtype)
-    out = MomentMaps(q.shape)
+    out = MomentMaps(q.shape, maps)
     fr = np.ascontiguousarray(template.fractions)
     ns, has_t = template.edge_samples, template.vedge_t is not None
     res = np.empty((8, min(strip, ny), nx))
@@ -394,7 +404,8 @@ def moment_maps(template, charge, *, mask=None, samples=None, strip=256, workers
         stack_moments(st, ns, has_t, ro, template.center, fr, part)
         del st
         for k, name in enumerate(MomentMaps._names):
-            getattr(out, name)[r0:r1] = part[k]
+            if getattr(out, name) is not None:
+                getattr(out, name)[r0:r1] = part[k]
         if progress is not None:
             progress(r1 - r0)
     return out

@@ -194,9 +194,20 @@ class BrighterFatterDriftTask(Task):
             blocked |= mask
         if cfg.saturation is not None:
             blocked |= finite_data >= cfg.saturation
+        dtype = np.float32 if cfg.fft_precision == "float32" else np.float64
+        # the maps first: their working arrays are freed before the solver's
+        # outputs exist (peak memory, docs/benchmarks.rst)
+        geom = dict(area=None, centroid_x=None, centroid_y=None, e1=None, e2=None)
+        if cfg.compute_geometry:
+            ns = cfg.geometry_samples
+            maps = moment_maps(self.template, finite_data,
+                               workers=cfg.workers, dtype=dtype,
+                               samples=None if ns is None else min(ns, self.template.edge_samples),
+                               maps=("area", "dx", "dy", "e1", "e2"))  # only those returned
+            geom = dict(area=maps.area, centroid_x=maps.dx, centroid_y=maps.dy, e1=maps.e1,
+                        e2=maps.e2)
         order = 2 if cfg.method == "astier23" else cfg.order
         density = "mean2" if cfg.method == "astier23" else cfg.density
-        dtype = np.float32 if cfg.fft_precision == "float32" else np.float64
         if cfg.method == "astier23":
             flux, iterations, converged = correct_half_shift(
                 data, self.template, blocked=blocked, workers=cfg.workers, dtype=dtype,
@@ -220,14 +231,6 @@ class BrighterFatterDriftTask(Task):
         c = self.template.center
         for sl in (np.s_[:c], np.s_[-c:], np.s_[:, :c], np.s_[:, -c:]):
             flags[sl] |= FLAG_EDGE
-        geom = dict(area=None, centroid_x=None, centroid_y=None, e1=None, e2=None)
-        if cfg.compute_geometry:
-            ns = cfg.geometry_samples
-            maps = moment_maps(self.template, finite_data,
-                               workers=cfg.workers, dtype=dtype,
-                               samples=None if ns is None else min(ns, self.template.edge_samples))
-            geom = dict(area=maps.area, centroid_x=maps.dx, centroid_y=maps.dy, e1=maps.e1,
-                        e2=maps.e2)
         if not converged:
             self.log.warning("brighter-fatter correction did not converge in %d iterations",
                              iterations)

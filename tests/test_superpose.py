@@ -52,6 +52,17 @@ def test_polygons_tile_the_plane(small_template, rng):
     assert maps.area.min() < 0.99
 
 
+def test_only_the_requested_maps_are_kept(small_template, rng):
+    charge = rng.poisson(3e4, (23, 19)).astype(float)
+    full = moment_maps(small_template, charge, strip=6)
+    some = moment_maps(small_template, charge, strip=6, maps=("area", "e2"))
+    assert np.array_equal(some.area, full.area) and np.array_equal(some.e2, full.e2)
+    assert some.dx is None and some.ixx is None
+    assert sorted(some.as_dict()) == ["area", "e2"]
+    with pytest.raises(ValueError, match="unknown maps"):
+        moment_maps(small_template, charge, maps=("area", "size"))
+
+
 def test_isolated_aggressor_reproduces_template(small_template):
     t = small_template
     charge = np.zeros((15, 15))
