@@ -104,6 +104,20 @@ def test_input_untouched_and_not_aliased(star, method):
         assert image[0, 0] == before[0, 0]
 
 
+@pytest.mark.parametrize("method", ["drift", "astier23"])
+def test_input_layout_and_byte_order_do_not_matter(star, method):
+    """Without the copy the Task used to make, Fortran-ordered, strided and
+    big-endian (FITS) inputs must still give the C-ordered result."""
+    cfg = BrighterFatterDriftConfig(method=method, compute_geometry=False)
+    image = star[0]
+    ref = BrighterFatterDriftTask(config=cfg).run(image).exposure
+    big = np.zeros((image.shape[0], 2 * image.shape[1]))
+    big[:, ::2] = image
+    for variant in (np.asfortranarray(image), big[:, ::2], image.astype(">f8")):
+        assert_allclose(BrighterFatterDriftTask(config=cfg).run(variant).exposure, ref,
+                        rtol=0, atol=1e-9 * image.max())
+
+
 def test_flux_conservation_and_input_untouched(star):
     image = star[0]
     before = image.copy()
