@@ -119,7 +119,9 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=
             sv[r0:r1] = bsv[r0 - a:r1 - a]
             top = r1 + 1 if r1 == ny else r1  # the last block also owns the top edge row
             sh[r0:top] = bsh[r0 - a:top - a]
-        del bsv, bsh, bb
+        # bsv, bsh, bb stay alive until the next block has allocated its own:
+        # freed first, their memory would go back to the system and be
+        # page-faulted in again (docs/benchmarks.rst)
         if stop is not None and r1 < ny and stop(r1, stats):
             return None
     return first, sv, sh, stats

@@ -51,6 +51,15 @@ def test_apply_stack_is_the_direct_convolution(rng):
         assert_allclose(sh[m], ref_h, rtol=0, atol=1e-12 * np.abs(ref_h).max())
     with pytest.raises(ValueError, match="stack"):
         op.apply_stack(q[0])
+    # single images: the kept padded buffer must not carry one call's charge
+    # into the next (a smaller image is refused, not padded)
+    first = op(q[0])
+    again = op(q[1])
+    ref_v = convolve2d(q[1], kv / t.charge)[c:c + 30, c:c + 42]
+    assert_allclose(again[0], ref_v, rtol=0, atol=1e-12 * np.abs(ref_v).max())
+    assert not np.allclose(first[0], again[0])
+    with pytest.raises(ValueError, match="shape"):
+        op(q[0][:29])
 
 
 def test_operator_cache_reuses_and_checks():
