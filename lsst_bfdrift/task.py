@@ -20,7 +20,7 @@ from .swept import OperatorCache
 from .template import DistortionTemplate, load_default_template
 
 __all__ = ["BrighterFatterDriftConfig", "BrighterFatterDriftTask", "FLAG_BLOCKED",
-           "FLAG_EDGE"]
+           "FLAG_EDGE", "MAX_SWEEP"]
 
 #: Flag bit: pixel masked, saturated or non-finite (no flux exchanged).
 FLAG_BLOCKED = 1
@@ -133,8 +133,34 @@ def _as_float64(array):
     writes into it (the caller's data are never modified; checked by
     ``tests/test_task.py::test_input_untouched_and_not_aliased``). It is not
     made read-only: numba compiles read-only arrays as another type, which
-    would double the kernels' compilations."""
+    would double the kernels' compilations. Integer and float images are
+    accepted; boolean, complex and non-numeric ones are refused."""
+    kind = np.asarray(array).dtype.kind
+    if kind not in "iuf":
+        what = {"b": "boolean", "c": "complex"}.get(kind, f"non-numeric ({np.asarray(array).dtype})")
+        raise ValueError(f"exposure data must be real numbers (e or ADU), got a {what} array")
     return np.asarray(array, dtype=np.float64)
+
+
+#: Largest K max|I| accepted (K: the template's largest sum of abs(swept-area
+#: kernel) over one edge, px^2 per electron): beyond it one pixel's charge
+#: would sweep more than a whole pixel's area across an edge, far outside any
+#: physical full well and outside the model (the solver's series needs
+#: K max|I| well below 1; the brightest star cores of the benchmarks reach
+#: about 0.25).
+MAX_SWEEP = 1.0
+
+
+def _check_range(finite_data, kernel_abs_sum, unit_note):
+    """Refuse images whose values the brighter-fatter model cannot describe."""
+    peak = float(np.abs(finite_data).max()) if finite_data.size else 0.0
+    if kernel_abs_sum * peak > MAX_SWEEP:
+        raise ValueError(
+            f"pixel values up to {peak:.3g} e: the template would sweep "
+            f"{kernel_abs_sum * peak:.3g} px^2 across an edge (at most {MAX_SWEEP} is "
+            f"modelled, i.e. |I| <= {MAX_SWEEP / kernel_abs_sum:.3g} e); set such pixels to "
+            f"NaN (masked and saturated pixels still act as aggressors with their value)"
+            f"{unit_note}")
 
 
 class BrighterFatterDriftTask(Task):
@@ -195,6 +221,9 @@ class BrighterFatterDriftTask(Task):
         if cfg.saturation is not None:
             blocked |= finite_data >= cfg.saturation
         dtype = np.float32 if cfg.fft_precision == "float32" else np.float64
+        _check_range(finite_data, self._operators(dtype).kernel_abs_sum,
+                     f"; the image was converted with gain {gain} e/ADU" if gain != 1.0
+                     else "; is the image in ADU without a gain?")
         # the maps first: their working arrays are freed before the solver's
         # outputs exist (peak memory, docs/benchmarks.rst)
         geom = dict(area=None, centroid_x=None, centroid_y=None, e1=None, e2=None)

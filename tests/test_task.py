@@ -185,6 +185,36 @@ def test_bad_config():
         BrighterFatterDriftTask().run(np.ones(5))
 
 
+@pytest.mark.parametrize("method", ["drift", "astier23", "coulton18"])
+def test_bad_image_values_and_types(star, method):
+    """Complex, boolean and non-numeric images are refused; so are values
+    no sensor holds (the template would sweep more than a pixel's area),
+    with the limit in electrons; integer images are converted. A NaN in
+    place of the bad pixel is the documented way out."""
+    task = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(method=method,
+                                                                    compute_geometry=False))
+    image = star[0]
+    for bad, what in ((image.astype(complex), "complex"), (image > 1e3, "boolean"),
+                      (np.full((8, 8), "x"), "non-numeric")):
+        with pytest.raises(ValueError, match=what):
+            task.run(bad)
+    k = task._operators(np.float32).kernel_abs_sum
+    hot = image.copy()
+    hot[3, 4] = 1.01 / k
+    with pytest.raises(ValueError, match=r"\|I\| <= .* e\); set such pixels to NaN"):
+        task.run(hot)
+    with pytest.raises(ValueError, match="gain 2.0 e/ADU"):
+        task.run(CCDData(hot / 2.0, unit=u.adu, meta={"GAIN": 2.0}))
+    hot[3, 4] = np.nan
+    assert np.isnan(task.run(hot).exposure[3, 4])
+    hot[3, 4] = 0.99 / k  # inside the modelled range: corrected, flux conserved
+    res = task.run(hot)
+    assert abs(res.flux_moved.sum()) < 1e-9 * hot.sum()
+    ints = np.round(image).astype(np.int32)
+    assert_allclose(task.run(ints).exposure, task.run(ints.astype(float)).exposure, rtol=0,
+                    atol=0)
+
+
 @pytest.fixture(scope="module")
 def field():
     """Sky plus bright Gaussian stars (peaks up to ~7e4 e) and one NaN pixel."""
