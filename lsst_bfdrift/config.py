@@ -222,13 +222,19 @@ class Config:
     @classmethod
     def load(cls, path):
         """Read a JSON or TOML file written by :meth:`save` or by hand."""
+        import tomllib
+
         with open(path, "rb") as fh:
             raw = fh.read()
-        if str(path).endswith(".toml"):
-            import tomllib
-            data = tomllib.loads(raw.decode())
-        else:
-            data = json.loads(raw.decode())
+        toml = str(path).endswith(".toml")
+        try:
+            data = tomllib.loads(raw.decode()) if toml else json.loads(raw.decode())
+        except (UnicodeDecodeError, json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
+            kind = "TOML" if toml else "JSON (name the file *.toml for TOML)"
+            raise ValueError(f"{path}: not valid {kind}: {exc}") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"{path}: expected a table of field names and values, "
+                             f"got {type(data).__name__}")
         return cls.from_dict(data)
 
     def doc(self):

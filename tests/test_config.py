@@ -107,6 +107,22 @@ def test_save_load_round_trip(tmp_path):
     assert (d.n_iter, d.method, d.sub.scale) == (9, "kernel", 4.0)
 
 
+def test_load_reports_unreadable_files(tmp_path):
+    """A config file in the wrong format names the file and the format."""
+    (tmp_path / "c.py").write_text("method = 'kernel'\n")
+    with pytest.raises(ValueError, match=r"c\.py: not valid JSON \(name the file \*\.toml"):
+        TopConfig.load(tmp_path / "c.py")
+    (tmp_path / "c.toml").write_text("n_iter = = 3\n")
+    with pytest.raises(ValueError, match=r"c\.toml: not valid TOML"):
+        TopConfig.load(tmp_path / "c.toml")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    with pytest.raises(ValueError, match="expected a table.*got list"):
+        TopConfig.load(tmp_path / "list.json")
+    (tmp_path / "bin.json").write_bytes(b"\xff\xfe\x00")
+    with pytest.raises(ValueError, match="bin.json: not valid JSON"):
+        TopConfig.load(tmp_path / "bin.json")
+
+
 def test_struct():
     s = Struct(a=1, b=2)
     assert s.get_dict() == {"a": 1, "b": 2}
