@@ -53,7 +53,7 @@ from scipy import fft as sp_fft
 
 from ._edge_kernels import density_weight, fused_transfer
 from .sparse_series import apriori_ok, first_order_terms, sparse_series, tolerance
-from .swept import OperatorCache, SweptAreas, swept_area_kernels
+from .swept import OperatorCache, SweptAreas, swept_area_kernels  # noqa: F401 (re-exported)
 
 __all__ = ["edge_flux_density", "edge_transfer",
            "recorded_image", "correct_image", "correct_series", "correct_half_shift",
@@ -448,24 +448,19 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
         raise ValueError(f"blocked shape {blk.shape} does not match image {img.shape}")
     img_eff, blk = _finite(img, blk)
     ny, nx = img.shape
+    ops = _operators(None, template, workers, dtype)
     if strip is None or int(strip) >= ny:
-        swept = SweptAreas(template, img.shape, workers=workers, dtype=dtype)
-        flux, _ = _series_block(img_eff, blk, swept, order, density)
+        flux, _ = _series_block(img_eff, blk, ops(img.shape), order, density)
     else:
         strip = int(strip)
         if strip < 1:
             raise ValueError(f"strip must be positive, got {strip}")
         halo = 2 * (template.size + 3)
         flux = np.empty_like(img_eff)
-        cache = {}
         for r0 in range(0, ny, strip):
             r1 = min(r0 + strip, ny)
             a, z = max(r0 - halo, 0), min(r1 + halo, ny)
-            shape = (z - a, nx)
-            if shape not in cache:
-                cache.clear()
-                cache[shape] = SweptAreas(template, shape, workers=workers, dtype=dtype)
-            out, _ = _series_block(img_eff[a:z], blk[a:z], cache[shape], order, density)
+            out, _ = _series_block(img_eff[a:z], blk[a:z], ops((z - a, nx)), order, density)
             flux[r0:r1] = out[r0 - a:r1 - a]
     flux[blk] = img[blk]
     return flux, 1, True

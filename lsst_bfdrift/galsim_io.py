@@ -256,7 +256,7 @@ def edge_integrals(template):
 
     The trapezoid integral of the piecewise-linear profile through the two
     corners and the edge samples (the quantity
-    :func:`lsst_bfdrift.correction.swept_area_kernels` uses as swept area).
+    :func:`lsst_bfdrift.swept.swept_area_kernels` uses as swept area).
 
     Returns
     -------

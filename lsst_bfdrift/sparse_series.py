@@ -155,27 +155,8 @@ def _finish_rows(img, bb, off, r0, r1, first, cell, imax, imin, bmax, do_stats):
         imax[cy], imin[cy], bmax[cy] = hi, lo, bm
 
 
-@numba.njit(parallel=True, cache=True)
-def _cell_stats(img, x, from_first, cell, imax, imin, bmax):
-    """Per cell: max abs(I), min I, max abs(b), with b = x or, if
-    ``from_first``, b = 2 (I - x)."""
-    ny, nx = img.shape
-    my, mx = imax.shape
-    for cy in numba.prange(my):
-        for cx in range(mx):
-            hi, lo, bm = 0.0, np.inf, 0.0
-            for j in range(cy * cell, min((cy + 1) * cell, ny)):
-                for i in range(cx * cell, min((cx + 1) * cell, nx)):
-                    v = img[j, i]
-                    hi = max(hi, abs(v))
-                    lo = min(lo, v)
-                    bv = 2.0 * (v - x[j, i]) if from_first else x[j, i]
-                    bm = max(bm, abs(bv))
-            imax[cy, cx], imin[cy, cx], bmax[cy, cx] = hi, lo, bm
-
-
 def active_cells(img, b, kernel_abs_sum, *, noise_tol=None, limit=None, cell=16,
-                 safety=20.0, from_first=False):
+                 safety=20.0):
     """Cells whose first-order transfer needs the higher-order terms.
 
     Parameters
@@ -192,21 +173,25 @@ def active_cells(img, b, kernel_abs_sum, *, noise_tol=None, limit=None, cell=16,
         Cell size (px).
     safety : float, optional
         Factor of the bound.
-    from_first : bool, optional
-        ``b`` is the first-order corrected image F1 and the transfer is
-        2 (I - F1).
 
     Returns
     -------
     ndarray of bool, shape (ceil(ny / cell), ceil(nx / cell))
+
+    Notes
+    -----
+    :func:`sparse_series` gathers the same statistics during its first-order
+    pass (:func:`first_order_terms` with ``cell``); this is that loop on its
+    own, for a given ``b``.
     """
+    img = np.ascontiguousarray(img, dtype=np.float64)
     ny, nx = img.shape
     shape = (-(-ny // cell), -(-nx // cell))
-    imax, imin, bmax = np.empty(shape), np.empty(shape), np.empty(shape)
-    _cell_stats(np.ascontiguousarray(img, float), np.ascontiguousarray(b, float),
-                bool(from_first), int(cell), imax, imin, bmax)
-    return active_from_stats(imax, imin, bmax, kernel_abs_sum, noise_tol=noise_tol,
-                             limit=limit, safety=safety)
+    stats = (np.zeros(shape), np.full(shape, np.inf), np.zeros(shape))
+    _finish_rows(img, np.ascontiguousarray(b, dtype=np.float64), 0, 0, ny, np.empty((ny, nx)),
+                 int(cell), *stats, True)
+    return active_from_stats(*stats, kernel_abs_sum, noise_tol=noise_tol, limit=limit,
+                             safety=safety)
 
 
 def active_from_stats(imax, imin, bmax, kernel_abs_sum, *, noise_tol=None, limit=None,

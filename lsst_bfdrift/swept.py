@@ -17,6 +17,27 @@ from scipy import fft as sp_fft
 __all__ = ["swept_area_kernels", "SweptAreas", "OperatorCache"]
 
 
+class _ThreadArrays:
+    """Work arrays kept between calls, one set per thread (a Task may be
+    shared by the threads of a dask worker); contents undefined unless the
+    caller keeps them."""
+
+    def __init__(self):
+        self._local = threading.local()
+
+    def get(self, name, shape, dtype, *, zero=False):
+        """The array ``name`` of this shape and dtype (made anew, zeroed if
+        ``zero``, when absent or of another shape or dtype)."""
+        shape, dtype = tuple(int(v) for v in shape), np.dtype(dtype)
+        store = getattr(self._local, "arrays", None)
+        if store is None:
+            store = self._local.arrays = {}
+        buf = store.get(name)
+        if buf is None or (buf.shape, buf.dtype) != (shape, dtype):
+            buf = store[name] = (np.zeros if zero else np.empty)(shape, dtype)
+        return buf
+
+
 def _trapezoid(c0, samples, c1, fractions):
     """Integral over [0, 1] of the piecewise-linear profile through the knots."""
     s = np.concatenate([[0.0], fractions, [1.0]])
@@ -78,18 +99,10 @@ class SweptAreas:
         q = 1.0 / template.charge
         self.fkv = sp_fft.rfft2((kv * q).astype(self.dtype), self.fshape, workers=workers)
         self.fkh = sp_fft.rfft2((kh * q).astype(self.dtype), self.fshape, workers=workers)
-        self._local = threading.local()
-
-    def _buffers(self):
-        """This thread's zero-padded input and spectrum-product arrays, kept
-        between calls: allocating them anew for every strip (and page-faulting
-        them in) cost about a third of each application
-        (``docs/benchmarks.rst``)."""
-        loc = self._local
-        if getattr(loc, "pad", None) is None:
-            loc.pad = np.zeros(self.fshape, self.dtype)  # stays zero beyond (ny, nx)
-            loc.prod = np.empty(self.fkv.shape, self.fkv.dtype)
-        return loc.pad, loc.prod
+        # zero-padded input and spectrum product, kept between calls:
+        # allocating them anew for every strip (and page-faulting them in)
+        # cost about a third of each application (docs/benchmarks.rst)
+        self._arrays = _ThreadArrays()
 
     def __call__(self, charge):
         """Swept areas (sv of shape (ny, nx + 1), sh of shape (ny + 1, nx)), px^2.
@@ -99,7 +112,8 @@ class SweptAreas:
         c, ny, nx = self.c, self.ny, self.nx
         if np.shape(charge) != (ny, nx):
             raise ValueError(f"charge must have shape {(ny, nx)}, got {np.shape(charge)}")
-        pad, prod = self._buffers()
+        pad = self._arrays.get("pad", self.fshape, self.dtype, zero=True)  # zero beyond (ny, nx)
+        prod = self._arrays.get("prod", self.fkv.shape, self.fkv.dtype)
         pad[:ny, :nx] = charge
         fq = sp_fft.rfft2(pad, workers=self.workers)
         np.multiply(fq, self.fkv, out=prod)
@@ -108,7 +122,6 @@ class SweptAreas:
         sh = sp_fft.irfft2(fq, self.fshape, workers=self.workers, overwrite_x=True)
         del fq
         return sv[c:c + ny, c:c + nx + 1], sh[c:c + ny + 1, c:c + nx]
-
 
     def apply_stack(self, charges):
         """Swept areas of a stack of images of the operator's shape.
@@ -160,7 +173,7 @@ class OperatorCache:
         self.dtype = np.dtype(dtype)
         self.max_shapes = int(max_shapes)
         self._ops = {}
-        self._scratch = threading.local()
+        self._scratch = _ThreadArrays()
         self._lock = threading.Lock()
         kv, kh = swept_area_kernels(template)
         #: Largest sum of abs(kernel) over one edge (px^2 per electron): a bound
@@ -186,14 +199,7 @@ class OperatorCache:
         whole image) are reused from one exposure to the next instead of
         being allocated (and page-faulted) anew; each thread has its own.
         """
-        shape, dtype = tuple(int(v) for v in shape), np.dtype(dtype)
-        store = getattr(self._scratch, "arrays", None)
-        if store is None:  # one set per thread: a Task may run in several threads
-            store = self._scratch.arrays = {}
-        buf = store.get(name)
-        if buf is None or (buf.shape, buf.dtype) != (shape, dtype):
-            buf = store[name] = np.empty(shape, dtype)
-        return buf
+        return self._scratch.get(name, shape, dtype)
 
     def matches(self, template, workers, dtype):
         """True if this cache serves ``template`` with these settings."""

@@ -135,11 +135,12 @@ def _as_float64(array):
     made read-only: numba compiles read-only arrays as another type, which
     would double the kernels' compilations. Integer and float images are
     accepted; boolean, complex and non-numeric ones are refused."""
-    kind = np.asarray(array).dtype.kind
-    if kind not in "iuf":
-        what = {"b": "boolean", "c": "complex"}.get(kind, f"non-numeric ({np.asarray(array).dtype})")
+    array = np.asarray(array)
+    if array.dtype.kind not in "iuf":
+        what = {"b": "boolean", "c": "complex"}.get(array.dtype.kind,
+                                                    f"non-numeric ({array.dtype})")
         raise ValueError(f"exposure data must be real numbers (e or ADU), got a {what} array")
-    return np.asarray(array, dtype=np.float64)
+    return array.astype(np.float64, copy=False)
 
 
 #: Largest K max|I| accepted (K: the template's largest sum of abs(swept-area
@@ -153,7 +154,8 @@ MAX_SWEEP = 1.0
 
 def _check_range(finite_data, kernel_abs_sum, unit_note):
     """Refuse images whose values the brighter-fatter model cannot describe."""
-    peak = float(np.abs(finite_data).max()) if finite_data.size else 0.0
+    # max and -min: no full-size temporary for abs()
+    peak = max(float(finite_data.max()), -float(finite_data.min())) if finite_data.size else 0.0
     if kernel_abs_sum * peak > MAX_SWEEP:
         raise ValueError(
             f"pixel values up to {peak:.3g} e: the template would sweep "
