@@ -35,6 +35,9 @@ import sys
 import tempfile
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))
+
+from lsst_bfdrift.io_utils import write_json, write_text  # noqa: E402
 ROOT = os.path.dirname(HERE)
 BASELINE_COMMIT = "b7eead9"
 
@@ -169,11 +172,9 @@ def main():
                                                       for k, v in sig.items()))
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    with open(args.out + ".json", "w") as fh:
-        json.dump({"size": args.size, "cores": os.cpu_count(), "load_average": load,
-                   "runs": rows}, fh, indent=2)
-    with open(args.out + ".txt", "w") as fh:
-        fh.write(text)
+    write_json(args.out + ".json", {"size": args.size, "cores": os.cpu_count(),
+                                    "load_average": load, "runs": rows}, indent=2)
+    write_text(args.out + ".txt", text)
 
 
 if __name__ == "__main__":

@@ -25,6 +25,9 @@ import subprocess
 import sys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))
+
+from lsst_bfdrift.io_utils import write_json, write_text  # noqa: E402
 
 CHILD = r"""
 import json, os, resource, sys, time
@@ -129,10 +132,9 @@ def main():
                  f"call, {rows['drift']['warm_seconds'] / ns['warm_seconds']:.2f}x warm")
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    with open(args.out + ".json", "w") as fh:
-        json.dump({"size": args.size, "cores": os.cpu_count(), "runs": rows}, fh, indent=2)
-    with open(args.out + ".txt", "w") as fh:
-        fh.write(text)
+    write_json(args.out + ".json", {"size": args.size, "cores": os.cpu_count(), "runs": rows},
+               indent=2)
+    write_text(args.out + ".txt", text)
 
 
 if __name__ == "__main__":

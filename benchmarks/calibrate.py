@@ -15,7 +15,6 @@ Prints both fits and writes ``benchmarks/calibration_results.json``.
     python benchmarks/calibrate.py
 """
 
-import json
 import os
 import sys
 
@@ -23,6 +22,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from lsst_bfdrift.io_utils import write_json  # noqa: E402
 from lsst_bfdrift.calibration import fit_sensor_parameters  # noqa: E402
 from lsst_bfdrift.sensor import SensorParameters  # noqa: E402
 from lsst_bfdrift.template import TemplateSettings, build_template  # noqa: E402
@@ -80,8 +80,7 @@ def main():
     print(f"    model dlnA00 per e {np.log(r.model['A00']) / q:.3e} "
           f"(measured a00 {a[(0, 0)][0]:.3e}, set by the sum rule)")
     out["itl"] = r.as_dict()
-    with open(os.path.join(HERE, "calibration_results.json"), "w") as fh:
-        json.dump(out, fh, indent=2, default=float)
+    write_json(os.path.join(HERE, "calibration_results.json"), out, indent=2, default=float)
 
 
 if __name__ == "__main__":

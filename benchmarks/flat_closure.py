@@ -18,7 +18,6 @@ for the record, with (A_ij - 1)/Q and ln A_ij / Q). Prints and writes
 """
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -27,6 +26,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from lsst_bfdrift.io_utils import write_json, write_text  # noqa: E402
 from lsst_bfdrift.ptc import fit_covariance_model  # noqa: E402
 from lsst_bfdrift.simulations import (simulate_ptc_levels,  # noqa: E402
                                       template_area_coefficients, with_responsivity)
@@ -111,10 +111,8 @@ def main():
                                              "pull_alpha": rf["pull"]["alpha"].tolist()}}
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    with open(args.out + ".json", "w") as fh:
-        json.dump(rows, fh, indent=2, default=float)
-    with open(args.out + ".txt", "w") as fh:
-        fh.write(text)
+    write_json(args.out + ".json", rows, indent=2, default=float)
+    write_text(args.out + ".txt", text)
 
 
 if __name__ == "__main__":

@@ -36,7 +36,6 @@ Prints and writes ``<out>.txt`` and ``<out>.json``.
 """
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -45,6 +44,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from lsst_bfdrift.io_utils import write_json, write_text  # noqa: E402
 from lsst_bfdrift.stars import StarSimulation, image_moments  # noqa: E402
 from lsst_bfdrift.superpose import moment_maps  # noqa: E402
 from lsst_bfdrift.template import DistortionTemplate  # noqa: E402
@@ -239,10 +239,8 @@ def main():
     lines.append("  seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in res["seconds"].items()))
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    with open(args.out + ".json", "w") as fh:
-        json.dump(res, fh, indent=2, default=float)
-    with open(args.out + ".txt", "w") as fh:
-        fh.write(text)
+    write_json(args.out + ".json", res, indent=2, default=float)
+    write_text(args.out + ".txt", text)
 
 
 if __name__ == "__main__":

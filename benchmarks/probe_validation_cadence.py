@@ -44,6 +44,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
+from lsst_bfdrift.io_utils import write_json, write_text  # noqa: E402
 from lsst_bfdrift.galsim_twins import accumulate_twins, shoot_stamp_photons, sky_box  # noqa: E402
 from lsst_bfdrift.stars import make_psf  # noqa: E402
 from lsst_bfdrift.template import DistortionTemplate  # noqa: E402
@@ -166,10 +167,8 @@ def qdist_templates(args):
         out["runs"][cad][f"paired_template_qdist{qd}"] = paired(
             per_star_rows(pairs, tpl_m), rows_q,
             f"template qdist={qd}-matched minus qdist=3-matched, {cad}", lines)
-    with open(args.out + ".json", "w") as fh:
-        json.dump(out, fh, indent=2)
-    with open(args.out + ".txt", "w") as fh:
-        fh.write("\n".join(lines) + "\n")
+    write_json(args.out + ".json", out, indent=2)
+    write_text(args.out + ".txt", "\n".join(lines) + "\n")
 
 
 def main():
@@ -240,10 +239,8 @@ def main():
                             bf=np.array([p["bf"] for p in pairs]),
                             truth=np.array([p["truth"] for p in pairs]),
                             flux=np.array([p["flux"] for p in pairs]))
-        with open(args.out + ".json", "w") as fh:
-            json.dump(out, fh, indent=2)
-        with open(args.out + ".txt", "w") as fh:
-            fh.write("\n".join(lines) + "\n")
+        write_json(args.out + ".json", out, indent=2)
+        write_text(args.out + ".txt", "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

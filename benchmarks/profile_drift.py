@@ -31,6 +31,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
+from lsst_bfdrift.io_utils import write_text  # noqa: E402
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
 from lsst_bfdrift import _edge_kernels as E  # noqa: E402
 from lsst_bfdrift import correction as C  # noqa: E402
@@ -151,8 +152,7 @@ def main():
     lines.append(f"load average {load:.1f} at the end")
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    with open(os.path.join(HERE, "profile_drift_results.txt"), "w") as fh:
-        fh.write(text)
+    write_text(os.path.join(HERE, "profile_drift_results.txt"), text)
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from lsst_bfdrift.io_utils import write_json, write_text  # noqa: E402
 from lsst_bfdrift.superpose import moment_maps  # noqa: E402
 from lsst_bfdrift.template import TemplateSettings, build_template, load_default_template  # noqa: E402,E501
 
@@ -187,10 +188,8 @@ def _write(out, rows, lines, sections):
         lines = kept
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    with open(out + ".json", "w") as fh:
-        json.dump(rows, fh, indent=2)
-    with open(out + ".txt", "w") as fh:
-        fh.write(text)
+    write_json(out + ".json", rows, indent=2)
+    write_text(out + ".txt", text)
 
 
 if __name__ == "__main__":

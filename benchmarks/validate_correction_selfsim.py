@@ -24,6 +24,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from lsst_bfdrift.io_utils import write_text  # noqa: E402
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
 from lsst_bfdrift.stars import StarSimulation, image_moments, shoot_photons  # noqa: E402
 from lsst_bfdrift.template import load_default_template  # noqa: E402
@@ -87,9 +88,8 @@ def main():
                              f"{100 * d.std(ddof=1) / np.sqrt(len(d)):.2f} %")
         print("\n".join(lines[-(2 * (len(VARIANTS) + 3)):]), flush=True)
     text = "\n".join(lines) + "\n"
-    with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "selfsim_results.txt"),
-              "w") as fh:
-        fh.write(text)
+    write_text(os.path.join(os.path.dirname(os.path.abspath(__file__)), "selfsim_results.txt"),
+               text)
 
 
 if __name__ == "__main__":

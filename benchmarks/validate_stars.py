@@ -37,6 +37,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
+from lsst_bfdrift.io_utils import write_json, write_text  # noqa: E402
 from lsst_bfdrift.template import DistortionTemplate  # noqa: E402
 from lsst_bfdrift.validation import (_slope, draw_star_pairs,  # noqa: E402
                                      per_star_residuals, residual_slopes)
@@ -170,10 +171,8 @@ def main():
                              f"{100 * dee / abs(ue1):.1f} %")
             out["psfs"][psf]["transfers_minus_areas"] = change
         print("\n".join(lines[n0:]), flush=True)
-        with open(args.out + ".json", "w") as fh:
-            json.dump(out, fh, indent=2)
-        with open(args.out + ".txt", "w") as fh:
-            fh.write("\n".join(lines) + "\n")
+        write_json(args.out + ".json", out, indent=2)
+        write_text(args.out + ".txt", "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ import tempfile
 
 import numpy as np
 
-__all__ = ["atomic_output", "read_image"]
+__all__ = ["atomic_output", "write_text", "write_json", "read_image"]
 
 
 @contextlib.contextmanager
@@ -34,6 +34,21 @@ def atomic_output(path, *, overwrite=True):
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
+
+
+def write_text(path, text):
+    """Write ``text`` to ``path`` atomically (:func:`atomic_output`)."""
+    with atomic_output(path) as tmp, open(tmp, "w") as fh:
+        fh.write(text)
+
+
+def write_json(path, obj, **dump_kwargs):
+    """Write ``obj`` as JSON to ``path`` atomically; ``dump_kwargs`` go to
+    :func:`json.dump` (e.g. ``indent=2, default=float``)."""
+    import json
+
+    with atomic_output(path) as tmp, open(tmp, "w") as fh:
+        json.dump(obj, fh, **dump_kwargs)
 
 
 def read_image(path, *, hdu=None):
