@@ -1,10 +1,10 @@
 """Geometry maps of a 4096 x 4096 CCD: full template against resampled edges.
 
-Times :func:`lsst_bfdrift.superpose.moment_maps` (area, centroid shift,
+Times :func:`lsst_bfdrift.geometry.superpose.moment_maps` (area, centroid shift,
 second moments and e1/e2 of every pixel's final polygon) with the bundled
 default template (21 x 21, 32 samples per edge) used as it is, and with its
 edge profiles resampled to fewer samples (``samples=k``, moment-preserving,
-:func:`~lsst_bfdrift.superpose.resample_template`), in double and single
+:func:`~lsst_bfdrift.geometry.superpose.resample_template`), in double and single
 precision FFTs. ``previous code`` is ``moment_maps`` as of commit
 ``b7eead9`` (one unbatched FFT per channel, full template; its
 ``superpose.py`` and ``_kernels.py`` read with ``git show``), when git is
@@ -37,7 +37,7 @@ import tempfile
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from lsst_bfdrift.io_utils import write_json, write_text  # noqa: E402
+from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 ROOT = os.path.dirname(HERE)
 BASELINE_COMMIT = "b7eead9"
 
@@ -45,8 +45,8 @@ CHILD = r"""
 import importlib.util, json, os, resource, sys, time
 import numpy as np
 sys.path.insert(0, {root!r})
-from lsst_bfdrift.template import load_default_template
-import lsst_bfdrift.superpose as S
+from lsst_bfdrift.templates.template import load_default_template
+import lsst_bfdrift.geometry.superpose as S
 n, kind, samples, dtype, tmp, prev = {size}, {kind!r}, {samples!r}, {dtype!r}, {tmp!r}, {prev!r}
 mm = S.moment_maps
 kw = dict(workers=2)

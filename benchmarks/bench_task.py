@@ -6,8 +6,8 @@ input image and the imported libraries are the baseline), in units of the
 image's size (float64). The children also count the applications of the
 swept-area operator (``SweptAreas.__call__`` and batched window stacks,
 ``SweptAreas.apply_stack``) and the FFTs (``rfft2`` / ``irfft2`` calls,
-kernel transforms included) made inside :mod:`lsst_bfdrift.swept` and
-:mod:`lsst_bfdrift.correction` during ``task.run``. The Task keeps its
+kernel transforms included) made inside :mod:`lsst_bfdrift.templates.swept` and
+:mod:`lsst_bfdrift.correction.solvers` during ``task.run``. The Task keeps its
 operators (kernel transforms) between calls, for every method alike. Run from the repository
 root. ``warm`` is the median of seven more calls on the same image in the same
 process (operators and work arrays kept by the Task, memory pools warm; not
@@ -27,21 +27,21 @@ import sys
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from lsst_bfdrift.io_utils import write_json, write_text  # noqa: E402
+from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 CHILD = r"""
 import json, os, resource, sys, time
 import numpy as np
 sys.path.insert(0, {root!r})
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask
-from lsst_bfdrift import correction as C
+from lsst_bfdrift.correction import solvers as C
 count = dict(ops=0, ffts=0)
 _call = C.SweptAreas.__call__
 def _counted_call(self, q):
     count["ops"] += 1
     return _call(self, q)
 C.SweptAreas.__call__ = _counted_call
-from lsst_bfdrift import swept as SW
+from lsst_bfdrift.templates import swept as SW
 _sp_fft = SW.sp_fft
 class _FFT:
     def __getattr__(self, name):

@@ -22,10 +22,10 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from lsst_bfdrift.io_utils import write_json  # noqa: E402
-from lsst_bfdrift.calibration import fit_sensor_parameters  # noqa: E402
-from lsst_bfdrift.sensor import SensorParameters  # noqa: E402
-from lsst_bfdrift.template import TemplateSettings, build_template  # noqa: E402
+from lsst_bfdrift.utils.io import write_json  # noqa: E402
+from lsst_bfdrift.calibration.sensor_fit import fit_sensor_parameters  # noqa: E402
+from lsst_bfdrift.physics.sensor import SensorParameters  # noqa: E402
+from lsst_bfdrift.templates.template import TemplateSettings, build_template  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ITL = os.path.join(HERE, "..", "..", "shared", "data", "measured", "itl_covariances_21oct19.txt")

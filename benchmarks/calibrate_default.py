@@ -2,7 +2,7 @@
 
 Fits the sensor model's three free scales -- xi0 (SI value of the dipole
 unit), the buried-channel depth and the clock-pair separation -- with
-:func:`lsst_bfdrift.calibration.fit_sensor_parameters` so that a template
+:func:`lsst_bfdrift.calibration.sensor_fit.fit_sensor_parameters` so that a template
 for a 1e4 e aggressor reproduces the measured a01, a10, a11, a02, a20 of
 ``shared/data/measured/itl_covariances_21oct19.txt`` (a_ij per e; the
 file's (i, j) = (serial, parallel): its larger nearest neighbour, (0, 1), is
@@ -30,10 +30,10 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from lsst_bfdrift.calibration import fit_sensor_parameters, template_numbers  # noqa: E402
-from lsst_bfdrift.io_utils import atomic_output  # noqa: E402
-from lsst_bfdrift.sensor import SensorParameters  # noqa: E402
-from lsst_bfdrift.template import TemplateSettings  # noqa: E402
+from lsst_bfdrift.calibration.sensor_fit import fit_sensor_parameters, template_numbers  # noqa: E402
+from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
+from lsst_bfdrift.physics.sensor import SensorParameters  # noqa: E402
+from lsst_bfdrift.templates.template import TemplateSettings  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.join(HERE, "..")
@@ -117,7 +117,7 @@ def main(argv=None):
                "template": DEFAULT_SETTINGS,
                "provenance": {
                    "fit": "benchmarks/calibrate_default.py "
-                          "(lsst_bfdrift.calibration.fit_sensor_parameters)",
+                          "(lsst_bfdrift.calibration.sensor_fit.fit_sensor_parameters)",
                    "data": "shared/data/measured/itl_covariances_21oct19.txt "
                            "(LSST ITL sensor, Poisson_CCD repository)",
                    "targets": "a01, a10, a11, a02, a20 per e (i serial, j parallel); "

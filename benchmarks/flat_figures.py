@@ -6,12 +6,12 @@ Run from the repository root::
 
 For the paper's two responsivities (d ln A00 / Q = -1e-5 and -3.3e-5 per e,
 the bundled template's displacements attributed to the matching charge,
-:func:`lsst_bfdrift.simulations.with_responsivity`) a stack of periodic flats
+:func:`lsst_bfdrift.simulation.flats.with_responsivity`) a stack of periodic flats
 is filled in steps of 1000 e (the paper: 1024 images, 250 cycles) and the
 paper's all-pairs covariances C_ij / mu are plotted against mu, with the
-model of Astier et al. 2019 (:func:`lsst_bfdrift.ptc.covariance_model`, third
+model of Astier et al. 2019 (:func:`lsst_bfdrift.calibration.ptc.covariance_model`, third
 order, gain 1) evaluated with the template's linear response alpha_ij
-(:func:`lsst_bfdrift.simulations.template_area_coefficients`) at the
+(:func:`lsst_bfdrift.simulation.flats.template_area_coefficients`) at the
 effective signal of the discrete filling. Writes
 ``docs/_static/simulations/flat_cov_resp1e-5.png`` and ``flat_cov_resp3.3e-5.png``
 and a text summary
@@ -32,11 +32,11 @@ import matplotlib  # noqa: E402
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from lsst_bfdrift.io_utils import atomic_output  # noqa: E402
-from lsst_bfdrift.ptc import covariance_model  # noqa: E402
-from lsst_bfdrift.simulations import (simulate_flats, template_area_coefficients,  # noqa: E402
+from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
+from lsst_bfdrift.calibration.ptc import covariance_model  # noqa: E402
+from lsst_bfdrift.simulation.flats import (simulate_flats, template_area_coefficients,  # noqa: E402
                                       with_responsivity)
-from lsst_bfdrift.template import load_default_template  # noqa: E402
+from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
 
 LAGS = [((0, 1), "C0"), ((1, 0), "C1"), ((1, 1), "C2"), ((0, 2), "C3"), ((2, 0), "C4")]
 

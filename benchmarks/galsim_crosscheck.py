@@ -10,13 +10,13 @@ every ``nrecalc`` conversions in all of them:
 
 * ``galsim``: ``galsim.SiliconSensor('lsst_itl_50_8', diffusion_factor=0,
   nrecalc=...)`` (one OpenMP thread, see below);
-* ``ours``: :class:`lsst_bfdrift.stars.StarSimulation` with the template
+* ``ours``: :class:`lsst_bfdrift.simulation.stars.StarSimulation` with the template
   imported from the same sensor file: shared (tiling) boundaries with the
-  corners matched to GalSim's pixel areas (``match_areas=True``, the
+  corners matched to GalSim's pixel areas (``match="areas"``, the
   default import); shared boundaries with the edge samples matched to
   GalSim's effective per-edge transfers (``match='transfers'``, measured at
   1e4 e, and ``match_transfers_1e5`` at the file's 1e5 e); shared boundaries with every edge and corner taken from
-  the pixel nearest the aggressor (``match_areas=False``); and GalSim's own
+  the pixel nearest the aggressor (``match="none"``); and GalSim's own
   layout and assignment rule (``layout='galsim'``: per-edge polylines with
   their own corner copies, nominal pixel first, random fallback);
 * ``nominal``: the photons binned on the undistorted grid (the BF-free twin).
@@ -44,10 +44,10 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from lsst_bfdrift.io_utils import write_json, write_text  # noqa: E402
-from lsst_bfdrift.stars import StarSimulation, image_moments  # noqa: E402
-from lsst_bfdrift.superpose import moment_maps  # noqa: E402
-from lsst_bfdrift.template import DistortionTemplate  # noqa: E402
+from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
+from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
+from lsst_bfdrift.simulation.stars import StarSimulation, image_moments  # noqa: E402
+from lsst_bfdrift.geometry.superpose import moment_maps  # noqa: E402
 
 SENSOR = "lsst_itl_50_8"
 
@@ -104,12 +104,12 @@ GALSIM_RUNS = {"galsim_q3": 3, "galsim_q4": 4}
 
 def default_variants():
     """Our variants: name -> (template, layout, qdist, galsim_box)."""
-    raw = DistortionTemplate.from_galsim(SENSOR, match_areas=False)
-    return {"match_areas": (DistortionTemplate.from_galsim(SENSOR, match_areas=True), "shared",
+    raw = import_galsim_sensor(SENSOR, match="none")
+    return {"match_areas": (import_galsim_sensor(SENSOR, match="areas"), "shared",
                             None, False),
-            "match_transfers": (DistortionTemplate.from_galsim(SENSOR, match="transfers"),
+            "match_transfers": (import_galsim_sensor(SENSOR, match="transfers"),
                                 "shared", None, False),
-            "match_transfers_1e5": (DistortionTemplate.from_galsim(
+            "match_transfers_1e5": (import_galsim_sensor(
                 SENSOR, match="transfers", transfer_charge=None, transfer_cells=2000),
                 "shared", None, False),
             "nearest_pixel": (raw, "shared", None, False),
@@ -193,7 +193,7 @@ def area_check(*, stamp=31, peak=2e5, sigma=1.5):
     out = {"charge": float(q.sum()), "galsim_A00": float(ag[stamp // 2, stamp // 2]),
            "galsim_area_sum_minus_npix": float(ag.sum() - stamp**2)}
     for name, ma in (("match_areas", True), ("nearest_pixel", False)):
-        a = moment_maps(DistortionTemplate.from_galsim(SENSOR, match_areas=ma), q).area
+        a = moment_maps(import_galsim_sensor(SENSOR, match="areas" if ma else "none"), q).area
         out[name] = {"A00": float(a[stamp // 2, stamp // 2]),
                      "max_abs_area_diff": float(np.abs(a - ag).max()),
                      # change of the r^2-weighted area deficit, the lever of the size change

@@ -16,7 +16,7 @@ twin strength 1e-9, same photons and sensor seed) with
 
 and measures the residual size and e1 slopes of every correction method with
 the area-matched GalSim template, plus (same pairs, no redraw) the template
-imported with ``match_areas=False``. Run from the repository root::
+imported with ``match="none"``. Run from the repository root::
 
     python benchmarks/probe_validation_cadence.py --cadences \
         100:1e4 1000:100 3000:30 1000:100:4 100:1e4:4
@@ -44,11 +44,11 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from lsst_bfdrift.io_utils import write_json, write_text  # noqa: E402
-from lsst_bfdrift.galsim_twins import accumulate_twins, shoot_stamp_photons, sky_box  # noqa: E402
-from lsst_bfdrift.stars import make_psf  # noqa: E402
-from lsst_bfdrift.template import DistortionTemplate  # noqa: E402
-from lsst_bfdrift.validation import _slope, per_star_residuals, residual_slopes  # noqa: E402
+from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
+from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
+from lsst_bfdrift.simulation.galsim_twins import accumulate_twins, shoot_stamp_photons, sky_box  # noqa: E402
+from lsst_bfdrift.simulation.stars import make_psf  # noqa: E402
+from lsst_bfdrift.validation.stars import _slope, per_star_residuals, residual_slopes  # noqa: E402
 
 METHODS = ("coulton18", "astier23", "drift")
 
@@ -118,7 +118,7 @@ def table(title, res, lines):
 
 def per_star_rows(pairs, template, sky=1000.0):
     """Per-star residuals of each method against the twin
-    (:func:`lsst_bfdrift.validation.per_star_residuals`; NaN where unmeasurable)."""
+    (:func:`lsst_bfdrift.validation.stars.per_star_residuals`; NaN where unmeasurable)."""
     return per_star_residuals(pairs, template, methods=METHODS, sky=sky)
 
 
@@ -157,13 +157,13 @@ def qdist_templates(args):
         pairs = [{"bf": b, "truth": t, "flux": float(f)}
                  for b, t, f in zip(d["bf"], d["truth"], d["flux"])]
         with galsim_qdist(qd):
-            tpl_q = DistortionTemplate.from_galsim("lsst_itl_50_8", match_areas=True)
-        tag = f"pairs of {cad}, template match_areas=True with GalSim qdist={qd}"
+            tpl_q = import_galsim_sensor("lsst_itl_50_8", match="areas")
+        tag = f"pairs of {cad}, template match='areas' with GalSim qdist={qd}"
         rows_q = per_star_rows(pairs, tpl_q)
         res = residual_slopes(*rows_q)
         table(f" {tag}", res, lines)
         out["runs"][cad][f"match_areas_qdist{qd}"] = res
-        tpl_m = DistortionTemplate.from_galsim("lsst_itl_50_8", match_areas=True)
+        tpl_m = import_galsim_sensor("lsst_itl_50_8", match="areas")
         out["runs"][cad][f"paired_template_qdist{qd}"] = paired(
             per_star_rows(pairs, tpl_m), rows_q,
             f"template qdist={qd}-matched minus qdist=3-matched, {cad}", lines)
@@ -184,8 +184,8 @@ def main():
     args = ap.parse_args()
     if args.qdist_templates:
         return qdist_templates(args)
-    tpl_m = DistortionTemplate.from_galsim("lsst_itl_50_8", match_areas=True)
-    tpl_n = DistortionTemplate.from_galsim("lsst_itl_50_8", match_areas=False)
+    tpl_m = import_galsim_sensor("lsst_itl_50_8", match="areas")
+    tpl_n = import_galsim_sensor("lsst_itl_50_8", match="none")
     lines = [f"Moffat stars of validate_stars (seed 20151, 200-star sequence), flux >= "
              f"{args.fmin:g} e, sky 1000 e through the sensor, lsst_itl_50_8"]
     out = {"fmin": args.fmin, "runs": {}}
@@ -207,13 +207,13 @@ def main():
                      f"validate {t_val:.0f} s CPU, {len(pairs)} stars "
                      f"(flux {min(p['flux'] for p in pairs):.3g}-"
                      f"{max(p['flux'] for p in pairs):.3g} e)")
-        table(f" template match_areas=True, {tag}", res_m, lines)
+        table(f" template match='areas', {tag}", res_m, lines)
         run = {"updates": upd, "min_nrecalc": mn, "qdist": qd or 3, "draw_cpu_s": t_draw,
                "validate_cpu_s": t_val, "match_areas_true": res_m,
                "indices": [p["index"] for p in pairs]}
         rows_n = per_star_rows(pairs, tpl_n)
         res_n = residual_slopes(*rows_n)
-        table(f" template match_areas=False, {tag}", res_n, lines)
+        table(f" template match='none', {tag}", res_n, lines)
         run["match_areas_false"] = res_n
         fl, rr = rows
         ok = np.isfinite(fl)
@@ -223,12 +223,12 @@ def main():
             ds, dse = _slope(fl[ok], rr[m][ok, 0] - rr["astier23"][ok, 0])
             de, dee = _slope(fl[ok], rr[m][ok, 1] - rr["astier23"][ok, 1])
             run[f"{m}_minus_astier23"] = {"size": ds, "size_err": dse, "e1": de, "e1_err": dee}
-            lines.append(f" paired {m} minus astier23 residual (match_areas=True, {tag}): size "
+            lines.append(f" paired {m} minus astier23 residual (match='areas', {tag}): size "
                          f"{100 * ds / unc:+.2f} +- {100 * dse / unc:.2f} %, e1 "
                          f"{100 * de / ue1:+.1f} +- {100 * dee / abs(ue1):.1f} % of uncorrected")
             print(lines[-1], flush=True)
         run["paired_template"] = paired(rows, rows_n,
-                                        f"template match_areas=False minus True, {tag}", lines)
+                                        f"template match='none' minus 'areas', {tag}", lines)
         if cad != args.cadences[0]:
             run["paired_vs_first"] = paired(first_rows, rows,
                                             f"{tag} minus {args.cadences[0]}", lines)

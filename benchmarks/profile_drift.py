@@ -31,13 +31,13 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from lsst_bfdrift.io_utils import write_text  # noqa: E402
+from lsst_bfdrift.utils.io import write_text  # noqa: E402
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
-from lsst_bfdrift import _edge_kernels as E  # noqa: E402
-from lsst_bfdrift import correction as C  # noqa: E402
-from lsst_bfdrift import sparse_series as S  # noqa: E402
-from lsst_bfdrift.swept import OperatorCache  # noqa: E402
-from lsst_bfdrift.template import load_default_template  # noqa: E402
+from lsst_bfdrift.correction import _edge_kernels as E
+from lsst_bfdrift.correction import solvers as C
+from lsst_bfdrift.correction import series as S
+from lsst_bfdrift.templates.swept import OperatorCache  # noqa: E402
+from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
 
 
 def star_field(n=4096, seed=1):

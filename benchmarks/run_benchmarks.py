@@ -25,9 +25,10 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from lsst_bfdrift.io_utils import write_json, write_text  # noqa: E402
-from lsst_bfdrift.superpose import moment_maps  # noqa: E402
-from lsst_bfdrift.template import TemplateSettings, build_template, load_default_template  # noqa: E402,E501
+from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
+from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
+from lsst_bfdrift.geometry.superpose import moment_maps  # noqa: E402
+from lsst_bfdrift.templates.template import TemplateSettings, build_template, load_default_template  # noqa: E402,E501
 
 
 def _timed(fn, *a, **k):
@@ -103,7 +104,7 @@ def _superpose_section(rows, lines, n):
 
 def _flat_section(rows, lines):
     # 3. paper-scale flat simulation: 1024 images of 16 x 16, 250 steps of 1000 e
-    from lsst_bfdrift.simulations import simulate_flats
+    from lsst_bfdrift.simulation.flats import simulate_flats
     tpl = load_default_template()
     tab, dt = _timed(simulate_flats, tpl, n_images=1024, shape=(16, 16), step=1000.0,
                      n_steps=250, seed=1)
@@ -118,9 +119,8 @@ def _star_section(rows, lines):
     #    GalSim with its default OpenMP threads and with 1 thread (ours is serial)
     import galsim
 
-    from lsst_bfdrift.stars import simulate_star
-    from lsst_bfdrift.template import DistortionTemplate
-    itl = DistortionTemplate.from_galsim("lsst_itl_50_8")
+    from lsst_bfdrift.simulation.stars import simulate_star
+    itl = import_galsim_sensor("lsst_itl_50_8")
     nphot, every = 500000, 1000
     psf = galsim.Gaussian(fwhm=0.7)
     simulate_star(itl, psf, 2 * every, stamp_size=31, update_every=every, seed=1)  # compile

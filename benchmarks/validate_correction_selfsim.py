@@ -24,11 +24,11 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from lsst_bfdrift.io_utils import write_text  # noqa: E402
+from lsst_bfdrift.utils.io import write_text  # noqa: E402
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
-from lsst_bfdrift.stars import StarSimulation, image_moments, shoot_photons  # noqa: E402
-from lsst_bfdrift.template import load_default_template  # noqa: E402
-from lsst_bfdrift.validation import _moments  # noqa: E402
+from lsst_bfdrift.simulation.stars import StarSimulation, image_moments, shoot_photons  # noqa: E402
+from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
+from lsst_bfdrift.validation.stars import _moments  # noqa: E402
 
 VARIANTS = {"drift": dict(method="drift"),  # default density 'fv4'
             "drift cubic4": dict(method="drift", density="cubic4"),

@@ -6,7 +6,7 @@ ellipticity varying over the field, 1e4 to 1.5e6 e, sky 800 e, read noise
 with the same photons, diffusion and noise at strength 1e-9 (paired truth).
 The sky around each star is collected through the sensor with its photons
 (``simulate_star_field`` defaults). The corrections use the template
-imported from the same sensor file (``DistortionTemplate.from_galsim``), not
+imported from the same sensor file (``import_galsim_sensor``), not
 the package default.
 
 1. ``validate_sky`` (no truth used) on the BF image with both correction
@@ -35,13 +35,13 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from lsst_bfdrift.catalog import measure_stars  # noqa: E402
-from lsst_bfdrift.io_utils import atomic_output  # noqa: E402
-from lsst_bfdrift.shape_correction import correct_catalog  # noqa: E402
-from lsst_bfdrift.sky import validate_sky  # noqa: E402
-from lsst_bfdrift.skysim import simulate_star_field  # noqa: E402
-from lsst_bfdrift.task import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
-from lsst_bfdrift.template import DistortionTemplate  # noqa: E402
+from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
+from lsst_bfdrift.validation.catalog import measure_stars  # noqa: E402
+from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
+from lsst_bfdrift.validation.shape_correction import correct_catalog  # noqa: E402
+from lsst_bfdrift.validation.sky import validate_sky  # noqa: E402
+from lsst_bfdrift.simulation.skysim import simulate_star_field  # noqa: E402
+from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
 
 
 def _slope(f, v):
@@ -68,7 +68,7 @@ def main(argv=None):
                                 seed=args.seed, progress=True)
     t_sim = time.perf_counter() - t0
     bf, truth_img = field["image"], field["truth_image"]
-    tpl = DistortionTemplate.from_galsim("lsst_itl_50_8", match="transfers")
+    tpl = import_galsim_sensor("lsst_itl_50_8", match="transfers")
     say(f"field {args.size} x {args.size}, {args.n_stars} stars, galsim.SiliconSensor "
         f"lsst_itl_50_8 strength 1 (+ paired strength 1e-9 twin): drawn in {t_sim:.0f} s")
 
@@ -159,8 +159,8 @@ def main(argv=None):
     say(f"\ntimes: catalogue-level correction {t_cat:.1f} s (maps + moments of "
         f"{len(cat)} stars), pixel-level Task + new catalogue {t_pix:.1f} s")
 
-    from lsst_bfdrift.plots import save_figure
-    from lsst_bfdrift.star_plots import plot_sky_validation
+    from lsst_bfdrift.utils.plotting import save_figure
+    from lsst_bfdrift.validation.plots import plot_sky_validation
     png = os.path.join(os.path.dirname(HERE), "docs", "_static", "sky_validation.png")
     save_figure(plot_sky_validation(v), png)
     with atomic_output(os.path.join(HERE, "validate_sky_results.txt")) as tmp, \

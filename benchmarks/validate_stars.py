@@ -7,7 +7,7 @@ star, about 1000 GalSim boundary updates per exposure) and writes
 ``benchmarks/validate_stars_results.json`` / ``.txt``.
 
 The same drawn stars are corrected with two imports of GalSim's sensor file
-(``DistortionTemplate.from_galsim``): ``match='transfers'`` (the default of
+(``DistortionTemplate.import_galsim_sensor``): ``match='transfers'`` (the default of
 validate-stars: every edge's swept area equals GalSim's effective transfer,
 measured at 1e4 e and scaled to the file's 1e5 e), the same measured at
 1e5 e (``transfers@1e5``: GalSim's effective transfers are slightly
@@ -37,9 +37,9 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from lsst_bfdrift.io_utils import write_json, write_text  # noqa: E402
-from lsst_bfdrift.template import DistortionTemplate  # noqa: E402
-from lsst_bfdrift.validation import (_slope, draw_star_pairs,  # noqa: E402
+from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
+from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
+from lsst_bfdrift.validation.stars import (_slope, draw_star_pairs,  # noqa: E402
                                      per_star_residuals, residual_slopes)
 
 METHODS = ("coulton18", "astier23", "drift")
@@ -95,12 +95,12 @@ def main():
     ap.add_argument("--out", default=os.path.join(HERE, "validate_stars_results"))
     args = ap.parse_args()
     t0 = time.process_time()
-    templates = {"transfers": DistortionTemplate.from_galsim("lsst_itl_50_8", match="transfers")}
+    templates = {"transfers": import_galsim_sensor("lsst_itl_50_8", match="transfers")}
     t_tr = time.process_time() - t0
-    templates["areas"] = DistortionTemplate.from_galsim("lsst_itl_50_8", match="areas")
+    templates["areas"] = import_galsim_sensor("lsst_itl_50_8", match="areas")
     # GalSim's effective transfers are not quite linear in the charge (its rule near the
     # non-tiling corners): the same match, measured at the file's 1e5 e instead of 1e4 e
-    templates["transfers@1e5"] = DistortionTemplate.from_galsim(
+    templates["transfers@1e5"] = import_galsim_sensor(
         "lsst_itl_50_8", match="transfers", transfer_charge=None, transfer_cells=2000)
     out = {"sensor": "lsst_itl_50_8", "sky": args.sky, "sky_through_sensor": True,
            "n_stars": args.n_stars, "updates": args.updates, "min_nrecalc": args.min_nrecalc,

@@ -1,6 +1,6 @@
 """Reproduce Rasmussen 2015: numbers, results files and the docs figures.
 
-Runs :func:`lsst_bfdrift.reproduce.reproduce` at full resolution (31 x 31
+Runs :func:`lsst_bfdrift.validation.paper_figures.reproduce` at full resolution (31 x 31
 calibrated template with 32 samples per edge, the 5 x 5 V_BSS / xi_CK ratio
 scan and every fixed-pattern feature), then writes
 
@@ -23,9 +23,9 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.join(HERE, "..")
 sys.path.insert(0, ROOT)  # this checkout's lsst_bfdrift
 
-from lsst_bfdrift.io_utils import atomic_output  # noqa: E402
-from lsst_bfdrift.progress import ProgressBar  # noqa: E402
-from lsst_bfdrift.reproduce import reproduce, write_figures  # noqa: E402
+from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
+from lsst_bfdrift.utils.progress import ProgressBar  # noqa: E402
+from lsst_bfdrift.validation.paper_figures import reproduce, write_figures  # noqa: E402
 
 
 def main():

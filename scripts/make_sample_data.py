@@ -38,8 +38,8 @@ def make_star(path):
 
 
 def make_template(path):
-    from lsst_bfdrift.cli import read_config
-    from lsst_bfdrift.template import build_template
+    from lsst_bfdrift.cli.main import read_config
+    from lsst_bfdrift.templates.template import build_template
     params, settings = read_config(os.path.join(DATA, "default_template_config.json"))
     build_template(params, settings, progress=True).save(path, overwrite=True)
     print("wrote", path)

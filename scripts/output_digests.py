@@ -115,7 +115,8 @@ def main(argv=None):
     ptc = _import("lsst_bfdrift.calibration.ptc", "lsst_bfdrift.ptc")
     aco = _import("lsst_bfdrift.calibration.acoeff_fit", "lsst_bfdrift.acoeff_fit")
     sims = _import("lsst_bfdrift.simulation.flats", "lsst_bfdrift.simulations")
-    inj = _import("lsst_bfdrift.simulation.flats", "lsst_bfdrift.injection")
+    inj = _import("lsst_bfdrift.simulation.injection", "lsst_bfdrift.simulation.flats",
+                  "lsst_bfdrift.injection")
 
     out = {}
     tpl = tmod.load_default_template()

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from lsst_bfdrift.sensor import SensorParameters
-from lsst_bfdrift.template import TemplateSettings, build_template
+from lsst_bfdrift.physics.sensor import SensorParameters
+from lsst_bfdrift.templates.template import TemplateSettings, build_template
 
 
 @pytest.fixture(scope="session")

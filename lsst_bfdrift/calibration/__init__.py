@@ -1,0 +1,14 @@
+"""Tuning the model to a sensor's characterization data (stage 5).
+
+Takes flat pairs, PTC files or a-matrix tables; gives photon-transfer
+covariances and their model fits, the electrostatic model fitted to the
+measured area coefficients a_ij, and the diagnosis of what the base model
+lacks (with a Markdown report).
+"""
+
+
+from lsst_bfdrift.calibration.ptc import *  # noqa: F401,F403
+from lsst_bfdrift.calibration.acoeff_fit import *  # noqa: F401,F403
+from lsst_bfdrift.calibration.sensor_fit import *  # noqa: F401,F403
+from lsst_bfdrift.calibration.diagnosis import *  # noqa: F401,F403
+from lsst_bfdrift.calibration.report import *  # noqa: F401,F403

@@ -1,0 +1,557 @@
+"""Fit of the electrostatic model to measured area coefficients a_ij.
+
+Measured area coefficients a_ij (per electron; Astier et al. 2019) are the
+relative area change of the pixel at lag (i, j) = (serial, parallel) per
+electron collected in the aggressor pixel, a_ij = d ln A_ij / dQ. This module
+
+* reads tables of a_ij with errors (:func:`read_acoeff_table`),
+* establishes which file axis is parallel from the data
+  (:func:`assign_axes`: the larger nearest neighbour is the parallel one,
+  because the clock barriers are weaker than the channel stops) and whether
+  a00 was set by the area sum rule (:func:`sum_rule_check`),
+* computes the model's a_ij for lags 0..L from drift lines
+  (:func:`electrostatic_acoeffs`, symmetric quadrant, fine edge sampling for
+  the nearest lags and coarse sampling where the field is smooth),
+* fits chosen :class:`~lsst_bfdrift.physics.sensor.SensorParameters` to the table
+  (:func:`fit_acoeffs`) with uncertainties, correlations, chi2 per lag and a
+  residual map. The fit's Jacobian at the optimum is kept
+  (:class:`AcoeffFit`), so that :mod:`lsst_bfdrift.calibration.diagnosis` can refit the
+  electrostatic parameters in the linear approximation while it tries extra
+  effects.
+
+Arrays of coefficients are indexed ``a[i, j]`` with i the serial lag and j
+the parallel lag, 0 <= i, j <= L (the model is symmetric in the sign of each).
+"""
+
+import math
+import time
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from lsst_bfdrift.utils.io import data_path
+from lsst_bfdrift.physics.boundaries import pixel_boundaries
+from lsst_bfdrift.physics.polygons import pixel_polygons, polygon_moments
+from lsst_bfdrift.utils.progress import ProgressBar
+from lsst_bfdrift.physics.sensor import SensorModel
+
+__all__ = ["AcoeffTable", "read_acoeff_table", "assign_axes", "sum_rule_check",
+           "electrostatic_acoeffs", "AcoeffFit", "fit_acoeffs", "DEFAULT_FREE",
+           "lag_radius", "LinearBasis", "default_basis_path", "load_default_basis",
+           "linear_basis"]
+
+#: Default free parameters of the fit and their bounds: the barrier dipole
+#: scale xi0 (e), the channel-stop strength relative to it (xi0), the channel
+#: depth (um) and the backside bias (V, sets the backdrop field).
+DEFAULT_FREE = {"xi0": (500.0, 1e5), "xi_cs": (-60.0, -2.0),
+                "channel_depth": (0.1, 5.0), "v_bss": (-120.0, -15.0)}
+
+
+def lag_radius(max_lag):
+    """Array r[i, j] = sqrt(i^2 + j^2) for 0 <= i, j <= max_lag."""
+    i, j = np.meshgrid(np.arange(max_lag + 1), np.arange(max_lag + 1), indexing="ij")
+    return np.hypot(i, j)
+
+
+class AcoeffTable:
+    """Measured a_ij (per e) with 1-sigma errors, indexed [serial, parallel].
+
+    Attributes
+    ----------
+    a, sigma : ndarray, shape (L + 1, L + 1)
+        Coefficients and errors (per e).
+    max_lag : int
+    source : str
+        Where the table came from.
+    axis_note : str
+        How the axis assignment was established.
+    exclude_a00 : bool
+        True when a00 must be left out of chi2 (set by the sum rule).
+    """
+
+    def __init__(self, a, sigma, *, source="", axis_note="", exclude_a00=False):
+        a = np.array(a, dtype=np.float64)
+        sigma = np.array(sigma, dtype=np.float64)
+        if a.ndim != 2 or a.shape[0] != a.shape[1]:
+            raise ValueError(f"a_ij must be a square 2-d array, got shape {a.shape}")
+        if sigma.shape != a.shape:
+            raise ValueError(f"errors have shape {sigma.shape}, coefficients {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError("a_ij table holds non-finite coefficients")
+        if not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
+            raise ValueError("a_ij errors must be finite and positive (found NaN, inf, zero "
+                             "or negative errors)")
+        self.a, self.sigma = a, sigma
+        self.max_lag = a.shape[0] - 1
+        self.source, self.axis_note, self.exclude_a00 = source, axis_note, bool(exclude_a00)
+
+    def mask(self):
+        """Boolean array of the lags that enter chi2."""
+        m = np.ones(self.a.shape, dtype=bool)
+        if self.exclude_a00:
+            m[0, 0] = False
+        return m
+
+    def transposed(self):
+        """The table with the two axes exchanged."""
+        return AcoeffTable(self.a.T, self.sigma.T, source=self.source,
+                           axis_note=self.axis_note, exclude_a00=self.exclude_a00)
+
+    def truncated(self, max_lag):
+        """The table restricted to lags <= ``max_lag``."""
+        k = int(max_lag) + 1
+        return AcoeffTable(self.a[:k, :k], self.sigma[:k, :k], source=self.source,
+                           axis_note=self.axis_note, exclude_a00=self.exclude_a00)
+
+
+def read_acoeff_table(path, *, orient=True):
+    """Read a text table ``i j value sigma`` (one lag per row, header allowed).
+
+    Parameters
+    ----------
+    path : str
+        File name. Rows hold integer lags i, j >= 0, the coefficient (per e)
+        and its 1-sigma error; a first non-numeric line is a header.
+    orient : bool, optional
+        Establish the axis assignment from the data (:func:`assign_axes`)
+        and detect a sum-rule a00 (:func:`sum_rule_check`).
+
+    Returns
+    -------
+    AcoeffTable
+        Indexed [serial, parallel] when ``orient`` is true, else in the file's
+        (i, j) order.
+    """
+    rows = []
+    with open(path) as fh:
+        for n, line in enumerate(fh, 1):
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            parts = s.replace(",", " ").split()
+            try:
+                vals = [float(p) for p in parts]
+            except ValueError:
+                if rows:
+                    raise ValueError(f"{path}:{n}: non-numeric row {s!r}") from None
+                continue  # header
+            if len(vals) != 4:
+                raise ValueError(f"{path}:{n}: expected 4 columns (i j value sigma), "
+                                 f"got {len(vals)}")
+            rows.append(vals)
+    if not rows:
+        raise ValueError(f"{path}: no a_ij rows found")
+    d = np.array(rows)
+    ij = d[:, :2]
+    if np.any(ij != np.round(ij)) or np.any(ij < 0):
+        raise ValueError(f"{path}: lags must be non-negative integers")
+    ij = ij.astype(int)
+    L = int(ij.max())
+    a = np.full((L + 1, L + 1), np.nan)
+    s = np.full((L + 1, L + 1), np.nan)
+    for (i, j), v, e in zip(ij, d[:, 2], d[:, 3]):
+        if np.isfinite(a[i, j]):
+            raise ValueError(f"{path}: lag ({i}, {j}) appears twice")
+        a[i, j], s[i, j] = v, e
+    if np.any(np.isnan(a)):
+        miss = np.argwhere(np.isnan(a))[:3].tolist()
+        raise ValueError(f"{path}: incomplete square table, missing lags e.g. {miss}")
+    table = AcoeffTable(a, s, source=str(path))
+    if orient:
+        table = assign_axes(table)
+        ok, note = sum_rule_check(table)
+        table.exclude_a00 = ok
+        table.axis_note += "; " + note
+    return table
+
+
+def assign_axes(table):
+    """Orient a table as [serial, parallel] from the data itself.
+
+    The clock barriers between rows are weaker than the channel stops, so a
+    collected charge pushes the row boundaries further: the parallel nearest
+    neighbour has the larger coefficient (the paper's A01 > A10; every
+    measured LSST sensor). The axis of the larger of the file's a[0, 1] and
+    a[1, 0] is taken as parallel; the significance of the difference is
+    reported in ``axis_note``.
+
+    Parameters
+    ----------
+    table : AcoeffTable
+        In the file's (i, j) order.
+
+    Returns
+    -------
+    AcoeffTable
+        [serial, parallel] order.
+    """
+    a01, a10 = table.a[0, 1], table.a[1, 0]
+    s = math.hypot(table.sigma[0, 1], table.sigma[1, 0])
+    z = abs(a01 - a10) / s
+    if a01 >= a10:
+        out = AcoeffTable(table.a, table.sigma, source=table.source,
+                          exclude_a00=table.exclude_a00)
+        which = "file (i, j) = (serial, parallel): a[0,1] > a[1,0]"
+    else:
+        out = table.transposed()
+        which = "file (i, j) = (parallel, serial): a[1,0] > a[0,1], axes swapped"
+    out.axis_note = (f"{which} by {z:.1f} sigma ({max(a01, a10):.3g} vs {min(a01, a10):.3g}; "
+                     "the larger nearest neighbour is the parallel one)")
+    return out
+
+
+def sum_rule_check(table, *, nsigma=1.0):
+    """Whether a00 equals minus the sum of all other lags (area sum rule).
+
+    Sums a_ij over all signed lags except (0, 0) (weights 2 on the axes, 4
+    off them) and compares with -a00. When they agree to better than
+    ``nsigma`` times the error of a00 *divided by 10*, a00 was evidently set
+    by the rule, not measured, and must stay out of chi2.
+
+    Returns
+    -------
+    (bool, str)
+        The verdict and a sentence with the numbers.
+    """
+    a = table.a
+    w = np.full(a.shape, 4.0)
+    w[0, :] = 2.0
+    w[:, 0] = 2.0
+    w[0, 0] = 0.0
+    s = float(np.sum(w * a))
+    gap = a[0, 0] + s
+    ok = abs(gap) < nsigma * table.sigma[0, 0] / 10.0
+    note = (f"a00 = {a[0, 0]:.4g}, minus the sum of the other lags = {-s:.4g} (gap {gap:.2g}, "
+            f"a00 error {table.sigma[0, 0]:.2g}): "
+            + ("a00 set by the sum rule, left out of chi2" if ok else "a00 measured, kept"))
+    return ok, note
+
+
+def _quadrant_areas(model, n, edge_samples, tol, spacing):
+    g = pixel_boundaries(model, (0, n), (0, n), edge_samples=edge_samples, tol=tol,
+                         spacing=spacing)
+    x, y = pixel_polygons(g.corners, g.vedge, g.hedge, g.fractions, i0=0, j0=0)
+    jj, ii = np.mgrid[0:n, 0:n]
+    return polygon_moments(x, y, origin=(ii, jj)).area.T  # -> [i, j]
+
+
+def electrostatic_acoeffs(params, *, max_lag=8, charge=1e5, near_samples=32, far_samples=8,
+                          near_lag=1, tol=2e-5):
+    """Model a_ij = ln(A_ij) / Q (per e) for lags 0..max_lag.
+
+    The model is symmetric about both pixel axes, so only the quadrant
+    i, j >= 0 is traced. Lags up to ``near_lag`` (both axes) come from
+    ``near_samples`` uniformly spaced samples per edge (their boundaries bend
+    most); the others from ``far_samples`` samples placed densest at the
+    corners ('tan' spacing), where the far field is smooth.
+
+    Parameters
+    ----------
+    params : SensorParameters
+        Model parameters; must have no fixed-pattern features.
+    max_lag : int, optional
+        Largest lag L.
+    charge : float, optional
+        Aggressor charge Q (e) used for the finite difference.
+    near_samples, far_samples : int, optional
+        Samples per edge.
+    near_lag : int, optional
+        Largest lag computed with ``near_samples``.
+    tol : float, optional
+        Bisection tolerance (pixel units).
+
+    Returns
+    -------
+    ndarray, shape (max_lag + 1, max_lag + 1)
+        a[i, j] per e.
+    """
+    if (params.bloom_stop is not None or params.edge is not None or params.column_overrides
+            or params.row_overrides or params.row_shifts or params.truncations):
+        raise ValueError("electrostatic_acoeffs needs a model without fixed-pattern features "
+                         "(the quadrant symmetry is used)")
+    L = int(max_lag)
+    if L < 1:
+        raise ValueError(f"max_lag must be >= 1, got {max_lag}")
+    model = SensorModel(params).with_charge({(0, 0): float(charge)})
+    far = _quadrant_areas(model, L + 1, far_samples, tol, "tan")
+    k = min(int(near_lag), L) + 1
+    near = _quadrant_areas(model, k, near_samples, tol, "uniform")
+    area = far.copy()
+    area[:k, :k] = near
+    return np.log(area) / float(charge)
+
+
+class AcoeffFit:
+    """Result of :func:`fit_acoeffs`.
+
+    Attributes
+    ----------
+    params : SensorParameters
+        Best fit.
+    names : list of str
+        Free parameters.
+    values, errors : dict
+        Best-fit values and 1-sigma errors (from the Jacobian, not scaled by
+        chi2/dof).
+    correlation : ndarray
+        Correlation matrix (order of ``names``).
+    model, data, sigma : ndarray, shape (L + 1, L + 1)
+        Model and measured a_ij and errors (per e).
+    mask : ndarray of bool
+        Lags in chi2.
+    jacobian : ndarray, shape (L + 1, L + 1, n_free)
+        d a_ij / d parameter at the best fit (per e per parameter unit).
+    chi2, dof : float, int
+    seconds : float
+        Wall time of the fit.
+    n_evaluations : int
+        Model evaluations.
+    """
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+    @property
+    def residual(self):
+        """Data minus model (per e), NaN where not in chi2."""
+        return np.where(self.mask, self.data - self.model, np.nan)
+
+    @property
+    def pulls(self):
+        """(data - model) / sigma, NaN where not in chi2."""
+        return self.residual / self.sigma
+
+    @property
+    def chi2_per_lag(self):
+        """Pull squared per lag (0 where not in chi2); sums to ``chi2``."""
+        return np.where(self.mask, self.pulls, 0.0) ** 2
+
+    def chi2_by_radius(self):
+        """{rounded radius: (chi2, number of lags)} in rings of width 1."""
+        r = np.rint(lag_radius(self.data.shape[0] - 1)).astype(int)
+        c = self.chi2_per_lag
+        return {int(k): (float(c[(r == k) & self.mask].sum()), int(((r == k) & self.mask).sum()))
+                for k in np.unique(r[self.mask])}
+
+    def as_dict(self):
+        """JSON-friendly summary."""
+        return {"names": self.names, "values": self.values, "errors": self.errors,
+                "correlation": np.asarray(self.correlation).tolist(), "chi2": self.chi2,
+                "dof": self.dof, "chi2_dof": self.chi2 / max(self.dof, 1),
+                "model": self.model.tolist(), "data": self.data.tolist(),
+                "sigma": self.sigma.tolist(),
+                "pulls": np.where(self.mask, self.pulls, 0.0).tolist(),
+                "chi2_by_radius": {str(k): v for k, v in self.chi2_by_radius().items()},
+                "seconds": self.seconds, "n_evaluations": self.n_evaluations}
+
+
+def fit_acoeffs(table, params0, free=None, *, model=None, diff_step=0.02, max_nfev=12,
+                progress=False, **model_kwargs):
+    """Fit sensor parameters to a table of a_ij.
+
+    Parameters
+    ----------
+    table : AcoeffTable
+        Measured coefficients, [serial, parallel].
+    params0 : SensorParameters
+        Start; parameters not in ``free`` stay fixed.
+    free : dict, optional
+        ``{name: (lower, upper)}``; default :data:`DEFAULT_FREE`.
+    model : callable, optional
+        ``model(params) -> a[i, j]``; default :func:`electrostatic_acoeffs`
+        with ``max_lag`` of the table and ``model_kwargs``.
+    diff_step : float, optional
+        Relative step of the central-difference derivatives.
+    max_nfev : int, optional
+        Largest number of optimiser iterations (each costs 2 n_free + 1
+        model evaluations).
+    progress : bool, optional
+        Progress bar on stderr (one tick per model evaluation).
+
+    Returns
+    -------
+    AcoeffFit
+    """
+    free = dict(DEFAULT_FREE if free is None else free)
+    if not free:
+        raise ValueError("no free parameters given")
+    names = list(free)
+    for n in names:
+        lo, hi = free[n]
+        if not lo < getattr(params0, n) < hi:
+            raise ValueError(f"start value of {n!r} ({getattr(params0, n)}) is outside its "
+                             f"bounds {free[n]}")
+    L = table.max_lag
+    if model is None:
+        def model(p):
+            return electrostatic_acoeffs(p, max_lag=L, **model_kwargs)
+    mask = table.mask()
+    if mask.sum() <= len(names):
+        raise ValueError(f"{mask.sum()} lags cannot constrain {len(names)} parameters")
+    x0 = np.array([float(getattr(params0, n)) for n in names])
+    scale = np.where(np.abs(x0) > 0, np.abs(x0), 1.0)
+    lo = np.array([free[n][0] for n in names]) / scale
+    hi = np.array([free[n][1] for n in names]) / scale
+    cache = {}
+    t0 = time.perf_counter()
+    bar = ProgressBar(max_nfev * (2 * len(names) + 1), "a_ij fit", enabled=progress)
+
+    def evaluate(u):
+        key = tuple(np.round(u, 12))
+        if key not in cache:
+            p = params0.replace(**{n: float(v * s) for n, v, s in zip(names, u, scale)})
+            m = np.asarray(model(p), dtype=float)
+            if m.shape != table.a.shape:
+                raise ValueError(f"model returned shape {m.shape}, table is {table.a.shape}")
+            cache[key] = m
+            bar(1)
+        return cache[key]
+
+    def resid(u):
+        return ((evaluate(u) - table.a) / table.sigma)[mask]
+
+    def jac(u):
+        cols = []
+        for k in range(u.size):
+            du = np.zeros_like(u)
+            du[k] = diff_step * max(abs(u[k]), 1e-3)
+            cols.append((resid(u + du) - resid(u - du)) / (2 * du[k]))
+        return np.stack(cols, axis=1)
+
+    u0 = x0 / scale
+    res = least_squares(resid, u0, jac=jac, bounds=(lo, hi), method="trf", max_nfev=max_nfev,
+                        x_scale=1.0)
+    bar.done = bar.total
+    if progress:
+        bar._draw(final=True)
+    J = res.jac
+    cov_u = np.linalg.pinv(J.T @ J)
+    cov = cov_u * np.outer(scale, scale)
+    err = np.sqrt(np.clip(np.diag(cov), 0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(err, err)
+    best = res.x * scale
+    params = params0.replace(**{n: float(v) for n, v in zip(names, best)})
+    m = evaluate(res.x)
+    # Jacobian of the a_ij themselves (all lags, including masked ones)
+    jac_full = np.zeros(table.a.shape + (len(names),))
+    for k in range(len(names)):
+        du = np.zeros_like(res.x)
+        du[k] = diff_step * max(abs(res.x[k]), 1e-3)
+        jac_full[..., k] = (evaluate(res.x + du) - evaluate(res.x - du)) / (2 * du[k] * scale[k])
+    chi2 = float(np.sum(resid(res.x) ** 2))
+    return AcoeffFit(params=params, names=names,
+                     values={n: float(v) for n, v in zip(names, best)},
+                     errors={n: float(e) for n, e in zip(names, err)}, correlation=corr,
+                     model=m, data=table.a.copy(), sigma=table.sigma.copy(), mask=mask,
+                     jacobian=jac_full, chi2=chi2, dof=int(mask.sum() - len(names)),
+                     seconds=time.perf_counter() - t0, n_evaluations=len(cache),
+                     axis_note=table.axis_note, source=table.source)
+
+
+class LinearBasis:
+    """Electrostatic a_ij linearised about a fit: a(x) = a0 + J (x - x0).
+
+    Parameters
+    ----------
+    a0 : ndarray, shape (L + 1, L + 1)
+        Model a_ij at ``x0`` (per e).
+    jacobian : ndarray, shape (L + 1, L + 1, n)
+        d a_ij / d x_k.
+    names : list of str
+        Parameter names (SensorParameters fields).
+    x0, errors : dict
+        Parameter values at the expansion point and their errors from the fit.
+    """
+
+    def __init__(self, a0, jacobian, names, x0, errors=None, *, note=""):
+        self.a0 = np.asarray(a0, float)
+        self.jacobian = np.asarray(jacobian, float)
+        self.names = list(names)
+        self.x0 = {n: float(x0[n]) for n in self.names}
+        self.errors = {n: float((errors or {}).get(n, abs(self.x0[n]) * 0.1 or 1.0))
+                       for n in self.names}
+        self.note = note
+        if self.jacobian.shape != self.a0.shape + (len(self.names),):
+            raise ValueError("jacobian shape does not match a0 and names")
+
+    @property
+    def max_lag(self):
+        """Largest lag L."""
+        return self.a0.shape[0] - 1
+
+    @classmethod
+    def from_fit(cls, fit, *, note=""):
+        """From an :class:`AcoeffFit`."""
+        return cls(fit.model, fit.jacobian, fit.names, fit.values, fit.errors, note=note)
+
+    def a(self, x, max_lag=None):
+        """a_ij (per e) at parameters ``x`` (sequence in ``names`` order)."""
+        d = np.asarray(x, float) - np.array([self.x0[n] for n in self.names])
+        out = self.a0 + self.jacobian @ d
+        k = out.shape[0] if max_lag is None else int(max_lag) + 1
+        return out[:k, :k]
+
+    def dlog_depth(self, max_lag=None):
+        """D_ij = d a_ij / d ln(channel depth) at x0 (per e)."""
+        if "channel_depth" not in self.names:
+            raise ValueError("the basis has no channel_depth derivative")
+        k = self.names.index("channel_depth")
+        d = self.jacobian[..., k] * self.x0["channel_depth"]
+        m = d.shape[0] if max_lag is None else int(max_lag) + 1
+        return d[:m, :m]
+
+    def to_dict(self):
+        """JSON-friendly form."""
+        return {"a0": self.a0.tolist(), "jacobian": self.jacobian.tolist(), "names": self.names,
+                "x0": self.x0, "errors": self.errors, "note": self.note}
+
+    @classmethod
+    def from_dict(cls, d):
+        """Inverse of :meth:`to_dict`."""
+        return cls(d["a0"], d["jacobian"], d["names"], d["x0"], d.get("errors"),
+                   note=d.get("note", ""))
+
+
+def default_basis_path():
+    """Path of the shipped basis (the electrostatic fit to the ITL a_ij)."""
+    return data_path("itl_acoeff_basis.json")
+
+
+def load_default_basis():
+    """The shipped :class:`LinearBasis` (written by ``benchmarks/diagnose_itl.py``)."""
+    import json
+    with open(default_basis_path()) as fh:
+        return LinearBasis.from_dict(json.load(fh))
+
+
+def linear_basis(params, names=None, *, max_lag=8, rel_step=0.02, model=None, note="",
+                 **model_kwargs):
+    """:class:`LinearBasis` about ``params`` by central differences.
+
+    Parameters
+    ----------
+    params : SensorParameters
+        Expansion point.
+    names : sequence of str, optional
+        Parameters (default: those of :data:`DEFAULT_FREE`).
+    max_lag : int, optional
+        Largest lag.
+    rel_step : float, optional
+        Relative step of the differences.
+    model : callable, optional
+        ``model(params) -> a[i, j]``; default :func:`electrostatic_acoeffs`.
+    """
+    names = list(DEFAULT_FREE if names is None else names)
+    if model is None:
+        def model(p):
+            return electrostatic_acoeffs(p, max_lag=max_lag, **model_kwargs)
+    a0 = np.asarray(model(params), float)
+    jac = np.zeros(a0.shape + (len(names),))
+    for k, n in enumerate(names):
+        v = float(getattr(params, n))
+        h = rel_step * (abs(v) if v != 0 else 1.0)
+        jac[..., k] = (np.asarray(model(params.replace(**{n: v + h})))
+                       - np.asarray(model(params.replace(**{n: v - h})))) / (2 * h)
+    return LinearBasis(a0, jac, names, {n: float(getattr(params, n)) for n in names},
+                       note=note)

@@ -1,0 +1,530 @@
+"""Diagnosis: where the base model is wrong, which effect explains it.
+
+The base model is the electrostatic a_ij pattern linearised about the fit to
+measured coefficients (:class:`~lsst_bfdrift.calibration.acoeff_fit.LinearBasis`), with
+its parameters free. :func:`diagnose` then repeats
+
+1. for every effect of the library (:mod:`lsst_bfdrift.simulation.effects`) that the
+   input can identify, fit base + effects so far + the candidate;
+2. score each candidate by the Bayesian information criterion
+   BIC = chi2 + k ln n and by K-fold cross-validation over the data points
+   (fit on K - 1 folds, chi2 of the held-out fold, summed);
+3. add the best candidate only when it lowers BIC by more than
+   ``bic_threshold`` *and* lowers the cross-validated chi2;
+
+until nothing pays. The verdict then says plainly whether the residual is
+consistent with noise (chi2 p-value >= ``p_threshold``) or an unexplained
+residual remains, with the largest residual lags.
+
+Inputs (:class:`Observations`):
+
+``table``
+    a_ij with errors (lags <= L); a00 is left out of chi2 when it was set by
+    the sum rule. Base parameters: the electrostatic ones.
+``ptc``
+    mean and variance per signal level (ADU); base: Astier's exponential
+    C00 model (gain, a00, noise). Without errors in the file, errors are
+    scaled so that the base fit has chi2/dof = 1 (relative comparison only).
+``flats``
+    difference-image covariances C_ij(mu) and pair-sum statistics S_ij(mu)
+    from flat pairs; base: Astier's full covariance model with the
+    electrostatic a_ij, gain and read noise.
+"""
+
+import numpy as np
+from scipy import stats
+from scipy.optimize import least_squares
+
+from lsst_bfdrift.calibration.acoeff_fit import DEFAULT_FREE
+from lsst_bfdrift.simulation.effects import effect_library, EFFECT_NAMES
+from lsst_bfdrift.calibration.ptc import covariance_model, fit_ptc_exponential, pair_covariances, ptc_turnoff
+
+__all__ = ["Observations", "pair_statistics", "observations_from_pairs", "diagnose",
+           "Diagnosis", "LINEAR_RANGE", "load_input"]
+
+#: Fractional range around the expansion point within which the linearised
+#: electrostatic parameters may move.
+LINEAR_RANGE = 0.5
+
+
+def _lag_products(x, L):
+    """Mean lagged products of a mean-subtracted image, quadrant [i, j], (i, +-j) averaged."""
+    ny, nx = x.shape
+    out = np.zeros((L + 1, L + 1))
+    for i in range(L + 1):
+        for j in range(L + 1):
+            p1 = np.mean(x[:ny - j, :nx - i] * x[j:, i:])
+            p2 = np.mean(x[j:, :nx - i] * x[:ny - j, i:])
+            out[i, j] = 0.5 * (p1 + p2)
+    return out
+
+
+def pair_statistics(flat1, flat2, *, max_lag=3):
+    """mu, C_ij (difference image, halved), S_ij (static) and pixel counts of one pair.
+
+    S_ij = (Cov(f1 + f2) - Cov(f1 - f2)) / 4 after scaling f2 to f1's mean:
+    zero for correlations created while the flats fill, mu^2 times the
+    autocovariance of a static response pattern.
+    """
+    f1 = np.array(flat1, dtype=float)
+    f2 = np.array(flat2, dtype=float)
+    pc = pair_covariances(f1, f2, max_lag=max_lag, min_pixels=min(1000, f1.size // 4))
+    m1, m2 = f1.mean(), f2.mean()
+    f2 = f2 * (m1 / m2)
+    s = f1 + f2
+    d = f1 - f2
+    S = (_lag_products(s - s.mean(), max_lag) - _lag_products(d - d.mean(), max_lag)) / 4.0
+    return pc.mu, pc.cov, S, pc.npix
+
+
+class Observations:
+    """Observables of one input, with errors.
+
+    Use the constructors :meth:`from_table`, :meth:`from_ptc` and
+    :meth:`from_flats`.
+    """
+
+    def __init__(self, kind, **kw):
+        if kind not in ("table", "ptc", "flats"):
+            raise ValueError(f"unknown input kind {kind!r}")
+        self.kind = kind
+        self.__dict__.update(kw)
+
+    @classmethod
+    def from_table(cls, table):
+        """From an :class:`~lsst_bfdrift.calibration.acoeff_fit.AcoeffTable`."""
+        return cls("table", a=table.a, sigma=table.sigma, mask=table.mask(),
+                   max_lag=table.max_lag, note=table.axis_note)
+
+    @classmethod
+    def from_ptc(cls, mu, var):
+        """From a PTC: means (ADU) and variances (ADU^2)."""
+        mu = np.asarray(mu, float)
+        var = np.asarray(var, float)
+        if mu.shape != var.shape or mu.ndim != 1:
+            raise ValueError("PTC mean and variance must be 1-d arrays of equal length")
+        good = np.isfinite(mu) & np.isfinite(var) & (mu > 0) & (var > 0)
+        good &= mu <= ptc_turnoff(mu[good], var[good])  # saturation cut
+        if good.sum() < 6:
+            raise ValueError(f"need at least 6 valid PTC points, got {good.sum()}")
+        o = np.argsort(mu[good])
+        return cls("ptc", mu=mu[good][o], var=var[good][o], max_lag=0,
+                   note=f"{good.sum()} points below the turn-off; errors unknown: "
+                        "scaled so that the base fit has chi2/dof = 1")
+
+    @classmethod
+    def from_flats(cls, mu, cov, static, npix):
+        """From per-pair statistics (see :func:`observations_from_pairs`)."""
+        mu = np.asarray(mu, float)
+        cov = np.asarray(cov, float)
+        static = np.asarray(static, float)
+        npix = np.asarray(npix, float)
+        if cov.ndim != 3 or cov.shape != static.shape or cov.shape != npix.shape or \
+                cov.shape[0] != mu.size:
+            raise ValueError("cov, static and npix must have shape (n, L+1, L+1), n = len(mu)")
+        if mu.size < 4:
+            raise ValueError(f"need at least 4 flat pairs, got {mu.size}")
+        if not (np.all(np.isfinite(cov)) and np.all(np.isfinite(static))):
+            raise ValueError("non-finite covariances")
+        return cls("flats", mu=mu, cov=cov, static=static, npix=npix,
+                   max_lag=cov.shape[1] - 1, note="")
+
+    def data(self):
+        """(y, sigma, labels) of the points in chi2; labels are (block, level, i, j)."""
+        if self.kind == "table":
+            ij = np.argwhere(self.mask)
+            return (self.a[self.mask], self.sigma[self.mask],
+                    [("a", 0, int(i), int(j)) for i, j in ij])
+        if self.kind == "ptc":
+            if not hasattr(self, "_sig"):
+                self._sig = None
+            s = self._sig if self._sig is not None else self.var * 1e-3
+            return self.var, s, [("C", k, 0, 0) for k in range(self.mu.size)]
+        # Errors of sample covariances of N pixels: lag 0 sqrt(2) V / sqrt(N), on
+        # the axes V / sqrt(N), off the axes V / sqrt(2 N) ((i, j) and (i, -j) are
+        # independent products), V the variance of the image.
+        L1 = self.max_lag + 1
+        f = np.full((L1, L1), np.sqrt(0.5))
+        f[0, :] = 1.0
+        f[:, 0] = 1.0
+        f[0, 0] = np.sqrt(2.0)
+        c00 = self.cov[:, 0, 0][:, None, None]
+        sc = c00 * f / np.sqrt(self.npix)
+        # pair sums: noise variance vn = 2 C00 and static variance vp = 4 S00
+        vn = 2.0 * c00
+        vp = 4.0 * np.clip(self.static[:, 0, 0], 0, None)[:, None, None]
+        ss = np.sqrt((4.0 * vp * vn + 2.0 * vn**2) / 16.0) * f / np.sqrt(self.npix)
+        n = self.mu.size
+        lab = [(b, k, i, j) for b in ("C", "S") for k in range(n) for i in range(L1)
+               for j in range(L1)]
+        return (np.concatenate([self.cov.ravel(), self.static.ravel()]),
+                np.concatenate([sc.ravel(), ss.ravel()]), lab)
+
+
+def observations_from_pairs(pairs, *, max_lag=3):
+    """:class:`Observations` of kind 'flats' from flat pairs (arrays or FITS paths)."""
+    from lsst_bfdrift.utils.io import read_image
+
+    rows = []
+    for f1, f2 in pairs:
+        if not isinstance(f1, np.ndarray):
+            f1 = read_image(f1)[0]
+        if not isinstance(f2, np.ndarray):
+            f2 = read_image(f2)[0]
+        rows.append(pair_statistics(f1, f2, max_lag=max_lag))
+    rows.sort(key=lambda r: r[0])
+    return Observations.from_flats([r[0] for r in rows], [r[1] for r in rows],
+                                   [r[2] for r in rows], [r[3] for r in rows])
+
+
+class _Problem:
+    """Base model and parameter bookkeeping for one kind of observations."""
+
+    def __init__(self, obs, basis):
+        self.obs, self.basis = obs, basis
+        self.y, self.sigma, self.labels = obs.data()
+        if obs.kind == "ptc":
+            e = fit_ptc_exponential(obs.mu, obs.var, mu_max=None)
+            self.names = ["gain", "a00", "noise"]
+            self.x0 = np.array([e["gain"], e["a00"], max(e["noise"], 1.0)])
+            self.scale = np.array([0.1, 1e-7, 10.0])
+            self.lo = np.array([1e-3, -1e-4, -1e6])
+            self.hi = np.array([1e3, 1e-4, 1e8])
+            m = covariance_model(obs.mu, e["gain"], [[e["a00"]]], [[0.0]],
+                                 [[e["noise"]]])[:, 0, 0]
+            r = obs.var - m
+            # errors unknown: relative errors fixed so that the base fit has chi2/dof = 1
+            rel = np.sqrt(np.sum((r / obs.var) ** 2) / max(obs.mu.size - 3, 1))
+            obs._sig = obs.var * rel
+            self.y, self.sigma, self.labels = obs.data()
+            return
+        if basis is None:
+            raise ValueError(f"input kind {obs.kind!r} needs an electrostatic basis")
+        if basis.max_lag < obs.max_lag:
+            raise ValueError(f"basis has lags <= {basis.max_lag}, data {obs.max_lag}")
+        self.names = list(basis.names)
+        self.x0 = np.array([basis.x0[n] for n in self.names])
+        self.scale = np.array([max(basis.errors[n], 1e-6 * max(abs(basis.x0[n]), 1.0))
+                               for n in self.names])
+        # the linear approximation is trusted within +-LINEAR_RANGE of each value,
+        # inside the physical bounds of the fit
+        span = LINEAR_RANGE * np.abs(self.x0)
+        self.lo = np.array([max(self.x0[k] - span[k], DEFAULT_FREE.get(n, (-np.inf,))[0])
+                            for k, n in enumerate(self.names)])
+        self.hi = np.array([min(self.x0[k] + span[k], DEFAULT_FREE.get(n, (0, np.inf))[1])
+                            for k, n in enumerate(self.names)])
+        if obs.kind == "flats":
+            e = fit_ptc_exponential(obs.mu, obs.cov[:, 0, 0], mu_max=None)
+            self.names += ["gain", "noise"]
+            self.x0 = np.concatenate([self.x0, [e["gain"], max(e["noise"], 1.0)]])
+            self.scale = np.concatenate([self.scale, [0.01 * e["gain"], 10.0]])
+            self.lo = np.concatenate([self.lo, [1e-3, -1e6]])
+            self.hi = np.concatenate([self.hi, [1e3, 1e8]])
+
+    def predict(self, xb, effects, thetas):
+        o = self.obs
+        if o.kind == "table":
+            a = self.basis.a(xb, o.max_lag)
+            for e, t in zip(effects, thetas):
+                a = e.apply_a(a, t, self.basis)
+            return a[o.mask]
+        if o.kind == "ptc":
+            g, a00, noise = xb
+            a = np.array([[a00]])
+            b = np.zeros((1, 1))
+            for e, t in zip(effects, thetas):
+                bt = e.b_term(a, t, self.basis)
+                if bt is not None:
+                    b = b + bt[:1, :1]
+            mu, fac = o.mu, np.ones(o.mu.size)
+            for e, t in zip(effects, thetas):
+                mu, f = e.measured_signal(mu, t)
+                fac = fac * f
+            c = covariance_model(mu, g, a, b, [[noise]]) * np.asarray(fac)[:, None, None]
+            for e, t in zip(effects, thetas):
+                c = e.apply_cov(c, t)
+            return c[:, 0, 0]
+        L = o.max_lag
+        ne = len(self.basis.names)
+        a = self.basis.a(xb[:ne], L)
+        g, noise = xb[ne], xb[ne + 1]
+        for e, t in zip(effects, thetas):
+            a = e.apply_a(a, t, self.basis)
+        b = np.zeros_like(a)
+        for e, t in zip(effects, thetas):
+            bt = e.b_term(a, t, self.basis)
+            if bt is not None:
+                b = b + bt
+        mu, fac = o.mu, np.ones(o.mu.size)
+        for e, t in zip(effects, thetas):
+            mu, f = e.measured_signal(mu, t)
+            fac = fac * f
+        nz = np.zeros_like(a)
+        nz[0, 0] = noise
+        c = covariance_model(mu, g, a, b, nz) * fac[:, None, None]
+        for e, t in zip(effects, thetas):
+            c = e.apply_cov(c, t)
+        s = np.zeros_like(c)
+        for e, t in zip(effects, thetas):
+            st = e.static(o.mu, L, t)
+            if st is not None:
+                s = s + st
+        return np.concatenate([c.ravel(), s.ravel()])
+
+    def fit(self, effects, start=None, train=None):
+        """Least-squares fit; returns dict with x, errors, chi2, model."""
+        lo = [self.lo] + [np.array([b[0] for b in e.bounds]) for e in effects]
+        hi = [self.hi] + [np.array([b[1] for b in e.bounds]) for e in effects]
+        sc = [self.scale] + [np.array(e.scale) for e in effects]
+        x0 = [self.x0] + [np.array(e.start, float) for e in effects]
+        lo, hi, sc = np.concatenate(lo), np.concatenate(hi), np.concatenate(sc)
+        x0 = np.concatenate(x0)
+        if start is not None:
+            x0[:len(start)] = start
+        x0 = np.clip(x0, lo + 1e-3 * sc, hi - 1e-3 * sc)
+        nb = self.x0.size
+        sizes = [len(e.param_names) for e in effects]
+        sel = np.ones(self.y.size, bool) if train is None else train
+
+        def split(x):
+            out, k = [], nb
+            for s in sizes:
+                out.append(x[k:k + s])
+                k += s
+            return x[:nb], out
+
+        def resid(u):
+            xb, th = split(u * sc)
+            return ((self.predict(xb, effects, th) - self.y) / self.sigma)[sel]
+
+        res = least_squares(resid, x0 / sc, bounds=(lo / sc, hi / sc), method="trf",
+                            x_scale=1.0, max_nfev=200)
+        x = res.x * sc
+        J = res.jac
+        cov = np.linalg.pinv(J.T @ J) * np.outer(sc, sc)
+        err = np.sqrt(np.clip(np.diag(cov), 0, None))
+        xb, th = split(x)
+        model = self.predict(xb, effects, th)
+        return {"x": x, "err": err, "chi2": float(np.sum(res.fun**2)), "model": model,
+                "n_params": x.size, "thetas": th, "theta_err": split(err)[1]}
+
+
+class Diagnosis:
+    """Result of :func:`diagnose`; see :meth:`as_dict` for the JSON layout."""
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+    def as_dict(self):
+        """JSON-friendly dictionary with the keys documented in ``docs/measured.rst``."""
+        return {k: v for k, v in self.__dict__.items() if not k.startswith("_")}
+
+
+def _step_summary(problem, fit, effects, label):
+    r = (problem.y - fit["model"]) / problem.sigma
+    n = problem.y.size
+    dof = n - fit["n_params"]
+    order = np.argsort(-np.abs(r))[:5]
+    worst = [{"block": problem.labels[k][0], "level": int(problem.labels[k][1]),
+              "i": problem.labels[k][2], "j": problem.labels[k][3],
+              "pull": float(r[k]), "residual": float(problem.y[k] - fit["model"][k])}
+             for k in order]
+    return {"label": label, "chi2": fit["chi2"], "dof": int(dof),
+            "chi2_dof": fit["chi2"] / max(dof, 1),
+            "p_value": float(stats.chi2.sf(fit["chi2"], max(dof, 1))),
+            "rms_pull": float(np.sqrt(np.mean(r**2))),
+            "rms_residual": float(np.sqrt(np.mean((problem.y - fit["model"]) ** 2))),
+            "largest_residuals": worst,
+            "effects": [{"name": e.name,
+                         "params": {p: float(v) for p, v in zip(e.param_names, t)},
+                         "errors": {p: float(v) for p, v in zip(e.param_names, te)}}
+                        for e, t, te in zip(effects, fit["thetas"], fit["theta_err"])],
+            "base_params": {nm: float(v) for nm, v in zip(problem.names, fit["x"])},
+            "base_errors": {nm: float(v) for nm, v in zip(problem.names, fit["err"])}}
+
+
+def _per_lag(problem, fit):
+    r = (problem.y - fit["model"]) / problem.sigma
+    out = {}
+    for k, (blk, lev, i, j) in enumerate(problem.labels):
+        key = f"{blk}{i},{j}" if problem.obs.kind != "ptc" else f"C0,0@{lev}"
+        d = out.setdefault(key, {"block": blk, "i": i, "j": j, "chi2": 0.0, "n": 0,
+                                 "residual": [], "pull": []})
+        d["chi2"] += float(r[k] ** 2)
+        d["n"] += 1
+        d["residual"].append(float(problem.y[k] - fit["model"][k]))
+        d["pull"].append(float(r[k]))
+    return out
+
+
+def _cv_chi2(problem, effects, start, folds, rng_seed=0):
+    """Held-out chi2 per fold (data points assigned to folds at random, seeded)."""
+    n = problem.y.size
+    perm = np.random.default_rng(rng_seed).permutation(n)
+    out = np.zeros(folds)
+    for f in range(folds):
+        test = np.zeros(n, bool)
+        test[perm[f::folds]] = True
+        fit = problem.fit(effects, start=start, train=~test)
+        out[f] = float(np.sum(((problem.y - fit["model"]) / problem.sigma)[test] ** 2))
+    return out
+
+
+def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1e-3,
+             folds=5, max_effects=3):
+    """Greedy search for the effects that explain the base model's residual.
+
+    Parameters
+    ----------
+    obs : Observations
+        The input.
+    basis : LinearBasis, optional
+        Electrostatic basis (needed for 'table' and 'flats').
+    library : sequence of Effect, optional
+        Candidates (default: the whole library).
+    bic_threshold : float, optional
+        Smallest BIC decrease that adds an effect.
+    p_threshold : float, optional
+        chi2 p-value below which the final residual is called unexplained.
+    folds : int, optional
+        Folds of the cross-validation over data points.
+    max_effects : int, optional
+        Largest number of effects added.
+
+    Returns
+    -------
+    Diagnosis
+        With ``effects_added``, ``chi2_dof_before``, ``chi2_dof_after``,
+        ``steps`` (one summary per stage), ``candidates`` (scores per round),
+        ``not_identifiable`` (effect -> reason), ``residuals_before``,
+        ``residuals_after`` (per lag), ``verdict`` and ``unexplained``.
+    """
+    library = effect_library(max_lag=max(obs.max_lag, 0)) if library is None \
+        else list(library)
+    problem = _Problem(obs, basis)
+    n = problem.y.size
+    usable, skipped = [], {}
+    for e in library:
+        ok, why = e.identifiable(obs.kind)
+        if ok and e.name == "well_filling" and basis is None:
+            skipped[e.name] = "needs d a_ij / d ln(channel depth) from an electrostatic basis"
+        elif ok:
+            usable.append(e)
+        else:
+            skipped[e.name] = why
+    current = []
+    fit = problem.fit(current)
+    bic = fit["chi2"] + fit["n_params"] * np.log(n)
+    cv = _cv_chi2(problem, current, fit["x"], folds)
+    first = fit
+    steps = [_step_summary(problem, fit, current, "base model")]
+    rounds = []
+    while len(current) < max_effects:
+        scores = []
+        for e in usable:
+            if e in current:
+                continue
+            f = problem.fit(current + [e], start=fit["x"])
+            b = f["chi2"] + f["n_params"] * np.log(n)
+            scores.append({"name": e.name, "chi2": f["chi2"], "delta_bic": float(b - bic),
+                           "fit": f, "effect": e, "bic": float(b)})
+        if not scores:
+            break
+        scores.sort(key=lambda s: s["bic"])
+        best = scores[0]
+        best_cv = _cv_chi2(problem, current + [best["effect"]], best["fit"]["x"], folds) \
+            if best["delta_bic"] < -bic_threshold else None
+        # held-out test: the candidate must predict the held-out points better in
+        # most folds (median of the per-fold change < 0; robust to one bad fold)
+        gain = None if best_cv is None else float(np.median(best_cv - cv))
+        rounds.append([{"name": s["name"], "chi2": s["chi2"], "delta_bic": s["delta_bic"]}
+                       for s in scores] + [{"cv_chi2_before": float(cv.sum()),
+                                            "cv_chi2_best": None if best_cv is None
+                                            else float(best_cv.sum()),
+                                            "cv_median_fold_change": gain}])
+        if best_cv is None or gain >= 0:
+            break
+        current = current + [best["effect"]]
+        fit, bic, cv = best["fit"], best["bic"], best_cv
+        steps.append(_step_summary(problem, fit, current, f"+ {best['name']}"))
+    last = steps[-1]
+    per_lag = _per_lag(problem, fit)
+    # a residual confined to a few lags is diluted in the global chi2: test each
+    # lag's chi2 too, with the threshold divided by the number of lags (Bonferroni)
+    lag_p = {k: float(stats.chi2.sf(v["chi2"], v["n"])) for k, v in per_lag.items()}
+    worst_lag = min(lag_p, key=lag_p.get)
+    lag_bad = lag_p[worst_lag] < p_threshold / len(lag_p)
+    unexplained = last["p_value"] < p_threshold or lag_bad
+    if unexplained:
+        w = last["largest_residuals"][:3]
+        where = ", ".join(f"{x['block']}({x['i']},{x['j']})" + (f"@{x['level']}"
+                                                               if obs.kind != "table" else "")
+                          + f" pull {x['pull']:+.1f}" for x in w)
+        verdict = (f"unexplained residual: chi2/dof = {last['chi2_dof']:.2f} (p = "
+                   f"{last['p_value']:.1e}; worst lag {worst_lag} p = {lag_p[worst_lag]:.1e}) "
+                   "after "
+                   + (", ".join(e.name for e in current) if current else "the base model alone")
+                   + f"; nothing in the library explains what remains (largest: {where})")
+    else:
+        verdict = (f"residual consistent with noise: chi2/dof = {last['chi2_dof']:.2f} "
+                   f"(p = {last['p_value']:.2f})"
+                   + (" after adding " + ", ".join(e.name for e in current) if current
+                      else " with the base model alone"))
+    for r in rounds:
+        for s in r:
+            s.pop("fit", None)
+            s.pop("effect", None)
+    return Diagnosis(kind=obs.kind, effects_added=[e.name for e in current],
+                     chi2_dof_before=steps[0]["chi2_dof"], chi2_dof_after=last["chi2_dof"],
+                     steps=steps, candidates=rounds, not_identifiable=skipped,
+                     tried=[e.name for e in usable], vocabulary=list(EFFECT_NAMES),
+                     residuals_before=_per_lag(problem, first),
+                     residuals_after=per_lag, verdict=verdict, worst_lag=worst_lag,
+                     worst_lag_p=lag_p[worst_lag],
+                     unexplained=bool(unexplained), n_points=int(n), note=obs.note)
+
+
+def load_input(path, *, max_lag=3):
+    """Observations from a path: a_ij table, PTC text file or directory of flat pairs.
+
+    A directory's FITS files (``*.fits``, ``*.fit``, ``*.fits.gz``), sorted by
+    name, form consecutive pairs. A text file with 4 numeric columns is an
+    a_ij table (:func:`~lsst_bfdrift.calibration.acoeff_fit.read_acoeff_table`), with 2
+    columns a PTC (:func:`~lsst_bfdrift.calibration.ptc.read_ptc_text`).
+
+    Returns
+    -------
+    Observations
+    """
+    import os
+
+    from lsst_bfdrift.calibration.acoeff_fit import read_acoeff_table
+    from lsst_bfdrift.calibration.ptc import read_ptc_text
+
+    if os.path.isdir(path):
+        files = sorted(f for f in os.listdir(path)
+                       if f.lower().endswith((".fits", ".fit", ".fits.gz")))
+        if len(files) < 8 or len(files) % 2:
+            raise ValueError(f"{path}: need an even number (>= 8) of FITS flats forming "
+                             f"consecutive pairs, found {len(files)}")
+        full = [os.path.join(path, f) for f in files]
+        return observations_from_pairs(list(zip(full[::2], full[1::2])), max_lag=max_lag)
+    if not os.path.isfile(path):
+        raise ValueError(f"{path}: no such file or directory")
+    ncol = None
+    with open(path) as fh:
+        for line in fh:
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            try:
+                ncol = len([float(v) for v in s.replace(",", " ").split()])
+                break
+            except ValueError:
+                continue  # header
+    if ncol == 4:
+        return Observations.from_table(read_acoeff_table(path))
+    if ncol == 2:
+        mu, var = read_ptc_text(path)
+        return Observations.from_ptc(mu, var)
+    raise ValueError(f"{path}: not an a_ij table (4 columns) or a PTC (2 columns)")

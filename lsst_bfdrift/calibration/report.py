@@ -1,0 +1,141 @@
+"""Markdown report of a diagnosis, with PNG figures (atomic writes).
+
+:func:`write_report` writes ``DIR/report.md``, ``DIR/diagnosis.json`` and
+figures: residual (pull) maps per lag before and after the effects were
+added, and chi2 per lag before and after.
+"""
+
+import json
+import os
+
+import numpy as np
+
+from lsst_bfdrift.utils.io import atomic_output
+
+__all__ = ["pull_map", "write_report", "diagnosis_markdown"]
+
+
+def pull_map(per_lag, block="a"):
+    """Array [i, j] of per-lag chi2 and the signed mean pull of one block."""
+    keys = [v for v in per_lag.values() if v["block"] == block]
+    if not keys:
+        return None, None
+    L = max(max(v["i"], v["j"]) for v in keys)
+    chi = np.full((L + 1, L + 1), np.nan)
+    pull = np.full((L + 1, L + 1), np.nan)
+    for v in keys:
+        chi[v["i"], v["j"]] = v["chi2"]
+        pull[v["i"], v["j"]] = float(np.mean(v["pull"]))
+    return chi, pull
+
+
+def _figures(result, outdir):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from lsst_bfdrift.utils.plotting import save_figure
+
+    files = []
+    blocks = sorted({v["block"] for v in result["residuals_before"].values()})
+    if result["kind"] != "ptc":
+        for blk in blocks:
+            fig, axes = plt.subplots(1, 2, figsize=(9, 4))
+            for ax, key, title in zip(axes, ("residuals_before", "residuals_after"),
+                                      ("before", "after")):
+                _, pull = pull_map(result[key], blk)
+                im = ax.imshow(pull.T, origin="lower", cmap="RdBu_r", vmin=-4, vmax=4)
+                ax.set_xlabel("serial lag i")
+                ax.set_ylabel("parallel lag j")
+                ax.set_title(f"{blk}: mean pull {title}")
+                fig.colorbar(im, ax=ax, shrink=0.8)
+            name = f"pull_map_{blk}.png"
+            save_figure(fig, os.path.join(outdir, name))
+            plt.close(fig)
+            files.append(name)
+    fig, ax = plt.subplots(figsize=(9, 3.5))
+    keys = list(result["residuals_before"])
+    x = np.arange(len(keys))
+    for key, lab, off in (("residuals_before", "before", -0.2), ("residuals_after", "after",
+                                                                  0.2)):
+        ax.bar(x + off, [result[key][k]["chi2"] for k in keys], width=0.4, label=lab)
+    ax.set_xticks(x)
+    ax.set_xticklabels(keys, rotation=90, fontsize=6)
+    ax.set_ylabel("chi2 per lag")
+    ax.set_yscale("log")
+    ax.legend()
+    fig.tight_layout()
+    save_figure(fig, os.path.join(outdir, "chi2_per_lag.png"))
+    plt.close(fig)
+    files.append("chi2_per_lag.png")
+    return files
+
+
+def diagnosis_markdown(result, figures=()):
+    """Markdown text of a diagnosis dictionary (``Diagnosis.as_dict()``)."""
+    lines = ["# bfdrift diagnosis", "", f"Input kind: **{result['kind']}** "
+             f"({result['n_points']} data points). {result.get('note', '')}", ""]
+    lines += ["| stage | chi2/dof | chi2 | dof | rms pull | rms residual | largest residual lags |",
+              "| --- | --- | --- | --- | --- | --- | --- |"]
+    for s in result["steps"]:
+        worst = "; ".join(f"{w['block']}({w['i']},{w['j']})"
+                          + (f"@{w['level']}" if result["kind"] != "table" else "")
+                          + f" {w['pull']:+.1f}" for w in s["largest_residuals"][:3])
+        lines.append(f"| {s['label']} | {s['chi2_dof']:.3f} | {s['chi2']:.1f} | {s['dof']} | "
+                     f"{s['rms_pull']:.3f} | {s['rms_residual']:.3g} | {worst} |")
+    lines += ["", "## Effects added", ""]
+    if not result["effects_added"]:
+        lines.append("None.")
+    for s in result["steps"][1:]:
+        e = s["effects"][-1]
+        shown = list(e["params"].items())[:6]
+        lines.append(f"- **{e['name']}**: " + ", ".join(
+            f"{k} = {v:.4g} +- {e['errors'][k]:.2g}" for k, v in shown)
+            + (" ..." if len(e["params"]) > 6 else ""))
+    lines += ["", "## Candidates per round (delta BIC; negative pays)", ""]
+    for k, r in enumerate(result["candidates"]):
+        cv = r[-1]
+        lines.append(f"{k + 1}. " + ", ".join(f"{c['name']} {c['delta_bic']:+.1f}" for c in r[:-1])
+                     + f" (cross-validated chi2: before {cv['cv_chi2_before']:.1f}, best "
+                     + ("-" if cv["cv_chi2_best"] is None else f"{cv['cv_chi2_best']:.1f}") + ")")
+    lines += ["", "## Not identifiable from this input", ""]
+    lines += [f"- {k}: {v}" for k, v in result["not_identifiable"].items()] or ["(none)"]
+    lines += ["", "## Verdict", "", result["verdict"], ""]
+    for f in figures:
+        lines += [f"![{f}]({f})", ""]
+    return "\n".join(lines)
+
+
+def write_report(result, outdir, *, extra=None):
+    """Write ``report.md``, ``diagnosis.json`` and figures into ``outdir``.
+
+    Parameters
+    ----------
+    result : dict
+        ``Diagnosis.as_dict()``.
+    outdir : str
+        Directory (created).
+    extra : dict, optional
+        More JSON content (e.g. the electrostatic fit).
+
+    Returns
+    -------
+    list of str
+        Paths written.
+    """
+    os.makedirs(outdir, exist_ok=True)
+    figs = _figures(result, outdir)
+    md = diagnosis_markdown(result, figs)
+    out = []
+    with atomic_output(os.path.join(outdir, "report.md")) as tmp:
+        with open(tmp, "w") as fh:
+            fh.write(md)
+    out.append(os.path.join(outdir, "report.md"))
+    payload = dict(result)
+    if extra:
+        payload.update(extra)
+    with atomic_output(os.path.join(outdir, "diagnosis.json")) as tmp:
+        with open(tmp, "w") as fh:
+            json.dump(payload, fh, indent=1, default=float)
+    out.append(os.path.join(outdir, "diagnosis.json"))
+    return out + [os.path.join(outdir, f) for f in figs]

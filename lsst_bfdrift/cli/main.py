@@ -1,0 +1,644 @@
+"""Command line interface ``bfdrift``.
+
+Subcommands
+-----------
+``bfdrift template build --out FILE [--config FILE]``
+    Compute a template from the electrostatic model (progress bar on stderr).
+``bfdrift template summary [FILE] [--json]``
+    Key numbers: A00, A01, A10, A11 (px^2, pixel at (di, dj) = (serial,
+    parallel) offset), ratio_01_10 = dlnA01/dlnA10, area_sum_error (sum of
+    all areas minus N^2), aggressor charge.
+``bfdrift template plot [FILE] --out PNG``
+    Distorted boundaries (exaggerated) and the area map.
+``bfdrift template import-galsim NAME --out FILE``
+    Convert a GalSim sensor file (e.g. lsst_itl_50_8) to a template file.
+``bfdrift ptc FILES... [--max-lag L] [--json]``
+    Photon transfer analysis (Astier et al. 2019): either one two-column text
+    file (mean ADU, variance ADU^2; exponential C00 fit: gain, a00) or an even
+    number of FITS flats taken as consecutive pairs (covariances by FFT, full
+    model: gain and a_ij).
+``bfdrift flat-sim [--template FILE] [--n-images N] [--steps K] ... [--json]``
+    Flat-field simulation with moving boundaries: per-step covariances by the
+    paper's all-pairs estimator and LSST's per-pair estimator.
+``bfdrift star-sim [--psf gaussian|moffat|kolmogorov] [--fwhm F] [--flux N] ... [--json]``
+    Star simulation with GalSim photons and moving boundaries: per-step
+    central counts, size, ellipticity and orientation with and without BF.
+``bfdrift correct IN.fits OUT.fits [--config FILE] [--method M] [--json]``
+    BrighterFatterDriftTask on a FITS image; several inputs with
+    ``--out-dir`` (in turn, or on a dask cluster with ``--scheduler local`` or
+    ``--scheduler ADDRESS``; progress bar; a failed file is reported and the
+    others go on).
+``bfdrift validate-stars [--n-stars N] [--psf moffat|kolmogorov] [--json]``
+    Sky-like stars drawn by galsim.SiliconSensor (paired BF-free twins):
+    size and ellipticity slopes against flux for uncorrected, coulton18,
+    astier23 and drift, with errors. Defaults: the sensor's template imported
+    with ``--match transfers``, about 1000 GalSim boundary updates per
+    exposure (``--updates 1000 --min-nrecalc 100``; converged, see
+    ``benchmarks/probe_validation_cadence_results.txt``).
+``bfdrift reproduce [--json] [--out DIR] [--quick]``
+    The paper's numbers next to the calibrated model's (A00..A11, ratio,
+    radial slopes, neighbour recovery, fall-off), the V_BSS ratio scan, and
+    figures in DIR.
+``bfdrift validate-sky IMAGE.fits [--json] [--plot PNG] [--gain G] [--route R]``
+    Star catalogue of a sky image (photutils, adaptive moments) and robust
+    size- and ellipticity-flux slopes at fixed position, before and after
+    the catalogue-level and/or pixel-level BF correction, with a verdict
+    (``residual_bf_detected``) and optional figures.
+``bfdrift diagnose INPUT [--json] [--report DIR] [--basis FILE]``
+    Where the electrostatic model is wrong and which effect explains it:
+    INPUT is an a_ij table, a PTC text file or a directory of flat pairs;
+    chi2/dof, rms and largest residual lags before and after each added
+    effect (see ``docs/measured.rst``).
+``bfdrift maps [IMAGE] [--template FILE] [--out FILE] [--plot PNG] [--json]``
+    Final pixel geometry (area, centroid shift, ellipticity maps) of an image
+    in electrons; with no IMAGE, the bundled sample star. This is the quick
+    start's main job.
+
+Config files (JSON or TOML) have up to two tables: ``sensor`` (keys of
+:class:`~lsst_bfdrift.physics.sensor.SensorParameters`) and ``template`` (keys of
+:class:`~lsst_bfdrift.templates.template.TemplateSettings`). Unknown keys are errors.
+"""
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
+from lsst_bfdrift.utils.io import atomic_output, data_path, read_image
+from lsst_bfdrift.simulation.stars import make_psf
+
+__all__ = ["main", "read_config", "sample_image_path", "make_psf", "read_image"]
+
+
+def read_config(path):
+    """Read a JSON or TOML build configuration.
+
+    Returns
+    -------
+    params : SensorParameters
+    settings : TemplateSettings
+    """
+    from lsst_bfdrift.physics.sensor import SensorParameters
+    from lsst_bfdrift.templates.template import TemplateSettings
+
+    if path is None:
+        return SensorParameters(), TemplateSettings()
+    with open(path, "rb") as fh:
+        raw = fh.read()
+    try:
+        if str(path).endswith(".toml"):
+            import tomllib
+            data = tomllib.loads(raw.decode())
+        else:
+            data = json.loads(raw.decode())
+    except Exception as exc:
+        raise ValueError(f"{path}: cannot parse configuration ({exc})") from exc
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: configuration must be a table/object")
+    # 'provenance' is free-form documentation (e.g. the default's calibration)
+    unknown = sorted(set(data) - {"sensor", "template", "provenance"})
+    if unknown:
+        raise KeyError(f"{path}: unknown configuration section(s) {unknown}; "
+                       "expected 'sensor' and/or 'template' (and 'provenance')")
+    return (SensorParameters.from_dict(data.get("sensor", {})),
+            TemplateSettings.from_dict(data.get("template", {})))
+
+
+def sample_image_path():
+    """Path of the bundled sample image (a bright star on sky, electrons)."""
+    return data_path("sample_star.fits")
+
+
+def _load_template(path):
+    from lsst_bfdrift.templates.template import DistortionTemplate, load_default_template
+    return load_default_template() if path is None else DistortionTemplate.load(path)
+
+
+def _print_json(obj):
+    print(json.dumps(obj, indent=2, sort_keys=True, default=float))
+
+
+def _emit(obj, as_json, width=18):
+    """Print ``obj`` as JSON, or as aligned ``key: value`` lines."""
+    if as_json:
+        _print_json(obj)
+    else:
+        for k, v in obj.items():
+            print(f"{k:>{width}s}: {v}")
+    return 0
+
+
+def _cmd_template_build(args):
+    from lsst_bfdrift.templates.template import build_template
+    params, settings = read_config(args.config)
+    overrides = {k: v for k, v in (("size", args.size), ("aggressor_charge", args.charge),
+                                   ("edge_samples", args.samples), ("tol", args.tol),
+                                   ("workers", args.workers)) if v is not None}
+    if overrides:
+        settings = type(settings).from_dict({**settings.to_dict(), **overrides})
+    _refuse_overwrite(args)
+    return _save_and_report(build_template(params, settings, progress=not args.quiet), args)
+
+
+def _refuse_overwrite(args):
+    if os.path.exists(args.out) and not args.overwrite:
+        raise FileExistsError(f"{args.out} exists (use --overwrite)")
+
+
+def _save_and_report(tpl, args):
+    tpl.save(args.out, overwrite=True)
+    if args.json:
+        _print_json(tpl.summary())
+    else:
+        print(f"wrote {args.out}")
+    return 0
+
+
+def _cmd_template_summary(args):
+    tpl = _load_template(args.file)
+    return _emit(tpl.summary(), args.json)
+
+
+def _cmd_template_plot(args):
+    from lsst_bfdrift.templates.plots import plot_template
+    from lsst_bfdrift.utils.plotting import save_figure
+    tpl = _load_template(args.file)
+    save_figure(plot_template(tpl, exaggerate=args.exaggerate, half_width=args.half_width),
+                args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _cmd_template_import(args):
+    _refuse_overwrite(args)
+    return _save_and_report(import_galsim_sensor(args.name), args)
+
+
+def _write_maps(path, maps, header):
+    from astropy.io import fits
+    hdus = [fits.PrimaryHDU(header=header)]
+    for name, arr in maps.as_dict().items():
+        hdus.append(fits.ImageHDU(arr.astype(np.float64), name=name.upper()))
+    with atomic_output(path) as tmp:
+        fits.HDUList(hdus).writeto(tmp, overwrite=True, checksum=True)
+
+
+def _cmd_maps(args):
+    from lsst_bfdrift.utils.progress import ProgressBar
+    from lsst_bfdrift.geometry.superpose import moment_maps
+    path = args.image or sample_image_path()
+    image, bad, header = read_image(path)
+    if args.gain is not None:
+        if not args.gain > 0:
+            raise ValueError(f"--gain must be positive, got {args.gain}")
+        image = image * args.gain
+    tpl = _load_template(args.template)
+    with ProgressBar(image.shape[0], "maps", enabled=not args.quiet) as bar:
+        samples = None if args.samples is None else min(args.samples, tpl.edge_samples)
+        maps = moment_maps(tpl, image, mask=bad, workers=2, progress=bar, samples=samples)
+    summary = {
+        "image": os.path.abspath(path), "shape": list(image.shape),
+        "template": args.template or "default",
+        "template_charge": tpl.charge,
+        "edge_samples": tpl.edge_samples if samples is None else samples,
+        "masked_pixels": int(bad.sum()),
+        "max_charge": float(np.nanmax(np.where(bad, np.nan, image))),
+        "area_min": float(maps.area.min()), "area_max": float(maps.area.max()),
+        "area_sum_minus_npix": float(maps.area.sum() - maps.area.size),
+        "max_abs_shift": float(max(np.abs(maps.dx).max(), np.abs(maps.dy).max())),
+        "max_abs_e": float(np.hypot(maps.e1, maps.e2).max()),
+    }
+    if args.out:
+        header["BFTEMPL"] = (str(args.template or "default")[-60:], "lsst_bfdrift template")
+        header["BFGSAMP"] = (summary["edge_samples"], "edge samples of the geometry")
+        _write_maps(args.out, maps, header)
+        summary["out"] = os.path.abspath(args.out)
+    if args.plot:
+        from lsst_bfdrift.geometry.plots import plot_moment_maps
+        from lsst_bfdrift.utils.plotting import save_figure
+        save_figure(plot_moment_maps(maps, image=np.where(bad, np.nan, image),
+                                     title=os.path.basename(path)), args.plot)
+        summary["plot"] = os.path.abspath(args.plot)
+    return _emit(summary, args.json, 20)
+
+
+def _cmd_ptc(args):
+    from lsst_bfdrift.calibration import ptc
+    files = list(args.files)
+    if len(files) == 1 and not files[0].lower().endswith((".fits", ".fit", ".fits.gz")):
+        mu, var = ptc.read_ptc_text(files[0])
+        fit = ptc.fit_ptc_exponential(mu, var)
+        out = {"input": files[0], "model": "exponential C00 (Astier et al. 2019 eq. 16)",
+               "gain": fit["gain"], "gain_err": fit["gain_err"], "a00": fit["a00"],
+               "a00_err": fit["a00_err"], "noise_e2": fit["noise"],
+               "noise_e2_err": fit["noise_err"], "npoints": fit["npoints"],
+               "mu_max": fit["mu_max"], "chi2": fit["chi2"], "dof": fit["dof"]}
+        for k in ("a01", "a10", "a11"):
+            out[k] = out[k + "_err"] = None  # a variance-only PTC does not constrain them
+    else:
+        if len(files) < 10 or len(files) % 2:
+            raise ValueError("give one PTC text file or an even number (>= 10) of FITS "
+                             "flats, consecutive files forming pairs")
+        table = ptc.measure_ptc(list(zip(files[::2], files[1::2])), max_lag=args.max_lag)
+        fit = ptc.fit_covariance_model(table["mu"], table["cov"], npix=table["npix"])
+        out = {"input": files, "model": "full covariance model (Astier et al. 2019 eq. 20)",
+               "gain": fit["gain"], "gain_err": fit["gain_err"], "npairs": len(table),
+               "chi2": fit["chi2"], "dof": fit["dof"]}
+        for name, (i, j) in (("a00", (0, 0)), ("a01", (0, 1)), ("a10", (1, 0)),
+                             ("a11", (1, 1))):
+            out[name] = float(fit["a"][i, j])
+            out[name + "_err"] = float(fit["a_err"][i, j])
+        out["a"] = fit["a"].tolist()
+    return _emit(out, args.json, 14)
+
+
+def _cmd_flat_sim(args):
+    from lsst_bfdrift.simulation.flats import simulate_flats
+    tpl = _load_template(args.template)
+    if args.responsivity is not None:
+        # same displacements, attributed to the charge giving dlnA00/Q = responsivity
+        from lsst_bfdrift.simulation.flats import with_responsivity
+        tpl = with_responsivity(tpl, args.responsivity)
+    tab = simulate_flats(tpl, n_images=args.n_images, shape=(args.size, args.size),
+                         step=args.step, n_steps=args.steps, max_lag=args.max_lag,
+                         seed=args.seed, progress=not args.quiet)
+    if args.out:
+        with atomic_output(args.out) as tmp:
+            tab.write(tmp, format="ascii.ecsv", overwrite=True)
+    if args.plot:
+        from lsst_bfdrift.simulation.plots import plot_flat_simulation
+        from lsst_bfdrift.utils.plotting import save_figure
+        save_figure(plot_flat_simulation(tab, tpl), args.plot)
+    steps = [{"mu": float(r["mu"]),
+              **{f"C{i}{j}_paper": float(r["paper"][i, j] * r["mu"]) for i in range(2)
+                 for j in range(2)},
+              **{f"C{i}{j}_pairs": float(r["pairs"][i, j]) for i in range(2) for j in range(2)},
+              **{f"C{i}{j}_pairs_err": float(r["pairs_err"][i, j]) for i in range(2)
+                 for j in range(2)}} for r in tab]
+    out = {"template_charge": tpl.charge, "n_images": args.n_images,
+           "shape": [args.size, args.size], "step": args.step, "steps": steps,
+           "units": "covariances in e^2, mean in e"}
+    if args.json:
+        _print_json(out)
+    else:
+        last = steps[-1]
+        print(f"final mean {last['mu']:.1f} e: C00 {last['C00_paper']:.1f}, C01 "
+              f"{last['C01_paper']:.2f}, C10 {last['C10_paper']:.2f} e^2 (all pairs)")
+    return 0
+
+
+def _cmd_star_sim(args):
+    from lsst_bfdrift.simulation.stars import simulate_star
+    tpl = _load_template(args.template)
+    psf = make_psf(args.psf, args.fwhm, e=args.e, beta=args.beta)
+    hist, final = simulate_star(tpl, psf, args.flux, stamp_size=args.stamp,
+                                update_every=args.update_every, pixel_scale=args.pixel_scale,
+                                center=(args.dx, args.dy), seed=args.seed,
+                                progress=not args.quiet)
+    if args.out:
+        with atomic_output(args.out) as tmp:
+            hist.write(tmp, format="ascii.ecsv", overwrite=True)
+    if args.plot:
+        from lsst_bfdrift.simulation.plots import plot_star_history
+        from lsst_bfdrift.utils.plotting import save_figure
+        save_figure(plot_star_history(hist), args.plot)
+    last = hist[-1]
+    out = {"psf": args.psf, "fwhm_arcsec": args.fwhm, "flux": args.flux,
+           "template_charge": tpl.charge, "lost": final["lost"],
+           "T_growth": float(last["T"] / last["T_nominal"] - 1),
+           "central_counts": float(last["central"]),
+           "central_counts_square_pixels": float(final["nominal_image"][args.stamp // 2,
+                                                                         args.stamp // 2]),
+           "min_area": float(final["maps"].area.min()),
+           "steps": [{k: float(r[k]) for k in hist.colnames} for r in hist]}
+    if args.json:
+        _print_json(out)
+    else:
+        print(f"T grew by {100 * out['T_growth']:.3f} % relative to square pixels; "
+              f"central pixel {out['central_counts']:.0f} e "
+              f"({out['central_counts_square_pixels']:.0f} with square pixels)")
+    return 0
+
+
+def _cmd_correct(args):
+    from lsst_bfdrift.correction.batch import correct_files, output_pairs
+    from lsst_bfdrift.correction.task import BrighterFatterDriftConfig
+    cfg = BrighterFatterDriftConfig() if args.config is None else \
+        BrighterFatterDriftConfig.load(args.config)
+    if args.method:
+        cfg.method = args.method
+    if args.gain is not None:
+        cfg.gain = args.gain
+    cfg.compute_geometry = bool(args.geometry)
+    files = list(args.inputs)
+    if args.out_dir:
+        os.makedirs(args.out_dir, exist_ok=True)
+        pairs = output_pairs(files, args.out_dir)
+    else:
+        if len(files) != 2:
+            raise ValueError("give IN.fits OUT.fits, or several inputs with --out-dir")
+        pairs = [(files[0], files[1])]
+    for src, dst in pairs:
+        if os.path.abspath(src) == os.path.abspath(dst):
+            raise ValueError(f"refusing to overwrite the input {src}")
+    results = correct_files(pairs, cfg, scheduler=args.scheduler, overwrite=args.overwrite,
+                            n_workers=args.n_workers, processes=args.processes,
+                            progress=not args.quiet)
+    failed = [r for r in results if r["error"]]
+    if args.json:
+        _print_json({"method": cfg.method, "files": results, "failed": len(failed)})
+    else:
+        for r in results:
+            if r["error"]:
+                print(f"{r['input']}: FAILED: {r['error']}")
+            else:
+                print(f"{r['input']} -> {r['output']}: {r['iterations']} iterations, "
+                      f"converged={r['converged']}")
+    for r in failed:
+        print(f"bfdrift correct: {r['input']}: {r['error']}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def _cmd_validate_stars(args):
+    from lsst_bfdrift.templates.template import DistortionTemplate
+    from lsst_bfdrift.validation.stars import draw_star_pairs, validate_stars
+    tpl = import_galsim_sensor(args.sensor, match=args.match) \
+        if args.template is None else DistortionTemplate.load(args.template)
+    pairs = draw_star_pairs(args.n_stars, sensor=args.sensor, psf=args.psf, sky=args.sky,
+                            seed=args.seed, updates=args.updates,
+                            min_nrecalc=args.min_nrecalc, progress=not args.quiet)
+    res = validate_stars(pairs, tpl, sky=args.sky, progress=not args.quiet)
+    unc = res["uncorrected"]["size_slope"]
+    for k, v in res.items():
+        v["size_slope_fraction_of_uncorrected"] = v["size_slope"] / unc if unc else None
+    out = {"sensor": args.sensor, "psf": args.psf, "n_stars": args.n_stars,
+           "units": "slopes per 1e5 e: fractional change of T = Ixx + Iyy, change of e1/e2",
+           "template": args.template or f"galsim:{args.sensor} (match={args.match!r})",
+           "updates": args.updates, "min_nrecalc": args.min_nrecalc, **res}
+    if args.json:
+        _print_json(out)
+    else:
+        for k, v in res.items():
+            paired = ("" if "size_slope_minus_astier23" not in v else
+                      f"  paired minus astier23 {v['size_slope_minus_astier23']:+.2e} +- "
+                      f"{v['size_slope_minus_astier23_err']:.1e}")
+            print(f"{k:12s} size slope {v['size_slope']:+.2e} +- {v['size_slope_err']:.1e}  "
+                  f"e1 slope {v['e_slope']:+.2e} +- {v['e_slope_err']:.1e}{paired}")
+    return 0
+
+
+def _cmd_reproduce(args):
+    from lsst_bfdrift.utils.progress import ProgressBar
+    from lsst_bfdrift.validation.paper_figures import reproduce, write_figures
+    kw = dict(size=11, edge_samples=16, v_bss=(-65.0, -50.0), xi_ck=(4.0, 5.0),
+              quick_features=True) if args.quick else {}
+    n_scan = len(kw.get("v_bss", (0,) * 5)) * len(kw.get("xi_ck", (0,) * 5)) + 5
+    tables = {}
+    with ProgressBar(n_scan, "reproduce", enabled=not args.quiet) as bar:
+        numbers, tpl, (v_bss, xi_ck, ratio) = reproduce(progress=bar, tables=tables, **kw)
+    numbers["ratio_scan"] = {"v_bss": v_bss.tolist(), "xi_ck": xi_ck.tolist(),
+                             "ratio_01_10": ratio.tolist()}
+    if args.out:
+        write_figures(numbers, tpl, (v_bss, xi_ck, ratio), tables, args.out)
+        tpl.save(os.path.join(args.out, "paper_template.fits"), overwrite=True)
+        with atomic_output(os.path.join(args.out, "reproduce.json")) as tmp, \
+                open(tmp, "w") as fh:
+            json.dump(numbers, fh, indent=2, default=float)
+    return _emit(numbers, args.json, 20)
+
+
+def _cmd_validate_sky(args):
+    from lsst_bfdrift.validation.sky import validate_sky
+    if args.galsim_sensor:
+        tpl = import_galsim_sensor(args.galsim_sensor)
+    else:
+        tpl = _load_template(args.template)
+    res = validate_sky(args.image, gain=args.gain, saturation=args.saturation, template=tpl,
+                       route=args.route, method=args.method, z_crit=args.z_crit,
+                       min_snr=args.min_snr, poly_order=args.poly_order, n_boot=args.n_boot,
+                       progress=not args.quiet)
+    out = dict(res.summary)
+    out["image"] = os.path.abspath(args.image)
+    out["template"] = (f"galsim:{args.galsim_sensor}" if args.galsim_sensor
+                       else args.template or "default")
+    if args.catalog:
+        cat = res.corrected.get("catalog", res.catalog)
+        with atomic_output(args.catalog) as tmp:
+            cat.write(tmp, format="ascii.ecsv", overwrite=True)
+        out["catalog"] = os.path.abspath(args.catalog)
+    if args.plot:
+        from lsst_bfdrift.utils.plotting import save_figure
+        from lsst_bfdrift.validation.plots import plot_sky_validation
+        save_figure(plot_sky_validation(res), args.plot)
+        out["plot"] = os.path.abspath(args.plot)
+    if args.json:
+        _print_json(out)
+    else:
+        print(out["verdict"])
+    return 0
+
+
+def _cmd_diagnose(args):
+    from lsst_bfdrift.calibration.acoeff_fit import LinearBasis, load_default_basis
+    from lsst_bfdrift.calibration.diagnosis import diagnose, load_input
+
+    obs = load_input(args.input, max_lag=args.max_lag)
+    if args.basis:
+        with open(args.basis) as fh:
+            basis = LinearBasis.from_dict(json.load(fh))
+    else:
+        basis = load_default_basis()
+    d = diagnose(obs, basis).as_dict()
+    d["input"] = args.input
+    if args.report:
+        from lsst_bfdrift.calibration.report import write_report
+        d["report_files"] = write_report(d, args.report)
+    if args.json:
+        _print_json(d)
+    else:
+        for s in d["steps"]:
+            print(f"{s['label']:>24s}: chi2/dof {s['chi2_dof']:.3f}, rms pull {s['rms_pull']:.3f}")
+        print(f"{'effects added':>24s}: {', '.join(d['effects_added']) or 'none'}")
+        print(d["verdict"])
+    return 0
+
+
+def build_parser():
+    """The argparse parser of ``bfdrift``."""
+    p = argparse.ArgumentParser(prog="bfdrift", description="Electrostatic brighter-fatter model (Rasmussen 2015): templates and pixel-geometry maps.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    tp = sub.add_parser("template", help="build, inspect and convert templates")
+    tsub = tp.add_subparsers(dest="action", required=True)
+    b = tsub.add_parser("build", help="compute a template from the model")
+    b.add_argument("--out", required=True, help="output FITS file")
+    b.add_argument("--config", help="JSON or TOML file with 'sensor' and 'template' tables")
+    b.add_argument("--size", type=int, help="neighbourhood side N (odd)")
+    b.add_argument("--charge", type=float, help="aggressor charge (e)")
+    b.add_argument("--samples", type=int, help="samples per edge")
+    b.add_argument("--tol", type=float, help="bisection tolerance (px)")
+    b.add_argument("--workers", type=int, help="threads")
+    b.add_argument("--overwrite", action="store_true")
+    b.add_argument("--quiet", action="store_true", help="no progress bar")
+    b.add_argument("--json", action="store_true", help="print the summary as JSON")
+    b.set_defaults(func=_cmd_template_build)
+    s = tsub.add_parser("summary", help="key numbers of a template")
+    s.add_argument("file", nargs="?", help="template FITS file (default: bundled)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=_cmd_template_summary)
+    pl = tsub.add_parser("plot", help="draw boundaries and area map")
+    pl.add_argument("file", nargs="?", help="template FITS file (default: bundled)")
+    pl.add_argument("--out", required=True, help="output PNG")
+    pl.add_argument("--exaggerate", type=float, help="displacement factor")
+    pl.add_argument("--half-width", type=int, help="pixels shown each side")
+    pl.set_defaults(func=_cmd_template_plot)
+    g = tsub.add_parser("import-galsim", help="convert a GalSim sensor file")
+    g.add_argument("name", help="sensor name (e.g. lsst_itl_50_8) or path prefix")
+    g.add_argument("--out", required=True)
+    g.add_argument("--overwrite", action="store_true")
+    g.add_argument("--json", action="store_true")
+    g.set_defaults(func=_cmd_template_import)
+
+    pt = sub.add_parser("ptc", help="photon transfer curve fit (gain, a_ij)")
+    pt.add_argument("files", nargs="+", help="PTC text file, or FITS flats in pairs")
+    pt.add_argument("--max-lag", type=int, default=3, help="largest covariance lag")
+    pt.add_argument("--json", action="store_true")
+    pt.set_defaults(func=_cmd_ptc)
+
+    fs = sub.add_parser("flat-sim", help="flat-field simulation with moving boundaries")
+    fs.add_argument("--template", help="template FITS file (default: bundled)")
+    fs.add_argument("--responsivity", type=float,
+                    help="rescale the template to this dlnA00 per electron; write it "
+                    "as --responsivity=-1e-5 (a leading minus needs the = form)")
+    fs.add_argument("--n-images", type=int, default=1024)
+    fs.add_argument("--size", type=int, default=16, help="side of each periodic image")
+    fs.add_argument("--step", type=float, default=1000.0, help="electrons per pixel per step")
+    fs.add_argument("--steps", type=int, default=250)
+    fs.add_argument("--max-lag", type=int, default=3)
+    fs.add_argument("--seed", type=int, default=20151)
+    fs.add_argument("--out", help="write the per-step table (ECSV)")
+    fs.add_argument("--plot", help="write a PNG of covariances against mean")
+    fs.add_argument("--json", action="store_true")
+    fs.add_argument("--quiet", action="store_true")
+    fs.set_defaults(func=_cmd_flat_sim)
+
+    ss = sub.add_parser("star-sim", help="star simulation with moving boundaries")
+    ss.add_argument("--template", help="template FITS file (default: bundled)")
+    ss.add_argument("--psf", default="gaussian", help="gaussian, moffat or kolmogorov")
+    ss.add_argument("--fwhm", type=float, default=0.6, help="arcsec")
+    ss.add_argument("--e", type=float, default=0.05, help="PSF ellipticity")
+    ss.add_argument("--beta", type=float, default=30.0, help="PSF position angle (deg)")
+    ss.add_argument("--flux", type=float, default=2e6, help="conversions (e)")
+    ss.add_argument("--stamp", type=int, default=31, help="stamp side (px)")
+    ss.add_argument("--update-every", type=int, default=1000)
+    ss.add_argument("--pixel-scale", type=float, default=0.2, help="arcsec per px")
+    ss.add_argument("--dx", type=float, default=0.25, help="centre offset (px)")
+    ss.add_argument("--dy", type=float, default=0.25, help="centre offset (px)")
+    ss.add_argument("--seed", type=int, default=20151)
+    ss.add_argument("--out", help="write the per-step table (ECSV)")
+    ss.add_argument("--plot", help="write a PNG like the paper's Fig. 7")
+    ss.add_argument("--json", action="store_true")
+    ss.add_argument("--quiet", action="store_true")
+    ss.set_defaults(func=_cmd_star_sim)
+
+    co = sub.add_parser("correct", help="brighter-fatter correction of FITS images")
+    co.add_argument("inputs", nargs="+", help="IN.fits OUT.fits, or inputs with --out-dir")
+    co.add_argument("--out-dir", help="directory for the corrected files (same names)")
+    co.add_argument("--config", help="BrighterFatterDriftConfig as JSON or TOML")
+    co.add_argument("--method", help="drift, astier23 or coulton18")
+    co.add_argument("--gain", type=float, help="e/ADU for images in ADU")
+    co.add_argument("--geometry", action="store_true", help="also write the geometry maps")
+    co.add_argument("--overwrite", action="store_true")
+    co.add_argument("--scheduler", help="dask: 'local' (LocalCluster) or a scheduler address "
+                    "(tcp://host:8786); default: serial")
+    co.add_argument("--n-workers", type=int, default=2, help="LocalCluster workers")
+    co.add_argument("--processes", action="store_true",
+                    help="LocalCluster workers as processes (default: threads)")
+    co.add_argument("--json", action="store_true")
+    co.add_argument("--quiet", action="store_true")
+    co.set_defaults(func=_cmd_correct)
+
+    vs = sub.add_parser("validate-stars", help="corrections on galsim.SiliconSensor stars")
+    vs.add_argument("--n-stars", type=int, default=200)
+    vs.add_argument("--psf", default="moffat", help="moffat, kolmogorov or gaussian")
+    vs.add_argument("--sensor", default="lsst_itl_50_8", help="GalSim sensor name")
+    vs.add_argument("--template", help="template for the corrections (default: the sensor's)")
+    vs.add_argument("--match", default="transfers", choices=("transfers", "areas", "none"),
+                    help="import of the sensor's file when no --template (import_galsim_sensor)")
+    vs.add_argument("--updates", type=float, default=1000.0,
+                    help="GalSim boundary updates per exposure (1000: converged)")
+    vs.add_argument("--min-nrecalc", type=float, default=100.0,
+                    help="smallest GalSim nrecalc (photons)")
+    vs.add_argument("--sky", type=float, default=1000.0, help="sky level (e per pixel)")
+    vs.add_argument("--seed", type=int, default=20151)
+    vs.add_argument("--json", action="store_true")
+    vs.add_argument("--quiet", action="store_true")
+    vs.set_defaults(func=_cmd_validate_stars)
+
+    rp = sub.add_parser("reproduce", help="the paper's numbers with the calibrated model")
+    rp.add_argument("--out", help="directory for figures, template and JSON")
+    rp.add_argument("--quick", action="store_true", help="small template and scan (tests)")
+    rp.add_argument("--json", action="store_true")
+    rp.add_argument("--quiet", action="store_true")
+    rp.set_defaults(func=_cmd_reproduce)
+
+    vk = sub.add_parser("validate-sky", help="BF size/shape-flux slopes of the stars of an "
+                        "image, before and after correction (no truth needed)")
+    vk.add_argument("image", help="FITS image (electrons, or ADU with --gain / GAIN keyword)")
+    vk.add_argument("--gain", type=float, help="e/ADU if the image is in ADU")
+    vk.add_argument("--saturation", type=float, help="saturation level (image unit)")
+    vk.add_argument("--template", help="template FITS file (default: bundled)")
+    vk.add_argument("--galsim-sensor", help="use the import of this GalSim sensor as template")
+    vk.add_argument("--route", default="catalog", choices=["catalog", "pixel", "both", "none"],
+                    help="correction route(s) to validate")
+    vk.add_argument("--method", default="drift", help="Task method for the pixel route")
+    vk.add_argument("--z-crit", type=float, default=3.0, help="detection significance (sigma)")
+    vk.add_argument("--min-snr", type=float, default=30.0, help="faintest stars used (SNR)")
+    vk.add_argument("--poly-order", type=int, default=2, help="PSF position polynomial order")
+    vk.add_argument("--n-boot", type=int, default=200, help="bootstrap resamples")
+    vk.add_argument("--catalog", help="write the (corrected) star catalogue (ECSV)")
+    vk.add_argument("--plot", help="write a PNG: size/ellipticity vs flux and whiskers")
+    vk.add_argument("--json", action="store_true")
+    vk.add_argument("--quiet", action="store_true")
+    vk.set_defaults(func=_cmd_validate_sky)
+    dg = sub.add_parser("diagnose", help="residual of the model and the effects explaining it")
+    dg.add_argument("input", help="a_ij table, PTC text file or directory of flat pairs")
+    dg.add_argument("--json", action="store_true")
+    dg.add_argument("--report", help="write report.md, diagnosis.json and figures here")
+    dg.add_argument("--basis", help="linearised electrostatic model (JSON; default: the "
+                    "shipped fit to the ITL a_ij)")
+    dg.add_argument("--max-lag", type=int, default=3, help="largest lag for flat pairs")
+    dg.set_defaults(func=_cmd_diagnose)
+
+    m = sub.add_parser("maps", help="pixel geometry maps of an image (main job)")
+    m.add_argument("image", nargs="?", help="FITS image in electrons (default: bundled sample)")
+    m.add_argument("--template", help="template FITS file (default: bundled)")
+    m.add_argument("--gain", type=float, help="e/ADU if the image is in ADU")
+    m.add_argument("--out", help="write the maps to this FITS file")
+    m.add_argument("--plot", help="write a PNG of the maps")
+    m.add_argument("--samples", type=int, default=None,
+                   help="resample the template's edges to this many samples (faster; 8 "
+                        "keeps the maps within ~1e-5 of the full ones); default: all")
+    m.add_argument("--json", action="store_true")
+    m.add_argument("--quiet", action="store_true")
+    m.set_defaults(func=_cmd_maps)
+    return p
+
+
+def main(argv=None):
+    """Entry point; returns the exit status (errors: message on stderr, 2)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (ValueError, KeyError, TypeError, OSError, RuntimeError, AttributeError) as exc:
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"bfdrift: error: {msg}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,194 @@
+"""Correct many FITS files: serially or on a dask cluster.
+
+Every file is handled by :func:`correct_file` (one
+:class:`~lsst_bfdrift.correction.task.BrighterFatterDriftTask` run, output written
+atomically). :func:`correct_files` maps it over a list of (input, output)
+pairs, either in this process or on a dask ``distributed`` cluster (a
+``LocalCluster`` started here, or any scheduler address). A file that fails
+gives an error entry for that file only; the others are still corrected.
+dask is an optional dependency (``pip install lsst_bfdrift[dask]``).
+"""
+
+import contextlib
+import functools
+import json
+import os
+import threading
+
+import numpy as np
+
+from lsst_bfdrift.utils.io import atomic_output
+from lsst_bfdrift.utils.progress import ProgressBar
+
+__all__ = ["correct_file", "correct_files", "output_pairs"]
+
+
+def output_pairs(inputs, out_dir):
+    """(input, out_dir/basename(input)) pairs; refuses duplicate output names."""
+    pairs = [(os.fspath(f), os.path.join(os.fspath(out_dir), os.path.basename(os.fspath(f))))
+             for f in inputs]
+    names = [dst for _, dst in pairs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"several inputs would write the same output: {dup}")
+    return pairs
+
+
+@functools.lru_cache(maxsize=4)
+def _task(config_json):
+    """One Task per configuration and process (the template is loaded once)."""
+    from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
+    cfg = BrighterFatterDriftConfig.from_dict(json.loads(config_json))
+    return BrighterFatterDriftTask(config=cfg)
+
+
+def _config_json(config):
+    from lsst_bfdrift.correction.task import BrighterFatterDriftConfig
+    if config is None:
+        config = BrighterFatterDriftConfig()
+    if isinstance(config, BrighterFatterDriftConfig):
+        config = config.to_dict()
+    BrighterFatterDriftConfig.from_dict(dict(config))  # validate before any work
+    return json.dumps(config, sort_keys=True)
+
+
+def correct_file(src, dst, config=None, *, overwrite=False):
+    """Correct one FITS file and write the result atomically.
+
+    Parameters
+    ----------
+    src, dst : str or path
+        Input image and output file (FITS: corrected image in e or ADU as the
+        input, ``FLUX_MOVED`` (e), ``BFFLAGS`` and, with
+        ``config.compute_geometry``, the geometry maps).
+    config : BrighterFatterDriftConfig or dict, optional
+        Task configuration (default: the defaults).
+    overwrite : bool, optional
+        Replace an existing ``dst``; otherwise an existing file is an error.
+
+    Returns
+    -------
+    dict
+        ``input``, ``output``, ``iterations``, ``converged``,
+        ``flux_moved_sum`` and ``flux_moved_abs_sum`` (e).
+    """
+    from astropy.io import fits
+
+    src, dst = os.fspath(src), os.fspath(dst)
+    if os.path.abspath(src) == os.path.abspath(dst):
+        raise ValueError(f"refusing to overwrite the input {src}")
+    if os.path.exists(dst) and not overwrite:
+        raise FileExistsError(f"{dst} exists (use --overwrite)")
+    res = _task(_config_json(config)).run(src)
+    hdus = [fits.PrimaryHDU(np.asarray(res.exposure.data, np.float32), header=res.header),
+            fits.ImageHDU(res.flux_moved.astype(np.float32), name="FLUX_MOVED"),
+            fits.ImageHDU(res.flags.astype(np.int16), name="BFFLAGS")]
+    if res.area is not None:
+        for name in ("area", "centroid_x", "centroid_y", "e1", "e2"):
+            hdus.append(fits.ImageHDU(getattr(res, name).astype(np.float32),
+                                      name=name.upper()))
+    with atomic_output(dst, overwrite=overwrite) as tmp:
+        fits.HDUList(hdus).writeto(tmp, overwrite=True, checksum=True)
+    return {"input": src, "output": dst, "iterations": int(res.iterations),
+            "converged": bool(res.converged),
+            "flux_moved_abs_sum": float(np.abs(res.flux_moved).sum()),
+            "flux_moved_sum": float(res.flux_moved.sum())}
+
+
+_NUMBA_LOCK = threading.Lock()
+
+
+def _numba_guard():
+    """A lock unless numba's threading layer is thread-safe (omp, tbb).
+
+    numba's fallback 'workqueue' layer must not launch parallel kernels from
+    several threads at once (dask workers as threads); before the first
+    parallel kernel has run the layer is unknown, so that run is locked too.
+    """
+    try:
+        import numba
+        layer = numba.threading_layer()
+    except (ImportError, ValueError):
+        layer = "unknown"
+    return _NUMBA_LOCK if layer in ("workqueue", "unknown") else contextlib.nullcontext()
+
+
+def _safe(src, dst, config_json, overwrite):
+    """:func:`correct_file` with the error turned into a result entry."""
+    try:
+        with _numba_guard():
+            out = correct_file(src, dst, json.loads(config_json), overwrite=overwrite)
+        out["error"] = None
+        return out
+    except Exception as exc:  # noqa: BLE001 - reported per file, the others go on
+        return {"input": os.fspath(src), "output": os.fspath(dst), "iterations": None,
+                "converged": False, "error": f"{type(exc).__name__}: {exc}"}
+
+
+def correct_files(pairs, config=None, *, scheduler=None, overwrite=False, n_workers=2,
+                  threads_per_worker=1, processes=True, progress=False):
+    """Correct many files, serially or on a dask cluster.
+
+    Parameters
+    ----------
+    pairs : sequence of (str, str)
+        (input, output) paths (:func:`output_pairs`).
+    config : BrighterFatterDriftConfig or dict, optional
+        Task configuration, the same for every file.
+    scheduler : str, optional
+        None: serial, in this process. ``'local'``: a dask ``LocalCluster``
+        started here (``n_workers``, ``threads_per_worker``, ``processes``).
+        Anything else: the address of a running dask distributed scheduler
+        (e.g. ``tcp://host:8786``).
+    overwrite : bool, optional
+        Replace existing outputs (otherwise each such file is an error).
+    n_workers, threads_per_worker, processes
+        LocalCluster settings (ignored otherwise).
+    progress : bool, optional
+        Progress bar on stderr (files finished).
+
+    Returns
+    -------
+    list of dict
+        One per pair, in the input order: the :func:`correct_file` summary and
+        ``error`` (None, or ``'ExceptionType: message'`` for a failed file).
+    """
+    pairs = [(os.fspath(a), os.fspath(b)) for a, b in pairs]
+    cfg = _config_json(config)
+    results = [None] * len(pairs)
+    with ProgressBar(len(pairs), "correct", enabled=progress) as bar:
+        if scheduler is None:
+            for k, (src, dst) in enumerate(pairs):
+                results[k] = _safe(src, dst, cfg, overwrite)
+                bar(1)
+            return results
+        try:
+            from distributed import Client, LocalCluster, as_completed
+        except ImportError as exc:  # pragma: no cover - depends on the environment
+            raise ImportError("the dask scheduler needs dask[distributed]: "
+                              "pip install 'lsst_bfdrift[dask]'") from exc
+        cluster = None
+        if scheduler == "local":
+            cluster = LocalCluster(n_workers=int(n_workers),
+                                   threads_per_worker=int(threads_per_worker),
+                                   processes=bool(processes), dashboard_address=None)
+            client = Client(cluster)
+        else:
+            client = Client(scheduler)
+        try:
+            futures = {client.submit(_safe, src, dst, cfg, overwrite, pure=False): k
+                       for k, (src, dst) in enumerate(pairs)}
+            for fut in as_completed(futures):
+                k = futures[fut]
+                try:
+                    results[k] = fut.result()
+                except Exception as exc:  # noqa: BLE001 - e.g. a worker died
+                    src, dst = pairs[k]
+                    results[k] = {"input": src, "output": dst, "iterations": None,
+                                  "converged": False, "error": f"{type(exc).__name__}: {exc}"}
+                bar(1)
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    return results

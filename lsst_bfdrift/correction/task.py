@@ -1,0 +1,295 @@
+"""BrighterFatterDriftTask: correct exposures with the template as Green's function.
+
+The Task only wires plain functions: :func:`~lsst_bfdrift.correction.solvers.correct_image`
+for the flux redistribution and :func:`~lsst_bfdrift.geometry.superpose.moment_maps`
+for the final pixel geometry predicted from the recorded image.
+"""
+
+import os
+
+import numpy as np
+from astropy import units as u
+from astropy.io import fits
+from astropy.nddata import CCDData, NDData
+
+from lsst_bfdrift.utils.config import ChoiceField, Config, Field, Struct, Task
+from lsst_bfdrift.correction.solvers import (area_coefficients, correct_coulton18, correct_half_shift,
+                         correct_image, coulton18_kernel)
+from lsst_bfdrift.geometry.superpose import moment_maps
+from lsst_bfdrift.templates.swept import OperatorCache
+from lsst_bfdrift.templates.template import DistortionTemplate, load_default_template
+
+__all__ = ["BrighterFatterDriftConfig", "BrighterFatterDriftTask", "unpack_exposure", "FLAG_BLOCKED",
+           "FLAG_EDGE", "MAX_SWEEP"]
+
+#: Flag bit: pixel masked, saturated or non-finite (no flux exchanged).
+FLAG_BLOCKED = 1
+#: Flag bit: pixel within the template's reach of the image border (aggressors missing).
+FLAG_EDGE = 2
+
+_METHODS = {
+    "drift": "time-history series of the template's swept areas (order >= 3), inverted by "
+             "a third-order series",
+    "astier23": "Astier & Regnault 2023: per-electron boundary shifts (the template's swept "
+                "areas), half the final shift, two-pixel flux density, one pass",
+    "coulton18": "Coulton et al. 2018: kernel with Laplacian equal to the template's a_ij, "
+                 "I = F + 1/2 div(F grad(K * F)), iterated",
+}
+
+
+class BrighterFatterDriftConfig(Config):
+    """Configuration of :class:`BrighterFatterDriftTask`."""
+
+    template = Field("template FITS file; None uses the bundled default", str, default=None,
+                     optional=True)
+    method = ChoiceField("correction method", str, default="drift", allowed=_METHODS)
+    order = Field("terms of the time-history series for method 'drift' (2 = half shift)",
+                  int, default=3, check=lambda v: 2 <= v <= 8)
+    density = ChoiceField("flux density at pixel edges (drift)", str, default="fv4",
+                          allowed={"mean2": "mean of the two pixels beside the edge",
+                                   "cubic4": "four-point interpolation along the normal",
+                                   "fv4": "four-point finite-volume reconstruction from "
+                                          "pixel averages"})
+    max_iter = Field("largest number of solver iterations", int, default=10,
+                     check=lambda v: v >= 1)
+    rtol = Field("convergence: max |I - R(F)| / max |I| (when noise_tol is None)", float,
+                 default=1e-7, check=lambda v: 0 < v < 1)
+    noise_tol = Field("convergence: |I - R(F)| <= noise_tol * sqrt(I) in every pixel "
+                      "(fraction of the Poisson noise); None: use rtol", float, default=0.05,
+                      optional=True, check=lambda v: 0 < v < 1)
+    start = ChoiceField("first guess of the drift solver", str, default="series",
+                        allowed={"series": "third-order inverse series (three operator calls), "
+                                                  "iterated only if an a-priori bound requires",
+                                 "image": "the recorded image"})
+    fft_precision = ChoiceField("precision of the FFT convolutions", str, default="float32",
+                                allowed={"float32": "single (half the time and memory)",
+                                         "float64": "double"})
+    strip = Field("rows per block for the drift and astier23 solvers (bounded memory); "
+                  "None: whole image", int, default=512, optional=True, check=lambda v: v >= 16)
+    sparse = Field("drift with start='series': second- and third-order terms only in windows "
+                   "around the sources that need them (bounded error; dense fallback)", bool,
+                   default=True)
+    gain = Field("e/ADU for images in ADU (None: read GAIN from the header)", float,
+                 default=None, optional=True, check=lambda v: v > 0)
+    saturation = Field("level (e) at and above which pixels are blocked; None: no limit",
+                       float, default=None, optional=True, check=lambda v: v > 0)
+    compute_geometry = Field("compute area, centroid and ellipticity maps", bool, default=True)
+    geometry_samples = Field("samples per pixel edge for the geometry maps (template edges "
+                             "resampled keeping swept areas and moments to first order: "
+                             "~1e-5 of the signal for area and centroid, ~2e-4 for e2, 4x "
+                             "less CPU than the 32-sample default; superpose.resample_template);"
+                             " templates with no more samples are used as they are; None: the "
+                             "template's own", int, default=8, optional=True,
+                             check=lambda v: v >= 1)
+    workers = Field("FFT threads", int, default=2, check=lambda v: v >= 1)
+
+
+def unpack_exposure(exposure, gain_cfg):
+    """data (float64, e; no copy when possible), mask, uncertainty, meta, unit, gain,
+    kind."""
+    kind = "ndarray"
+    mask = unc = None
+    meta = fits.Header()
+    unit = u.electron
+    if isinstance(exposure, (str, os.PathLike)):
+        with fits.open(exposure, memmap=False) as hdul:
+            hdu = next((h for h in hdul if getattr(h, "data", None) is not None
+                        and h.data.ndim == 2), None)
+            if hdu is None:
+                raise ValueError(f"{exposure}: no 2-d image HDU")
+            data = np.array(hdu.data, dtype=np.float64)
+            meta = hdu.header.copy()
+        bunit = str(meta.get("BUNIT", "electron")).strip().lower()
+        unit = u.adu if bunit in ("adu", "dn", "count", "counts") else u.electron
+        kind = "path"
+    elif isinstance(exposure, NDData):
+        kind = "ccddata" if isinstance(exposure, CCDData) else "nddata"
+        data = _as_float64(exposure.data)
+        mask = None if exposure.mask is None else np.array(exposure.mask, bool)
+        unc = exposure.uncertainty
+        meta = fits.Header(exposure.meta) if exposure.meta else fits.Header()
+        unit = exposure.unit if exposure.unit is not None else u.electron
+    else:
+        data = _as_float64(exposure)
+    if data.ndim != 2:
+        raise ValueError(f"exposure must be a 2-d image, got shape {data.shape}")
+    if mask is not None and mask.shape != data.shape:
+        raise ValueError(f"mask shape {mask.shape} does not match image {data.shape}")
+    gain = 1.0
+    if unit in (u.adu, u.count) or str(unit).lower() in ("adu", "dn"):
+        gain = gain_cfg if gain_cfg is not None else meta.get("GAIN")
+        if gain is None:
+            raise ValueError("image is in ADU: set config.gain or a GAIN header keyword")
+        gain = float(gain)
+        if not gain > 0:
+            raise ValueError(f"gain must be positive, got {gain}")
+    elif unit not in (u.electron, u.dimensionless_unscaled):
+        raise ValueError(f"exposure unit must be electron or adu, got {unit}")
+    return (data if gain == 1.0 else data * gain), mask, unc, meta, unit, gain, kind
+
+
+def _as_float64(array):
+    """``array`` as float64, a copy only if the dtype differs. Nothing below
+    writes into it (the caller's data are never modified; checked by
+    ``tests/correction/test_task.py::test_input_untouched_and_not_aliased``). It is not
+    made read-only: numba compiles read-only arrays as another type, which
+    would double the kernels' compilations. Integer and float images are
+    accepted; boolean, complex and non-numeric ones are refused."""
+    array = np.asarray(array)
+    if array.dtype.kind not in "iuf":
+        what = {"b": "boolean", "c": "complex"}.get(array.dtype.kind,
+                                                    f"non-numeric ({array.dtype})")
+        raise ValueError(f"exposure data must be real numbers (e or ADU), got a {what} array")
+    return array.astype(np.float64, copy=False)
+
+
+#: Largest K max|I| accepted (K: the template's largest sum of abs(swept-area
+#: kernel) over one edge, px^2 per electron): beyond it one pixel's charge
+#: would sweep more than a whole pixel's area across an edge, far outside any
+#: physical full well and outside the model (the solver's series needs
+#: K max|I| well below 1; the brightest star cores of the benchmarks reach
+#: about 0.25).
+MAX_SWEEP = 1.0
+
+
+def _check_range(finite_data, kernel_abs_sum, unit_note):
+    """Refuse images whose values the brighter-fatter model cannot describe."""
+    # max and -min: no full-size temporary for abs()
+    peak = max(float(finite_data.max()), -float(finite_data.min())) if finite_data.size else 0.0
+    if kernel_abs_sum * peak > MAX_SWEEP:
+        raise ValueError(
+            f"pixel values up to {peak:.3g} e: the template would sweep "
+            f"{kernel_abs_sum * peak:.3g} px^2 across an edge (at most {MAX_SWEEP} is "
+            f"modelled, i.e. |I| <= {MAX_SWEEP / kernel_abs_sum:.3g} e); set such pixels to "
+            f"NaN (masked and saturated pixels still act as aggressors with their value)"
+            f"{unit_note}")
+
+
+class BrighterFatterDriftTask(Task):
+    """Correct the brighter-fatter effect with an electrostatic template.
+
+    ``run(exposure)`` predicts the final pixel boundaries from the recorded
+    image with the template as Green's function, returns the pixel geometry
+    maps and the flux-conserving correction.
+    """
+
+    ConfigClass = BrighterFatterDriftConfig
+    _DefaultName = "brighterFatterDrift"
+
+    def __init__(self, config=None, *, template=None, **kwargs):
+        super().__init__(config=config, **kwargs)
+        if template is not None:
+            self.template = template
+        elif self.config.template is None:
+            self.template = load_default_template()
+        else:
+            self.template = DistortionTemplate.load(self.config.template)
+        self._cache = None
+
+    def _operators(self, dtype):
+        """Swept-area operators of the template, kept between calls to run()."""
+        c = self._cache
+        if c is None or not c.matches(self.template, self.config.workers, dtype):
+            c = self._cache = OperatorCache(self.template, workers=self.config.workers,
+                                            dtype=dtype)
+        return c
+
+    def run(self, exposure):
+        """Correct ``exposure``.
+
+        Parameters
+        ----------
+        exposure : CCDData, NDData, ndarray or path
+            Image in electrons (or ADU with ``config.gain`` / a GAIN keyword).
+            Never modified.
+
+        Returns
+        -------
+        Struct
+            ``exposure`` (corrected, same type as given; mask and uncertainty
+            carried), ``area``, ``centroid_x``, ``centroid_y`` (shift from the
+            pixel centre, px), ``e1``, ``e2`` (None if ``compute_geometry`` is
+            off), ``flux_moved`` (e; sums to zero), ``flags`` (uint8, bits
+            FLAG_BLOCKED, FLAG_EDGE), ``iterations``, ``converged``.
+        """
+        cfg = self.config
+        data, mask, unc, meta, unit, gain, kind = unpack_exposure(exposure, cfg.gain)
+        finite = np.isfinite(data)
+        all_finite = bool(finite.all())
+        finite_data = data if all_finite else np.where(finite, data, 0.0)
+        blocked = np.logical_not(finite, out=finite)
+        if mask is not None:
+            blocked |= mask
+        if cfg.saturation is not None:
+            blocked |= finite_data >= cfg.saturation
+        dtype = np.float32 if cfg.fft_precision == "float32" else np.float64
+        _check_range(finite_data, self._operators(dtype).kernel_abs_sum,
+                     f"; the image was converted with gain {gain} e/ADU" if gain != 1.0
+                     else "; is the image in ADU without a gain?")
+        # the maps first: their working arrays are freed before the solver's
+        # outputs exist (peak memory, docs/benchmarks.rst)
+        geom = dict(area=None, centroid_x=None, centroid_y=None, e1=None, e2=None)
+        if cfg.compute_geometry:
+            ns = cfg.geometry_samples
+            maps = moment_maps(self.template, finite_data,
+                               workers=cfg.workers, dtype=dtype,
+                               samples=None if ns is None else min(ns, self.template.edge_samples),
+                               maps=("area", "dx", "dy", "e1", "e2"))  # only those returned
+            geom = dict(area=maps.area, centroid_x=maps.dx, centroid_y=maps.dy, e1=maps.e1,
+                        e2=maps.e2)
+        order = 2 if cfg.method == "astier23" else cfg.order
+        density = "mean2" if cfg.method == "astier23" else cfg.density
+        if cfg.method == "astier23":
+            flux, iterations, converged = correct_half_shift(
+                data, self.template, blocked=blocked, workers=cfg.workers, dtype=dtype,
+                strip=cfg.strip, cache=self._operators(dtype))
+        elif cfg.method == "coulton18":
+            order = density = "n/a"
+            kernel = coulton18_kernel(area_coefficients(self.template))
+            flux, iterations, converged = correct_coulton18(
+                data, kernel, blocked=blocked, max_iter=cfg.max_iter, rtol=cfg.rtol,
+                workers=cfg.workers)
+        else:
+            solver = {}
+            flux, iterations, converged = correct_image(
+                data, self.template, order=order, density=density, blocked=blocked,
+                max_iter=cfg.max_iter, rtol=cfg.rtol, noise_tol=cfg.noise_tol, start=cfg.start,
+                workers=cfg.workers, dtype=dtype, strip=cfg.strip, sparse=cfg.sparse,
+                cache=self._operators(dtype), info=solver)
+        moved = flux - finite_data
+        moved[blocked] = 0.0
+        flags = blocked.astype(np.uint8)  # FLAG_BLOCKED = 1
+        c = self.template.center
+        for sl in (np.s_[:c], np.s_[-c:], np.s_[:, :c], np.s_[:, -c:]):
+            flags[sl] |= FLAG_EDGE
+        if not converged:
+            self.log.warning("brighter-fatter correction did not converge in %d iterations",
+                             iterations)
+        header = fits.Header(meta)
+        header["BFDRIFT"] = (True, "BF correction applied (lsst_bfdrift)")
+        header["BFMETHOD"] = (cfg.method, "correction method")
+        header["BFORDER"] = (order, "time-history series order")
+        header["BFDENS"] = (density, "edge flux density estimate")
+        header["BFITER"] = (iterations, "solver iterations")
+        header["BFCONV"] = (bool(converged), "solver converged")
+        if cfg.method == "drift":
+            header["BFSOLVER"] = (solver.get("solver", "dense"), "drift series: sparse or dense")
+        if cfg.compute_geometry:
+            ns = self.template.edge_samples
+            if cfg.geometry_samples is not None:
+                ns = min(cfg.geometry_samples, ns)
+            header["BFGSAMP"] = (ns, "edge samples of the geometry maps")
+        header["BFQTMPL"] = (self.template.charge, "template aggressor charge (e)")
+        header["BFTMPL"] = (os.path.basename(str(cfg.template or "bundled default"))[-40:],
+                            "BF template file")
+        out_data = flux if gain == 1.0 else flux / gain  # flux: a new array of the solver
+        if kind in ("ccddata", "nddata"):
+            new_mask = blocked if mask is None else (mask | blocked)
+            cls = CCDData if kind == "ccddata" else NDData
+            out = cls(out_data, unit=unit, mask=new_mask, uncertainty=unc, meta=header)
+        elif kind == "path":
+            out = CCDData(out_data, unit=unit, mask=blocked, meta=header)
+        else:
+            out = out_data
+        return Struct(exposure=out, flux_moved=moved, flags=flags, iterations=iterations,
+                      converged=bool(converged), header=header, **geom)

@@ -1,0 +1,374 @@
+"""Pixel boundaries at the conversion height, found by bisection of drift lines.
+
+For an edge between two pixels, points on a short segment crossing the
+nominal edge are traced to the channel; the landing pixel changes where the
+segment crosses the boundary, which is located by bisection to ``tol``
+(pixel units). Edge samples lie at uniformly spaced fractions along each
+nominal edge; corners (where four pixels meet) are solved by alternating
+one-dimensional bisections across the column boundary and the row boundary,
+which converges at once because boundaries are nearly axis-parallel.
+
+All positions returned are in pixel units in the image frame: pixel (i, j) is
+centred on (i, j) and its nominal corners are at half-integers.
+"""
+
+import numpy as np
+
+from lsst_bfdrift.physics.drift import drift_lines
+
+__all__ = ["BoundaryGrid", "bisect_boundary", "locate_corners", "pixel_boundaries",
+           "uniform_fractions", "edge_fractions"]
+
+
+def uniform_fractions(n):
+    """``n`` uniformly spaced sample fractions strictly inside an edge."""
+    if int(n) != n or n < 1:
+        raise ValueError(f"number of edge samples must be a positive integer, got {n!r}")
+    return (np.arange(n) + 1.0) / (n + 1.0)
+
+
+def edge_fractions(n, spacing="uniform"):
+    """Sample fractions along an edge.
+
+    ``'uniform'`` (the paper's choice) or ``'tan'``: rays from the pixel
+    centre at equal angles, (tan(theta_k) + 1) / 2 with theta_k = -pi/4 +
+    (k + 1) pi / (2 (n + 1)) (GalSim's vertices), denser towards the corners
+    where boundaries curve most next to an aggressor.
+    """
+    if spacing == "uniform":
+        return uniform_fractions(n)
+    if spacing == "tan":
+        uniform_fractions(n)  # validates n
+        theta = -np.pi / 4 + (np.arange(n) + 1.0) * np.pi / (2.0 * (n + 1.0))
+        return (np.tan(theta) + 1.0) / 2.0
+    raise ValueError(f"edge spacing must be 'uniform' or 'tan', got {spacing!r}")
+
+
+def bisect_boundary(model, along, across, axis, index, *, tol=1e-4, half_width=0.45,
+                    max_half_width=2.0, z0=None, drift_kwargs=None, progress=None):
+    """Locate boundaries between pixel index ``index`` and ``index + 1``.
+
+    Parameters
+    ----------
+    model : SensorModel
+        The field model.
+    along : array_like
+        Coordinate (pixel units, image frame) along the edge of each sample.
+    across : array_like
+        Initial guess of the boundary coordinate across the edge (pixel units).
+    axis : {'x', 'y'}
+        'x': column boundaries (search along x); 'y': row boundaries.
+    index : array_like of int
+        Pixel index on the lower side of each boundary.
+    tol : float, optional
+        Bisection tolerance (pixel units).
+    half_width : float, optional
+        Initial half width of the bracket (pixel units).
+    max_half_width : float, optional
+        Largest bracket tried when the boundary lies outside the first one.
+    z0 : float, optional
+        Conversion height (um); default the entrance window.
+    drift_kwargs : dict, optional
+        Passed to :func:`~lsst_bfdrift.physics.drift.drift_lines`.
+    progress : callable, optional
+        Called with the number of line batches done after each trace.
+
+    Returns
+    -------
+    ndarray
+        Boundary coordinates across the edge (pixel units).
+    """
+    drift_kwargs = drift_kwargs or {}
+    p = model.params.pixel_pitch
+    along, guess, index = np.broadcast_arrays(np.asarray(along, float),
+                                              np.asarray(across, float), np.asarray(index))
+    along, guess, index = along.ravel(), guess.ravel().copy(), index.ravel()
+    result = np.empty(along.size)
+    todo = np.arange(along.size)
+    hw = half_width
+    while todo.size:
+        lo = guess[todo] - hw
+        hi = guess[todo] + hw
+        n_iter = int(np.ceil(np.log2(2 * hw / tol)))
+        for _ in range(n_iter):
+            mid = 0.5 * (lo + hi)
+            if axis == "x":
+                res = drift_lines(model, (mid + 0.5) * p, (along[todo] + 0.5) * p, z0,
+                                  **drift_kwargs)
+                landed = np.floor(res.x / p)
+            else:
+                res = drift_lines(model, (along[todo] + 0.5) * p, (mid + 0.5) * p, z0,
+                                  **drift_kwargs)
+                landed = np.floor(res.y / p)
+            lower = landed <= index[todo]
+            lo = np.where(lower, mid, lo)
+            hi = np.where(lower, hi, mid)
+            if progress is not None:
+                progress(1)
+        est = 0.5 * (lo + hi)
+        # A bracket end that never moved means the boundary may lie outside it.
+        at_end = (np.abs(est - (guess[todo] - hw)) < tol) | (np.abs(est - (guess[todo] + hw)) < tol)
+        result[todo] = est
+        if not np.any(at_end):
+            break
+        if hw >= max_half_width:
+            bad = todo[at_end]
+            raise RuntimeError(
+                f"no boundary found within {max_half_width} px of the nominal edge for "
+                f"{bad.size} sample(s), e.g. along={along[bad[0]]:.3f}, axis={axis!r}, "
+                f"index={index[bad[0]]}")
+        todo = todo[at_end]
+        hw = min(2 * hw, max_half_width)
+    return result
+
+
+def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=12, **kwargs):
+    """Locate pixel corners (meeting points of four pixels) by alternation.
+
+    The corner solves x = X(y), y = Y(x), with X the column boundary and Y
+    the row boundary. Starting from the nominal corner, the two are bisected
+    in turn (the contraction per round is ``|X'(y) Y'(x)|``: ~1e-4 far from any
+    charge, up to ~0.2 at the cusps next to an aggressor) until both
+    coordinates move by less than ``2 tol`` (each bisection itself scatters by
+    up to ``tol``, and with contraction <= 0.25 the remaining error is then
+    below ``tol``); later passes use brackets a few times the last change
+    wide, so they cost few traces.
+
+    Parameters
+    ----------
+    model : SensorModel
+        The field model.
+    xc, yc : array_like
+        Nominal corner positions (pixel units).
+    col_index, row_index : array_like of int
+        Column and row indices below/left of each corner.
+    tol : float, optional
+        Tolerance (pixel units).
+    max_passes : int, optional
+        Largest number of (column, row) bisection rounds.
+    **kwargs
+        Passed to :func:`bisect_boundary` (not ``half_width``).
+
+    Returns
+    -------
+    x, y : ndarray
+        Corner positions (pixel units).
+
+    Corners that have not converged after ``max_passes`` rounds (contraction
+    near 1) are finished by Steffensen's method on y -> Y(X(y)).
+
+    Raises
+    ------
+    RuntimeError
+        If some corner has not converged after that either.
+    """
+    x = np.asarray(xc, float).ravel().copy()
+    y = np.asarray(yc, float).ravel().copy()
+    col_index = np.broadcast_to(np.asarray(col_index), np.shape(xc)).ravel()
+    row_index = np.broadcast_to(np.asarray(row_index), np.shape(xc)).ravel()
+    # Each boundary is read a small step to either side of the other one and
+    # averaged: exactly on a barrier's symmetry plane, lines stall on its
+    # saddle and the crossing boundary there is not the limit of its neighbours.
+    delta = 2.0 * tol  # bias at a cusp ~ delta * (slope jump) / 2 < tol
+
+    def col_bnd(yy, xx, idx, **kw):
+        lo = bisect_boundary(model, yy - delta, xx, "x", col_index[idx], tol=tol, **kw)
+        hi = bisect_boundary(model, yy + delta, xx, "x", col_index[idx], tol=tol, **kw)
+        return 0.5 * (lo + hi)
+
+    def row_bnd(xx, yy, idx, **kw):
+        lo = bisect_boundary(model, xx - delta, yy, "y", row_index[idx], tol=tol, **kw)
+        hi = bisect_boundary(model, xx + delta, yy, "y", row_index[idx], tol=tol, **kw)
+        return 0.5 * (lo + hi)
+
+    everything = np.arange(x.size)
+    x = col_bnd(y, x, everything, **kwargs)
+    y = row_bnd(x, y, everything, **kwargs)
+    todo = np.arange(x.size)
+    step = np.full(x.size, 0.45)
+    for _ in range(max_passes):
+        if todo.size == 0:
+            break
+        hw = float(np.clip(4.0 * step[todo].max(), 4.0 * tol, 0.45))
+        xn = col_bnd(y[todo], x[todo], todo, half_width=hw, **kwargs)
+        yn = row_bnd(xn, y[todo], todo, half_width=hw, **kwargs)
+        change = np.maximum(np.abs(xn - x[todo]), np.abs(yn - y[todo]))
+        x[todo], y[todo] = xn, yn
+        step[todo] = change
+        todo = todo[change >= 2.0 * tol]
+    if todo.size:
+        # Slow or oscillating alternation (|X'Y'| near 1 at strong cusps):
+        # Steffensen's method on the composed map G(y) = Y(X(y)).
+        kw = dict(half_width=0.45, **kwargs)
+
+        def g_of(yy, xx, idx):
+            xn = col_bnd(yy, xx, idx, **kw)
+            return row_bnd(xn, yy, idx, **kw), xn
+
+        for _ in range(max_passes):
+            if todo.size == 0:
+                break
+            y0 = y[todo]
+            g0, x0 = g_of(y0, x[todo], todo)
+            g1, x1 = g_of(g0, x0, todo)
+            den = g1 - 2.0 * g0 + y0
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ynew = np.where(np.abs(den) > 1e-12, y0 - (g0 - y0) ** 2 / den, g1)
+            ynew = np.clip(ynew, y0 - 0.45, y0 + 0.45)
+            xnew = col_bnd(ynew, x1, todo, **kw)
+            change = np.maximum(np.abs(ynew - y0), np.abs(xnew - x[todo]))
+            x[todo], y[todo] = xnew, ynew
+            todo = todo[change >= 2.0 * tol]
+    if todo.size:
+        raise RuntimeError(f"{todo.size} corner(s) did not converge in {max_passes} passes, "
+                           f"e.g. near ({x[todo[0]]:.4f}, {y[todo[0]]:.4f})")
+    return x, y
+
+
+class BoundaryGrid:
+    """Pixel boundaries of a rectangular block of pixels.
+
+    Attributes
+    ----------
+    i0, j0 : int
+        Indices of the lower-left pixel of the block.
+    corners : ndarray, shape (ny + 1, nx + 1, 2)
+        Corner positions (x, y), pixel units; ``corners[J, I]`` is the corner
+        nominally at (i0 + I - 0.5, j0 + J - 0.5).
+    vedge : ndarray, shape (ny, nx + 1, ns)
+        x of the column boundaries at the samples; ``vedge[J, I]`` is the left
+        edge of pixel (i0 + I, j0 + J).
+    hedge : ndarray, shape (ny + 1, nx, ns)
+        y of the row boundaries at the samples; ``hedge[J, I]`` is the bottom
+        edge of pixel (i0 + I, j0 + J).
+    fractions : ndarray, shape (ns,)
+        Sample fractions along each edge (from its lower/left corner).
+    """
+
+    def __init__(self, i0, j0, corners, vedge, hedge, fractions):
+        self.i0, self.j0 = int(i0), int(j0)
+        self.corners, self.vedge, self.hedge = corners, vedge, hedge
+        self.fractions = np.asarray(fractions, float)
+
+    @property
+    def shape(self):
+        """(ny, nx) of the block."""
+        return self.vedge.shape[0], self.hedge.shape[1]
+
+    def nominal(self):
+        """The undistorted grid of the same block."""
+        ny, nx = self.shape
+        ii, jj = np.meshgrid(np.arange(nx + 1) + self.i0 - 0.5, np.arange(ny + 1) + self.j0 - 0.5)
+        corners = np.stack([ii, jj], axis=-1)
+        vedge = np.broadcast_to(corners[:-1, :, 0, None], self.vedge.shape).copy()
+        hedge = np.broadcast_to(corners[:, :-1, 1, None], self.hedge.shape).copy()
+        return BoundaryGrid(self.i0, self.j0, corners, vedge, hedge, self.fractions)
+
+    def displacements(self, reference=None):
+        """Displacements from ``reference`` (default the nominal grid).
+
+        Returns
+        -------
+        corner_d : ndarray (ny + 1, nx + 1, 2)
+        vedge_d : ndarray (ny, nx + 1, ns)
+        hedge_d : ndarray (ny + 1, nx, ns)
+        """
+        ref = self.nominal() if reference is None else reference
+        return (self.corners - ref.corners, self.vedge - ref.vedge, self.hedge - ref.hedge)
+
+
+def _bisect_task(model, kind, arrays, kw):
+    """Worker body (module level so that it can be sent to a process)."""
+    if kind == "corner":
+        return locate_corners(model, *arrays, **kw)
+    return bisect_boundary(model, arrays[0], arrays[1], kind, arrays[2], **kw)
+
+
+def _split_run(model, kind, arrays, kw, workers):
+    """Run a bisection task on ``workers`` chunks of the samples.
+
+    With the compiled drift engine (the default for the package's own field
+    terms) the kernel already shares the lines between all cores, and forking
+    after its thread pool has started is unsafe: everything runs in-process.
+    Otherwise chunks go to forked worker processes (numpy on small arrays
+    holds the GIL, so threads do not help); where ``fork`` is unavailable the
+    chunks run in turn. Results are concatenated in order and do not depend
+    on ``workers``.
+    """
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    from lsst_bfdrift.physics.drift import compile_model
+
+    arrays = [np.asarray(a).ravel() for a in np.broadcast_arrays(*arrays)]
+    n = arrays[0].size
+    workers = max(1, min(int(workers), n))
+    engine = (kw.get("drift_kwargs") or {}).get("engine", "auto")
+    if workers > 1 and ("fork" not in mp.get_all_start_methods()
+                        or (engine != "numpy" and compile_model(model) is not None)):
+        workers = 1
+    if workers == 1:
+        return _bisect_task(model, kind, arrays, kw)
+    bounds = np.linspace(0, n, workers + 1).astype(int)
+    chunks = [[a[b0:b1] for a in arrays] for b0, b1 in zip(bounds[:-1], bounds[1:])]
+    progress = kw.pop("progress", None)
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("fork")) as pool:
+        futures = [pool.submit(_bisect_task, model, kind, ch, kw) for ch in chunks]
+        results = [f.result() for f in futures]
+    if progress is not None:
+        progress(workers)
+    if isinstance(results[0], tuple):
+        return tuple(np.concatenate(parts) for parts in zip(*results))
+    return np.concatenate(results)
+
+
+def pixel_boundaries(model, i_range, j_range, *, edge_samples=8, tol=1e-4, z0=None,
+                     drift_kwargs=None, progress=None, workers=1, spacing="uniform"):
+    """Boundaries of all pixels ``i0 <= i < i1``, ``j0 <= j < j1``.
+
+    Parameters
+    ----------
+    model : SensorModel
+        The field model.
+    i_range, j_range : tuple of int
+        Half-open index ranges (i0, i1) and (j0, j1).
+    edge_samples : int, optional
+        Samples per edge, uniformly spaced.
+    tol : float, optional
+        Bisection tolerance (pixel units).
+    z0 : float, optional
+        Conversion height (um); default the entrance window.
+    drift_kwargs : dict, optional
+        Passed to :func:`~lsst_bfdrift.physics.drift.drift_lines`.
+    progress : callable, optional
+        Called with the number of traces done (for progress bars).
+    workers : int, optional
+        Processes sharing the drift lines (results do not depend on it).
+    spacing : {'uniform', 'tan'}, optional
+        Placement of the edge samples (:func:`edge_fractions`).
+
+    Returns
+    -------
+    BoundaryGrid
+    """
+    i0, i1 = (int(v) for v in i_range)
+    j0, j1 = (int(v) for v in j_range)
+    if i1 <= i0 or j1 <= j0:
+        raise ValueError(f"empty pixel range i={i_range}, j={j_range}")
+    if not (0 < tol < 0.1):
+        raise ValueError(f"tol must be in (0, 0.1) pixel, got {tol}")
+    fr = edge_fractions(edge_samples, spacing)
+    nx, ny = i1 - i0, j1 - j0
+    kw = dict(tol=tol, z0=z0, drift_kwargs=drift_kwargs, progress=progress)
+    # Column boundaries: x = I - 0.5 for I in i0..i1, rows J in j0..j1-1.
+    I, J, F = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1), fr, indexing="xy")
+    # meshgrid with indexing xy gives shape (nJ, nI, nF)
+    vx = _split_run(model, "x", [J - 0.5 + F, I - 0.5, I - 1], dict(kw), workers)
+    vedge = vx.reshape(ny, nx + 1, edge_samples)
+    I, J, F = np.meshgrid(np.arange(i0, i1), np.arange(j0, j1 + 1), fr, indexing="xy")
+    hy = _split_run(model, "y", [I - 0.5 + F, J - 0.5, J - 1], dict(kw), workers)
+    hedge = hy.reshape(ny + 1, nx, edge_samples)
+    I, J = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1 + 1))
+    cx, cy = _split_run(model, "corner", [I - 0.5, J - 0.5, I - 1, J - 1], dict(kw), workers)
+    corners = np.stack([cx.reshape(I.shape), cy.reshape(I.shape)], axis=-1)
+    return BoundaryGrid(i0, j0, corners, vedge, hedge, fr)

@@ -1,0 +1,81 @@
+"""Figures of the flat-field and star simulations."""
+
+import numpy as np
+
+from lsst_bfdrift.utils.plotting import plt  # Agg backend set there
+
+__all__ = ['plot_flat_simulation', 'plot_star_history']
+
+
+def plot_flat_simulation(table, template=None):
+    """Covariances against mean of a flat simulation (like the paper's Fig. 6).
+
+    Left: C00 (e^2) with the Poisson line; right: C01, C10, C11 (e^2) with
+    the first-order guides a_ij mu^2 from the template, both estimators.
+    """
+    mu = np.asarray(table["mu"])
+    paper = np.asarray(table["paper"]) * mu[:, None, None]
+    pairs = np.asarray(table["pairs"])
+    err = np.asarray(table["pairs_err"])
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.5), constrained_layout=True)
+    ax0.plot(mu, paper[:, 0, 0], "o", ms=3, label="all pairs (paper)")
+    ax0.errorbar(mu, pairs[:, 0, 0], err[:, 0, 0], fmt=".", ms=2, label="per pair (LSST)")
+    ax0.plot(mu, mu, "k--", lw=1, label="Poisson")
+    ax0.set_xlabel("mean (e)")
+    ax0.set_ylabel("C00 (e$^2$)")
+    ax0.legend()
+    a = None
+    if template is not None:
+        c = template.center
+        a = np.log(template.moments().area) / template.charge
+    for (di, dj), col in (((0, 1), "C0"), ((1, 0), "C1"), ((1, 1), "C2")):
+        ax1.plot(mu, paper[:, di, dj], "o", ms=3, color=col, label=f"C{di}{dj} all pairs")
+        ax1.errorbar(mu, pairs[:, di, dj], err[:, di, dj], fmt=".", ms=2, color=col, alpha=0.5)
+        if a is not None:
+            ax1.plot(mu, a[c + dj, c + di] * mu**2, "--", color=col, lw=1,
+                     label=f"a{di}{dj} mu$^2$ (template)")
+    ax1.set_xlabel("mean (e)")
+    ax1.set_ylabel("C$_{ij}$ (e$^2$)")
+    ax1.legend(fontsize=8)
+    return fig
+
+
+def plot_star_history(history):
+    """A star simulation against counts (like the paper's Fig. 7).
+
+    Panels: central pixel counts, T = sigma_x^2 + sigma_y^2 with and without
+    BF, FWHM growth by BF (RSS difference), ellipticity and orientation.
+    """
+    h = history
+    n = np.asarray(h["counts"])
+    fig, ax = plt.subplots(2, 3, figsize=(13, 7), constrained_layout=True)
+    ax[0, 0].plot(n, h["central"], ".-")
+    ax[0, 0].set_ylabel("central pixel counts (e)")
+    ax[0, 1].plot(n, h["T"], ".-", label="with BF")
+    ax[0, 1].plot(n, h["T_nominal"], "--", label="square pixels")
+    ax[0, 1].set_ylabel("$\\sigma_x^2 + \\sigma_y^2$ (px$^2$)")
+    ax[0, 1].legend()
+    rss = np.sqrt(np.clip(np.asarray(h["T"]) - np.asarray(h["T_nominal"]), 0, None) / 2)
+    ax[0, 2].plot(h["central"], 2.3548 * rss, ".-")
+    ax[0, 2].set_xlabel("central pixel counts (e)")
+    ax[0, 2].set_ylabel("FWHM growth, RSS (px)")
+    e = np.hypot(h["e1"], h["e2"])
+    e0 = np.hypot(h["e1_nominal"], h["e2_nominal"])
+    ax[1, 0].plot(h["central"], e, ".-", label="with BF")
+    ax[1, 0].plot(h["central"], e0, "--", label="square pixels")
+    ax[1, 0].set_ylabel("ellipticity |e|")
+    ax[1, 0].legend()
+    ax[1, 1].plot(h["central"], h["theta"], ".-", label="with BF")
+    ax[1, 1].plot(h["central"], h["theta_nominal"], "--", label="square pixels")
+    ax[1, 1].set_ylabel("orientation (deg from serial axis)")
+    for col in h.colnames:
+        if col.startswith("rate_"):
+            ax[1, 2].plot(n, h[col], ".-", ms=2, label=col[5:].replace("_", ","))
+    ax[1, 2].set_ylabel("arrivals per conversion")
+    ax[1, 2].legend(fontsize=7, ncol=3)
+    for a in ax.ravel():
+        a.ticklabel_format(axis="x", style="sci", scilimits=(0, 0))
+        if not a.get_xlabel():
+            a.set_xlabel("counts (e)" if a in (ax[0, 0], ax[0, 1], ax[1, 2]) else
+                         "central pixel counts (e)")
+    return fig

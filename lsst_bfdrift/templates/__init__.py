@@ -1,0 +1,13 @@
+"""Portable distortion templates (stage 2).
+
+Takes a sensor model (or GalSim's sensor files); gives the
+:class:`DistortionTemplate` of one aggressor pixel (corner and edge-sample
+displacements, FITS I/O with checksums), its swept-area operators (the FFT
+kernels of the correction) and the import from GalSim. GalSim I/O depends on
+the template, never the reverse.
+"""
+
+
+from lsst_bfdrift.templates.template import *  # noqa: F401,F403
+from lsst_bfdrift.templates.swept import *  # noqa: F401,F403
+from lsst_bfdrift.templates.galsim_io import *  # noqa: F401,F403

@@ -1,0 +1,14 @@
+"""Validation of the corrections (stage 6).
+
+Takes exposures, star catalogues and templates; gives star catalogues
+(photutils), catalogue-level shape corrections, residual size-flux slopes on
+the sky and on paired GalSim stars, and the reproduction of Rasmussen 2015's
+figures.
+"""
+
+
+from lsst_bfdrift.validation.catalog import *  # noqa: F401,F403
+from lsst_bfdrift.validation.shape_correction import *  # noqa: F401,F403
+from lsst_bfdrift.validation.sky import *  # noqa: F401,F403
+from lsst_bfdrift.validation.stars import *  # noqa: F401,F403
+from lsst_bfdrift.validation.paper_figures import *  # noqa: F401,F403

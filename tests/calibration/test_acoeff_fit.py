@@ -1,0 +1,143 @@
+"""Tests of the a_ij tables, axis assignment, sum rule and electrostatic fit."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from lsst_bfdrift.calibration.acoeff_fit import (AcoeffTable, LinearBasis, electrostatic_acoeffs,
+                                     fit_acoeffs, read_acoeff_table, sum_rule_check)
+from lsst_bfdrift.physics.sensor import SensorParameters
+
+ITL = "/work/shared/data/measured/itl_covariances_21oct19.txt"
+BASIS = os.path.join(os.path.dirname(os.path.dirname(__file__)), "data", "itl_basis_lag3.json")
+
+
+@pytest.fixture(scope="module")
+def basis():
+    with open(BASIS) as fh:
+        return LinearBasis.from_dict(json.load(fh))
+
+
+def _write(path, a, s):
+    with open(path, "w") as fh:
+        fh.write("i \t j \t Cov mean \t Cov std\n")
+        for i in range(a.shape[0]):
+            for j in range(a.shape[1]):
+                fh.write(f"{i} \t {j} \t {a[i, j]:.6e} \t {s[i, j]:.6e}\n")
+
+
+def test_itl_axes_and_sum_rule():
+    t = read_acoeff_table(ITL)
+    assert t.a.shape == (9, 9)
+    # the larger nearest neighbour is the parallel one: a[0, 1] (serial 0, parallel 1)
+    assert_allclose(t.a[0, 1], 1.761e-7)
+    assert_allclose(t.a[1, 0], 7.245e-8)
+    assert "serial, parallel" in t.axis_note and "6.5 sigma" in t.axis_note
+    assert t.exclude_a00 and not t.mask()[0, 0] and t.mask().sum() == 80
+
+
+def test_swapped_table_is_reoriented(tmp_path):
+    t = read_acoeff_table(ITL)
+    p = tmp_path / "swapped.txt"
+    _write(p, t.a.T, t.sigma.T)
+    s = read_acoeff_table(p)
+    assert "swapped" in s.axis_note
+    assert_allclose(s.a, t.a, rtol=1e-6)
+    assert_allclose(s.sigma, t.sigma, rtol=1e-6)
+    raw = read_acoeff_table(p, orient=False)
+    assert raw.a[1, 0] > raw.a[0, 1]
+
+
+def test_sum_rule_detects_measured_a00():
+    t = read_acoeff_table(ITL)
+    # direct sum over signed lags
+    L = t.max_lag
+    direct = sum(t.a[abs(i), abs(j)] for i in range(-L, L + 1) for j in range(-L, L + 1)
+                 if (i, j) != (0, 0))
+    assert abs(t.a[0, 0] + direct) < 1e-9
+    moved = AcoeffTable(t.a.copy(), t.sigma)
+    moved.a[0, 0] += 3 * t.sigma[0, 0]
+    ok, note = sum_rule_check(moved)
+    assert not ok and "measured, kept" in note
+
+
+@pytest.mark.parametrize("text, match", [
+    ("0 0 1e-7\n", "expected 4 columns"),
+    ("0 0 1e-7 nan\n0 1 1e-8 1e-9\n1 0 1e-8 1e-9\n1 1 1e-9 1e-9\n", "finite and positive"),
+    ("0 0 1e-7 0\n0 1 1e-8 1e-9\n1 0 1e-8 1e-9\n1 1 1e-9 1e-9\n", "finite and positive"),
+    ("0 0 1e-7 1e-9\n0 1 1e-8 1e-9\n1 0 1e-8 1e-9\n", "incomplete square"),
+    ("0 0 1e-7 1e-9\n0 0 1e-8 1e-9\n", "appears twice"),
+    ("0 0 1e-7 1e-9\nzero one two three\n", "non-numeric row"),
+    ("0.5 0 1e-7 1e-9\n", "non-negative integers"),
+    ("# nothing\n", "no a_ij rows"),
+])
+def test_bad_tables(tmp_path, text, match):
+    p = tmp_path / "bad.txt"
+    p.write_text(text)
+    with pytest.raises(ValueError, match=match):
+        read_acoeff_table(p)
+
+
+def test_table_shape_mismatch():
+    with pytest.raises(ValueError, match="errors have shape"):
+        AcoeffTable(np.zeros((3, 3)), np.ones((2, 2)))
+    with pytest.raises(ValueError, match="square"):
+        AcoeffTable(np.zeros((3, 2)), np.ones((3, 2)))
+
+
+def test_fit_recovers_injected_parameters(basis):
+    """Synthetic a_ij from a known model with Gaussian noise: pulls ~ N(0, 1)."""
+    names = basis.names
+    truth = {"xi0": 5000.0, "xi_cs": -16.0, "channel_depth": 0.6, "v_bss": -45.0}
+    a_true = basis.a([truth[n] for n in names])
+    sigma = np.full(a_true.shape, 3e-9)
+    sigma[0, 0] = 1e-8
+    rng = np.random.default_rng(6)
+    p0 = SensorParameters(xi0=4722.4, channel_depth=0.56159, collection_height=0.5)
+    pulls, chi2 = [], []
+
+    def model(p):
+        return basis.a([getattr(p, n) for n in names])
+
+    for _ in range(40):
+        t = AcoeffTable(a_true + rng.normal(0, sigma), sigma)
+        f = fit_acoeffs(t, p0, model=model)
+        pulls.append([(f.values[n] - truth[n]) / f.errors[n] for n in names])
+        chi2.append(f.chi2)
+        assert_allclose(f.chi2_per_lag.sum(), f.chi2, rtol=1e-10)
+        assert sum(v[0] for v in f.chi2_by_radius().values()) == pytest.approx(f.chi2)
+    pulls = np.array(pulls)
+    assert np.all(np.abs(pulls.mean(axis=0)) < 0.5)
+    assert np.all((pulls.std(axis=0) > 0.7) & (pulls.std(axis=0) < 1.35))
+    # chi2 ~ dof = 16 - 4
+    assert 9 < np.mean(chi2) < 15.5
+
+
+def test_fit_bad_start_and_too_few_lags(basis):
+    t = AcoeffTable(basis.a0, np.full(basis.a0.shape, 1e-9))
+    with pytest.raises(ValueError, match="outside its bounds"):
+        fit_acoeffs(t, SensorParameters(xi0=1e6), {"xi0": (1e3, 1e5)}, model=lambda p: basis.a0)
+    small = AcoeffTable(basis.a0[:2, :2], np.full((2, 2), 1e-9), exclude_a00=True)
+    with pytest.raises(ValueError, match="cannot constrain"):
+        fit_acoeffs(small, SensorParameters(), model=lambda p: basis.a0[:2, :2])
+
+
+@pytest.mark.slow
+def test_quadrant_model_matches_full_template(small_template, small_settings):
+    """The symmetric-quadrant a_ij equal ln(area)/Q of the full 5 x 5 template."""
+    a = electrostatic_acoeffs(SensorParameters(), max_lag=2, charge=small_settings.aggressor_charge,
+                              near_samples=small_settings.edge_samples, near_lag=2,
+                              tol=small_settings.tol)
+    area = small_template.moments().area  # [j, i], offsets -2..2
+    ref = np.log(area[2:, 2:]).T / small_template.charge
+    assert_allclose(a, ref, atol=2e-8)
+    # the template itself is symmetric: the other quadrants agree as well
+    assert_allclose(np.log(area[2::-1, 2::-1]).T / small_template.charge, ref, atol=2e-8)
+
+
+def test_fixed_pattern_model_rejected():
+    with pytest.raises(ValueError, match="fixed-pattern"):
+        electrostatic_acoeffs(SensorParameters(bloom_stop=0.0), max_lag=1)

@@ -1,0 +1,191 @@
+"""The diagnosis finds effects injected into simulated flats without being told.
+
+Flat pairs are simulated with the linearised area model of the electrostatic
+a_ij (``tests/data/itl_basis_lag3.json``: made by
+``linear_basis(SensorParameters(xi0=4722.4, channel_depth=0.56159,
+collection_height=0.5), max_lag=3, near_samples=16, far_samples=6,
+tol=5e-5)``), one effect injected at a time; the PTC statistics are measured
+from the images and :func:`diagnose` runs on them with the whole library.
+"""
+
+import json
+import os
+
+import numpy as np
+import pytest
+from astropy.io import fits
+
+from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable, LinearBasis
+from lsst_bfdrift.cli.main import main
+from lsst_bfdrift.calibration.diagnosis import (Observations, diagnose, load_input, observations_from_pairs,
+                                    pair_statistics)
+from lsst_bfdrift.simulation.effects import ChargeCloud
+from lsst_bfdrift.simulation.injection import _static_pattern, simulate_flat_pairs
+
+BASIS = os.path.join(os.path.dirname(os.path.dirname(__file__)), "data", "itl_basis_lag3.json")
+E2V = "/work/shared/data/measured/eotest_e2v_ptc_amp05.txt"
+LEVELS = np.linspace(1e4, 8e4, 8)
+
+
+@pytest.fixture(scope="module")
+def basis():
+    with open(BASIS) as fh:
+        return LinearBasis.from_dict(json.load(fh))
+
+
+def _run(basis, inject, *, seed=1, n_steps=20):
+    pairs = simulate_flat_pairs(basis.a0, LEVELS, inject=inject, shape=(128, 128),
+                                n_steps=n_steps, depth_derivative=basis.dlog_depth(3),
+                                seed=seed)
+    return diagnose(observations_from_pairs(pairs, max_lag=3), basis)
+
+
+def test_null_adds_nothing(basis):
+    d = _run(basis, {})
+    assert d.effects_added == []
+    assert not d.unexplained
+    assert 0.8 < d.chi2_dof_before < 1.2  # the error model is right
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, params, n_steps", [
+    ("cti_parallel", (0.03,), 20),
+    ("gain_nonlinearity", (2e-6,), 20),
+    # the b term is sensitive to the accumulation step: 40 steps keep its
+    # discretisation bias (~(1 - 1/n)) well inside the errors
+    ("well_filling", (4e-5,), 40),
+])
+def test_injected_effect_is_found(basis, name, params, n_steps):
+    """Magnitudes chosen to be found in every seed tried (1-5); at half of them
+    (beta 2e-5, nu 1e-6) the 128 x 128, 8-level data find them in 1-2 of 4 seeds."""
+    d = _run(basis, {name: params}, n_steps=n_steps)
+    assert d.effects_added == [name]
+    assert not d.unexplained
+    assert d.chi2_dof_after < d.chi2_dof_before
+    e = d.steps[-1]["effects"][0]
+    (k, v), = e["params"].items()
+    assert abs(v - params[0]) < 4 * e["errors"][k]
+
+
+@pytest.mark.slow
+def test_static_area_found_and_measured(basis):
+    d = _run(basis, {"static_area": (1e-5, 3.0)})
+    assert d.effects_added == ["static_area"]
+    # S_ij / mu^2 is the realised pattern's autocovariance, computed directly
+    pat = _static_pattern((128, 128), 1e-5, 3.0, np.random.default_rng(2))
+    p = pat - pat.mean()
+    v = d.steps[-1]["effects"][0]
+    for (i, j) in ((0, 0), (1, 0), (0, 1), (2, 1)):
+        direct = 0.5 * (np.mean(p * np.roll(p, (j, i), axis=(0, 1)))
+                        + np.mean(p * np.roll(p, (-j, i), axis=(0, 1))))
+        fitted = v["params"][f"v_{i}_{j}"]
+        assert abs(fitted - direct) < 4 * v["errors"][f"v_{i}_{j}"] + 0.05 * abs(direct)
+
+
+@pytest.mark.slow
+def test_diffusion_leaves_flats_unchanged(basis):
+    """Injected diffusion: nothing to find (uniform flats stay Poisson)."""
+    d = _run(basis, {"diffusion": (0.5,)}, n_steps=10)
+    assert d.effects_added == []
+    assert not d.unexplained
+    assert "diffusion" in d.not_identifiable
+
+
+def test_effect_outside_library_is_unexplained(basis):
+    d = _run(basis, {"echo": (0.05, 3)})
+    assert d.unexplained
+    assert d.verdict.startswith("unexplained residual")
+    assert "nothing in the library explains" in d.verdict
+    assert d.worst_lag == "C3,0"
+
+
+def test_charge_cloud_found_in_precise_table(basis):
+    """The cloud is ~96 % degenerate with the electrostatic parameters; with
+    a_ij errors of 1e-9 the rest (~1e-8 at lags 1-2) is found."""
+    rng = np.random.default_rng(8)
+    sig = np.full(basis.a0.shape, 1e-9)
+    inj = (0.15, 0.02)
+    a = ChargeCloud().apply_a(basis.a0, inj, None) + rng.normal(0, sig)
+    d = diagnose(Observations.from_table(AcoeffTable(a, sig)), basis)
+    assert d.effects_added == ["charge_cloud"]
+    e = d.steps[-1]["effects"][0]
+    assert abs(e["params"]["var_serial"] - inj[0]) < 4 * e["errors"]["var_serial"]
+    null = diagnose(Observations.from_table(
+        AcoeffTable(basis.a0 + rng.normal(0, sig), sig)), basis)
+    assert null.effects_added == [] and not null.unexplained
+    # a table cannot identify CTI, static structure, non-linearity or diffusion
+    assert {"cti_serial", "static_area", "gain_nonlinearity", "diffusion"} <= \
+        set(d.not_identifiable)
+
+
+def test_pair_statistics_static_cancels():
+    """S_ij of two independent Poisson flats is zero within errors."""
+    rng = np.random.default_rng(5)
+    f1 = rng.poisson(1e4, (128, 128)).astype(float)
+    f2 = rng.poisson(1e4, (128, 128)).astype(float)
+    mu, cov, S, npix = pair_statistics(f1, f2, max_lag=2)
+    assert abs(cov[0, 0] - 1e4) < 5 * 1e4 * np.sqrt(2 / npix[0, 0])
+    assert np.all(np.abs(S) < 5 * 1e4 / np.sqrt(npix))
+
+
+def test_cli_ptc_json_and_report(tmp_path, capsys):
+    rc = main(["diagnose", E2V, "--json", "--basis", BASIS, "--report", str(tmp_path)])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    for key in ("effects_added", "chi2_dof_before", "chi2_dof_after", "residuals_before",
+                "residuals_after", "verdict", "not_identifiable"):
+        assert key in out
+    assert out["kind"] == "ptc"
+    assert set(out["effects_added"]) <= set(out["vocabulary"])
+    assert (tmp_path / "report.md").exists() and (tmp_path / "chi2_per_lag.png").exists()
+    assert "Verdict" in (tmp_path / "report.md").read_text()
+
+
+@pytest.mark.slow
+def test_cli_directory_of_flat_pairs(tmp_path, basis, capsys):
+    pairs = simulate_flat_pairs(basis.a0, LEVELS, inject={"cti_serial": (0.03,)},
+                                shape=(128, 128), n_steps=20, seed=1)
+    for k, (a, b) in enumerate(pairs):
+        fits.writeto(tmp_path / f"flat_{k:02d}_a.fits", a.astype(np.float32))
+        fits.writeto(tmp_path / f"flat_{k:02d}_b.fits", b.astype(np.float32))
+    rc = main(["diagnose", str(tmp_path), "--json", "--basis", BASIS])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["kind"] == "flats" and out["effects_added"] == ["cti_serial"]
+    assert out["chi2_dof_after"] < out["chi2_dof_before"] and not out["unexplained"]
+    e = out["steps"][-1]["effects"][0]
+    assert abs(e["params"]["eps"] - 0.03) < 4 * e["errors"]["eps"]
+
+
+def test_bad_inputs(tmp_path, basis, capsys):
+    p = tmp_path / "three.txt"
+    p.write_text("1 2 3\n4 5 6\n")
+    with pytest.raises(ValueError, match="not an a_ij table"):
+        load_input(str(p))
+    with pytest.raises(ValueError, match="no such file"):
+        load_input(str(tmp_path / "missing.txt"))
+    fits.writeto(tmp_path / "one.fits", np.ones((8, 8), np.float32))
+    with pytest.raises(ValueError, match="even number"):
+        load_input(str(tmp_path))
+    with pytest.raises(ValueError, match="shape"):
+        Observations.from_flats(np.arange(4.0), np.zeros((4, 2, 2)), np.zeros((4, 3, 3)),
+                                np.ones((4, 2, 2)))
+    with pytest.raises(ValueError, match="at least 6"):
+        Observations.from_ptc([1.0, 2.0], [1.0, np.nan])
+    big = AcoeffTable(np.zeros((6, 6)), np.ones((6, 6)))
+    with pytest.raises(ValueError, match="basis has lags"):
+        diagnose(Observations.from_table(big), basis)
+    assert main(["diagnose", str(p), "--basis", BASIS]) == 2
+    assert "not an a_ij table" in capsys.readouterr().err
+
+
+def test_cli_itl_table_with_shipped_basis(capsys):
+    """The measured ITL table against the shipped fit: nothing to add."""
+    rc = main(["diagnose", "/work/shared/data/measured/itl_covariances_21oct19.txt", "--json"])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["kind"] == "table" and out["n_points"] == 80  # a00 left out (sum rule)
+    assert out["effects_added"] == [] and not out["unexplained"]
+    assert out["chi2_dof_before"] < 0.1  # the file's errors are generous (docs/measured.rst)
+    assert out["tried"] == ["charge_cloud"]
+    assert len(out["residuals_before"]) == 80

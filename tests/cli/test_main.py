@@ -1,0 +1,292 @@
+"""Tests of the bfdrift command line (run in-process through main())."""
+
+import json
+
+import numpy as np
+import pytest
+from astropy.io import fits
+
+from lsst_bfdrift.cli.main import main
+from lsst_bfdrift.templates.template import DistortionTemplate, load_default_template
+
+
+def _run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_summary_of_default_template(capsys):
+    code, out, _ = _run(capsys, "template", "summary", "--json")
+    assert code == 0
+    s = json.loads(out)
+    ref = load_default_template().summary()
+    for key in ("A00", "A01", "A10", "A11", "ratio_01_10", "area_sum_error",
+                "aggressor_charge"):
+        assert s[key] == pytest.approx(ref[key], rel=1e-12)
+    assert s["ratio_01_10"] == pytest.approx(np.log(s["A01"]) / np.log(s["A10"]))
+
+
+def test_build_from_config_then_summary_and_plot(capsys, tmp_path):
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text('[sensor]\nchannel_depth = 3.0\n[template]\nsize = 3\nedge_samples = 2\n'
+                   'tol = 1e-3\nworkers = 1\n')
+    out_file = tmp_path / "t.fits"
+    code, out, err = _run(capsys, "template", "build", "--out", str(out_file), "--config",
+                          str(cfg), "--json")
+    assert code == 0, err
+    s = json.loads(out)
+    t = DistortionTemplate.load(out_file)
+    assert t.meta["params"]["channel_depth"] == 3.0
+    assert s["size"] == 3 and s["A00"] == t.summary()["A00"]
+    assert "template" in err  # progress bar on stderr
+    png = tmp_path / "t.png"
+    code, out, _ = _run(capsys, "template", "plot", str(out_file), "--out", str(png))
+    assert code == 0 and png.read_bytes()[:4] == b"\x89PNG"
+    code, _, err = _run(capsys, "template", "build", "--out", str(out_file), "--quiet")
+    assert code == 2 and "exists" in err
+
+
+def test_import_galsim(capsys, tmp_path):
+    out_file = tmp_path / "itl.fits"
+    code, out, _ = _run(capsys, "template", "import-galsim", "lsst_itl_50_8", "--out",
+                        str(out_file), "--json")
+    assert code == 0
+    s = json.loads(out)
+    assert s["aggressor_charge"] == 1e5 and s["size"] == 9
+
+
+def test_maps_on_sample(capsys, tmp_path):
+    out_file = tmp_path / "maps.fits"
+    code, out, _ = _run(capsys, "maps", "--json", "--quiet", "--out", str(out_file))
+    assert code == 0
+    s = json.loads(out)
+    assert s["shape"] == [64, 64] and s["area_min"] < 0.95 < 1.0 < s["area_max"]
+    with fits.open(out_file) as hdul:
+        assert [h.name for h in hdul[1:]] == ["AREA", "DX", "DY", "IXX", "IYY", "IXY", "E1",
+                                               "E2"]
+        assert hdul["AREA"].data.min() == pytest.approx(s["area_min"])
+
+
+def test_maps_with_resampled_edges(capsys, tmp_path):
+    """--samples 8 gives the full maps to ~1e-5 of their signal and records
+    the sample count; nonsense values are refused."""
+    full, fast = tmp_path / "full.fits", tmp_path / "fast.fits"
+    assert _run(capsys, "maps", "--quiet", "--json", "--out", str(full))[0] == 0
+    code, out, _ = _run(capsys, "maps", "--quiet", "--json", "--samples", "8", "--out",
+                        str(fast))
+    assert code == 0 and json.loads(out)["edge_samples"] == 8
+    with fits.open(full) as a, fits.open(fast) as b:
+        assert b[0].header["BFGSAMP"] == 8 and a[0].header["BFGSAMP"] == 32
+        signal = np.abs(a["AREA"].data - 1.0).max()
+        assert np.abs(b["AREA"].data - a["AREA"].data).max() < 1e-3 * signal
+    code, _, err = _run(capsys, "maps", "--quiet", "--samples", "0")
+    assert code == 2 and "samples" in err
+
+
+def test_maps_masks_nan_pixels(capsys, tmp_path):
+    img = np.full((20, 20), 1000.0)
+    img[10, 10] = 5e4
+    img[3, 4] = np.nan
+    path = tmp_path / "img.fits"
+    fits.PrimaryHDU(img).writeto(path)
+    code, out, _ = _run(capsys, "maps", str(path), "--json", "--quiet")
+    assert code == 0 and json.loads(out)["masked_pixels"] == 1
+    with fits.open(path) as hdul:
+        assert np.isnan(hdul[0].data[3, 4])  # input file untouched
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["template", "summary", "/nonexistent/t.fits"], "does not exist"),
+    (["maps", "--gain", "-1", "--quiet"], "gain"),
+])
+def test_errors_are_reported(capsys, argv, match):
+    code, _, err = _run(capsys, *argv)
+    assert code == 2 and match in err
+
+
+def test_unknown_config_key(capsys, tmp_path):
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps({"sensor": {"thickness": 100, "bogus": 1}}))
+    code, _, err = _run(capsys, "template", "build", "--out", str(tmp_path / "x.fits"),
+                        "--config", str(cfg))
+    assert code == 2 and "bogus" in err
+
+
+def test_ptc_on_measured_text_file(capsys):
+    code, out, _ = _run(capsys, "ptc", "/work/shared/data/measured/eotest_e2v_ptc_amp05.txt",
+                        "--json")
+    assert code == 0
+    s = json.loads(out)
+    assert s["gain"] == pytest.approx(0.7713, rel=0.01)
+    assert s["a01"] is None
+
+
+def test_ptc_on_fits_pairs(capsys, tmp_path, rng):
+    """Poisson flats without BF: gain recovered, a_ij consistent with zero."""
+    gain = 1.3
+    files = []
+    for k, m in enumerate(np.geomspace(300, 3e4, 6)):
+        for p in range(2):
+            path = tmp_path / f"flat_{k}_{p}.fits"
+            fits.PrimaryHDU(rng.poisson(m * gain, (120, 120)) / gain).writeto(path)
+            files.append(str(path))
+    code, out, err = _run(capsys, "ptc", *files, "--json", "--max-lag", "1")
+    assert code == 0, err
+    s = json.loads(out)
+    assert s["gain"] == pytest.approx(gain, abs=4 * s["gain_err"] + 0.01)
+    assert abs(s["a10"]) < 4 * s["a10_err"] + 1e-9
+
+
+def test_ptc_needs_pairs(capsys, tmp_path):
+    code, _, err = _run(capsys, "ptc", "a.fits", "b.fits", "c.fits")
+    assert code == 2 and "pairs" in err
+
+
+def test_flat_sim(capsys, tmp_path):
+    png, ecsv = tmp_path / "fs.png", tmp_path / "fs.ecsv"
+    code, out, err = _run(capsys, "flat-sim", "--n-images", "64", "--size", "8", "--steps",
+                          "3", "--step", "2000", "--max-lag", "2", "--responsivity=-1e-5",
+                          "--json", "--quiet", "--plot", str(png), "--out", str(ecsv))
+    assert code == 0, err
+    s = json.loads(out)
+    assert len(s["steps"]) == 3 and s["steps"][-1]["mu"] == pytest.approx(6000, rel=0.01)
+    # rescaled to dlnA00 = -1e-5 per e: the template charge changed accordingly
+    t = load_default_template()
+    own = np.log(t.moments().area[t.center, t.center]) / t.charge
+    assert s["template_charge"] == pytest.approx(t.charge * own / -1e-5)
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    from astropy.table import Table
+    assert len(Table.read(ecsv)) == 3
+
+
+def test_star_sim(capsys, tmp_path):
+    png = tmp_path / "star.png"
+    code, out, err = _run(capsys, "star-sim", "--flux", "30000", "--psf", "moffat", "--json",
+                          "--quiet", "--plot", str(png), "--stamp", "21")
+    assert code == 0, err
+    s = json.loads(out)
+    assert s["T_growth"] > 0 and s["central_counts"] < s["central_counts_square_pixels"]
+    assert s["steps"][-1]["counts"] == 30000
+    assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_star_sim_bad_psf(capsys):
+    code, _, err = _run(capsys, "star-sim", "--psf", "airy", "--quiet")
+    assert code == 2 and "unknown PSF" in err
+
+
+def test_correct(capsys, tmp_path):
+    from lsst_bfdrift.cli.main import sample_image_path
+    out_file = tmp_path / "corr.fits"
+    code, out, err = _run(capsys, "correct", sample_image_path(), str(out_file), "--json",
+                          "--quiet", "--geometry")
+    assert code == 0, err
+    s = json.loads(out)
+    assert s["files"][0]["converged"]
+    with fits.open(out_file) as hdul:
+        assert hdul[0].header["BFDRIFT"] is True
+        with fits.open(sample_image_path()) as src:
+            assert hdul[0].data.sum() == pytest.approx(src[0].data.sum(), rel=1e-6)
+        assert "AREA" in hdul and "FLUX_MOVED" in hdul
+    code, _, err = _run(capsys, "correct", sample_image_path(), sample_image_path(), "--quiet")
+    assert code == 2 and "refusing" in err
+    code, out, err = _run(capsys, "correct", sample_image_path(), "--out-dir",
+                          str(tmp_path / "many"), "--method", "astier23", "--quiet", "--json")
+    assert code == 0 and json.loads(out)["method"] == "astier23"
+
+
+@pytest.mark.slow
+def test_correct_many_files_on_dask_cluster(capsys, tmp_path):
+    """dask LocalCluster (threads) gives the serial outputs bit for bit; a
+    corrupt file fails alone; existing outputs are kept without --overwrite."""
+    from lsst_bfdrift.correction.batch import correct_files, output_pairs
+    rng = np.random.default_rng(3)
+    src = tmp_path / "in"
+    src.mkdir()
+    names = []
+    for k in range(4):
+        img = rng.poisson(500.0, (48, 48)).astype(np.float32)
+        img[20:25, 18:23] += np.float32(3e4 * (k + 1))
+        path = src / f"img{k}.fits"
+        fits.PrimaryHDU(img).writeto(path)
+        names.append(str(path))
+    bad = src / "bad.fits"
+    bad.write_bytes(b"SIMPLE  = not a fits file")
+    names.insert(2, str(bad))
+    serial = correct_files(output_pairs(names, tmp_path / "serial"))
+    code, out, err = _run(capsys, "correct", *names, "--out-dir", str(tmp_path / "dask"),
+                          "--scheduler", "local", "--json", "--quiet")
+    assert code == 1 and "bad.fits" in err
+    res = json.loads(out)
+    assert res["failed"] == 1 and [r["input"] for r in res["files"]] == names
+    assert res["files"][2]["error"] and serial[2]["error"]
+    assert not (tmp_path / "dask" / "bad.fits").exists()
+    for r_serial, r_dask in zip(serial, res["files"]):
+        if r_serial["error"]:
+            continue
+        assert r_dask["error"] is None
+        with fits.open(r_serial["output"]) as a, fits.open(r_dask["output"]) as b:
+            assert np.array_equal(a[0].data, b[0].data)
+            assert np.array_equal(a["FLUX_MOVED"].data, b["FLUX_MOVED"].data)
+            with fits.open(r_serial["input"]) as s:
+                assert abs(float(a[0].data.sum()) - float(s[0].data.sum())) < 1e-4 * float(
+                    s[0].data.sum())
+    # no temporary files left behind (atomic writes)
+    assert not [p for p in (tmp_path / "dask").iterdir() if p.name.startswith(".tmp-")]
+    # outputs exist now: refused per file without --overwrite, replaced with it
+    before = (tmp_path / "dask" / "img0.fits").stat().st_mtime_ns
+    results = correct_files(output_pairs(names[:2], tmp_path / "dask"), scheduler=None)
+    assert all("exists" in r["error"] for r in results)
+    assert (tmp_path / "dask" / "img0.fits").stat().st_mtime_ns == before
+    results = correct_files(output_pairs(names[:2], tmp_path / "dask"), overwrite=True)
+    assert all(r["error"] is None for r in results)
+    with pytest.raises(ValueError, match="same output"):
+        output_pairs([names[0], names[0]], tmp_path)
+
+
+@pytest.mark.slow
+def test_correct_files_through_a_scheduler_address(capsys, tmp_path):
+    """``--scheduler ADDRESS``: a dask scheduler with a worker in another
+    process, reached by its tcp address, gives the serial outputs bit for bit."""
+    from distributed import LocalCluster
+
+    from lsst_bfdrift.correction.batch import correct_files, output_pairs
+    rng = np.random.default_rng(8)
+    names = []
+    for k in range(2):
+        img = rng.poisson(800.0, (40, 40)).astype(np.float32)
+        img[15:20, 15:20] += np.float32(5e4)
+        path = tmp_path / f"star{k}.fits"
+        fits.PrimaryHDU(img).writeto(path)
+        names.append(str(path))
+    serial = correct_files(output_pairs(names, tmp_path / "serial"))
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, protocol="tcp",
+                      dashboard_address=None) as cluster:
+        address = cluster.scheduler_address
+        assert address.startswith("tcp://")
+        code, out, err = _run(capsys, "correct", *names, "--out-dir", str(tmp_path / "remote"),
+                              "--scheduler", address, "--json", "--quiet")
+    assert code == 0, err
+    res = json.loads(out)
+    assert res["failed"] == 0 and [r["input"] for r in res["files"]] == names
+    for r_serial, r_remote in zip(serial, res["files"]):
+        with fits.open(r_serial["output"]) as a, fits.open(r_remote["output"]) as b:
+            assert np.array_equal(a[0].data, b[0].data)
+            assert a[0].header["BFMETHOD"] == b[0].header["BFMETHOD"]
+
+
+def test_validate_stars_defaults(capsys):
+    """validate-stars defaults to converged GalSim updates and the transfer-matched
+    import (benchmarks/probe_validation_cadence_results.txt, docs/benchmarks.rst)."""
+    import inspect
+
+    from lsst_bfdrift.cli.main import build_parser
+    from lsst_bfdrift.validation.stars import draw_star_pairs
+    args = build_parser().parse_args(["validate-stars"])
+    assert (args.match, args.updates, args.min_nrecalc) == ("transfers", 1000.0, 100.0)
+    sig = inspect.signature(draw_star_pairs).parameters
+    assert (sig["updates"].default, sig["min_nrecalc"].default) == (1000, 100)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["validate-stars", "--match", "polygons"])
+    assert "invalid choice" in capsys.readouterr().err

@@ -1,0 +1,94 @@
+"""Tests of lsst_bfdrift.physics.boundaries: bisection of edges and corners."""
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from lsst_bfdrift.physics.boundaries import (bisect_boundary, locate_corners, pixel_boundaries,
+                                     uniform_fractions)
+from lsst_bfdrift.physics.drift import landing_pixels
+from lsst_bfdrift.physics.polygons import pixel_polygons, polygon_moments
+from lsst_bfdrift.physics.sensor import SensorModel, SensorParameters
+
+P = 10.0
+
+
+def _land(model, xpix, ypix):
+    """Landing pixel of lines started at image-frame pixel coordinates."""
+    return landing_pixels(model, (np.asarray(xpix) + 0.5) * P, (np.asarray(ypix) + 0.5) * P)
+
+
+def test_backdrop_only_gives_square_pixels():
+    m = SensorModel(SensorParameters(xi_cs=0.0, xi_ck=0.0))
+    g = pixel_boundaries(m, (-1, 2), (0, 2), edge_samples=3, tol=1e-4)
+    nom = g.nominal()
+    for a, b in zip(g.displacements(), (0, 0, 0)):
+        assert np.abs(a).max() <= 1e-4
+    x, y = pixel_polygons(g.corners, g.vedge, g.hedge, g.fractions, i0=-1, j0=0)
+    assert_allclose(polygon_moments(x, y).area, 1.0, atol=1e-3)
+    assert nom.corners.shape == g.corners.shape
+
+
+def test_symmetric_model_without_charge_is_square():
+    g = pixel_boundaries(SensorModel(), (0, 2), (0, 1), edge_samples=2, tol=1e-4)
+    for d in g.displacements():
+        assert np.abs(d).max() <= 1e-4
+
+
+@pytest.mark.parametrize("axis", ["x", "y"])
+def test_edge_is_where_landing_pixel_changes(axis):
+    m = SensorModel().with_charge({(0, 0): 2e4})
+    along = np.array([-0.3, 0.1, 0.35])
+    b = bisect_boundary(m, along, 0.5, axis, 0, tol=1e-4)
+    assert np.all(np.abs(b - 0.5) > 1e-3)  # the aggressor moved its edge
+    for sign, expect in ((-1, 0), (1, 1)):
+        pos = b + sign * 2e-4
+        if axis == "x":
+            i, _ = _land(m, pos, along)
+            assert np.all(i == expect)
+        else:
+            _, j = _land(m, along, pos)
+            assert np.all(j == expect)
+
+
+def test_bracket_is_widened_when_boundary_lies_outside():
+    # a 2e4 e aggressor moves its edge by ~0.05 px: far outside a 0.002 px bracket
+    m = SensorModel().with_charge({(0, 0): 2e4})
+    b = bisect_boundary(m, [0.0], 0.5, "x", 0, tol=1e-4, half_width=0.002)
+    assert 0.5 - b[0] > 0.01
+    i_lo, _ = _land(m, b - 2e-4, 0.0)
+    i_hi, _ = _land(m, b + 2e-4, 0.0)
+    assert (i_lo[0], i_hi[0]) == (0, 1)
+
+
+def test_unreachable_boundary_raises():
+    m = SensorModel()
+    with pytest.raises(RuntimeError, match="no boundary found"):
+        bisect_boundary(m, [0.0], 0.5, "x", 5, tol=1e-3, max_half_width=1.0)
+
+
+def test_corner_separates_four_pixels():
+    m = SensorModel().with_charge({(0, 0): 3e4})
+    cx, cy = locate_corners(m, [0.5, -0.5], [0.5, 0.5], [0, -1], [0, 0], tol=1e-4)
+    assert np.all(np.abs(cx - np.array([0.5, -0.5])) > 1e-3)
+    # The corner lies on both boundaries: independent 1-d bisections at the
+    # corner's own coordinates return it (to the tolerance).
+    assert_allclose(bisect_boundary(m, cy, cx, "x", [0, -1], tol=1e-5), cx, atol=2e-4)
+    assert_allclose(bisect_boundary(m, cx, cy, "y", [0, 0], tol=1e-5), cy, atol=2e-4)
+
+
+def test_workers_do_not_change_result():
+    m = SensorModel().with_charge({(0, 0): 1e4})
+    a = pixel_boundaries(m, (0, 2), (0, 1), edge_samples=2, tol=1e-3, workers=1)
+    b = pixel_boundaries(m, (0, 2), (0, 1), edge_samples=2, tol=1e-3, workers=2)
+    for x, y in zip(a.displacements(), b.displacements()):
+        assert_allclose(x, y, atol=0)
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="empty pixel range"):
+        pixel_boundaries(SensorModel(), (2, 2), (0, 1))
+    with pytest.raises(ValueError, match="tol"):
+        pixel_boundaries(SensorModel(), (0, 1), (0, 1), tol=0.5)
+    with pytest.raises(ValueError, match="positive integer"):
+        uniform_fractions(0)

@@ -1,0 +1,107 @@
+"""Tests of lsst_bfdrift.physics.sensor: parameters, validation, model assembly."""
+
+import numpy as np
+import pytest
+from astropy import units as u
+from numpy.testing import assert_allclose
+
+from lsst_bfdrift.physics.fields import BackdropField, PointDipoles
+from lsst_bfdrift.physics.sensor import SensorModel, SensorParameters
+
+
+class TestSensorParameters:
+    def test_defaults_are_the_papers_geometry(self):
+        p = SensorParameters()
+        assert (p.pixel_pitch, p.thickness, p.v_bss) == (10.0, 100.0, -50.0)
+        assert (p.xi_cs, p.xi_ck) == (-14.3, 5.0)
+        assert p.z_collect == p.channel_depth
+
+    def test_quantities_are_converted(self):
+        p = SensorParameters(thickness=0.1 * u.mm, v_bss=-40000 * u.mV,
+                             acceptor_density=1e18 * u.m**-3, xi0=1.602176634e-16 * u.C)
+        assert_allclose([p.thickness, p.v_bss, p.acceptor_density, p.xi0],
+                        [100.0, -40.0, 1e12, 1000.0])
+
+    def test_wrong_units_raise(self):
+        with pytest.raises(u.UnitConversionError):
+            SensorParameters(thickness=3 * u.V)
+
+    def test_unknown_key(self):
+        with pytest.raises(KeyError, match="unknown sensor parameter.*thicknes"):
+            SensorParameters.from_dict({"thicknes": 100})
+
+    @pytest.mark.parametrize("kw, match", [
+        ({"thickness": -100.0}, "thickness"),
+        ({"pixel_pitch": 0.0}, "pixel_pitch"),
+        ({"channel_depth": float("nan")}, "finite"),
+        ({"v_bss": "abc"}, "number"),
+        ({"acceptor_density": 1e14}, "not fully depleted"),
+        ({"collection_height": 150.0}, "collection height"),
+        ({"clock_separation": 12.0}, "clock_separation"),
+        ({"edge_side": 0}, "edge_side"),
+        ({"charge_images": -1}, "charge_images"),
+        ({"backside_images": 1}, "True or False"),
+        ({"truncations": [(0, 1.0, 2, 1.0)]}, "extends"),
+        ({"row_overrides": [(1, 2, 3)]}, "2 numbers"),
+    ])
+    def test_bad_values_name_the_problem(self, kw, match):
+        with pytest.raises((ValueError, TypeError), match=match):
+            SensorParameters(**kw)
+
+    def test_round_trip_dict(self):
+        p = SensorParameters(bloom_stop=3, row_overrides={2: 1.5}, truncations=[(1, 2, -1, 3)])
+        q = SensorParameters.from_dict(p.to_dict())
+        assert p == q
+        assert p.to_json() == q.to_json()
+
+
+class TestSensorModel:
+    def test_terms_of_default_model(self):
+        m = SensorModel()
+        assert isinstance(m.terms[0], BackdropField)
+        # CS grid and 2 clock grids; their backside images are ~1e-27 and dropped
+        assert len(m.terms) == 1 + 3
+        thin = SensorModel(SensorParameters(thickness=40.0, acceptor_density=1e11))
+        assert len(thin.terms) == 1 + 3 + 3
+
+    def test_field_is_sum_of_terms(self, rng):
+        m = SensorModel(SensorParameters(bloom_stop=2, edge=-3, xi_guard=2.0,
+                                         truncations=[(1, 0.5, 1, 3.0)]),
+                        charge={(0, 0): 1e4, (1, 2): 5e3})
+        x, y, z = rng.uniform(-20, 20, 50), rng.uniform(-20, 20, 50), rng.uniform(3, 100, 50)
+        tot = np.array(m.field(x, y, z))
+        ref = sum(np.array(t.field(x, y, z)) for t in m.terms)
+        assert_allclose(tot, ref, rtol=1e-12, atol=1e-15)
+
+    def test_charge_dipoles_and_images(self):
+        p = SensorParameters(channel_depth=3.0, charge_images=3)
+        m = SensorModel(p, charge={(2, -1): 1e4})
+        dip = [t for t in m.terms if isinstance(t, PointDipoles)]
+        assert [d.height for d in dip] == [0.0, 200.0, -200.0, 400.0]
+        for d in dip:
+            assert_allclose([d.x[0], d.y[0], d.p_z[0]], [25.0, -5.0, -2 * 1e4 * 3.0])
+
+    def test_charge_must_be_finite(self):
+        with pytest.raises(ValueError, match="finite.*pixel"):
+            SensorModel(charge={(0, 0): float("nan")})
+
+    def test_symmetry_of_default_field(self, rng):
+        """Mirror symmetry about a pixel's centre lines (x -> p - x, y -> p - y)."""
+        m = SensorModel(charge={(0, 0): 1e4})
+        x, y, z = rng.uniform(0, 10, 30), rng.uniform(0, 10, 30), rng.uniform(2, 60, 30)
+        ex, ey, ez = m.field(x, y, z)
+        mx, my, mz = m.field(10 - x, y, z)
+        assert_allclose([mx, my, mz], [-ex, ey, ez], rtol=1e-9, atol=1e-12)
+        mx, my, mz = m.field(x, 10 - y, z)
+        assert_allclose([mx, my, mz], [ex, -ey, ez], rtol=1e-9, atol=1e-12)
+
+    def test_channel_stops_repel_electrons(self):
+        """Near a channel stop the lateral field pushes electrons (along -E) away."""
+        m = SensorModel(SensorParameters(xi_ck=0.0))
+        ex, _, _ = m.field(np.array([1.0, -1.0]), 5.0, 3.0)
+        assert -ex[0] > 0 and -ex[1] < 0
+
+    def test_clock_barrier_repels_electrons(self):
+        m = SensorModel(SensorParameters(xi_cs=0.0))
+        _, ey, _ = m.field(5.0, np.array([2.5, -2.5]), 1.0)
+        assert -ey[0] > 0 and -ey[1] < 0

@@ -1,0 +1,124 @@
+"""Tests of lsst_bfdrift.simulation.flats: periodic areas and flat-field statistics."""
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from lsst_bfdrift.simulation.flats import (PeriodicAreas, simulate_flats, simulate_ptc_levels,
+                                      template_area_coefficients, with_responsivity)
+from lsst_bfdrift.geometry.superpose import moment_maps
+
+
+def test_periodic_areas_equal_moment_maps_of_wrapped_images(small_template, rng):
+    t = small_template
+    q = rng.poisson(4e4, (3, 6, 7)).astype(float)
+    a = PeriodicAreas(t, (6, 7)).areas(q)
+    pad = 2 * t.center + 2
+    for k in range(3):
+        big = np.pad(q[k], pad, mode="wrap")
+        ref = moment_maps(t, big).area[pad:-pad, pad:-pad]
+        assert_allclose(a[k], ref, atol=1e-13)
+        assert abs(a[k].sum() - 42) < 1e-12  # the torus is tiled
+
+
+def test_poisson_without_bf(small_template):
+    """A template with negligible responsivity gives Poisson statistics."""
+    weak = with_responsivity(small_template, -1e-12)  # same displacements for ~1e11 e
+    tab = simulate_flats(weak, n_images=256, shape=(12, 12), step=2000, n_steps=3, seed=5,
+                         max_lag=2)
+    sig = 1.0 / np.sqrt(256 * 144)
+    last = tab[-1]
+    assert last["paper"][0, 0] == pytest.approx(1.0, abs=5 * sig * np.sqrt(2))
+    assert np.all(np.abs(last["paper"].ravel()[1:]) < 5 * sig)
+    assert last["pairs"][0, 0] / last["mu"] == pytest.approx(1.0, abs=0.05)
+
+
+def test_bf_covariances_follow_the_template(small_template):
+    """To first order C_ij / mu = a_ij mu with a_ij = dlnA_ij / dQ (template)."""
+    t = small_template
+    tab = simulate_flats(t, n_images=512, shape=(16, 16), step=3000, n_steps=5, seed=11,
+                         max_lag=1)
+    mu = tab["mu"][-1]
+    c = t.center
+    a = np.log(t.moments().area) / t.charge  # per electron
+    sig = 1.0 / np.sqrt(512 * 256)
+    got = tab["paper"][-1]
+    assert got[0, 0] < 1 - 0.5 * abs(a[c, c]) * mu  # variance deficit
+    for (di, dj) in ((1, 0), (0, 1), (1, 1)):
+        assert got[di, dj] == pytest.approx(a[c + dj, c + di] * mu, abs=4 * sig)
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"n_images": 5}, "n_images"),
+    ({"step": -1.0}, "step"),
+    ({"n_steps": 0}, "n_steps"),
+    ({"shape": (8, 8), "max_lag": 4}, "max_lag"),
+])
+def test_bad_arguments(small_template, kw, match):
+    with pytest.raises(ValueError, match=match):
+        simulate_flats(small_template, **kw)
+
+
+def test_template_area_coefficients_are_the_linear_response(small_template):
+    """alpha = dA/dQ at Q -> 0, checked by a small-charge finite difference."""
+    t = small_template
+    co = template_area_coefficients(t, max_lag=2)
+    c = t.center
+    eps = 1e-4 * t.charge
+    fd = (t.moments(charge=eps).area - t.moments(charge=-eps).area) / (2 * eps)
+    assert_allclose(co["alpha"], fd[c:c + 3, c:c + 3].T, rtol=1e-6, atol=1e-14)
+    a = t.moments().area
+    assert_allclose(co["log"], np.log(a[c:c + 3, c:c + 3].T) / t.charge, rtol=1e-12)
+    # at the template's own charge the two usual definitions bracket alpha for a00
+    assert co["log"][0, 0] < co["alpha"][0, 0] < co["linear"][0, 0]
+    with pytest.raises(ValueError, match="max_lag"):
+        template_area_coefficients(t, max_lag=3)
+
+
+def test_ptc_levels_are_unbiased_without_bf(small_template):
+    """Poisson flats: the corrected per-pair covariances are mu at lag 0 and
+    zero elsewhere (the mean-subtraction bias -mu/N_pix is removed)."""
+    weak = with_responsivity(small_template, -1e-12)
+    tab = simulate_ptc_levels(weak, [2e4, 4e4, 6e4], steps_per_level=2, n_images=256,
+                              shape=(8, 8), max_lag=2, seed=3)
+    cov = np.asarray(tab["cov"]) / np.asarray(tab["mu"])[:, None, None]
+    err = np.asarray(tab["cov_err"]) / np.asarray(tab["mu"])[:, None, None]
+    off = cov.reshape(3, -1)[:, 1:]
+    # the uncorrected estimator would sit at -1/64 = 12 sigma below zero
+    assert np.mean(off) == pytest.approx(0.0, abs=3 * np.mean(err) / np.sqrt(off.size))
+    assert_allclose(cov[:, 0, 0], 1.0, atol=5 * err[:, 0, 0].max())
+
+
+@pytest.mark.slow
+def test_ptc_fit_closes_on_the_template(small_template):
+    """Closure: the full-model fit of independent simulated flat levels returns
+    the template's linear response a_ij within its errors."""
+    from lsst_bfdrift.calibration.ptc import fit_covariance_model
+    t = small_template
+    tab = simulate_ptc_levels(t, np.linspace(4e3, 3.2e4, 8), steps_per_level=20, n_images=128,
+                              shape=(12, 12), max_lag=2, seed=7)
+    fit = fit_covariance_model(np.asarray(tab["mu"]), np.asarray(tab["cov"]),
+                               sigma=np.asarray(tab["cov_err"]), gain=1.0, fit_noise=False,
+                               fit_b=False)
+    a = fit["a"] / tab.meta["step_factor"]
+    err = fit["a_err"] / tab.meta["step_factor"]
+    truth = template_area_coefficients(t, max_lag=2)["alpha"]
+    assert abs(a[0, 0] / err[0, 0]) > 15  # a00 well measured
+    assert abs(a[0, 1] / err[0, 1]) > 3 and abs(a[1, 0] / err[1, 0]) > 3
+    pulls = (a - truth) / err
+    assert np.all(np.abs(pulls) < 3.5), pulls
+    assert fit["chi2"] / fit["dof"] < 1.6
+
+
+def test_with_responsivity_rescales_the_response(small_template):
+    t = with_responsivity(small_template, -1e-5)
+    c = t.center
+    assert np.log(t.moments().area[c, c]) / t.charge == pytest.approx(-1e-5, rel=1e-12)
+    assert_allclose(t.corner_d, small_template.corner_d)  # displacements kept
+    # scaled() keeps the per-electron response; with_responsivity changes it
+    r0 = template_area_coefficients(small_template, max_lag=1)["alpha"][0, 0]
+    r1 = template_area_coefficients(t, max_lag=1)["alpha"][0, 0]
+    own = np.log(small_template.moments().area[c, c]) / small_template.charge
+    assert r1 / r0 == pytest.approx(-1e-5 / own, rel=1e-9)
+    with pytest.raises(ValueError, match="negative"):
+        with_responsivity(small_template, 1e-5)

@@ -1,0 +1,134 @@
+"""Tests of lsst_bfdrift.simulation.galsim_twins (paired SiliconSensor images, in-sensor sky)."""
+
+import galsim
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from lsst_bfdrift.simulation.galsim_twins import accumulate_twins, shoot_stamp_photons, sky_box
+from lsst_bfdrift.simulation.skysim import simulate_star_field
+
+SENSOR = "lsst_itl_50_8"
+
+
+def _ring_means(img, inner):
+    """Mean of the box's outermost pixel ring and of the ring just outside it."""
+    a, b = inner.start, inner.stop
+    box = np.zeros(img.shape, bool)
+    box[a:b, a:b] = True
+    shrunk = np.zeros(img.shape, bool)
+    shrunk[a + 1:b - 1, a + 1:b - 1] = True
+    grown = np.zeros(img.shape, bool)
+    grown[a - 1:b + 1, a - 1:b + 1] = True
+    return img[box & ~shrunk].mean(), img[grown & ~box].mean(), (box & ~shrunk).sum()
+
+
+def test_sky_box_geometry():
+    lo, hi, inner = sky_box(41, 8)
+    assert (lo, hi) == (21 - 8 - 0.5 - 3, 21 + 8 + 0.5 + 3)
+    assert (inner.start, inner.stop) == (21 - 1 - 8 - 3, 21 + 8 + 3)
+    assert inner.stop - inner.start == hi - lo  # one index per pixel of the box
+    lo, hi, inner = sky_box(25, None)
+    assert (inner.start, inner.stop) == (0, 28)  # clipped at 0: the whole stamp
+    with pytest.raises(ValueError, match="sky_radius"):
+        sky_box(25, -1)
+
+
+def test_fed_box_has_uniform_sky_up_to_its_edge():
+    """Sky photons only (no star): the sky collected through the sensor is the
+    input level everywhere in the box with feed; without feed diffusion
+    empties the box's edge pixels (the ring the feed removes)."""
+    sky, stamp = 1500.0, 21
+    lo, hi, inner = sky_box(stamp, 3)
+    empty = np.empty(0)
+    kw = dict(sensor=SENSOR, seed=5, stamp=stamp, pixel_scale=0.2, sky=sky, box=(lo, hi))
+    (fed,), n_fed = accumulate_twins(empty, empty, empty, (1e-9,), feed=3,
+                                     rng=np.random.default_rng(1), **kw)
+    (bare,), n_bare = accumulate_twins(empty, empty, empty, (1e-9,),
+                                       rng=np.random.default_rng(1), **kw)
+    edge, out, n_edge = _ring_means(fed, inner)
+    assert abs(edge - sky) < 5 * np.sqrt(sky / n_edge)  # Poisson error of the mean
+    assert out == 0.0  # photons landing outside the box are dropped with feed
+    n_box = (hi - lo) ** 2
+    assert abs(fed.sum() - sky * n_box) < 5 * np.sqrt(sky * n_box)
+    edge_bare, out_bare, _ = _ring_means(bare, inner)
+    assert edge_bare < sky - 20 * np.sqrt(sky / n_edge)  # diffusion loss, unbalanced
+    assert out_bare > 20 * np.sqrt(sky / n_edge)  # ... landing just outside
+    assert n_fed > n_bare  # the feed photons
+
+
+@pytest.mark.slow
+def test_twins_share_photons_and_differ_only_by_bf():
+    """Both strengths get the same photons: equal totals; the BF twin moved charge."""
+    prof = galsim.Moffat(beta=3.5, fwhm=0.8).withFlux(3e5)
+    x, y, f = shoot_stamp_photons(prof, 21, pixel_scale=0.2, seed=4)
+    assert_allclose(f.sum(), 3e5, rtol=5e-3)
+    assert_allclose([x.mean(), y.mean()], [11.0, 11.0], atol=0.02)  # true centre of 21 px
+    lo, hi, inner = sky_box(21, 4)
+    for feed in (0, 3):
+        (bf, truth), n_sky = accumulate_twins(
+            x, y, f, (1.0, 1e-9), sensor=SENSOR, seed=9, stamp=21, pixel_scale=0.2, sky=200.0,
+            box=(lo, hi), feed=feed, rng=np.random.default_rng(2))
+        assert n_sky > 0
+        assert_allclose(bf.sum(), truth.sum(), rtol=1e-4)  # only off-stamp losses differ
+        assert np.abs(bf - truth).max() > 20  # BF moved charge near the core
+        c = 10  # central pixel: BF pushes charge out of it
+        assert bf[c, c] < truth[c, c]
+
+
+def test_sky_mask_drops_already_collected_sky():
+    empty = np.empty(0)
+    lo, hi, inner = sky_box(15, 2)
+    mask = np.ones((15, 15), bool)
+    mask[:, :7] = False  # left half collected already
+    (img,), n_sky = accumulate_twins(empty, empty, empty, (1e-9,), sensor=SENSOR, seed=1,
+                                     stamp=15, pixel_scale=0.2, sky=400.0, box=(lo, hi),
+                                     sky_mask=mask, rng=np.random.default_rng(3))
+    width = hi - lo
+    kept = width * (hi - 7.5)  # box area right of pixel index 7's left edge (x > 7.5)
+    assert abs(n_sky - 400.0 * kept) < 5 * np.sqrt(400.0 * kept)
+    assert img[:, :5].sum() < 0.01 * img.sum()  # only diffusion reaches two pixels in
+
+
+def test_bad_input_is_rejected():
+    e = np.empty(0)
+    kw = dict(sensor=SENSOR, seed=1, stamp=11, pixel_scale=0.2, rng=np.random.default_rng(0))
+    with pytest.raises(ValueError, match="strengths must be positive"):
+        accumulate_twins(e, e, e, (1.0, 0.0), **kw)
+    with pytest.raises(ValueError, match="box"):
+        accumulate_twins(e, e, e, (1.0,), sky=10.0, **kw)
+    with pytest.raises(ValueError, match="1-d arrays"):
+        accumulate_twins(np.zeros(3), np.zeros(2), np.zeros(3), (1.0,), **kw)
+    with pytest.raises(ValueError, match="rng"):
+        accumulate_twins(e, e, e, (1.0,), sensor=SENSOR, seed=1, stamp=11, pixel_scale=0.2)
+    with pytest.raises(ValueError, match="feed"):
+        accumulate_twins(e, e, e, (1.0,), feed=2, **kw)
+    with pytest.raises(ValueError, match="sky_mask"):
+        accumulate_twins(e, e, e, (1.0,), sky=10.0, box=(2.5, 8.5), sky_mask=np.ones((3, 3)),
+                         **kw)
+    with pytest.raises(ValueError, match="stamp must be odd"):
+        simulate_star_field((64, 64), 1, stamp=30)
+
+
+@pytest.mark.slow
+def test_field_sky_is_level_across_the_boxes_and_stars_do_not_depend_on_it():
+    """In a field the sky is the input level inside and just outside each
+    star's box (no diffusion ring), and the stars (positions, fluxes) are the
+    same with the sky added afterwards."""
+    sky = 800.0
+    kw = dict(strength=1.0, flux=(1e4, 2e4), sky=sky, read_noise=0.0, seed=6, sky_radius=4,
+              updates=100, min_nrecalc=1e4)
+    a = simulate_star_field((96, 96), 2, **kw)
+    b = simulate_star_field((96, 96), 2, sky_through_sensor=False, **kw)
+    for k in ("x", "y", "flux"):
+        assert_allclose(a["stars"][k].value, b["stars"][k].value)
+    assert not np.array_equal(a["image"], b["image"])
+    lo, hi, inner = sky_box(31, 4)
+    for x, y in zip(a["stars"]["x"].value, a["stars"]["y"].value):
+        ix, iy = int(np.floor(x + 0.5)), int(np.floor(y + 0.5))
+        cut = a["image"][iy - 15:iy + 16, ix - 15:ix + 16]
+        edge, out, n_edge = _ring_means(cut, inner)
+        # Poisson error of the ring means, plus up to ~15 e of the faint star's wings
+        # 7-8 px out; the diffusion ring without feed is ~ +-160 e (20 % of the sky)
+        for v in (edge, out):
+            assert abs(v - sky) < 5 * np.sqrt(sky / n_edge) + 15.0

@@ -1,0 +1,139 @@
+"""Tests of lsst_bfdrift.validation.sky (validate-sky) on synthetic catalogues and GalSim fields."""
+
+import json
+
+import numpy as np
+import pytest
+from astropy.io import fits
+from numpy.testing import assert_allclose
+
+from tests.validation._galsim_fields import STRENGTHS, galsim_template, paired_fields
+from lsst_bfdrift.cli.main import main
+from lsst_bfdrift.validation.sky import fit_flux_slope, shape_flux_relations, validate_sky
+from lsst_bfdrift.simulation.skysim import scale_template
+
+
+def _synthetic(rng, n, slope, outliers=0):
+    """Stars with a quadratic PSF-size field, a flux slope and 1/SNR + floor noise."""
+    x = rng.uniform(0, 1000, n)
+    y = rng.uniform(0, 1000, n)
+    flux = np.exp(rng.uniform(np.log(1e4), np.log(1.5e6), n))
+    snr = flux / np.sqrt(flux + 3e4)
+    sigma = np.hypot(1.0 / snr, 2e-3)
+    q = 1.8 + 0.2 * (x / 1000) ** 2 - 0.1 * x * y / 1e6 + slope * flux / 1e5
+    q = q + rng.normal(0, sigma)
+    if outliers:
+        bad = rng.choice(n, outliers, replace=False)
+        q[bad] += rng.choice([-1, 1], outliers) * 0.05
+    return x, y, flux / 1e5, q, snr, sigma
+
+
+def test_slope_recovered_with_outliers():
+    rng = np.random.default_rng(1)
+    x, y, g, q, snr, sigma = _synthetic(rng, 150, 1e-3, outliers=12)
+    r = fit_flux_slope(x, y, g, q, snr, n_boot=100)
+    # independent reference: weighted least squares on the clean stars with the true errors
+    assert abs(r["slope"] - 1e-3) < 3 * r["slope_err"]
+    assert r["n_downweighted"] >= 10
+    assert r["z"] > 5
+
+
+def test_null_slopes_are_not_detected_and_errors_are_calibrated():
+    # 300 noise-only catalogues: the pull z = slope / err must be ~ N(0, 1)
+    rng = np.random.default_rng(2)
+    z = []
+    for _ in range(300):
+        x, y, g, q, snr, _ = _synthetic(rng, 60, 0.0)
+        z.append(fit_flux_slope(x, y, g, q, snr, n_boot=0)["z"])
+    z = np.array(z)
+    assert np.mean(np.abs(z) > 3) < 0.02          # false detections at 3 sigma
+    assert 0.8 < np.std(z) < 1.25 and abs(np.mean(z)) < 0.2
+
+
+def test_too_few_stars_and_all_saturated_get_clear_messages():
+    rng = np.random.default_rng(3)
+    x, y, g, q, snr, _ = _synthetic(rng, 5, 0.0)
+    with pytest.raises(ValueError, match="only 5 usable stars"):
+        fit_flux_slope(x, y, g, q, snr)
+    import galsim
+
+    from lsst_bfdrift.validation.catalog import measure_stars
+    img = galsim.ImageD(160, 160, xmin=0, ymin=0)
+    for k in range(9):
+        galsim.Gaussian(sigma=1.8, flux=2e5).drawImage(
+            img, scale=1.0, add_to_image=True,
+            center=galsim.PositionD(25 + 50 * (k % 3), 25 + 50 * (k // 3)))
+    arr = img.array + rng.normal(800.0, 28.0, img.array.shape)
+    cat = measure_stars(arr, saturation=2000.0)
+    assert len(cat) == 9 and np.all(cat["flag_saturated"])
+    with pytest.raises(ValueError, match=r"only 0 of 9 .*9 saturated"):
+        shape_flux_relations(cat)
+    with pytest.raises(ValueError, match="catalogue is empty"):
+        shape_flux_relations(cat[:0])
+    with pytest.raises(ValueError, match="no sources detected"):
+        validate_sky(rng.normal(800.0, 28.0, (128, 128)))
+    with pytest.raises(ValueError, match="no usable pixel"):
+        validate_sky(np.full((128, 128), np.nan))
+    with pytest.raises(ValueError, match="blank"):
+        validate_sky(np.zeros((128, 128)))
+    with pytest.raises(ValueError, match="route"):
+        validate_sky(arr, route="sideways")
+
+
+@pytest.mark.slow
+def test_galsim_fields_known_strengths():
+    """Size-flux slope of SiliconSensor fields scales with strength; zero strength is null."""
+    fields = paired_fields()
+    tpl = galsim_template()
+    res = {}
+    for s, img in zip(STRENGTHS, fields["images"]):
+        v = validate_sky(img, template=scale_template(tpl, max(s, 1.0)), n_boot=100)
+        res[s] = v
+    lo, mid, hi = STRENGTHS
+    s0, s1, s2 = (res[s].fits["before"]["size"] for s in STRENGTHS)
+    assert not res[lo].summary["bf_detected_before"] and abs(s0["z"]) < 3
+    # expected z ~ 0.8 per unit strength here (22 stars), so both are detected
+    assert res[mid].summary["bf_detected_before"] and res[hi].summary["bf_detected_before"]
+    # the same photons and noise in all three fields: the slope difference is linear
+    assert_allclose((s2["slope"] - s0["slope"]) / (s1["slope"] - s0["slope"]),
+                    (hi - lo) / (mid - lo), rtol=0.15)
+    per_strength = (s2["slope"] - s0["slope"]) / (hi - lo)
+    assert 3e-4 < per_strength < 1.2e-3  # GalSim lsst_itl_50_8, Moffat 0.7-0.95"
+    for s in (mid, hi):
+        assert not res[s].summary["residual_bf_detected"], res[s].summary["verdict"]
+        assert "BF removed" in res[s].summary["verdict"]
+    # correcting a BF-free image with a strength-`mid` template over-corrects: detected
+    v = validate_sky(fields["images"][0], template=scale_template(tpl, mid), n_boot=0)
+    assert v.summary["residual_bf_detected"] and "over-corrected" in v.summary["verdict"]
+    # no correction: the verdict is about the recorded image only
+    v = validate_sky(fields["images"][2], route="none", n_boot=0)
+    assert v.summary["after"] == {} and v.summary["verdict"].startswith("BF slope detected")
+
+
+@pytest.mark.slow
+def test_cli_validate_sky_adu_json_and_plot(tmp_path, capsys):
+    img = paired_fields()["images"][2]
+    hdr = fits.Header()
+    hdr["BUNIT"] = "ADU"
+    hdr["GAIN"] = 1.7
+    path = tmp_path / "field.fits"
+    fits.PrimaryHDU((img / 1.7).astype(np.float32), header=hdr).writeto(path)
+    tpl_path = tmp_path / "tpl.fits"
+    scale_template(galsim_template(), STRENGTHS[2]).save(str(tpl_path))
+    png = tmp_path / "sky.png"
+    cat = tmp_path / "cat.ecsv"
+    rc = main(["validate-sky", str(path), "--json", "--plot", str(png), "--template",
+               str(tpl_path), "--route", "both", "--catalog", str(cat), "--quiet",
+               "--n-boot", "50"])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["gain"] == pytest.approx(1.7)
+    assert out["bf_detected_before"] and not out["residual_bf_detected"]
+    assert set(out["after"]) == {"catalog", "pixel"}
+    for route in ("catalog", "pixel"):
+        assert abs(out["after"][route]["size"]["slope"]) < 0.25 * out["before"]["size"]["slope"]
+    assert png.stat().st_size > 10000 and cat.stat().st_size > 1000
+    blank = tmp_path / "blank.fits"
+    fits.PrimaryHDU(np.zeros((64, 64), np.float32)).writeto(blank)
+    assert main(["validate-sky", str(blank), "--quiet"]) == 2
+    assert "blank" in capsys.readouterr().err
