@@ -24,15 +24,13 @@ the parallel lag, 0 <= i, j <= L (the model is symmetric in the sign of each).
 """
 
 import math
-import time
 
 import numpy as np
-from scipy.optimize import least_squares
 
+from lsst_bfdrift.calibration.fitting import fit_parameters
 from lsst_bfdrift.utils.io import data_path
 from lsst_bfdrift.physics.boundaries import pixel_boundaries
 from lsst_bfdrift.physics.polygons import pixel_polygons, polygon_moments
-from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.physics.sensor import SensorModel
 
 __all__ = ["AcoeffTable", "read_acoeff_table", "assign_axes", "sum_rule_check",
@@ -293,6 +291,8 @@ class AcoeffFit:
     values, errors : dict
         Best-fit values and 1-sigma errors (from the Jacobian, not scaled by
         chi2/dof).
+    covariance : ndarray
+        Parameter covariance (order of ``names``).
     correlation : ndarray
         Correlation matrix (order of ``names``).
     model, data, sigma : ndarray, shape (L + 1, L + 1)
@@ -345,8 +345,8 @@ class AcoeffFit:
                 "seconds": self.seconds, "n_evaluations": self.n_evaluations}
 
 
-def fit_acoeffs(table, params0, free=None, *, model=None, diff_step=0.02, max_nfev=12,
-                progress=False, **model_kwargs):
+def fit_acoeffs(table, params0, free=None, *, model=None, diff_step=0.02, max_evaluations=30,
+                jacobian0=None, progress=False, **model_kwargs):
     """Fit sensor parameters to a table of a_ij.
 
     Parameters
@@ -362,9 +362,12 @@ def fit_acoeffs(table, params0, free=None, *, model=None, diff_step=0.02, max_nf
         with ``max_lag`` of the table and ``model_kwargs``.
     diff_step : float, optional
         Relative step of the central-difference derivatives.
-    max_nfev : int, optional
-        Largest number of optimiser iterations (each costs 2 n_free + 1
-        model evaluations).
+    max_evaluations : int, optional
+        Model evaluations of the search (:func:`~lsst_bfdrift.calibration.fitting.fit_parameters`;
+        the final Jacobian adds 2 per free parameter).
+    jacobian0 : ndarray, shape (L + 1, L + 1, n_free), optional
+        d a_ij / d parameter near the start (e.g. :attr:`LinearBasis.jacobian`);
+        default: central differences at the start.
     progress : bool, optional
         Progress bar on stderr (one tick per model evaluation).
 
@@ -388,65 +391,16 @@ def fit_acoeffs(table, params0, free=None, *, model=None, diff_step=0.02, max_nf
     mask = table.mask()
     if mask.sum() <= len(names):
         raise ValueError(f"{mask.sum()} lags cannot constrain {len(names)} parameters")
-    x0 = np.array([float(getattr(params0, n)) for n in names])
-    scale = np.where(np.abs(x0) > 0, np.abs(x0), 1.0)
-    lo = np.array([free[n][0] for n in names]) / scale
-    hi = np.array([free[n][1] for n in names]) / scale
-    cache = {}
-    t0 = time.perf_counter()
-    bar = ProgressBar(max_nfev * (2 * len(names) + 1), "a_ij fit", enabled=progress)
-
-    def evaluate(u):
-        key = tuple(np.round(u, 12))
-        if key not in cache:
-            p = params0.replace(**{n: float(v * s) for n, v, s in zip(names, u, scale)})
-            m = np.asarray(model(p), dtype=float)
-            if m.shape != table.a.shape:
-                raise ValueError(f"model returned shape {m.shape}, table is {table.a.shape}")
-            cache[key] = m
-            bar(1)
-        return cache[key]
-
-    def resid(u):
-        return ((evaluate(u) - table.a) / table.sigma)[mask]
-
-    def jac(u):
-        cols = []
-        for k in range(u.size):
-            du = np.zeros_like(u)
-            du[k] = diff_step * max(abs(u[k]), 1e-3)
-            cols.append((resid(u + du) - resid(u - du)) / (2 * du[k]))
-        return np.stack(cols, axis=1)
-
-    u0 = x0 / scale
-    res = least_squares(resid, u0, jac=jac, bounds=(lo, hi), method="trf", max_nfev=max_nfev,
-                        x_scale=1.0)
-    bar.done = bar.total
-    if progress:
-        bar._draw(final=True)
-    J = res.jac
-    cov_u = np.linalg.pinv(J.T @ J)
-    cov = cov_u * np.outer(scale, scale)
-    err = np.sqrt(np.clip(np.diag(cov), 0, None))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        corr = cov / np.outer(err, err)
-    best = res.x * scale
-    params = params0.replace(**{n: float(v) for n, v in zip(names, best)})
-    m = evaluate(res.x)
-    # Jacobian of the a_ij themselves (all lags, including masked ones)
-    jac_full = np.zeros(table.a.shape + (len(names),))
-    for k in range(len(names)):
-        du = np.zeros_like(res.x)
-        du[k] = diff_step * max(abs(res.x[k]), 1e-3)
-        jac_full[..., k] = (evaluate(res.x + du) - evaluate(res.x - du)) / (2 * du[k] * scale[k])
-    chi2 = float(np.sum(resid(res.x) ** 2))
-    return AcoeffFit(params=params, names=names,
-                     values={n: float(v) for n, v in zip(names, best)},
-                     errors={n: float(e) for n, e in zip(names, err)}, correlation=corr,
-                     model=m, data=table.a.copy(), sigma=table.sigma.copy(), mask=mask,
-                     jacobian=jac_full, chi2=chi2, dof=int(mask.sum() - len(names)),
-                     seconds=time.perf_counter() - t0, n_evaluations=len(cache),
-                     axis_note=table.axis_note, source=table.source)
+    fit = fit_parameters(lambda v: model(params0.replace(**v)), table.a, table.sigma,
+                         {n: float(getattr(params0, n)) for n in names}, free, mask=mask,
+                         jacobian0=jacobian0, diff_step=diff_step,
+                         max_evaluations=max_evaluations, central=True, progress=progress)
+    return AcoeffFit(params=params0.replace(**fit.values), names=names, values=fit.values,
+                     errors=fit.errors, covariance=fit.covariance, correlation=fit.correlation,
+                     model=fit.model, data=table.a.copy(), sigma=table.sigma.copy(), mask=mask,
+                     jacobian=fit.jacobian, chi2=fit.chi2, dof=fit.dof, seconds=fit.seconds,
+                     n_evaluations=fit.n_evaluations, axis_note=table.axis_note,
+                     source=table.source)
 
 
 class LinearBasis:

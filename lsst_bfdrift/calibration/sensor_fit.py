@@ -3,7 +3,7 @@
 :func:`fit_sensor_parameters` adjusts chosen :class:`~lsst_bfdrift.physics.sensor.SensorParameters`
 so that the template computed from them matches target numbers (e.g. the
 paper's A00, A01, A10, A11 for a 1e4 e aggressor), by non-linear least
-squares (scipy.optimize.least_squares) with numerical derivatives, and
+squares (:func:`~lsst_bfdrift.calibration.fitting.fit_parameters`) with numerical derivatives, and
 reports the fitted values with uncertainties and correlations from the
 Jacobian. Template numbers are quantised by the bisection tolerance, so the
 derivative steps are a few percent of each parameter and the tolerance is set
@@ -11,11 +11,10 @@ well below the targets' errors.
 """
 
 import math
-import time
 
 import numpy as np
-from scipy.optimize import least_squares
 
+from lsst_bfdrift.calibration.fitting import fit_parameters
 from lsst_bfdrift.templates.template import TemplateSettings, build_template
 
 __all__ = ["CalibrationResult", "template_numbers", "fit_sensor_parameters"]
@@ -99,7 +98,8 @@ def fit_sensor_parameters(targets, params0, free, *, settings=CALIBRATION_SETTIN
     diff_step : float, optional
         Relative step of the numerical derivatives (>> bisection quantisation).
     max_nfev : int, optional
-        Largest number of template evaluations of the optimiser.
+        Largest number of template evaluations of the search (the final
+        central-difference Jacobian adds 2 per free parameter).
     callback : callable, optional
         Called with (parameter dict, numbers) after each evaluation.
 
@@ -121,53 +121,40 @@ def fit_sensor_parameters(targets, params0, free, *, settings=CALIBRATION_SETTIN
             raise ValueError(f"start value of {n!r} ({getattr(params0, n)}) is outside "
                              f"its bounds {free[n]}")
     logp = [n for n in names if free[n][0] > 0] if log_params is None else list(log_params)
-    fwd = [math.log if n in logp else (lambda v: v) for n in names]
-    inv = [math.exp if n in logp else (lambda v: v) for n in names]
-    x0 = np.array([f(getattr(params0, n)) for f, n in zip(fwd, names)])
-    lo = np.array([f(free[n][0]) for f, n in zip(fwd, names)])
-    hi = np.array([f(free[n][1]) for f, n in zip(fwd, names)])
+
+    def fwd(n, v):
+        return math.log(v) if n in logp else v
+
+    def inv(n, v):
+        return math.exp(v) if n in logp else v
+
     keys = list(targets)
-    cache = {}
-    t_start = time.perf_counter()
+    data = np.array([targets[k][0] for k in keys])
+    sigma = np.array([targets[k][1] for k in keys])
+    numbers = {}
 
-    def numbers(x):
-        key = tuple(np.round(x, 12))
-        if key not in cache:
-            p = params0.replace(**{n: g(v) for n, g, v in zip(names, inv, x)})
-            cache[key] = template_numbers(p, settings)
-            if callback is not None:
-                callback({n: getattr(p, n) for n in names}, cache[key])
-        return cache[key]
+    def model(u):
+        p = params0.replace(**{n: inv(n, u[n]) for n in names})
+        nums = template_numbers(p, settings)
+        numbers[tuple(sorted(u.items()))] = nums
+        if callback is not None:
+            callback({n: getattr(p, n) for n in names}, nums)
+        return np.array([nums[k] for k in keys])
 
-    def resid(x):
-        s = numbers(x)
-        return np.array([(s[k] - targets[k][0]) / targets[k][1] for k in keys])
-
-    step = np.where(np.isin(names, logp), diff_step, diff_step * np.maximum(np.abs(x0), 1e-3))
-    res = least_squares(resid, x0, bounds=(lo, hi), diff_step=None, method="trf",
-                        max_nfev=max_nfev, x_scale=np.where(np.isin(names, logp), 1.0, step),
-                        jac=lambda x: _jacobian(resid, x, step))
-    jac = res.jac
-    cov_x = np.linalg.pinv(jac.T @ jac)
-    best = [g(v) for g, v in zip(inv, res.x)]
+    fit = fit_parameters(model, data, sigma, {n: fwd(n, getattr(params0, n)) for n in names},
+                         {n: (fwd(n, free[n][0]), fwd(n, free[n][1])) for n in names},
+                         diff_step=diff_step, max_evaluations=max_nfev, central=True)
+    best = {n: inv(n, fit.values[n]) for n in names}
     # errors of the parameters themselves (log-space errors times the value)
-    scale = np.array([b if n in logp else 1.0 for n, b in zip(names, best)])
-    cov = cov_x * np.outer(scale, scale)
-    err = np.sqrt(np.diag(cov))
-    corr = cov / np.outer(err, err)
-    params = params0.replace(**dict(zip(names, best)))
+    scale = np.array([best[n] if n in logp else 1.0 for n in names])
+    cov = fit.covariance * np.outer(scale, scale)
+    err = np.sqrt(np.clip(np.diag(cov), 0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(err, err)
+    params = params0.replace(**best)
     return CalibrationResult(
-        params=params, values=dict(zip(names, best)), errors=dict(zip(names, err)),
-        correlation=corr, names=names, model=numbers(res.x),
-        targets={k: tuple(v) for k, v in targets.items()}, chi2=float(np.sum(res.fun**2)),
-        n_evaluations=len(cache), seconds=time.perf_counter() - t_start)
-
-
-def _jacobian(fun, x, step):
-    """Central-difference Jacobian with the given absolute steps."""
-    cols = []
-    for k in range(x.size):
-        dx = np.zeros_like(x)
-        dx[k] = step[k]
-        cols.append((fun(x + dx) - fun(x - dx)) / (2 * step[k]))
-    return np.stack(cols, axis=1)
+        params=params, values=best, errors=dict(zip(names, map(float, err))),
+        covariance=cov, correlation=corr, names=names,
+        model=numbers[tuple(sorted(fit.values.items()))],
+        targets={k: tuple(v) for k, v in targets.items()}, chi2=fit.chi2,
+        n_evaluations=fit.n_evaluations, seconds=fit.seconds)

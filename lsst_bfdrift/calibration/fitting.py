@@ -1,0 +1,306 @@
+"""One fit engine: model parameters against measured numbers with errors.
+
+Every fit of the package's model to data goes through :func:`fit_parameters`:
+the a-matrix fit of the electrostatic model
+(:func:`~lsst_bfdrift.calibration.acoeff_fit.fit_acoeffs`), the fit of
+template numbers (:func:`~lsst_bfdrift.calibration.sensor_fit.fit_sensor_parameters`)
+and :func:`~lsst_bfdrift.calibration.calibrate.calibrate`.
+
+The model is a callable of a parameter dict returning an array shaped like
+the data. The engine minimises chi2 = sum(((model - data) / sigma)^2) over
+the points in ``mask`` with a bounded Levenberg-Marquardt iteration in
+scaled parameters. Model evaluations are the expensive part (each is a set
+of drift-line bisections), so the engine
+
+* accepts a starting Jacobian (``jacobian0``: e.g. from a linear basis, an
+  emulator of the model) and then updates it by Broyden's rank-one rule from
+  the evaluations the iteration makes anyway, so that a step costs one
+  evaluation;
+* computes the Jacobian by finite differences only where no start is given
+  and, at the end, once at the optimum (``final_jacobian``), for the
+  parameter covariance;
+* caches every evaluation.
+
+The covariance is (J^T W J)^-1 at the optimum, not scaled by chi2/dof (the
+errors of the data are taken as given; a poor chi2 is reported, not hidden).
+"""
+
+import math
+import time
+
+import numpy as np
+from scipy import stats
+
+from lsst_bfdrift.utils.progress import ProgressBar
+
+__all__ = ["ParameterFit", "fit_parameters", "FitError"]
+
+
+class FitError(ValueError):
+    """The fit is unusable: bad input, or a poor fit when one was refused."""
+
+
+class ParameterFit:
+    """Result of :func:`fit_parameters`.
+
+    Attributes
+    ----------
+    names : list of str
+        Free parameters, in the order of the matrices.
+    values, errors : dict
+        Best-fit values and 1-sigma errors (from the covariance).
+    start : dict
+        Starting values.
+    covariance, correlation : ndarray, shape (n, n)
+        Parameter covariance (units of the parameters squared) and
+        correlation.
+    data, sigma, model : ndarray
+        Measured numbers, their errors and the model at the best fit (shape
+        of the data).
+    mask : ndarray of bool
+        Points in chi2.
+    jacobian : ndarray, shape data.shape + (n,)
+        d model / d parameter at the best fit (finite differences when
+        ``final_jacobian``; else the engine's updated estimate).
+    chi2 : float
+    dof : int
+    n_evaluations : int
+        Model evaluations made.
+    seconds : float
+        Wall time.
+    converged : bool
+        The relative change of chi2 fell below the tolerance.
+    """
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+    @property
+    def chi2_dof(self):
+        """chi2 per degree of freedom (inf without degrees of freedom)."""
+        return self.chi2 / self.dof if self.dof > 0 else math.inf
+
+    @property
+    def p_value(self):
+        """Probability of a chi2 this large or larger for ``dof`` degrees of freedom."""
+        return float(stats.chi2.sf(self.chi2, self.dof)) if self.dof > 0 else math.nan
+
+    @property
+    def residual(self):
+        """Data minus model, NaN where not in chi2."""
+        return np.where(self.mask, self.data - self.model, np.nan)
+
+    @property
+    def pulls(self):
+        """(data - model) / sigma, NaN where not in chi2."""
+        return self.residual / self.sigma
+
+    def worst(self, n=3):
+        """The ``n`` points with the largest |pull|: list of (index, pull)."""
+        p = np.where(self.mask, np.abs(np.nan_to_num(self.pulls)), -1.0)
+        order = np.argsort(p, axis=None)[::-1][:n]
+        return [(tuple(int(v) for v in np.unravel_index(k, p.shape)),
+                 float(self.pulls[np.unravel_index(k, p.shape)])) for k in order
+                if p.flat[k] >= 0]
+
+    def as_dict(self):
+        """JSON-friendly summary."""
+        return {"names": self.names, "values": self.values, "errors": self.errors,
+                "start": self.start, "covariance": np.asarray(self.covariance).tolist(),
+                "correlation": np.asarray(self.correlation).tolist(), "chi2": self.chi2,
+                "dof": self.dof, "chi2_dof": self.chi2_dof, "p_value": self.p_value,
+                "n_evaluations": self.n_evaluations, "seconds": self.seconds,
+                "converged": self.converged}
+
+
+def _check_inputs(data, sigma, mask, start, bounds):
+    data = np.asarray(data, dtype=float)
+    sigma = np.broadcast_to(np.asarray(sigma, dtype=float), data.shape)
+    mask = np.ones(data.shape, bool) if mask is None else np.asarray(mask, bool)
+    if mask.shape != data.shape:
+        raise FitError(f"mask shape {mask.shape} does not match the data {data.shape}")
+    if not np.all(np.isfinite(data[mask])):
+        raise FitError("data in the fit hold NaN or inf")
+    if not (np.all(np.isfinite(sigma[mask])) and np.all(sigma[mask] > 0)):
+        raise FitError("errors of the data in the fit must be finite and positive")
+    names = list(start)
+    if not names:
+        raise FitError("no free parameters given")
+    missing = [n for n in names if n not in bounds]
+    if missing:
+        raise FitError(f"no bounds for {missing}")
+    for n in names:
+        lo, hi = bounds[n]
+        if not lo < start[n] < hi:
+            raise FitError(f"start value of {n!r} ({start[n]:.6g}) is outside its bounds "
+                           f"({lo:.6g}, {hi:.6g})")
+    if mask.sum() < len(names):
+        raise FitError(f"{int(mask.sum())} data points cannot constrain {len(names)} "
+                       f"parameters")
+    return data, sigma, mask, names
+
+
+def fit_parameters(model, data, sigma, start, bounds, *, mask=None, jacobian0=None,
+                   diff_step=0.02, max_evaluations=40, tol=1e-3, final_jacobian=True,
+                   central=False, progress=False, callback=None):
+    """Least-squares fit of model parameters to measured numbers.
+
+    Parameters
+    ----------
+    model : callable
+        ``model(values) -> ndarray`` shaped like ``data``; ``values`` is a
+        dict {name: float}.
+    data, sigma : array_like
+        Measured numbers and their 1-sigma errors (same units as the model).
+    start : dict
+        {name: starting value} of the free parameters.
+    bounds : dict
+        {name: (lower, upper)}; the fit stays strictly inside.
+    mask : array_like of bool, optional
+        Points in chi2 (default all).
+    jacobian0 : array_like, shape data.shape + (n,), optional
+        d model / d parameter near the start (parameter order of ``start``),
+        e.g. from a linear basis. Default: finite differences at the start.
+    diff_step : float, optional
+        Finite-difference step, relative to max(|value|, 1e-3 x bound span).
+    max_evaluations : int, optional
+        Model evaluations allowed for the search (the final Jacobian adds n
+        or 2n more).
+    tol : float, optional
+        Stop when an accepted step lowers chi2 by less than ``tol`` (absolute:
+        1e-3 leaves the parameters within about 0.03 sigma of the optimum).
+    final_jacobian : bool, optional
+        Recompute the Jacobian by finite differences at the optimum for the
+        covariance (recommended; otherwise the updated estimate is used).
+    central : bool, optional
+        Central instead of forward differences (2n instead of n evaluations).
+    progress : bool, optional
+        Progress bar on stderr, one tick per model evaluation.
+    callback : callable, optional
+        ``callback(values, chi2)`` after each accepted step.
+
+    Returns
+    -------
+    ParameterFit
+
+    Raises
+    ------
+    FitError
+        Inconsistent input, or a model that returns the wrong shape or
+        non-finite values at the start.
+    """
+    t0 = time.perf_counter()
+    data, sigma, mask, names = _check_inputs(data, sigma, mask, start, bounds)
+    n = len(names)
+    x0 = np.array([float(start[k]) for k in names])
+    lo = np.array([float(bounds[k][0]) for k in names])
+    hi = np.array([float(bounds[k][1]) for k in names])
+    span = hi - lo
+    scale = np.where(np.isfinite(span), np.maximum(np.abs(x0), 1e-3 * span), np.abs(x0))
+    scale = np.where(scale > 0, scale, 1.0)
+    cache = {}
+    extra = (2 if central else 1) * n if final_jacobian else 0
+    bar = ProgressBar(max_evaluations + extra + n, "fit", enabled=progress)
+
+    def evaluate(x):
+        key = tuple(np.round(x / scale, 12))
+        if key not in cache:
+            m = np.asarray(model(dict(zip(names, map(float, x)))), dtype=float)
+            if m.shape != data.shape:
+                raise FitError(f"model returned shape {m.shape}, data have {data.shape}")
+            cache[key] = m
+            bar(1)
+        return cache[key]
+
+    def weighted(m):
+        return ((m - data) / sigma)[mask]
+
+    def fd_jacobian(x):
+        cols = []
+        for k in range(n):
+            h = diff_step * scale[k]
+            xp = x.copy()
+            xp[k] = min(x[k] + h, hi[k] - 1e-9 * span[k] if np.isfinite(span[k]) else x[k] + h)
+            if central:
+                xm = x.copy()
+                xm[k] = max(x[k] - h, lo[k] + 1e-9 * span[k] if np.isfinite(span[k]) else x[k] - h)
+                cols.append((evaluate(xp) - evaluate(xm)) / (xp[k] - xm[k]))
+            else:
+                cols.append((evaluate(xp) - evaluate(x)) / (xp[k] - x[k]))
+        return np.stack(cols, axis=-1)
+
+    m0 = evaluate(x0)
+    if not np.all(np.isfinite(m0[mask])):
+        raise FitError("model is not finite at the start values")
+    if jacobian0 is None:
+        J = fd_jacobian(x0)
+    else:
+        J = np.array(jacobian0, dtype=float)
+        if J.shape != data.shape + (n,):
+            raise FitError(f"jacobian0 has shape {J.shape}, expected {data.shape + (n,)}")
+    # work in scaled parameters u = x / scale; A = weighted Jacobian in u
+    w = (1.0 / sigma)[mask]
+    A = J[mask] * w[:, None] * scale[None, :]
+    x, r = x0.copy(), weighted(m0)
+    chi2 = float(r @ r)
+    lam = 1e-3
+    converged = False
+    n_start = len(cache)
+    while len(cache) - n_start < max_evaluations:
+        g = A.T @ r
+        H = A.T @ A
+        D = np.diag(np.maximum(np.diag(H), 1e-12))
+        try:
+            du = -np.linalg.solve(H + lam * D, g)
+        except np.linalg.LinAlgError:
+            du = -np.linalg.lstsq(H + lam * D, g, rcond=None)[0]
+        xn = np.clip(x + du * scale, lo + 1e-6 * np.where(np.isfinite(span), span, 0),
+                     hi - 1e-6 * np.where(np.isfinite(span), span, 0))
+        step = (xn - x) / scale
+        if not np.any(step):
+            converged = True
+            break
+        mn = evaluate(xn)
+        rn = weighted(mn)
+        if not np.all(np.isfinite(rn)):
+            lam *= 10.0
+            continue
+        # Broyden's rank-one update from this evaluation (accepted or not)
+        dr = rn - r - A @ step
+        A = A + np.outer(dr, step) / (step @ step)
+        chi2n = float(rn @ rn)
+        if chi2n < chi2:
+            gain = chi2 - chi2n
+            x, r, chi2 = xn, rn, chi2n
+            lam = max(lam / 3.0, 1e-7)
+            if callback is not None:
+                callback(dict(zip(names, map(float, x))), chi2)
+            if gain < tol:
+                converged = True
+                break
+        else:
+            lam *= 4.0
+            if lam > 1e8:
+                converged = True  # no descent left in the local model
+                break
+    if final_jacobian:
+        J = fd_jacobian(x)
+        A = J[mask] * w[:, None] * scale[None, :]
+    else:
+        J = np.zeros(data.shape + (n,))
+        J[mask] = A / w[:, None] / scale[None, :]
+    cov_u = np.linalg.pinv(A.T @ A)
+    cov = cov_u * np.outer(scale, scale)
+    err = np.sqrt(np.clip(np.diag(cov), 0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(err, err)
+    bar.done = bar.total
+    if progress:
+        bar._draw(final=True)
+    return ParameterFit(names=names, values=dict(zip(names, map(float, x))),
+                        errors=dict(zip(names, map(float, err))),
+                        start=dict(zip(names, map(float, x0))), covariance=cov,
+                        correlation=corr, data=data, sigma=np.array(sigma), model=evaluate(x),
+                        mask=mask, jacobian=J, chi2=chi2, dof=int(mask.sum() - n),
+                        n_evaluations=len(cache), seconds=time.perf_counter() - t0,
+                        converged=converged)
