@@ -11,5 +11,6 @@ from lsst_bfdrift.calibration.fitting import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.ptc import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.acoeff_fit import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.sensor_fit import *  # noqa: F401,F403
+from lsst_bfdrift.calibration.tuning import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.diagnosis import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.report import *  # noqa: F401,F403

@@ -225,17 +225,33 @@ def sum_rule_check(table, *, nsigma=1.0):
     return ok, note
 
 
-def _quadrant_areas(model, n, edge_samples, tol, spacing):
+def _quadrant_areas(model, n, edge_samples, tol, spacing, scales=(1.0,)):
+    """Pixel areas [i, j] of the quadrant block, with the boundary displacements
+    scaled by each of ``scales`` (1 is the traced boundaries)."""
     g = pixel_boundaries(model, (0, n), (0, n), edge_samples=edge_samples, tol=tol,
                          spacing=spacing)
-    x, y = pixel_polygons(g.corners, g.vedge, g.hedge, g.fractions, i0=0, j0=0)
+    nom = g.nominal()
     jj, ii = np.mgrid[0:n, 0:n]
-    return polygon_moments(x, y, origin=(ii, jj)).area.T  # -> [i, j]
+    out = []
+    for s in scales:
+        x, y = pixel_polygons(nom.corners + s * (g.corners - nom.corners),
+                              nom.vedge + s * (g.vedge - nom.vedge),
+                              nom.hedge + s * (g.hedge - nom.hedge), g.fractions, i0=0, j0=0)
+        out.append(polygon_moments(x, y, origin=(ii, jj)).area.T)  # -> [i, j]
+    return out
 
 
 def electrostatic_acoeffs(params, *, max_lag=8, charge=1e5, near_samples=32, far_samples=8,
-                          near_lag=1, tol=2e-5):
-    """Model a_ij = ln(A_ij) / Q (per e) for lags 0..max_lag.
+                          near_lag=1, tol=2e-5, definition="log"):
+    """Model a_ij (per e) for lags 0..max_lag.
+
+    ``definition='log'`` gives ln(A_ij) / Q for the boundaries traced with
+    charge Q. ``'alpha'`` gives the linear response d A_ij / d Q at Q = 0 of
+    the template built from those boundaries (displacements scaled linearly
+    in the charge, as the template is used): from the areas with the
+    displacements scaled by 1 and 1/2, alpha = (4 (A(Q/2) - 1) - (A(Q) - 1))
+    / Q, exact for areas quadratic in the displacements. This is the a_ij of
+    the covariance model of Astier et al. (2019), which flats measure.
 
     The model is symmetric about both pixel axes, so only the quadrant
     i, j >= 0 is traced. Lags up to ``near_lag`` (both axes) come from
@@ -257,6 +273,8 @@ def electrostatic_acoeffs(params, *, max_lag=8, charge=1e5, near_samples=32, far
         Largest lag computed with ``near_samples``.
     tol : float, optional
         Bisection tolerance (pixel units).
+    definition : {'log', 'alpha'}, optional
+        Which a_ij (see above).
 
     Returns
     -------
@@ -270,13 +288,21 @@ def electrostatic_acoeffs(params, *, max_lag=8, charge=1e5, near_samples=32, far
     L = int(max_lag)
     if L < 1:
         raise ValueError(f"max_lag must be >= 1, got {max_lag}")
+    if definition not in ("log", "alpha"):
+        raise ValueError(f"definition must be 'log' or 'alpha', got {definition!r}")
+    scales = (1.0,) if definition == "log" else (1.0, 0.5)
     model = SensorModel(params).with_charge({(0, 0): float(charge)})
-    far = _quadrant_areas(model, L + 1, far_samples, tol, "tan")
+    far = _quadrant_areas(model, L + 1, far_samples, tol, "tan", scales)
     k = min(int(near_lag), L) + 1
-    near = _quadrant_areas(model, k, near_samples, tol, "uniform")
-    area = far.copy()
-    area[:k, :k] = near
-    return np.log(area) / float(charge)
+    near = _quadrant_areas(model, k, near_samples, tol, "uniform", scales)
+    areas = []
+    for f, nr in zip(far, near):
+        a = f.copy()
+        a[:k, :k] = nr
+        areas.append(a)
+    if definition == "log":
+        return np.log(areas[0]) / float(charge)
+    return (4.0 * (areas[1] - 1.0) - (areas[0] - 1.0)) / float(charge)
 
 
 class AcoeffFit:

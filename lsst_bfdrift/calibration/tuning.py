@@ -1,0 +1,353 @@
+"""Calibrate the electrostatic model from a sensor's own data (Rasmussen 2015's title).
+
+:func:`calibrate` takes a measured a-matrix (from flat pairs, a PTC, an
+a-matrix table or cp_pipe's PTC dataset; see
+:mod:`~lsst_bfdrift.calibration.inputs`) and gives the fitted sensor
+parameters with their covariance, the per-lag measured and model a_ij with
+pulls, and the template that corrects that sensor.
+
+The steps:
+
+1. **Which physics the data need.** The model's a_ij (the linear area
+   response of the template, ``definition='alpha'`` of
+   :func:`~lsst_bfdrift.calibration.acoeff_fit.electrostatic_acoeffs`) are
+   differentiated once with respect to every candidate parameter of
+   :data:`CANDIDATES` at the start. In that linear approximation, parameters
+   are added one at a time, the one that lowers chi2 most first, while the
+   drop exceeds the Bayesian information criterion's ln(N) (N measured
+   lags) and the data have more lags than parameters. This chooses with the
+   data: a PTC that measures only a00 frees one parameter; a full a-matrix
+   frees what its lags constrain.
+2. **The fit.** :func:`~lsst_bfdrift.calibration.fitting.fit_parameters`
+   with the chosen columns as its starting Jacobian (Broyden updates: one
+   drift-line evaluation per step), every measured lag in chi2, a00
+   included; the sum rule is reported, not imposed. The parameter
+   covariance comes from a finite-difference Jacobian at the optimum.
+3. **A poor fit is an error** (:class:`CalibrationError`, naming the worst
+   lags) unless ``allow_poor_fit``: chi2/dof above ``max_chi2_dof`` with a
+   p-value below 1e-3.
+4. **The template.** Built exactly at the best fit, then, with ``refine``,
+   its pixel areas are matched to the measured a_ij at every measured lag
+   by the smallest curl-free boundary change
+   (:func:`~lsst_bfdrift.templates.refine.match_area_coefficients`): the
+   model gives the shape of the boundary shifts, the data their divergence.
+   The template's ``meta['calibration']`` stores the parameters, their
+   covariance, chi2, the inputs and the date.
+"""
+
+import datetime
+import math
+import time
+
+import numpy as np
+
+from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable, electrostatic_acoeffs
+from lsst_bfdrift.calibration.fitting import FitError, fit_parameters
+from lsst_bfdrift.physics.sensor import SensorParameters
+from lsst_bfdrift.templates.refine import match_area_coefficients, template_alpha
+from lsst_bfdrift.templates.template import (TemplateSettings, build_template,
+                                             load_default_template)
+from lsst_bfdrift.utils.progress import ProgressBar
+
+__all__ = ["CANDIDATES", "CalibrationError", "CalibrationResult", "calibrate",
+           "default_start", "model_acoeffs"]
+
+#: Candidate free parameters and their bounds: the dipole unit xi0 (e), the
+#: buried-channel depth (um, sets the charge dipole), the collection height
+#: (um), the clock-pair separation (um), the backside bias (V) and the bulk
+#: doping (cm^-3), which together set where in the bulk the backdrop field
+#: cancels the barriers' lateral field (the paper's footnote on the
+#: clock-dipole knob), and the clock-barrier and channel-stop strengths
+#: (xi0).
+CANDIDATES = {"channel_depth": (0.05, 6.0), "xi0": (300.0, 3e4),
+              "collection_height": (0.05, 6.0), "clock_separation": (0.1, 8.0),
+              "v_bss": (-150.0, -10.0), "acceptor_density": (1e11, 1e13),
+              "xi_ck": (0.5, 30.0), "xi_cs": (-60.0, -2.0)}
+
+#: Aggressor charge (e) of the model evaluations and of the template.
+CHARGE = 1e4
+
+
+class CalibrationError(FitError):
+    """The data do not calibrate the model (poor fit, too few lags, bad input)."""
+
+
+def default_start():
+    """Sensor parameters of the bundled default template (the fit's default start)."""
+    meta = load_default_template().meta
+    return SensorParameters.from_dict(meta["params"]) if "params" in meta else SensorParameters()
+
+
+def model_acoeffs(params, max_lag, *, near_samples=16, far_samples=6, tol=2e-6):
+    """The model's a_ij (1/e) used by the fit: linear area response of the
+    template at :data:`CHARGE`, lags 0..max_lag, [i serial, j parallel]."""
+    L = int(max_lag)
+    return electrostatic_acoeffs(params, max_lag=max(L, 1), charge=CHARGE, tol=tol,
+                                 near_samples=near_samples, far_samples=far_samples,
+                                 definition="alpha")[:L + 1, :L + 1]
+
+
+class CalibrationResult:
+    """Result of :func:`calibrate`.
+
+    Attributes
+    ----------
+    params : SensorParameters
+        Best-fit parameters (the others as in the start).
+    fit : ParameterFit
+        The fit (values, errors, covariance, correlation, chi2, dof, pulls).
+    table : AcoeffTable
+        The measured a_ij used (1/e, [i serial, j parallel]).
+    model : ndarray
+        Model a_ij at the best fit (1/e).
+    template_acoeffs : ndarray or None
+        The final template's a_ij (its linear area response) at the measured
+        lags.
+    template : DistortionTemplate or None
+        The calibrated template (None with ``build=False``).
+    selection : list of dict
+        The parameter choice: per step, the parameter added and the linear
+        chi2 after it.
+    sum_rule : dict
+        Sum of the measured a_ij over all lags (both signs) and its error.
+    seconds : dict
+        Wall time of the steps.
+    """
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+    @property
+    def pulls(self):
+        """(measured - model) / sigma per lag."""
+        return (self.table.a - self.model) / self.table.sigma
+
+    def lag_rows(self):
+        """Per-lag rows: (i, j, measured, sigma, model, pull, template)."""
+        rows = []
+        L = self.table.max_lag
+        for i in range(L + 1):
+            for j in range(L + 1):
+                if not self.table.mask()[i, j]:
+                    continue
+                t = None if self.template_acoeffs is None else float(self.template_acoeffs[i, j])
+                rows.append((i, j, float(self.table.a[i, j]), float(self.table.sigma[i, j]),
+                             float(self.model[i, j]), float(self.pulls[i, j]), t))
+        return rows
+
+    def summary(self):
+        """JSON-friendly summary (no arrays of the template)."""
+        f = self.fit
+        return {"parameters": {n: {"value": f.values[n], "error": f.errors[n]}
+                               for n in f.names},
+                "covariance": np.asarray(f.covariance).tolist(),
+                "correlation": np.asarray(f.correlation).tolist(), "names": f.names,
+                "chi2": f.chi2, "dof": f.dof, "chi2_dof": f.chi2_dof, "p_value": f.p_value,
+                "worst_lags": [{"lag": list(k), "pull": p} for k, p in f.worst(3)],
+                "lags": [dict(zip(("i", "j", "a", "sigma", "model", "pull", "template"), r))
+                         for r in self.lag_rows()],
+                "selection": self.selection, "sum_rule": self.sum_rule,
+                "n_evaluations": f.n_evaluations, "seconds": self.seconds,
+                "source": self.table.source,
+                "template": None if self.template is None else self.template.summary()}
+
+
+def _sum_rule(table):
+    a, s = table.a, table.sigma
+    L = a.shape[0] - 1
+    mult = np.ones_like(a)
+    mult[1:, :] *= 2
+    mult[:, 1:] *= 2
+    m = table.mask()
+    return {"sum": float((a * mult)[m].sum()), "error": float(np.sqrt(((s * mult)[m] ** 2).sum())),
+            "max_lag": int(L),
+            "note": "sum of a_ij over all measured lags (both signs); BF conserves area, so it "
+                    "is zero within its error when the lags beyond the table are small"}
+
+
+def _select(J, r, sigma, mask, names, *, max_params):
+    """Greedy choice of columns of J (linearised model) by chi2 drop > ln N."""
+    w = 1.0 / sigma[mask]
+    A = J[mask] * w[:, None]
+    b = -r[mask] * w
+    n_points = int(mask.sum())
+    chosen, steps = [], []
+    chi2_now = float(b @ b)
+    steps.append({"parameter": None, "chi2_linear": chi2_now})
+    limit = min(max_params, n_points - 1) if n_points > 1 else 1
+    while len(chosen) < limit:
+        best = None
+        for k in range(len(names)):
+            if k in chosen:
+                continue
+            cols = A[:, chosen + [k]]
+            x = np.linalg.lstsq(cols, b, rcond=None)[0]
+            c2 = float(np.sum((b - cols @ x) ** 2))
+            if best is None or c2 < best[1]:
+                best = (k, c2)
+        if best is None:
+            break
+        drop = chi2_now - best[1]
+        if chosen and drop < max(math.log(n_points), 1.0):
+            break
+        chosen.append(best[0])
+        chi2_now = best[1]
+        steps.append({"parameter": names[best[0]], "chi2_linear": chi2_now})
+    return [names[k] for k in chosen], steps
+
+
+def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settings=None,
+              max_chi2_dof=3.0, allow_poor_fit=False, build=True, max_evaluations=25,
+              progress=False):
+    """Fit the electrostatic model to a measured a-matrix and build its template.
+
+    Parameters
+    ----------
+    table : AcoeffTable
+        Measured a_ij (1/e) with errors, [i serial, j parallel]; a00 is used
+        when the table measures it (``exclude_a00`` False). Read one with
+        :func:`~lsst_bfdrift.calibration.inputs.read_calibration_input`.
+    start : SensorParameters, optional
+        Starting point; default :func:`default_start` (the bundled template's
+        sensor).
+    free : dict or sequence of str, optional
+        Free parameters with bounds ({name: (lo, hi)}) or names of
+        :data:`CANDIDATES`. Default: chosen from :data:`CANDIDATES` by the
+        data (module docstring).
+    max_params : int, optional
+        Most parameters the choice may free.
+    refine : bool, optional
+        Match the template's areas to the measured a_ij (module docstring).
+    settings : TemplateSettings, optional
+        Settings of the template build; default those of the bundled
+        template (21 x 21 pixels, 32 samples per edge) at 1e4 e.
+    max_chi2_dof : float, optional
+        A fit with chi2/dof above this and a p-value below 1e-3 is poor.
+    allow_poor_fit : bool, optional
+        Return a poor fit (and its template) instead of raising.
+    build : bool, optional
+        Build the template (the slow step: about 15 s).
+    max_evaluations : int, optional
+        Model evaluations of the search (each about 1 s).
+    progress : bool, optional
+        Progress bar on stderr.
+
+    Returns
+    -------
+    CalibrationResult
+
+    Raises
+    ------
+    CalibrationError
+        Too few lags for one parameter, unknown parameter names, or a poor
+        fit (the message names the worst lags) without ``allow_poor_fit``.
+    """
+    if not isinstance(table, AcoeffTable):
+        raise TypeError("calibrate needs an AcoeffTable (see "
+                        "lsst_bfdrift.calibration.inputs.read_calibration_input), got "
+                        f"{type(table).__name__}")
+    t0 = time.perf_counter()
+    seconds = {}
+    start = default_start() if start is None else start
+    L = table.max_lag
+    mask = table.mask()
+    if mask.sum() < 1:
+        raise CalibrationError("the a-matrix has no lag to fit")
+    if free is not None and not isinstance(free, dict):
+        unknown = [n for n in free if n not in CANDIDATES]
+        if unknown:
+            raise CalibrationError(f"unknown free parameters {unknown}; known: "
+                                   f"{sorted(CANDIDATES)}")
+        free = {n: CANDIDATES[n] for n in free}
+    candidates = dict(CANDIDATES if free is None else free)
+    for n, (lo, hi) in candidates.items():
+        v = getattr(start, n)
+        if v is None or not lo < v < hi:
+            raise CalibrationError(f"start value of {n!r} ({v}) is outside its bounds "
+                                   f"({lo}, {hi})")
+    names = list(candidates)
+    n_eval = (len(names) + 1) + max_evaluations + (max_params if free is None else len(names))
+    bar = ProgressBar(n_eval, "calibrate", enabled=progress)
+
+    def model(values):
+        bar(1)
+        try:
+            return model_acoeffs(start.replace(**values), L)
+        except (RuntimeError, ValueError):
+            # drift lines that do not converge (a field that traps the charge,
+            # far outside the data): a rejected step for the fit engine
+            return np.full((L + 1, L + 1), np.nan)
+
+    # 1. Jacobian of every candidate at the start (forward differences)
+    x0 = {n: float(getattr(start, n)) for n in names}
+    m0 = model(x0)
+    if not np.all(np.isfinite(m0)):
+        raise CalibrationError("the model has no finite a_ij at the start parameters")
+    J = np.empty(m0.shape + (len(names),))
+    for k, n in enumerate(names):
+        lo, hi = candidates[n]
+        h = 0.02 * max(abs(x0[n]), 1e-3 * (hi - lo))
+        if x0[n] + h >= hi:
+            h = -h
+        J[..., k] = np.nan_to_num((model({**x0, n: x0[n] + h}) - m0) / h)
+    seconds["jacobian"] = time.perf_counter() - t0
+    # 2. which parameters the data need
+    if free is None:
+        chosen, selection = _select(J, m0 - table.a, table.sigma, mask, names,
+                                    max_params=max_params)
+    else:
+        chosen, selection = names, [{"parameter": n, "chi2_linear": None} for n in names]
+    if int(mask.sum()) < len(chosen):
+        raise CalibrationError(f"{int(mask.sum())} measured lags cannot constrain "
+                               f"{len(chosen)} parameters {chosen}")
+    cols = [names.index(n) for n in chosen]
+    t1 = time.perf_counter()
+    fit = fit_parameters(model, table.a, table.sigma, {n: x0[n] for n in chosen},
+                         {n: candidates[n] for n in chosen}, mask=mask, jacobian0=J[..., cols],
+                         max_evaluations=max_evaluations)
+    seconds["fit"] = time.perf_counter() - t1
+    params = start.replace(**fit.values)
+    poor = fit.dof > 0 and fit.chi2_dof > max_chi2_dof and fit.p_value < 1e-3
+    if poor and not allow_poor_fit:
+        worst = ", ".join(f"a{i}{j} pull {p:+.1f}" for (i, j), p in fit.worst(3))
+        raise CalibrationError(
+            f"poor fit of {chosen} to {table.source or 'the a-matrix'}: chi2/dof = "
+            f"{fit.chi2_dof:.2f} ({fit.chi2:.1f} for {fit.dof} dof, p = {fit.p_value:.1e}); "
+            f"worst lags: {worst}. The model cannot match these data within their errors; "
+            "check the errors, or pass allow_poor_fit=True (--allow-poor-fit) to build the "
+            "template anyway")
+    template = tpl_a = None
+    if build:
+        t2 = time.perf_counter()
+        if settings is None:
+            d = dict(load_default_template().meta.get("settings", {}))
+            d["aggressor_charge"] = CHARGE
+            settings = TemplateSettings.from_dict(d)
+        template = build_template(params, settings)
+        seconds["build"] = time.perf_counter() - t2
+        if refine:
+            t3 = time.perf_counter()
+            template = match_area_coefficients(template, np.where(mask, table.a, np.nan),
+                                               max_lag=min(L, template.center - 1))
+            seconds["refine"] = time.perf_counter() - t3
+        c = template.center
+        k = min(L, c - 1) + 1
+        tpl_a = np.full_like(table.a, np.nan)
+        tpl_a[:k, :k] = template_alpha(template)[c:c + k, c:c + k].T
+    seconds["total"] = time.perf_counter() - t0
+    bar.done = bar.total
+    if progress:
+        bar._draw(final=True)
+    result = CalibrationResult(params=params, fit=fit, table=table, model=fit.model,
+                               template_acoeffs=tpl_a, template=template, selection=selection,
+                               sum_rule=_sum_rule(table), seconds=seconds, poor_fit=poor,
+                               refined=bool(refine and build))
+    if template is not None:
+        template.meta["params"] = params.to_dict()
+        template.meta["calibration"] = {
+            "source": table.source, "date": datetime.datetime.now(datetime.timezone.utc)
+            .isoformat(timespec="seconds"), "names": fit.names, "values": fit.values,
+            "errors": fit.errors, "covariance": np.asarray(fit.covariance).tolist(),
+            "chi2": fit.chi2, "dof": fit.dof, "p_value": fit.p_value, "poor_fit": poor,
+            "refined": bool(refine), "max_lag": int(L), "a00_in_fit": bool(mask[0, 0])}
+    return result

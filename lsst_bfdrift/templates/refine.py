@@ -1,0 +1,138 @@
+"""Refinement of a template so that its pixel areas follow measured a_ij.
+
+A template computed from fitted model parameters reproduces a measured
+a-matrix only as well as the model can. :func:`match_area_coefficients` adds
+the smallest boundary change that makes the template's linear area response
+equal the measured a_ij at every measured lag: each edge's samples move
+along its normal by one amount (the model's profile along the edge is kept),
+and the amounts are the minimum-norm solution of the linearised area
+equations, iterated on the exact polygon areas. A minimum-norm set of edge
+shifts whose divergence is given is the gradient of a potential, so the
+added displacement field is curl-free, like an electrostatic one.
+Unmeasured lags keep the model's areas; the outer boundary of the template
+does not move.
+"""
+
+import numpy as np
+
+from lsst_bfdrift.templates.template import DistortionTemplate
+
+__all__ = ["template_alpha", "match_area_coefficients"]
+
+
+def template_alpha(template):
+    """Linear area response d A / d Q at Q = 0 of every pixel (1/e), shape (N, N).
+
+    Displacements scale linearly with the charge and areas are quadratic in
+    them, so alpha = (4 (A(Q/2) - 1) - (A(Q) - 1)) / Q exactly.
+    """
+    q = template.charge
+    full = template.moments(charge=q).area
+    half = template.moments(charge=0.5 * q).area
+    return (4.0 * (half - 1.0) - (full - 1.0)) / q
+
+
+def _with_edges(template, vedge_d, hedge_d, meta=None):
+    return DistortionTemplate(template.corner_d, vedge_d, hedge_d, template.fractions,
+                              template.charge, vedge_t=template.vedge_t,
+                              hedge_t=template.hedge_t,
+                              meta=template.meta if meta is None else meta)
+
+
+def _incidence(n):
+    """Sparse-free incidence of interior edges on pixel areas: (n*n, n_edges).
+
+    Vertical edge (j, i) (1 <= i <= n - 1) is the right edge of pixel
+    (j, i - 1) and the left edge of pixel (j, i); moving it by +u in x adds
+    u to the first and removes it from the second. Horizontal edges likewise
+    in y.
+    """
+    cols = []
+    for j in range(n):
+        for i in range(1, n):
+            col = np.zeros((n, n))
+            col[j, i - 1] += 1.0
+            col[j, i] -= 1.0
+            cols.append(col.ravel())
+    for j in range(1, n):
+        for i in range(n):
+            col = np.zeros((n, n))
+            col[j - 1, i] += 1.0
+            col[j, i] -= 1.0
+            cols.append(col.ravel())
+    return np.stack(cols, axis=1)
+
+
+def match_area_coefficients(template, a, *, max_lag=None, iterations=3, free_weight=0.05):
+    """Template whose linear area response equals measured a_ij.
+
+    Parameters
+    ----------
+    template : DistortionTemplate
+        Starting template (e.g. built from fitted sensor parameters).
+    a : array_like, shape (L + 1, L + 1)
+        Measured a_ij (1/e), indexed [i serial, j parallel], lags >= 0 (the
+        template's four quadrants get the same value); NaN marks a lag that
+        is not matched.
+    max_lag : int, optional
+        Match lags with max(i, j) <= ``max_lag`` only (default all of ``a``
+        that fit in the template).
+    iterations : int, optional
+        Newton iterations on the exact polygon areas.
+    free_weight : float, optional
+        Weight of the unmatched pixels' equations (keep their areas) relative
+        to the matched ones. The outer boundary is fixed, so the areas sum
+        to a constant: where the measured a_ij and the model's unmatched
+        lags do not sum to zero (the sum rule, which measured tables obey
+        only within their errors), the unmatched pixels take up the
+        difference instead of the matched ones.
+
+    Returns
+    -------
+    DistortionTemplate
+        A copy with shifted edge samples; ``meta['area_refined']`` records
+        the largest shift (px at the template's charge) and the lags matched.
+    """
+    if not isinstance(template, DistortionTemplate):
+        raise TypeError(f"template must be a DistortionTemplate, got {type(template).__name__}")
+    a = np.asarray(a, dtype=float)
+    if a.ndim != 2 or a.shape[0] != a.shape[1] or np.all(np.isnan(a)) or np.any(np.isinf(a)):
+        raise ValueError(f"a_ij must be a square array with finite values, got shape {a.shape}")
+    n, c = template.size, template.center
+    if max_lag is not None and not 0 <= int(max_lag) <= c - 1:
+        raise ValueError(f"max_lag must be in [0, {c - 1}] for a template of size {n}, "
+                         f"got {max_lag!r}")
+    L = min(a.shape[0] - 1, c - 1 if max_lag is None else int(max_lag))
+    q = template.charge
+    jj, ii = np.mgrid[0:n, 0:n]
+    di, dj = np.abs(ii - c), np.abs(jj - c)
+    matched = (di <= L) & (dj <= L)
+    matched[matched] = np.isfinite(a[di[matched], dj[matched]])
+    target_alpha = template_alpha(template)
+    target_alpha[matched] = a[di[matched], dj[matched]]
+    # The linear response changes by the divergence of the added shifts per
+    # unit charge; the equations are in alpha (1/e) and shifts at charge q.
+    M = _incidence(n)
+    # one unit shift of all samples of an edge (corners fixed) sweeps an
+    # area h_eff (px^2 per px of shift): measured on the template itself
+    probe = np.zeros_like(template.vedge_d)
+    probe[c, c] = 1.0
+    base = template.moments(charge=q).area
+    h_eff = (_with_edges(template, template.vedge_d + probe, template.hedge_d)
+             .moments(charge=q).area - base)[c, c - 1]
+    vd, hd = template.vedge_d.copy(), template.hedge_d.copy()
+    nv = n * (n - 1)
+    w = np.where(matched, 1.0, float(free_weight)).ravel()
+    total = 0.0
+    for _ in range(int(iterations)):
+        cur = template_alpha(_with_edges(template, vd, hd))
+        rhs = (target_alpha - cur).ravel() * q
+        u = np.linalg.lstsq(M * h_eff * w[:, None], rhs * w, rcond=None)[0]
+        uv = u[:nv].reshape(n, n - 1)
+        uh = u[nv:].reshape(n - 1, n)
+        vd[:, 1:n, :] += uv[:, :, None]
+        hd[1:n, :, :] += uh[:, :, None]
+        total = max(total, float(np.abs(u).max()))
+    meta = dict(template.meta)
+    meta["area_refined"] = {"max_lag": int(L), "largest_shift_px": total}
+    return _with_edges(template, vd, hd, meta)

@@ -1,0 +1,81 @@
+"""calibrate(): the model tuned to a-matrices GalSim computed (independent data)."""
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable
+from lsst_bfdrift.calibration.tuning import CalibrationError, calibrate
+from lsst_bfdrift.templates.template import TemplateSettings
+
+SMALL = TemplateSettings(size=7, edge_samples=4, tol=1e-4, aggressor_charge=1e4, workers=2)
+
+
+def galsim_alpha(name, max_lag, q=1e4):
+    """GalSim's linear area response d A / d Q (1/e), [i serial, j parallel],
+    from ``calculate_pixel_areas`` at two charges (areas quadratic in Q)."""
+    import galsim
+
+    sensor = galsim.SiliconSensor(name, diffusion_factor=0.0)
+    n = 2 * max_lag + 25
+    areas = []
+    for charge in (q, q / 2):
+        img = galsim.ImageD(n, n, scale=0.2)
+        img.setCenter(0, 0)
+        img[0, 0] = charge
+        areas.append(sensor.calculate_pixel_areas(img).array)
+    c = n // 2
+    alpha = (4 * (areas[1] - 1) - (areas[0] - 1)) / q
+    return alpha[c:c + max_lag + 1, c:c + max_lag + 1].T.copy()
+
+
+@pytest.fixture(scope="module")
+def itl():
+    a = galsim_alpha("lsst_itl_50_8", 2)
+    return AcoeffTable(a, 0.05 * np.abs(a) + 1e-10, source="galsim:lsst_itl_50_8")
+
+
+def test_calibrates_to_galsim_itl(itl):
+    """Two parameters fitted to GalSim's ITL a-matrix (lags <= 2, a00
+    included, 5 % errors): a reported fit with covariance; the refined
+    template's areas equal GalSim's at every fitted lag."""
+    res = calibrate(itl, free=["channel_depth", "xi_ck"], settings=SMALL,
+                    allow_poor_fit=True)
+    f = res.fit
+    assert f.names == ["channel_depth", "xi_ck"] and f.dof == 7
+    assert f.covariance.shape == (2, 2) and np.all(np.diag(f.covariance) > 0)
+    assert_allclose(np.diag(f.correlation), 1.0)
+    # the fit moved a00 towards GalSim's (the bundled default is 20 % too strong)
+    assert abs(f.model[0, 0] / itl.a[0, 0] - 1) < 0.15
+    assert_allclose(res.template_acoeffs, itl.a, rtol=0, atol=2e-10)
+    meta = res.template.meta["calibration"]
+    assert meta["names"] == f.names and meta["a00_in_fit"] and meta["refined"]
+    assert len(meta["covariance"]) == 2
+    s = res.summary()
+    assert {r["i"] * 10 + r["j"] for r in s["lags"]} == {0, 1, 2, 10, 11, 12, 20, 21, 22}
+    assert s["sum_rule"]["max_lag"] == 2
+
+
+def test_a00_only_frees_one_parameter(itl):
+    """A PTC that measures a00 alone: the data choose one parameter."""
+    a = np.array([[itl.a[0, 0]]])
+    res = calibrate(AcoeffTable(a, [[0.03 * abs(a[0, 0])]]), build=False)
+    assert len(res.fit.names) == 1 and res.fit.dof == 0
+    assert_allclose(res.fit.model[0, 0], a[0, 0], rtol=0.01)
+    assert res.template is None
+
+
+def test_poor_fit_is_an_error_naming_lags(itl):
+    """Errors far below the model's accuracy: refused, worst lags named."""
+    tight = AcoeffTable(itl.a, 1e-4 * np.abs(itl.a) + 1e-13, source="tight")
+    with pytest.raises(CalibrationError, match=r"poor fit .*worst lags: a\d\d pull"):
+        calibrate(tight, free=["channel_depth"], build=False)
+
+
+def test_bad_input(itl):
+    with pytest.raises(TypeError, match="AcoeffTable"):
+        calibrate(itl.a)
+    with pytest.raises(CalibrationError, match="unknown free parameters"):
+        calibrate(itl, free=["doping"])
+    with pytest.raises(CalibrationError, match="cannot constrain"):
+        calibrate(AcoeffTable([[itl.a[0, 0]]], [[1e-8]]), free=["channel_depth", "xi0"])

@@ -1,0 +1,73 @@
+"""Area refinement of templates: exact polygon areas, conservation, curl-free shifts."""
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from lsst_bfdrift.physics.sensor import SensorParameters
+from lsst_bfdrift.templates.refine import match_area_coefficients, template_alpha
+from lsst_bfdrift.templates.template import TemplateSettings, build_template
+
+
+@pytest.fixture(scope="module")
+def pair():
+    s = TemplateSettings(size=9, edge_samples=4, tol=1e-4, aggressor_charge=1e4, workers=2)
+    return (build_template(SensorParameters(), s),
+            build_template(SensorParameters(channel_depth=1.2, xi_ck=8.0), s))
+
+
+def test_alpha_is_the_linear_response(pair):
+    """alpha from two charges equals the finite-difference derivative of
+    the exact polygon areas at small charge."""
+    t = pair[0]
+    q = 1e-3 * t.charge
+    deriv = (t.moments(charge=q).area - t.moments(charge=-q).area) / (2 * q)
+    assert_allclose(template_alpha(t), deriv, rtol=1e-6, atol=1e-14)
+
+
+def test_matches_another_templates_areas(pair):
+    """Refining template A to template B's a_ij reproduces B's exact
+    polygon areas' linear response at the matched lags; the added edge
+    shifts are a gradient (zero circulation round every interior corner);
+    the corners and the outer boundary do not move; the area sum is kept."""
+    a_t, b_t = pair
+    c = a_t.center
+    target = template_alpha(b_t)[c:c + 4, c:c + 4].T  # lags 0..3, [i, j]
+    before = np.abs(template_alpha(a_t)[c:c + 4, c:c + 4].T / target - 1).max()
+    r = match_area_coefficients(a_t, target)
+    got = template_alpha(r)[c:c + 4, c:c + 4].T
+    assert before > 0.1
+    assert_allclose(got, target, rtol=0, atol=1e-10)  # a00 ~ 5e-6
+    assert_allclose(template_alpha(r).sum(), template_alpha(a_t).sum(), atol=1e-12)
+    assert_allclose(r.corner_d, a_t.corner_d, atol=0)
+    uv = (r.vedge_d - a_t.vedge_d)[..., 0]  # uniform along each edge
+    uh = (r.hedge_d - a_t.hedge_d)[..., 0]
+    assert_allclose(r.vedge_d - a_t.vedge_d, np.repeat(uv[..., None], 4, -1), atol=1e-15)
+    assert_allclose(uv[:, [0, -1]], 0, atol=0)
+    assert_allclose(uh[[0, -1], :], 0, atol=0)
+    # circulation round interior corner (J, I): right-hand loop of the shift field
+    circ = uv[1:, 1:-1] - uv[:-1, 1:-1] - (uh[1:-1, 1:] - uh[1:-1, :-1])
+    assert np.abs(circ).max() < 1e-3 * np.abs(uv).max()
+    assert r.meta["area_refined"]["max_lag"] == 3
+
+
+def test_nan_lags_are_not_matched(pair):
+    a_t, b_t = pair
+    c = a_t.center
+    target = template_alpha(b_t)[c:c + 3, c:c + 3].T.copy()
+    target[2, 2] = np.nan
+    r = match_area_coefficients(a_t, target)
+    got = template_alpha(r)[c:c + 3, c:c + 3].T
+    assert_allclose(got[:2, :2], target[:2, :2], rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("a, kw, err, match", [
+    (np.zeros((2, 3)), {}, ValueError, "square"),
+    (np.full((2, 2), np.inf), {}, ValueError, "finite"),
+    (np.zeros((2, 2)), {"max_lag": 9}, ValueError, "max_lag"),
+])
+def test_bad_input(pair, a, kw, err, match):
+    with pytest.raises(err, match=match):
+        match_area_coefficients(pair[0], a, **kw)
+    with pytest.raises(TypeError, match="DistortionTemplate"):
+        match_area_coefficients("template.fits", np.zeros((2, 2)))
