@@ -219,14 +219,24 @@ def fit_parameters(model, data, sigma, start, bounds, *, mask=None, jacobian0=No
         cols = []
         for k in range(n):
             h = diff_step * scale[k]
-            xp = x.copy()
-            xp[k] = min(x[k] + h, hi[k] - 1e-9 * span[k] if np.isfinite(span[k]) else x[k] + h)
-            if central:
-                xm = x.copy()
-                xm[k] = max(x[k] - h, lo[k] + 1e-9 * span[k] if np.isfinite(span[k]) else x[k] - h)
-                cols.append((evaluate(xp) - evaluate(xm)) / (xp[k] - xm[k]))
-            else:
-                cols.append((evaluate(xp) - evaluate(x)) / (xp[k] - x[k]))
+            col = None
+            for sgn in (1.0, -1.0):  # the other side where the model fails on one
+                xp = x.copy()
+                xp[k] = x[k] + sgn * h
+                if not lo[k] < xp[k] < hi[k]:
+                    continue
+                if central:
+                    xm = x.copy()
+                    xm[k] = x[k] - sgn * h
+                    if not lo[k] < xm[k] < hi[k]:
+                        xm = x
+                    c = (evaluate(xp) - evaluate(xm)) / (xp[k] - xm[k])
+                else:
+                    c = (evaluate(xp) - evaluate(x)) / (xp[k] - x[k])
+                if np.all(np.isfinite(c[mask])):
+                    col = c
+                    break
+            cols.append(np.zeros(data.shape) if col is None else np.nan_to_num(col))
         return np.stack(cols, axis=-1)
 
     m0 = evaluate(x0)
@@ -292,6 +302,8 @@ def fit_parameters(model, data, sigma, start, bounds, *, mask=None, jacobian0=No
     cov_u = np.linalg.pinv(A.T @ A)
     cov = cov_u * np.outer(scale, scale)
     err = np.sqrt(np.clip(np.diag(cov), 0, None))
+    dead = ~np.any(A, axis=0)  # no derivative could be taken: unconstrained
+    err[dead] = np.inf
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(err, err)
     bar.done = bar.total

@@ -349,5 +349,10 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
             .isoformat(timespec="seconds"), "names": fit.names, "values": fit.values,
             "errors": fit.errors, "covariance": np.asarray(fit.covariance).tolist(),
             "chi2": fit.chi2, "dof": fit.dof, "p_value": fit.p_value, "poor_fit": poor,
-            "refined": bool(refine), "max_lag": int(L), "a00_in_fit": bool(mask[0, 0])}
+            "refined": bool(refine), "max_lag": int(L), "a00_in_fit": bool(mask[0, 0]),
+            "uncertainty": (
+                {"kind": "data", "sigma": np.where(mask, table.sigma, np.nan).tolist()}
+                if refine else
+                {"kind": "parameters", "jacobian": np.asarray(fit.jacobian).tolist(),
+                 "covariance": np.asarray(fit.covariance).tolist(), "names": fit.names})}
     return result

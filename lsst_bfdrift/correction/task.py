@@ -16,6 +16,7 @@ from lsst_bfdrift.utils.config import ChoiceField, Config, Field, Struct, Task
 from lsst_bfdrift.correction.solvers import (area_coefficients, correct_coulton18, correct_half_shift,
                          correct_image, coulton18_kernel)
 from lsst_bfdrift.geometry.superpose import moment_maps
+from lsst_bfdrift.templates.refine import draw_templates
 from lsst_bfdrift.templates.swept import OperatorCache
 from lsst_bfdrift.templates.template import DistortionTemplate, load_default_template
 
@@ -82,6 +83,37 @@ class BrighterFatterDriftConfig(Config):
                              "template's own", int, default=8, optional=True,
                              check=lambda v: v >= 1)
     workers = Field("FFT threads", int, default=2, check=lambda v: v >= 1)
+    uncertainty_draws = Field("templates drawn from the calibration uncertainty stored in a "
+                              "calibrated template (bfdrift calibrate) to give flux_moved_err, "
+                              "the standard deviation of flux_moved; each costs one more "
+                              "correction; 0: off", int, default=0,
+                              check=lambda v: v == 0 or v >= 2)
+    uncertainty_seed = Field("seed of the template draws", int, default=0)
+
+
+def _correct(data, template, blocked, cfg, dtype, cache):
+    """The configured correction of ``data`` with ``template``: (flux,
+    iterations, converged, order, density, solver info)."""
+    order = 2 if cfg.method == "astier23" else cfg.order
+    density = "mean2" if cfg.method == "astier23" else cfg.density
+    solver = {}
+    if cfg.method == "astier23":
+        flux, iterations, converged = correct_half_shift(
+            data, template, blocked=blocked, workers=cfg.workers, dtype=dtype,
+            strip=cfg.strip, cache=cache)
+    elif cfg.method == "coulton18":
+        order = density = "n/a"
+        kernel = coulton18_kernel(area_coefficients(template))
+        flux, iterations, converged = correct_coulton18(
+            data, kernel, blocked=blocked, max_iter=cfg.max_iter, rtol=cfg.rtol,
+            workers=cfg.workers)
+    else:
+        flux, iterations, converged = correct_image(
+            data, template, order=order, density=density, blocked=blocked,
+            max_iter=cfg.max_iter, rtol=cfg.rtol, noise_tol=cfg.noise_tol, start=cfg.start,
+            workers=cfg.workers, dtype=dtype, strip=cfg.strip, sparse=cfg.sparse,
+            cache=cache, info=solver)
+    return flux, iterations, converged, order, density, solver
 
 
 def unpack_exposure(exposure, gain_cfg):
@@ -209,7 +241,9 @@ class BrighterFatterDriftTask(Task):
             ``exposure`` (corrected, same type as given; mask and uncertainty
             carried), ``area``, ``centroid_x``, ``centroid_y`` (shift from the
             pixel centre, px), ``e1``, ``e2`` (None if ``compute_geometry`` is
-            off), ``flux_moved`` (e; sums to zero), ``flags`` (uint8, bits
+            off), ``flux_moved`` (e; sums to zero), ``flux_moved_err`` (e; its
+            standard deviation over templates drawn from the calibration
+            uncertainty, None unless ``uncertainty_draws``), ``flags`` (uint8, bits
             FLAG_BLOCKED, FLAG_EDGE), ``iterations``, ``converged``.
         """
         cfg = self.config
@@ -237,27 +271,13 @@ class BrighterFatterDriftTask(Task):
                                maps=("area", "dx", "dy", "e1", "e2"))  # only those returned
             geom = dict(area=maps.area, centroid_x=maps.dx, centroid_y=maps.dy, e1=maps.e1,
                         e2=maps.e2)
-        order = 2 if cfg.method == "astier23" else cfg.order
-        density = "mean2" if cfg.method == "astier23" else cfg.density
-        if cfg.method == "astier23":
-            flux, iterations, converged = correct_half_shift(
-                data, self.template, blocked=blocked, workers=cfg.workers, dtype=dtype,
-                strip=cfg.strip, cache=self._operators(dtype))
-        elif cfg.method == "coulton18":
-            order = density = "n/a"
-            kernel = coulton18_kernel(area_coefficients(self.template))
-            flux, iterations, converged = correct_coulton18(
-                data, kernel, blocked=blocked, max_iter=cfg.max_iter, rtol=cfg.rtol,
-                workers=cfg.workers)
-        else:
-            solver = {}
-            flux, iterations, converged = correct_image(
-                data, self.template, order=order, density=density, blocked=blocked,
-                max_iter=cfg.max_iter, rtol=cfg.rtol, noise_tol=cfg.noise_tol, start=cfg.start,
-                workers=cfg.workers, dtype=dtype, strip=cfg.strip, sparse=cfg.sparse,
-                cache=self._operators(dtype), info=solver)
+        flux, iterations, converged, order, density, solver = _correct(
+            data, self.template, blocked, cfg, dtype, self._operators(dtype))
         moved = flux - finite_data
         moved[blocked] = 0.0
+        moved_err = None
+        if cfg.uncertainty_draws:
+            moved_err = self._flux_moved_error(data, finite_data, blocked, moved, dtype)
         flags = blocked.astype(np.uint8)  # FLAG_BLOCKED = 1
         c = self.template.center
         for sl in (np.s_[:c], np.s_[-c:], np.s_[:, :c], np.s_[:, -c:]):
@@ -291,5 +311,22 @@ class BrighterFatterDriftTask(Task):
             out = CCDData(out_data, unit=unit, mask=blocked, meta=header)
         else:
             out = out_data
-        return Struct(exposure=out, flux_moved=moved, flags=flags, iterations=iterations,
-                      converged=bool(converged), header=header, **geom)
+        if moved_err is not None:
+            header["BFUNCN"] = (cfg.uncertainty_draws, "template draws of flux_moved_err")
+        return Struct(exposure=out, flux_moved=moved, flux_moved_err=moved_err, flags=flags,
+                      iterations=iterations, converged=bool(converged), header=header, **geom)
+
+    def _flux_moved_error(self, data, finite_data, blocked, moved, dtype):
+        """Standard deviation of flux_moved over templates drawn from the
+        calibration uncertainty (templates.refine.draw_templates)."""
+        cfg = self.config
+        draws = draw_templates(self.template, cfg.uncertainty_draws, seed=cfg.uncertainty_seed)
+        acc = np.zeros_like(moved)
+        for tpl in draws:
+            cache = OperatorCache(tpl, workers=cfg.workers, dtype=dtype)
+            flux = _correct(data, tpl, blocked, cfg, dtype, cache)[0]
+            d = flux - finite_data
+            d[blocked] = 0.0
+            d -= moved
+            acc += d * d
+        return np.sqrt(acc / max(len(draws) - 1, 1))

@@ -17,7 +17,7 @@ import numpy as np
 
 from lsst_bfdrift.templates.template import DistortionTemplate
 
-__all__ = ["template_alpha", "match_area_coefficients"]
+__all__ = ["template_alpha", "match_area_coefficients", "draw_templates"]
 
 
 def template_alpha(template):
@@ -63,6 +63,41 @@ def _incidence(n):
     return np.stack(cols, axis=1)
 
 
+def _matched(template, a, L):
+    """Pixels [J, I] of the template whose lag (|I - c|, |J - c|) is matched."""
+    n, c = template.size, template.center
+    jj, ii = np.mgrid[0:n, 0:n]
+    di, dj = np.abs(ii - c), np.abs(jj - c)
+    matched = (di <= L) & (dj <= L)
+    matched[matched] = np.isfinite(a[di[matched], dj[matched]])
+    return matched
+
+
+def _edge_solver(template, matched, free_weight):
+    """solve(d_alpha, vedge_d, hedge_d) -> (vedge_d', hedge_d', largest shift): the
+    minimum-norm uniform edge shifts whose area change is d_alpha (1/e per pixel)."""
+    n, c, q = template.size, template.center, template.charge
+    M = _incidence(n)
+    # one unit shift of all samples of an edge (corners fixed) sweeps an
+    # area h_eff (px^2 per px of shift): measured on the template itself
+    probe = np.zeros_like(template.vedge_d)
+    probe[c, c] = 1.0
+    base = template.moments(charge=q).area
+    h_eff = (_with_edges(template, template.vedge_d + probe, template.hedge_d)
+             .moments(charge=q).area - base)[c, c - 1]
+    w = np.where(matched, 1.0, float(free_weight)).ravel()
+    pinv = np.linalg.pinv(M * h_eff * w[:, None])
+    nv = n * (n - 1)
+
+    def solve(d_alpha, vd, hd):
+        u = pinv @ (np.asarray(d_alpha).ravel() * q * w)
+        vd, hd = vd.copy(), hd.copy()
+        vd[:, 1:n, :] += u[:nv].reshape(n, n - 1)[:, :, None]
+        hd[1:n, :, :] += u[nv:].reshape(n - 1, n)[:, :, None]
+        return vd, hd, float(np.abs(u).max())
+    return solve
+
+
 def match_area_coefficients(template, a, *, max_lag=None, iterations=3, free_weight=0.05):
     """Template whose linear area response equals measured a_ij.
 
@@ -103,36 +138,92 @@ def match_area_coefficients(template, a, *, max_lag=None, iterations=3, free_wei
         raise ValueError(f"max_lag must be in [0, {c - 1}] for a template of size {n}, "
                          f"got {max_lag!r}")
     L = min(a.shape[0] - 1, c - 1 if max_lag is None else int(max_lag))
-    q = template.charge
+    matched = _matched(template, a, L)
+    target_alpha = template_alpha(template)
     jj, ii = np.mgrid[0:n, 0:n]
     di, dj = np.abs(ii - c), np.abs(jj - c)
-    matched = (di <= L) & (dj <= L)
-    matched[matched] = np.isfinite(a[di[matched], dj[matched]])
-    target_alpha = template_alpha(template)
     target_alpha[matched] = a[di[matched], dj[matched]]
-    # The linear response changes by the divergence of the added shifts per
-    # unit charge; the equations are in alpha (1/e) and shifts at charge q.
-    M = _incidence(n)
-    # one unit shift of all samples of an edge (corners fixed) sweeps an
-    # area h_eff (px^2 per px of shift): measured on the template itself
-    probe = np.zeros_like(template.vedge_d)
-    probe[c, c] = 1.0
-    base = template.moments(charge=q).area
-    h_eff = (_with_edges(template, template.vedge_d + probe, template.hedge_d)
-             .moments(charge=q).area - base)[c, c - 1]
-    vd, hd = template.vedge_d.copy(), template.hedge_d.copy()
-    nv = n * (n - 1)
-    w = np.where(matched, 1.0, float(free_weight)).ravel()
+    solve = _edge_solver(template, matched, free_weight)
+    vd, hd = template.vedge_d, template.hedge_d
     total = 0.0
     for _ in range(int(iterations)):
         cur = template_alpha(_with_edges(template, vd, hd))
-        rhs = (target_alpha - cur).ravel() * q
-        u = np.linalg.lstsq(M * h_eff * w[:, None], rhs * w, rcond=None)[0]
-        uv = u[:nv].reshape(n, n - 1)
-        uh = u[nv:].reshape(n - 1, n)
-        vd[:, 1:n, :] += uv[:, :, None]
-        hd[1:n, :, :] += uh[:, :, None]
-        total = max(total, float(np.abs(u).max()))
+        vd, hd, big = solve(target_alpha - cur, vd, hd)
+        total = max(total, big)
     meta = dict(template.meta)
     meta["area_refined"] = {"max_lag": int(L), "largest_shift_px": total}
     return _with_edges(template, vd, hd, meta)
+
+
+def draw_templates(template, n, *, seed=0):
+    """Templates drawn from the calibration uncertainty stored in ``template``.
+
+    The uncertainty is that of the template's linear area response at the
+    calibrated lags, ``template.meta['calibration']['uncertainty']``, written
+    by :func:`~lsst_bfdrift.calibration.tuning.calibrate`:
+
+    * ``kind='data'`` (a refined template, whose areas are the measured
+      a_ij): independent Gaussian errors ``sigma`` [i, j] (1/e) per lag;
+    * ``kind='parameters'``: d a_ij / d parameter (``jacobian``, [i, j, k])
+      times a Gaussian draw of the fitted parameters (``covariance``).
+
+    Each draw of the a_ij change is turned into edge shifts by the same
+    minimum-norm curl-free solution as :func:`match_area_coefficients`, so
+    that the draws differ from ``template`` by exactly the drawn area
+    response (to first order).
+
+    Parameters
+    ----------
+    template : DistortionTemplate
+        A calibrated template.
+    n : int
+        Number of draws.
+    seed : int, optional
+        Seed of the random generator.
+
+    Returns
+    -------
+    list of DistortionTemplate
+
+    Raises
+    ------
+    ValueError
+        The template carries no calibration uncertainty.
+    """
+    unc = (template.meta.get("calibration") or {}).get("uncertainty")
+    if not unc:
+        raise ValueError("the template carries no calibration uncertainty (meta['calibration']"
+                         "['uncertainty']): calibrate it with lsst_bfdrift.calibration.calibrate")
+    if int(n) < 1:
+        raise ValueError(f"n must be a positive number of draws, got {n!r}")
+    rng = np.random.default_rng(seed)
+    c = template.center
+    if unc["kind"] == "data":
+        sigma = np.asarray(unc["sigma"], float)
+
+        def delta():
+            return np.where(np.isfinite(sigma), rng.normal(0.0, np.nan_to_num(sigma)), np.nan)
+    elif unc["kind"] == "parameters":
+        jac = np.asarray(unc["jacobian"], float)
+        cov = np.asarray(unc["covariance"], float)
+        sigma = jac[..., 0]
+
+        def delta():
+            return jac @ rng.multivariate_normal(np.zeros(cov.shape[0]), cov)
+    else:
+        raise ValueError(f"unknown uncertainty kind {unc['kind']!r}")
+    L = min(sigma.shape[0] - 1, c - 1)
+    matched = _matched(template, np.where(np.isfinite(sigma), 0.0, np.nan), L)
+    solve = _edge_solver(template, matched, 0.05)
+    jj, ii = np.mgrid[0:template.size, 0:template.size]
+    di, dj = np.abs(ii - c), np.abs(jj - c)
+    out = []
+    for k in range(int(n)):
+        d = delta()
+        full = np.zeros((template.size, template.size))
+        full[matched] = d[di[matched], dj[matched]]
+        vd, hd, _ = solve(full, template.vedge_d, template.hedge_d)
+        meta = dict(template.meta)
+        meta["draw"] = {"index": k, "seed": int(seed)}
+        out.append(_with_edges(template, vd, hd, meta))
+    return out

@@ -79,3 +79,51 @@ def test_bad_input(itl):
         calibrate(itl, free=["doping"])
     with pytest.raises(CalibrationError, match="cannot constrain"):
         calibrate(AcoeffTable([[itl.a[0, 0]]], [[1e-8]]), free=["channel_depth", "xi0"])
+
+
+def test_uncertainty_travels_with_the_file(itl, tmp_path):
+    """The calibrated template saves and reloads with its covariance and
+    provenance; draws from it scatter the area response by the stored
+    errors (seeded: the scatter over 200 draws is within 15 % of sigma)."""
+    from lsst_bfdrift.templates.refine import draw_templates, template_alpha
+    from lsst_bfdrift.templates.template import DistortionTemplate
+
+    res = calibrate(itl, free=["channel_depth"], settings=SMALL, allow_poor_fit=True)
+    path = tmp_path / "cal.fits"
+    res.template.save(path)
+    back = DistortionTemplate.load(path)
+    cal = back.meta["calibration"]
+    assert cal["source"] == "galsim:lsst_itl_50_8" and cal["names"] == ["channel_depth"]
+    assert_allclose(cal["covariance"], res.fit.covariance)
+    assert_allclose(np.asarray(cal["uncertainty"]["sigma"]), itl.sigma)
+    draws = draw_templates(back, 200, seed=3)
+    c = back.center
+    da = np.array([template_alpha(d)[c:c + 3, c:c + 3].T for d in draws]) \
+        - template_alpha(back)[c:c + 3, c:c + 3].T
+    assert_allclose(da.std(axis=0), itl.sigma, rtol=0.15)
+    assert_allclose(da.mean(axis=0), 0.0, atol=0.25 * itl.sigma.max())
+    with pytest.raises(ValueError, match="no calibration uncertainty"):
+        draw_templates(DistortionTemplate.load(path).__class__(
+            back.corner_d, back.vedge_d, back.hedge_d, back.fractions, back.charge), 2)
+
+
+def test_task_gives_flux_moved_error(itl):
+    """The Task's flux_moved_err from a calibrated template: positive where
+    flux moves, zero where nothing moves, and of the size expected from the
+    a_ij errors (5 %): a few percent of |flux_moved| at a bright star."""
+    from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask
+
+    res = calibrate(itl, free=["channel_depth"], settings=SMALL, allow_poor_fit=True)
+    y, x = np.mgrid[:48, :48]
+    img = 1e5 * np.exp(-((x - 24.3) ** 2 + (y - 23.8) ** 2) / (2 * 1.6**2)) + 500.0
+    cfg = BrighterFatterDriftConfig(compute_geometry=False, uncertainty_draws=8)
+    out = BrighterFatterDriftTask(config=cfg, template=res.template).run(img)
+    err, moved = out.flux_moved_err, out.flux_moved
+    core = np.abs(moved) > 0.1 * np.abs(moved).max()
+    ratio = np.median(err[core] / np.abs(moved[core]))
+    assert 0.005 < ratio < 0.15
+    assert out.header["BFUNCN"] == 8
+    plain = BrighterFatterDriftTask(
+        config=BrighterFatterDriftConfig(compute_geometry=False), template=res.template).run(img)
+    assert plain.flux_moved_err is None
+    assert_allclose(plain.flux_moved, moved, atol=0)
