@@ -29,7 +29,7 @@ by up to one interval, which weakens the simulated effect by about
 
 import numpy as np
 
-__all__ = ["shoot_stamp_photons", "sky_box", "accumulate_twins"]
+__all__ = ["shoot_stamp_photons", "sky_box", "accumulate_twins", "galsim_acoeffs"]
 
 #: pixels added on each side of the sky box, so that diffusion is balanced at its border
 SKY_MARGIN = 3
@@ -240,3 +240,46 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
             im = full
         images.append(im.array.copy())
     return images, n_sky
+
+
+def galsim_acoeffs(sensor, max_lag=8, *, charge=1e4):
+    """GalSim's own a-matrix of a sensor: the linear area response per electron.
+
+    ``galsim.SiliconSensor(sensor).calculate_pixel_areas`` of an image with
+    one pixel holding ``charge`` and ``charge / 2`` electrons (no
+    diffusion); areas are quadratic in the charge (GalSim moves the vertices
+    linearly), so alpha = (4 (A(Q/2) - 1) - (A(Q) - 1)) / Q is the exact
+    d A / d Q at Q = 0, the a_ij that flats of that sensor measure.
+
+    Parameters
+    ----------
+    sensor : str
+        GalSim sensor name (e.g. ``lsst_itl_50_8``).
+    max_lag : int, optional
+        Largest lag.
+    charge : float, optional
+        Aggressor charge (e) of the evaluation.
+
+    Returns
+    -------
+    ndarray, shape (max_lag + 1, max_lag + 1)
+        a[i, j] (1/e), i serial (x), j parallel (y).
+    """
+    import galsim
+
+    if int(max_lag) != max_lag or max_lag < 0:
+        raise ValueError(f"max_lag must be a non-negative integer, got {max_lag!r}")
+    if not charge > 0:
+        raise ValueError(f"charge must be positive, got {charge!r}")
+    L = int(max_lag)
+    sim = galsim.SiliconSensor(sensor, diffusion_factor=0.0)
+    n = 2 * L + 25
+    areas = []
+    for q in (charge, charge / 2):
+        img = galsim.ImageD(n, n, scale=0.2)
+        img.setCenter(0, 0)
+        img[0, 0] = q
+        areas.append(sim.calculate_pixel_areas(img).array)
+    c = n // 2
+    alpha = (4 * (areas[1] - 1) - (areas[0] - 1)) / charge
+    return alpha[c:c + L + 1, c:c + L + 1].T.copy()

@@ -6,32 +6,15 @@ from numpy.testing import assert_allclose
 
 from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable
 from lsst_bfdrift.calibration.tuning import CalibrationError, calibrate
+from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 from lsst_bfdrift.templates.template import TemplateSettings
 
 SMALL = TemplateSettings(size=7, edge_samples=4, tol=1e-4, aggressor_charge=1e4, workers=2)
 
 
-def galsim_alpha(name, max_lag, q=1e4):
-    """GalSim's linear area response d A / d Q (1/e), [i serial, j parallel],
-    from ``calculate_pixel_areas`` at two charges (areas quadratic in Q)."""
-    import galsim
-
-    sensor = galsim.SiliconSensor(name, diffusion_factor=0.0)
-    n = 2 * max_lag + 25
-    areas = []
-    for charge in (q, q / 2):
-        img = galsim.ImageD(n, n, scale=0.2)
-        img.setCenter(0, 0)
-        img[0, 0] = charge
-        areas.append(sensor.calculate_pixel_areas(img).array)
-    c = n // 2
-    alpha = (4 * (areas[1] - 1) - (areas[0] - 1)) / q
-    return alpha[c:c + max_lag + 1, c:c + max_lag + 1].T.copy()
-
-
 @pytest.fixture(scope="module")
 def itl():
-    a = galsim_alpha("lsst_itl_50_8", 2)
+    a = galsim_acoeffs("lsst_itl_50_8", 2)
     return AcoeffTable(a, 0.05 * np.abs(a) + 1e-10, source="galsim:lsst_itl_50_8")
 
 

@@ -132,3 +132,28 @@ def test_field_sky_is_level_across_the_boxes_and_stars_do_not_depend_on_it():
         # 7-8 px out; the diffusion ring without feed is ~ +-160 e (20 % of the sky)
         for v in (edge, out):
             assert abs(v - sky) < 5 * np.sqrt(sky / n_edge) + 15.0
+
+
+def test_galsim_acoeffs_is_the_linear_response():
+    """GalSim's a-matrix: the sum rule holds inside GalSim's stamp (its
+    outer boundary does not move; the quadrant sum is exact to the stamp's
+    small asymmetry, 0.3 % of a00), the parallel neighbour is the stronger,
+    and the two-charge formula equals a small-charge finite difference."""
+    import galsim
+
+    from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
+
+    a = galsim_acoeffs("lsst_itl_50_8", 5)
+    mult = np.ones_like(a)
+    mult[1:] *= 2
+    mult[:, 1:] *= 2
+    assert abs((a * mult).sum()) < 5e-3 * abs(a[0, 0])
+    assert a[0, 0] < 0 and a[0, 1] > a[1, 0] > 0
+    sim = galsim.SiliconSensor("lsst_itl_50_8", diffusion_factor=0.0)
+    img = galsim.ImageD(31, 31, scale=0.2)
+    img.setCenter(0, 0)
+    img[0, 0] = 10.0
+    small = (sim.calculate_pixel_areas(img).array[15, 15:18] - 1) / 10.0
+    np.testing.assert_allclose(a[:3, 0], small, rtol=1e-4)
+    with pytest.raises(ValueError, match="max_lag"):
+        galsim_acoeffs("lsst_itl_50_8", -1)
