@@ -69,7 +69,10 @@ class ParameterFit:
     seconds : float
         Wall time.
     converged : bool
-        The relative change of chi2 fell below the tolerance.
+        The change of chi2 fell below the tolerance.
+    at_bound : list of str
+        Parameters that ended within 1e-4 of the span of a bound: their
+        errors describe the curvature there, not a confidence interval.
     """
 
     def __init__(self, **kw):
@@ -110,7 +113,7 @@ class ParameterFit:
                 "correlation": np.asarray(self.correlation).tolist(), "chi2": self.chi2,
                 "dof": self.dof, "chi2_dof": self.chi2_dof, "p_value": self.p_value,
                 "n_evaluations": self.n_evaluations, "seconds": self.seconds,
-                "converged": self.converged}
+                "converged": self.converged, "at_bound": self.at_bound}
 
 
 def _check_inputs(data, sigma, mask, start, bounds):
@@ -309,7 +312,8 @@ def fit_parameters(model, data, sigma, start, bounds, *, mask=None, jacobian0=No
     bar.done = bar.total
     if progress:
         bar._draw(final=True)
-    return ParameterFit(names=names, values=dict(zip(names, map(float, x))),
+    near = np.isfinite(span) & ((x - lo < 1e-4 * span) | (hi - x < 1e-4 * span))
+    return ParameterFit(at_bound=[k for k, b in zip(names, near) if b],names=names, values=dict(zip(names, map(float, x))),
                         errors=dict(zip(names, map(float, err))),
                         start=dict(zip(names, map(float, x0))), covariance=cov,
                         correlation=corr, data=data, sigma=np.array(sigma), model=evaluate(x),

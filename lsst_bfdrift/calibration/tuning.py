@@ -144,6 +144,7 @@ class CalibrationResult:
                 "correlation": np.asarray(f.correlation).tolist(), "names": f.names,
                 "chi2": f.chi2, "dof": f.dof, "chi2_dof": f.chi2_dof, "p_value": f.p_value,
                 "worst_lags": [{"lag": list(k), "pull": p} for k, p in f.worst(3)],
+                "at_bound": f.at_bound,
                 "lags": [dict(zip(("i", "j", "a", "sigma", "model", "pull", "template"), r))
                          for r in self.lag_rows()],
                 "selection": self.selection, "sum_rule": self.sum_rule,

@@ -92,6 +92,7 @@ def test_bounds_are_respected():
 
     fit = fit_parameters(model, np.array([5.0, 5.0]), 1.0, {"a": 0.5}, {"a": (0.0, 1.0)})
     assert 0.99 < fit.values["a"] < 1.0
+    assert fit.at_bound == ["a"]
 
 
 @pytest.mark.parametrize("kwargs, match", [
