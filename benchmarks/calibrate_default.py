@@ -1,136 +1,101 @@
-"""Calibrate the default template to the measured ITL area coefficients.
+"""Calibrate the bundled default template to the measured ITL a-matrix.
 
-Fits the sensor model's three free scales -- xi0 (SI value of the dipole
-unit), the buried-channel depth and the clock-pair separation -- with
-:func:`lsst_bfdrift.calibration.sensor_fit.fit_sensor_parameters` so that a template
-for a 1e4 e aggressor reproduces the measured a01, a10, a11, a02, a20 of
-``shared/data/measured/itl_covariances_21oct19.txt`` (a_ij per e; the
-file's (i, j) = (serial, parallel): its larger nearest neighbour, (0, 1), is
-the parallel one). a00 is left out of the chi2: in that file it was set by
-the area sum rule, not measured on its own. Targets are A_ij = exp(a_ij Q)
-with sigma(A_ij) = sigma(a_ij) Q, Q = 1e4 e; the bisection tolerance 1e-5 px
-keeps the template noise well below those errors.
+The default describes one real sensor: the LSST ITL sensor whose area
+coefficients a_ij (9 x 9 lags, i serial, j parallel) are in
+``shared/data/measured/itl_covariances_21oct19.txt`` (Poisson_CCD
+repository). :func:`lsst_bfdrift.calibration.tuning.calibrate` fits every
+lag, a00 included: in this file a00 equals minus the sum of the other lags
+(the area sum rule, which BF obeys), so including it imposes the sum rule on
+the model. The parameters are chosen by the data from the candidates,
+starting from Rasmussen 2015's structure with the ITL fit of the
+collected-charge dipole (xi0 = 2952 e, channel depth 0.368 um, collection
+height 0.5 um). The fitted values, rounded to four significant digits, are
+the defaults of :class:`~lsst_bfdrift.physics.sensor.SensorParameters`
+(``SensorParameters()`` is this sensor); the template is built from them
+with the bundled settings and its areas refined to the measured a_ij.
 
-Prints the fit and writes ``benchmarks/default_calibration_results.json``
-and ``.txt``; with ``--write-config`` it also writes the fitted parameters
-and the provenance into ``lsst_bfdrift/data/default_template_config.json``
-(then rebuild the FITS file with ``python scripts/make_sample_data.py
---template``).
+Prints the fit, writes ``benchmarks/default_calibration_results.txt`` /
+``.json``; with ``--write`` it also writes ``lsst_bfdrift/data/
+default_template.fits`` and ``default_template_config.json``::
 
-    python benchmarks/calibrate_default.py [--write-config]
+    python benchmarks/calibrate_default.py [--write]
 """
 
 import argparse
-import datetime
 import json
 import os
 import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-
-from lsst_bfdrift.calibration.sensor_fit import fit_sensor_parameters, template_numbers  # noqa: E402
-from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
-from lsst_bfdrift.physics.sensor import SensorParameters  # noqa: E402
-from lsst_bfdrift.templates.template import TemplateSettings  # noqa: E402
-
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.join(HERE, "..")
-ITL = os.path.join(ROOT, "..", "..", "shared", "data", "measured",
-                   "itl_covariances_21oct19.txt")
-if not os.path.exists(ITL):  # worktrees live one level deeper than the main checkout
-    ITL = os.path.join(ROOT, "..", "shared", "data", "measured", "itl_covariances_21oct19.txt")
-CONFIG = os.path.join(ROOT, "lsst_bfdrift", "data", "default_template_config.json")
+sys.path.insert(0, ROOT)
 
-Q = 1e4
-LAGS = ((0, 1), (1, 0), (1, 1), (0, 2), (2, 0))
-FREE = {"xi0": (1e3, 1e5), "channel_depth": (0.3, 12.0), "clock_separation": (0.5, 8.0)}
-#: Start: the end of a first exploration from (4722 e, 0.8 um, 3.0 um), which
-#: walked along a shallow valley (chi2 from 69 to 1.0 in 86 templates) towards
-#: the smallest clock-pair separation allowed (docs/calibration.rst).
-START = SensorParameters(xi0=2952.0, channel_depth=0.368, clock_separation=0.52,
-                         collection_height=0.5)
-FIT_SETTINGS = TemplateSettings(size=5, edge_samples=32, tol=1e-5, aggressor_charge=Q,
-                                workers=1)
+from lsst_bfdrift.calibration.acoeff_fit import read_acoeff_table  # noqa: E402
+from lsst_bfdrift.calibration.tuning import CHARGE, calibrate  # noqa: E402
+from lsst_bfdrift.physics.sensor import SensorParameters  # noqa: E402
+from lsst_bfdrift.templates.refine import match_area_coefficients  # noqa: E402
+from lsst_bfdrift.templates.template import TemplateSettings, build_template  # noqa: E402
+from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
+
+ITL = os.path.join(ROOT, "..", "shared", "data", "measured", "itl_covariances_21oct19.txt")
+DATA = os.path.join(ROOT, "lsst_bfdrift", "data")
+#: the start: Rasmussen 2015's structure with the charge dipole of the earlier ITL fit
+START = SensorParameters.paper().replace(xi0=2952.0, channel_depth=0.368,
+                                         clock_separation=0.52, collection_height=0.5)
 #: settings of the shipped default template
-DEFAULT_SETTINGS = {"size": 21, "edge_samples": 32, "aggressor_charge": Q, "tol": 1e-5}
-
-
-def read_itl(path=ITL):
-    """{(i, j): (a_ij, sigma)} per e, (i, j) = (serial, parallel)."""
-    d = np.loadtxt(path, skiprows=1)
-    a = {(int(x[0]), int(x[1])): (float(x[2]), float(x[3])) for x in d}
-    if not a[(0, 1)][0] > a[(1, 0)][0]:
-        raise ValueError("expected the file's (0, 1) lag to be the larger neighbour")
-    return a
+SETTINGS = TemplateSettings(size=21, edge_samples=32, aggressor_charge=CHARGE, tol=1e-5)
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--write-config", action="store_true")
-    ap.add_argument("--max-nfev", type=int, default=4, help="optimiser evaluations")
+    ap.add_argument("--write", action="store_true",
+                    help="write the default template and its config into lsst_bfdrift/data")
     args = ap.parse_args(argv)
-    a = read_itl()
-    targets = {f"A{i}{j}": (float(np.exp(a[(i, j)][0] * Q)), a[(i, j)][1] * Q)
-               for (i, j) in LAGS}
-    lines = []
-
-    def say(s):
-        print(s, flush=True)
-        lines.append(s)
-
-    def cb(p, nums):
-        print("   ", {k: round(v, 5) for k, v in p.items()},
-              {k: round(nums[k], 6) for k in targets}, flush=True)
-
-    r = fit_sensor_parameters(targets, START, FREE, settings=FIT_SETTINGS, max_nfev=args.max_nfev,
-                              callback=cb)
-    dof = len(targets) - len(r.values)
-    say(f"ITL default calibration (Q = {Q:g} e, {FIT_SETTINGS.size}x{FIT_SETTINGS.size}, "
-        f"{FIT_SETTINGS.edge_samples} samples per edge, tol {FIT_SETTINGS.tol:g} px, "
-        f"collection height {START.collection_height} um)")
-    say("  " + ", ".join(f"{k} = {v:.5g} +- {r.errors[k]:.2g}" for k, v in r.values.items()))
-    say(f"  chi2 = {r.chi2:.3f} for {dof} dof; {r.n_evaluations} templates, "
-        f"{r.seconds:.1f} s")
-    say("  correlation: " + np.array2string(np.asarray(r.correlation), precision=3))
-    for k, target, sig, model, pull in r.table():
-        i, j = int(k[1]), int(k[2])
-        say(f"    a{i}{j}: measured {a[(i, j)][0]:+.4e} +- {a[(i, j)][1]:.2e}, model "
-            f"{np.log(model) / Q:+.4e} per e (pull {pull:+.2f})")
-    full = template_numbers(r.params, FIT_SETTINGS)
-    a00_model = np.log(full["A00"]) / Q
-    say(f"    a00 (not fitted): measured {a[(0, 0)][0]:+.4e} (sum rule), model {a00_model:+.4e}")
-    res = {**r.as_dict(), "Q": Q, "lags": [list(x) for x in LAGS],
-           "measured": {f"a{i}{j}": list(a[(i, j)]) for (i, j) in LAGS + ((0, 0),)},
-           "model_per_e": {f"a{i}{j}": float(np.log(full[f"A{i}{j}"]) / Q)
-                           for (i, j) in LAGS + ((0, 0),)},
-           "dof": dof, "fixed": {"collection_height": START.collection_height}}
-    with atomic_output(os.path.join(HERE, "default_calibration_results.json")) as tmp:
-        with open(tmp, "w") as fh:
-            json.dump(res, fh, indent=2, default=float)
-    with atomic_output(os.path.join(HERE, "default_calibration_results.txt")) as tmp:
-        with open(tmp, "w") as fh:
-            fh.write("\n".join(lines) + "\n")
-    if args.write_config:
-        cfg = {"sensor": json.loads(r.params.to_json()),
-               "template": DEFAULT_SETTINGS,
-               "provenance": {
-                   "fit": "benchmarks/calibrate_default.py "
-                          "(lsst_bfdrift.calibration.sensor_fit.fit_sensor_parameters)",
-                   "data": "shared/data/measured/itl_covariances_21oct19.txt "
-                           "(LSST ITL sensor, Poisson_CCD repository)",
-                   "targets": "a01, a10, a11, a02, a20 per e (i serial, j parallel); "
-                              "a00 left out (set by the sum rule)",
-                   "values": r.values, "errors": r.errors, "chi2": r.chi2, "dof": dof,
-                   "measured_a00": a[(0, 0)][0], "model_a00": a00_model,
-                   "date": datetime.date.today().isoformat()}}
-        with atomic_output(CONFIG) as tmp:
-            with open(tmp, "w") as fh:
-                json.dump(cfg, fh, indent=2, sort_keys=False, default=float)
-                fh.write("\n")
-        print("wrote", CONFIG)
+    table = read_acoeff_table(ITL)
+    table.exclude_a00 = False  # a00 in the fit (its sum-rule value)
+    table.source = "shared/data/measured/itl_covariances_21oct19.txt (LSST ITL sensor)"
+    res = calibrate(table, start=START, build=False)
+    f = res.fit
+    rounded = {n: float(f"{f.values[n]:.4g}") for n in f.names}
+    params = START.replace(**rounded)
+    lines = [f"default calibration: {table.source}, 9 x 9 lags, a00 included; "
+             f"{res.seconds['total']:.0f} s",
+             "  " + ", ".join(f"{n} = {f.values[n]:.5g} +- {f.errors[n]:.2g}"
+                              + (" (at its bound)" if n in f.at_bound else "")
+                              for n in f.names),
+             f"  chi2 = {f.chi2:.2f} for {f.dof} dof (p = {f.p_value:.3g}); worst lags: "
+             + ", ".join(f"a{i}{j} {p:+.2f}" for (i, j), p in f.worst(3)),
+             f"  a00: measured {table.a[0, 0]:.4e} +- {table.sigma[0, 0]:.1e}, model "
+             f"{f.model[0, 0]:.4e}; a01 {table.a[0, 1]:.4e} / {f.model[0, 1]:.4e}; "
+             f"a10 {table.a[1, 0]:.4e} / {f.model[1, 0]:.4e}",
+             "  correlation: " + np.array2string(np.asarray(f.correlation), precision=3),
+             f"  SensorParameters() defaults: {rounded}"]
+    print("\n".join(lines))
+    write_text(os.path.join(HERE, "default_calibration_results.txt"), "\n".join(lines) + "\n")
+    write_json(os.path.join(HERE, "default_calibration_results.json"),
+               {**res.summary(), "rounded": rounded}, indent=1, default=float)
+    if args.write:
+        if params != SensorParameters():
+            print("note: SensorParameters() differs from the fit; update its defaults to",
+                  rounded)
+        tpl = build_template(params, SETTINGS)
+        tpl = match_area_coefficients(tpl, table.a)
+        tpl.meta["calibration"] = {
+            "source": table.source, "names": f.names, "values": f.values, "errors": f.errors,
+            "covariance": np.asarray(f.covariance).tolist(), "chi2": f.chi2, "dof": f.dof,
+            "p_value": f.p_value, "refined": True, "a00_in_fit": True, "max_lag": 8,
+            "fit": "benchmarks/calibrate_default.py", "defaults": rounded,
+            "uncertainty": {"kind": "data", "sigma": table.sigma.tolist()}}
+        tpl.save(os.path.join(DATA, "default_template.fits"), overwrite=True)
+        write_json(os.path.join(DATA, "default_template_config.json"),
+                   {"sensor": params.to_dict(), "template": SETTINGS.to_dict(),
+                    "provenance": {k: v for k, v in tpl.meta["calibration"].items()
+                                   if k != "uncertainty"}}, indent=2, default=float)
+        print("wrote the default template and its config into", DATA)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -57,12 +57,12 @@ __all__ = ["CANDIDATES", "CalibrationError", "CalibrationResult", "calibrate",
 #: (um), the clock-pair separation (um), the backside bias (V) and the bulk
 #: doping (cm^-3), which together set where in the bulk the backdrop field
 #: cancels the barriers' lateral field (the paper's footnote on the
-#: clock-dipole knob), and the clock-barrier and channel-stop strengths
-#: (xi0).
+#: clock-dipole knob), the clock-barrier and channel-stop strengths
+#: (xi0), and the lateral rms size of the collected charge cloud (um).
 CANDIDATES = {"channel_depth": (0.05, 6.0), "xi0": (300.0, 3e4),
               "collection_height": (0.05, 6.0), "clock_separation": (0.1, 8.0),
               "v_bss": (-150.0, -10.0), "acceptor_density": (1e11, 1e13),
-              "xi_ck": (0.5, 30.0), "xi_cs": (-60.0, -2.0)}
+              "xi_ck": (0.5, 30.0), "xi_cs": (-60.0, -2.0), "charge_cloud": (0.0, 5.0)}
 
 #: Aggressor charge (e) of the model evaluations and of the template.
 CHARGE = 1e4
@@ -263,6 +263,9 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     candidates = dict(CANDIDATES if free is None else free)
     for n, (lo, hi) in candidates.items():
         v = getattr(start, n)
+        if v is not None and v in (lo, hi):  # e.g. a point charge (cloud 0): step inside
+            start = start.replace(**{n: v + (0.01 if v == lo else -0.01) * (hi - lo)})
+            v = getattr(start, n)
         if v is None or not lo < v < hi:
             raise CalibrationError(f"start value of {n!r} ({v}) is outside its bounds "
                                    f"({lo}, {hi})")

@@ -172,6 +172,44 @@ def _cmd_template_plot(args):
     return 0
 
 
+def _cmd_calibrate(args):
+    from lsst_bfdrift.calibration.inputs import read_calibration_input
+    from lsst_bfdrift.calibration.tuning import calibrate
+
+    if os.path.exists(args.out) and not args.overwrite:
+        raise FileExistsError(f"{args.out} exists (use --overwrite)")
+    data = read_calibration_input(args.input, max_lag=args.max_lag)
+    table = data.acoeff_table()
+    res = calibrate(table, free=args.free, refine=not args.no_refine,
+                    allow_poor_fit=args.allow_poor_fit, max_chi2_dof=args.max_chi2_dof,
+                    progress=not args.quiet)
+    res.template.meta["calibration"]["inputs"] = [os.path.abspath(x) for x in args.input]
+    res.template.save(args.out, overwrite=args.overwrite)
+    summary = res.summary()
+    summary["input"] = data.summary()
+    summary["out"] = os.path.abspath(args.out)
+    if args.plot:
+        from lsst_bfdrift.calibration.plots import plot_calibration
+        from lsst_bfdrift.utils.plotting import save_figure
+        save_figure(plot_calibration(res), args.plot)
+        summary["plot"] = os.path.abspath(args.plot)
+    if args.json:
+        _print_json(summary)
+        return 0
+    f = res.fit
+    print(f"calibrated {table.source}: {len(f.names)} parameters chosen by the data")
+    for n in f.names:
+        print(f"  {n:>18s} = {f.values[n]:.6g} +- {f.errors[n]:.2g}"
+              + ("  (at its bound)" if n in f.at_bound else ""))
+    print(f"  chi2 = {f.chi2:.2f} for {f.dof} dof (p = {f.p_value:.3g}); worst lags: "
+          + ", ".join(f"a{i}{j} {p:+.1f} sigma" for (i, j), p in f.worst(3)))
+    sr = res.sum_rule
+    print(f"  sum rule: sum a_ij = {sr['sum']:+.3e} +- {sr['error']:.1e} per e")
+    print(f"  template: {args.out} ({'areas refined to the data' if res.refined else 'model'})"
+          f" in {res.seconds['total']:.1f} s")
+    return 0
+
+
 def _cmd_template_import(args):
     _refuse_overwrite(args)
     return _save_and_report(import_galsim_sensor(args.name), args)
@@ -502,6 +540,29 @@ def build_parser():
     g.add_argument("--json", action="store_true")
     g.set_defaults(func=_cmd_template_import)
 
+    ca = sub.add_parser("calibrate", help="tune the model to a sensor's data: template out")
+    ca.add_argument("input", nargs="+", help="flat-pair FITS files (EXPTIME in the header), a "
+                    "PTC text file, an a-matrix table (i j a sigma, or ECSV i, j, a, a_err) or "
+                    "cp_pipe's PTC dataset FITS")
+    ca.add_argument("--out", required=True, help="calibrated template FITS file")
+    ca.add_argument("--free", nargs="+", metavar="NAME",
+                    help="free parameters (default: chosen by the data from channel_depth, "
+                         "xi0, collection_height, clock_separation, v_bss, acceptor_density, "
+                         "xi_ck, xi_cs)")
+    ca.add_argument("--max-lag", type=int, default=8,
+                    help="largest lag measured from flat pairs (default: %(default)s)")
+    ca.add_argument("--no-refine", action="store_true",
+                    help="keep the model's areas (default: match them to the measured a_ij)")
+    ca.add_argument("--max-chi2-dof", type=float, default=3.0,
+                    help="a fit above this chi2/dof (and p < 1e-3) is an error "
+                         "(default: %(default)s)")
+    ca.add_argument("--allow-poor-fit", action="store_true",
+                    help="write the template even when the fit is poor")
+    ca.add_argument("--plot", help="write a PNG: a_ij against lag, pulls, correlations")
+    ca.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    ca.add_argument("--json", action="store_true")
+    ca.add_argument("--quiet", action="store_true", help="no progress bar")
+    ca.set_defaults(func=_cmd_calibrate)
     pt = sub.add_parser("ptc", help="photon transfer curve fit (gain, a_ij)")
     pt.add_argument("files", nargs="+", help="PTC text file, or FITS flats in pairs")
     pt.add_argument("--max-lag", type=int, default=3, help="largest covariance lag")

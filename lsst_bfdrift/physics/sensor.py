@@ -79,6 +79,12 @@ def _pairs(name, value, width):
     return tuple(out)
 
 
+#: Rasmussen 2015's nominal values of the parameters that the default
+#: calibration changes (:meth:`SensorParameters.paper`).
+_PAPER = {"xi0": 1000.0, "channel_depth": 2.0, "clock_separation": 3.0, "v_bss": -50.0,
+          "collection_height": None}
+
+
 @dataclass(frozen=True)
 class SensorParameters:
     """Parameters of the electrostatic sensor model.
@@ -117,6 +123,11 @@ class SensorParameters:
         None means ``channel_depth``.
     backside_images : bool
         Add one image of every barrier term across the backside plane.
+    charge_cloud : float
+        Lateral rms extent (um) of the collected charge in its potential
+        well; 0 makes each pixel's charge one point dipole, otherwise it is
+        spread over a 3 x 3 Gauss-Hermite grid of dipoles (exact for the
+        cloud's moments up to fifth order).
     charge_images : int
         Number of images of collected-charge dipoles, nearest first
         (z = 2t, -2t, 4t, ...).
@@ -159,6 +170,7 @@ class SensorParameters:
     collection_height: float = None
     backside_images: bool = True
     charge_images: int = 1
+    charge_cloud: float = 0.0
     bloom_stop: float = None
     xi_bs: float = None
     edge: float = None
@@ -199,6 +211,8 @@ class SensorParameters:
         if self.acceptor_density < 0:
             raise ValueError(f"parameter 'acceptor_density' must be >= 0, got "
                              f"{self.acceptor_density}")
+        if not self.charge_cloud >= 0:
+            raise ValueError(f"parameter 'charge_cloud' must be >= 0 um, got {self.charge_cloud}")
         if self.charge_images < 0:
             raise ValueError(f"parameter 'charge_images' must be >= 0, got {self.charge_images}")
         if self.edge_side not in (1, -1):
@@ -224,6 +238,13 @@ class SensorParameters:
     def from_dict(cls, mapping):
         """Build from a mapping, rejecting unknown keys by name."""
         return strict_from_dict(cls, mapping, "sensor parameter")
+
+    @classmethod
+    def paper(cls, **changes):
+        """Rasmussen 2015's model structure and nominal values (section 3),
+        before any calibration: xi0 = 1000 e, channel depth 2 um, clock pair
+        3 um apart, V_BSS = -50 V, drift lines ending at the channel depth."""
+        return cls(**{**_PAPER, **changes})
 
     def to_dict(self):
         """Plain-Python dictionary (JSON serialisable)."""
@@ -325,6 +346,16 @@ class SensorModel:
         x = (ij[keep, 0] + 0.5) * P.pixel_pitch
         y = (ij[keep, 1] + 0.5) * P.pixel_pitch
         pz = -2.0 * q[keep] * P.channel_depth
+        if P.charge_cloud > 0:
+            # 3-point Gauss-Hermite rule per axis: offsets 0, +-sqrt(3) s,
+            # weights 2/3, 1/6, 1/6
+            off = np.array([0.0, -1.0, 1.0]) * math.sqrt(3.0) * P.charge_cloud
+            w = np.array([4.0, 1.0, 1.0]) / 6.0
+            ox, oy = np.meshgrid(off, off, indexing="ij")
+            wxy = np.outer(w, w).ravel()
+            x = (x[:, None] + ox.ravel()[None, :]).ravel()
+            y = (y[:, None] + oy.ravel()[None, :]).ravel()
+            pz = (pz[:, None] * wxy[None, :]).ravel()
         base = PointDipoles(x, y, pz, height=P.barrier_height)
         terms = [base]
         t = P.thickness

@@ -105,3 +105,35 @@ class TestSensorModel:
         m = SensorModel(SensorParameters(xi_cs=0.0))
         _, ey, _ = m.field(5.0, np.array([2.5, -2.5]), 1.0)
         assert -ey[0] > 0 and -ey[1] < 0
+
+
+class TestChargeCloud:
+    def test_cloud_keeps_the_dipole_and_has_the_stated_size(self):
+        """The 3 x 3 Gauss-Hermite cloud: total dipole and centre unchanged,
+        rms lateral offset = charge_cloud per axis."""
+        p = SensorParameters(charge_cloud=1.5)
+        pt = SensorModel(p.replace(charge_cloud=0.0)).with_charge({(0, 0): 1e4}).charge_terms()[0]
+        cl = SensorModel(p).with_charge({(0, 0): 1e4}).charge_terms()[0]
+        assert cl.x.size == 9 * pt.x.size
+        assert_allclose(cl.p_z.sum(), pt.p_z.sum())
+        w = cl.p_z / cl.p_z.sum()
+        assert_allclose((w * cl.x).sum(), pt.x[0])
+        assert_allclose(np.sqrt((w * (cl.x - pt.x[0]) ** 2).sum()), 1.5)
+        assert_allclose(np.sqrt((w * (cl.y - pt.y[0]) ** 2).sum()), 1.5)
+
+    def test_far_field_equals_the_point_charge(self):
+        """At 5 pixels the cloud's field equals the point dipole's to its
+        quadrupole order (relative (s / r)^2 ~ 1e-3); right above its centre
+        the spread charge's field is weaker."""
+        p = SensorParameters(charge_cloud=1.0)
+        near, far = (5.0, 5.0, 3.0), (55.0, 5.0, 3.0)
+        pt = SensorModel(p.replace(charge_cloud=0.0)).with_charge({(0, 0): 1e4})
+        cl = SensorModel(p).with_charge({(0, 0): 1e4})
+        ref = np.array(pt.charge_terms()[0].field(*far))
+        got = np.array(cl.charge_terms()[0].field(*far))
+        assert_allclose(got, ref, rtol=3e-3, atol=1e-3 * np.abs(ref).max())
+        e_pt = np.abs(np.array(pt.charge_terms()[0].field(5.0, 5.0, 1.5))).max()
+        e_cl = np.abs(np.array(cl.charge_terms()[0].field(5.0, 5.0, 1.5))).max()
+        assert e_cl < e_pt
+        with pytest.raises(ValueError, match="charge_cloud"):
+            SensorParameters(charge_cloud=-1.0)

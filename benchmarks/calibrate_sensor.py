@@ -1,0 +1,145 @@
+"""End to end: calibrate from a GalSim sensor's own data, then correct its stars.
+
+For each GalSim sensor model (default lsst_itl_50_8 and lsst_e2v_50_8):
+
+1. **a-matrix route**: GalSim's noise-free a-matrix of the sensor
+   (:func:`~lsst_bfdrift.simulation.galsim_twins.galsim_acoeffs`, lags <= 8,
+   a00 included) with 2 % errors (+1e-10 floor), calibrated with
+   :func:`~lsst_bfdrift.calibration.tuning.calibrate` (parameters chosen by
+   the data, template refined to the a_ij).
+2. **flats route** (``--flats``): flat pairs made with GalSim's own
+   pixel-area response and Poisson noise
+   (:func:`~lsst_bfdrift.simulation.flats.simulate_flat_pairs`, engine
+   'galsim'), their covariances, the Astier et al. (2019) fit for a_ij with
+   errors, and the same calibration.
+3. **stars**: Moffat and Kolmogorov stars (FWHM 0.6-0.9", fluxes 1e4-1.5e6
+   e, sky 1000 e through the sensor) drawn by galsim.SiliconSensor with a
+   paired no-BF twin
+   (:func:`~lsst_bfdrift.validation.stars.draw_star_pairs`; a seed of its
+   own per sensor), corrected by drift and astier23 with each template: the
+   calibrated ones, GalSim's true template (its file imported with
+   ``match='transfers'``) and the bundled default.
+
+Prints the size and e1 slopes left, as % of the uncorrected slopes, and
+writes ``benchmarks/calibrate_sensor_results.txt`` / ``.json``::
+
+    python benchmarks/calibrate_sensor.py [--sensors lsst_itl_50_8 lsst_e2v_50_8]
+        [--n-stars 200] [--pairs /tmp/cs_pairs] [--flats]
+"""
+
+import argparse
+import os
+import sys
+import time
+import zlib
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))
+
+from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable  # noqa: E402
+from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
+from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
+from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
+from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
+from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
+from lsst_bfdrift.validation.stars import (draw_star_pairs, per_star_residuals,  # noqa: E402
+                                           residual_slopes)
+
+METHODS = ("astier23", "drift")
+
+
+def star_pairs(sensor, psf, args):
+    seed = zlib.crc32(f"{sensor}:{psf}".encode()) % 100000  # own stars per sensor and PSF
+    path = f"{args.pairs}_{sensor}_{psf}_{args.n_stars}_{seed}.npz" if args.pairs else None
+    if path and os.path.isfile(path):
+        d = np.load(path)
+        return [{"bf": b, "truth": t, "flux": float(f)}
+                for b, t, f in zip(d["bf"], d["truth"], d["flux"])], seed, None
+    t0 = time.time()
+    pairs = draw_star_pairs(args.n_stars, sensor=sensor, psf=psf, seed=seed)
+    cost = time.time() - t0
+    if path:
+        np.savez_compressed(path, bf=np.array([p["bf"] for p in pairs]),
+                            truth=np.array([p["truth"] for p in pairs]),
+                            flux=np.array([p["flux"] for p in pairs]))
+    return pairs, seed, cost
+
+
+def flats_table(sensor, args):
+    """a_ij with errors from GalSim-made flat pairs (Astier et al. 2019 fit)."""
+    from lsst_bfdrift.calibration.ptc import fit_covariance_model, measure_ptc
+    from lsst_bfdrift.simulation.flats import simulate_flat_pairs
+
+    levels = np.repeat(np.linspace(1e4, 9e4, 9), args.pairs_per_level)
+    pairs = simulate_flat_pairs(sensor, levels, engine="galsim", shape=(args.flat_size,) * 2,
+                                seed=zlib.crc32(sensor.encode()) % 1000)
+    tab = measure_ptc(pairs, max_lag=8)
+    fit = fit_covariance_model(np.asarray(tab["mu"]), np.asarray(tab["cov"]),
+                               npix=np.asarray(tab["npix"]))
+    return AcoeffTable(fit["a"], fit["a_err"], source=f"GalSim {sensor} flats"), fit
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sensors", nargs="+", default=["lsst_itl_50_8", "lsst_e2v_50_8"])
+    ap.add_argument("--psf", nargs="+", default=["moffat", "kolmogorov"])
+    ap.add_argument("--n-stars", type=int, default=200)
+    ap.add_argument("--pairs", help="cache prefix for the drawn stars")
+    ap.add_argument("--flats", action="store_true", help="also calibrate from GalSim flats")
+    ap.add_argument("--flat-size", type=int, default=400)
+    ap.add_argument("--pairs-per-level", type=int, default=2)
+    ap.add_argument("--out", default=os.path.join(HERE, "calibrate_sensor_results"))
+    args = ap.parse_args(argv)
+    lines, out = [], {"sensors": {}}
+
+    def say(s):
+        print(s, flush=True)
+        lines.append(s)
+
+    default = load_default_template()
+    for sensor in args.sensors:
+        rec = out["sensors"][sensor] = {"calibrations": {}, "psfs": {}}
+        a = galsim_acoeffs(sensor, 8)
+        table = AcoeffTable(a, 0.02 * np.abs(a) + 1e-10, source=f"GalSim {sensor} a-matrix")
+        templates = {}
+        routes = [("a-matrix", lambda: (table, None))]
+        if args.flats:
+            routes.append(("flats", lambda: flats_table(sensor, args)))
+        for route, get in routes:
+            t0 = time.time()
+            tab, extra = get()
+            res = calibrate(tab, allow_poor_fit=True)
+            templates[f"calibrated ({route})"] = res.template
+            f = res.fit
+            say(f"{sensor}, {route}: {', '.join(f'{n} = {f.values[n]:.4g}' for n in f.names)}; "
+                f"chi2 {f.chi2:.1f} / {f.dof} dof; a00 data {tab.a[0, 0]:.3e} model "
+                f"{f.model[0, 0]:.3e}; {time.time() - t0:.0f} s")
+            rec["calibrations"][route] = res.summary()
+        templates["true (GalSim file)"] = import_galsim_sensor(sensor, match="transfers")
+        templates["bundled default"] = default
+        for psf in args.psf:
+            pairs, seed, cost = star_pairs(sensor, psf, args)
+            say(f" {sensor} {psf}: {len(pairs)} stars (seed {seed})"
+                + (f", drawn in {cost:.0f} s" if cost else ""))
+            rec["psfs"][psf] = {}
+            for name, tpl in templates.items():
+                fl, rows = per_star_residuals(pairs, tpl, methods=METHODS, sky=1000.0)
+                res = residual_slopes(fl, rows)
+                u, ue = res["uncorrected"]["size_slope"], res["uncorrected"]["e_slope"]
+                rec["psfs"][psf][name] = res
+                for m in METHODS:
+                    r = res[m]
+                    say(f"  {name:24s} {m:9s} size {100 * r['size_slope'] / u:+6.2f} +- "
+                        f"{100 * r['size_slope_err'] / abs(u):.2f} %   e1 "
+                        f"{100 * r['e_slope'] / ue:+6.1f} +- {100 * r['e_slope_err'] / abs(ue):.1f}"
+                        " % of uncorrected")
+    say("target: calibrated drift <= 3 % of the size slope and <= 5 % of e1")
+    write_text(args.out + ".txt", "\n".join(lines) + "\n")
+    write_json(args.out + ".json", out, indent=1, default=float)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
