@@ -1,0 +1,1079 @@
+"""Reading a sensor's characterization data: every input kind of ``bfdrift calibrate``.
+
+:func:`read_calibration_input` takes the files given to the command, finds
+which of four kinds they are (:func:`detect_input_kind`) and returns one
+:class:`CalibrationData`. Files of different kinds in one call are an error.
+Nothing read is modified. Every error names the file, the problem and what
+would be accepted.
+
+Input kinds
+-----------
+``'flats'`` -- flat pairs as FITS images (:func:`read_flat_pairs`)
+    Any number of files, each with ``EXPTIME`` (s) in the image HDU's header
+    or the primary header. The image is the first 2-d HDU that is not named
+    ``MASK``; an optional 2-d ``MASK`` HDU of the same shape marks bad pixels
+    (non-zero); NaN/inf pixels are masked and counted. Files are grouped by
+    ``EXPTIME`` (relative tolerance ``exptime_rtol``) into levels; within a
+    level, consecutive files in sorted file-name order form pairs, and an odd
+    file out is dropped (and reported). A level holding a single flat is an
+    error (its partner is missing or has a different ``EXPTIME``) unless
+    ``drop_single``. Each pair's covariances come from
+    :func:`~lsst_bfdrift.calibration.ptc.pair_covariances`. All flats must
+    have one shape and one ``BUNIT``/``GAIN``. ``BUNIT`` 'adu' (also 'ADU',
+    'count', 'DN') or absent: signals in ADU, gain from ``GAIN`` (e/ADU) if
+    present, else unknown; ``BUNIT`` 'electron' (also 'e', 'e-'): signals in
+    electrons, gain 1. Points past the PTC turn-off
+    (:func:`~lsst_bfdrift.calibration.ptc.ptc_turnoff`: saturation, the
+    variance falls more than ``turnoff_drop`` below its running maximum) are
+    dropped and reported; at least ``min_levels`` distinct levels must remain.
+``'ptc'`` -- a PTC text file (:func:`read_ptc_file`)
+    The eotest two-column format (mean ADU, variance ADU^2 per line, ``#``
+    comments; read by :func:`~lsst_bfdrift.calibration.ptc.read_ptc_text`).
+    Points past the turn-off are dropped and reported as for flats.
+``'amatrix'`` -- a table of area coefficients a_ij (:func:`read_amatrix_file`)
+    Either the text format ``i j value sigma`` (one lag per line, one header
+    line allowed; the file does not declare which axis is serial, so it is
+    oriented from the data by
+    :func:`~lsst_bfdrift.calibration.acoeff_fit.read_acoeff_table`, as
+    everywhere in the package), or an ECSV table (``# %ECSV`` first line)
+    with integer columns ``i`` (serial lag), ``j`` (parallel lag) and float
+    columns ``a``, ``a_err`` (per electron; a unit, if given, must convert to
+    1 / electron). Lags must be non-negative integers filling the square
+    0..L x 0..L, errors positive, and a00 present. Whether a00 was measured
+    or set by the area sum rule is decided by
+    :func:`~lsst_bfdrift.calibration.acoeff_fit.sum_rule_check`.
+``'cp_pipe'`` -- the PTC dataset FITS of LSST's cp_pipe (:func:`read_cp_pipe_ptc`)
+    Layout learned from ``python/lsst/ip/isr/ptcDataset.py``
+    (``PhotonTransferCurveDataset.toTable`` / ``fromTable``, schema version
+    2.6, ip_isr commit d2a69bfd) and ``python/lsst/ip/isr/calibType.py``
+    (``IsrCalib.writeFits``) of lsst/ip_isr, and from
+    ``python/lsst/cp/pipe/ptc/cpPtcExtract.py``, ``cpPtcSolve.py`` and
+    ``utils.py`` of lsst/cp_pipe (commit f029a3f2) for the index order;
+    no code was taken from them. What is read:
+
+    * HDU 0: empty primary HDU (ignored). HDU 1: a binary table, one row per
+      amplifier. Its header holds the calibration metadata: ``OBSTYPE`` =
+      'PTC' (required), ``PTC_SCHEMA`` = 'Gen3 Photon Transfer Curve',
+      ``PTC_VERSION`` (e.g. 2.6), ``PTC_FIT_TYPE``, ``CALIBCLS`` =
+      'lsst.ip.isr.ptcDataset.PhotonTransferCurveDataset' (long keys are
+      HIERARCH cards). Further HDUs are ignored.
+    * Columns read (required): ``AMPLIFIER_NAME`` (str), ``PTC_FIT_TYPE``
+      (str: 'EXPAPPROXIMATION', 'FULLCOVARIANCE', 'FULLCOVARIANCE_NO_B',
+      older 'POLYNOMIAL'), ``COV_MATRIX_SIDE`` (int M: covariances are
+      M x M, lags 0..M-1), ``RAW_MEANS`` (n, ADU), ``RAW_VARS`` (n, ADU^2),
+      ``EXP_ID_MASK`` (n, bool: True = used by cp_pipe), ``GAIN``,
+      ``GAIN_ERR`` (e/ADU), ``NOISE`` (electron from version 1.9 on),
+      ``PTC_TURNOFF`` (ADU, version >= 1.1), ``PTC_FIT_PARS`` /
+      ``PTC_FIT_PARS_ERROR`` (for EXPAPPROXIMATION: a00 (1/e), gain, noise^2;
+      NaN for full-covariance fits), ``A_MATRIX`` (raveled K x K, 1/e),
+      ``COVARIANCES`` (raveled n x M x M, ADU^2), ``BAD_AMPS`` (str array,
+      the same in every row). Optional: ``COV_MATRIX_SIDE_FULL_COV_FIT`` (K,
+      version >= 1.5; else K = M), ``COVARIANCES_SQRT_WEIGHTS`` (raveled
+      n x M x M: 1/sigma of each covariance, 1/ADU^2; 0 where unmeasured), ``RAW_EXP_TIMES``
+      (n, s), ``NPIXEL_COVARIANCES`` (one int per amplifier, version >= 2.4,
+      recorded in ``meta``). Per-amplifier arrays are fixed-width or
+      variable-length columns.
+    * Index order: cp_pipe fills ``cov[k, i, j]`` with ``i`` the lag along
+      x and ``j`` along y (``makeCovArray`` from ``(dx, dy)`` tuples; the
+      plots call ``cov[:, 1, 0]`` the nearest *serial* neighbour), and fits
+      ``A_MATRIX`` on the same array. x is the serial direction of an LSST
+      amplifier image, so cp_pipe's ``[i, j]`` is already this package's
+      [serial, parallel]: nothing is transposed.
+    * The a-matrix is filled only by the FULLCOVARIANCE fits, and the file
+      stores no errors for it (``a_sigma`` is None). An EXPAPPROXIMATION fit
+      gives a00 with its error (``PTC_FIT_PARS[0]``), returned as a 1 x 1
+      a-matrix.
+    * An amplifier is chosen by ``amp``; ``amp=None`` takes the only good
+      amplifier (not in ``BAD_AMPS``), or averages the good amplifiers'
+      a-matrices with inverse-variance weights when every one has errors,
+      and otherwise asks to choose. PTC points with ``EXP_ID_MASK`` False or
+      above ``PTC_TURNOFF`` are dropped and reported.
+
+Conventions: a-matrices are indexed ``a[i, j]`` with i the serial and j the
+parallel lag, per electron; covariances ``cov[k, di, dj]`` likewise, in the
+signal's unit squared.
+"""
+
+import dataclasses
+import math
+import os
+
+import numpy as np
+
+from lsst_bfdrift.calibration.acoeff_fit import (AcoeffTable, assign_axes, read_acoeff_table,
+                                                 sum_rule_check)
+from lsst_bfdrift.calibration.ptc import pair_covariances, ptc_turnoff, read_ptc_text
+
+__all__ = ["CalibrationData", "INPUT_KINDS", "CP_PIPE_COLUMNS", "detect_input_kind",
+           "read_calibration_input", "read_flat_pairs", "read_ptc_file", "read_amatrix_file",
+           "read_cp_pipe_ptc"]
+
+#: The input kinds, in the order of :data:`CalibrationData.kind`.
+INPUT_KINDS = ("flats", "ptc", "amatrix", "cp_pipe")
+
+#: Columns a cp_pipe PTC dataset table must have to be read here.
+CP_PIPE_COLUMNS = ("AMPLIFIER_NAME", "PTC_FIT_TYPE", "COV_MATRIX_SIDE", "RAW_MEANS", "RAW_VARS",
+                   "EXP_ID_MASK", "GAIN", "GAIN_ERR", "NOISE", "PTC_TURNOFF", "PTC_FIT_PARS",
+                   "PTC_FIT_PARS_ERROR", "A_MATRIX", "COVARIANCES", "BAD_AMPS")
+
+_ADU_UNITS = ("adu", "count", "counts", "dn")
+_ELECTRON_UNITS = ("electron", "electrons", "e", "e-")
+
+
+@dataclasses.dataclass
+class CalibrationData:
+    """A sensor's characterization data, as read by :func:`read_calibration_input`.
+
+    Attributes
+    ----------
+    kind : str
+        'flats', 'ptc', 'amatrix' or 'cp_pipe'.
+    files : list of str
+        The files read.
+    a, a_sigma : ndarray, shape (L + 1, L + 1), or None
+        Area coefficients a_ij and 1-sigma errors (per electron), indexed
+        [i serial, j parallel]; ``a_sigma`` None when the source gives none.
+    a00_measured : bool or None
+        Whether ``a[0, 0]`` is a measurement (False: set by the area sum
+        rule); None without an a-matrix.
+    mu, var : ndarray, shape (n,), or None
+        PTC points kept (past the turn-off and rejected points are left out):
+        mean signal (``units``) and variance (``units``^2), sorted by ``mu``.
+    cov : ndarray, shape (n, M, M), or None
+        Covariances ``cov[k, di, dj]`` (``units``^2) of the same points.
+    cov_sigma : ndarray, shape (n, M, M), or None
+        Their errors, when the source gives them (cp_pipe weights).
+    npix : ndarray of int, shape (n, M, M), or None
+        Pixel pairs behind each covariance (flats).
+    exptime : ndarray, shape (n,), or None
+        Exposure time of each point (s).
+    units : str
+        'adu' or 'electron': unit of ``mu``.
+    gain, gain_err : float or None
+        Gain (electron per ``units``) and its error, when known.
+    gain_source : str
+        Where the gain came from (or why it is unknown).
+    turnoff : float or None
+        PTC turn-off signal (``units``); inf when none was found.
+    pairs_used, pairs_dropped : list of dict
+        One entry per flat pair (``'flats'``) or per PTC point (``'ptc'``,
+        ``'cp_pipe'``): files or index, exposure time, ``mu``, ``var``;
+        dropped entries carry a ``'reason'``. Files dropped before pairing
+        (odd file out) have ``'files'`` of length 1.
+    amp : str or None
+        Amplifier read (cp_pipe); 'average of ...' when several were averaged.
+    amps : dict
+        Per amplifier (cp_pipe): gain, noise, turn-off, fit type.
+    bad_amps : list of str
+        cp_pipe's ``badAmps``.
+    notes : list of str
+        Everything worth telling the user (units assumed, axis orientation,
+        truncation, ...).
+    meta : dict
+        Source metadata (cp_pipe version and fit type, a-matrix axis note).
+    """
+
+    kind: str
+    files: list
+    a: np.ndarray = None
+    a_sigma: np.ndarray = None
+    a00_measured: bool = None
+    mu: np.ndarray = None
+    var: np.ndarray = None
+    cov: np.ndarray = None
+    cov_sigma: np.ndarray = None
+    npix: np.ndarray = None
+    exptime: np.ndarray = None
+    units: str = "adu"
+    gain: float = None
+    gain_err: float = None
+    gain_source: str = ""
+    turnoff: float = None
+    pairs_used: list = dataclasses.field(default_factory=list)
+    pairs_dropped: list = dataclasses.field(default_factory=list)
+    amp: str = None
+    amps: dict = dataclasses.field(default_factory=dict)
+    bad_amps: list = dataclasses.field(default_factory=list)
+    notes: list = dataclasses.field(default_factory=list)
+    meta: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def max_lag(self):
+        """Largest lag of the a-matrix, else of the covariances; None without either."""
+        if self.a is not None:
+            return self.a.shape[0] - 1
+        if self.cov is not None:
+            return self.cov.shape[1] - 1
+        return None
+
+    @property
+    def n_levels(self):
+        """Number of distinct exposure levels kept (points when times are unknown)."""
+        if self.mu is None:
+            return 0
+        if self.exptime is None:
+            return int(self.mu.size)
+        return int(np.unique(self.exptime).size)
+
+    def acoeff_table(self):
+        """The a-matrix as an :class:`~lsst_bfdrift.calibration.acoeff_fit.AcoeffTable`.
+
+        Raises
+        ------
+        ValueError
+            Without an a-matrix or without its errors.
+        """
+        src = ", ".join(self.files)
+        if self.a is None:
+            raise ValueError(f"{src}: no a-matrix was read (kind {self.kind!r})")
+        if self.a_sigma is None:
+            raise ValueError(f"{src}: the a-matrix has no errors; an AcoeffTable needs "
+                             "positive 1-sigma errors for every lag")
+        return AcoeffTable(self.a, self.a_sigma, source=src,
+                           axis_note=str(self.meta.get("axis_note", "")),
+                           exclude_a00=not self.a00_measured)
+
+    def summary(self):
+        """JSON-ready dict (no NaN: non-finite numbers become None)."""
+        return _jsonable({
+            "kind": self.kind, "files": list(self.files), "units": self.units,
+            "gain": self.gain, "gain_err": self.gain_err, "gain_source": self.gain_source,
+            "turnoff": self.turnoff, "max_lag": self.max_lag, "n_levels": self.n_levels,
+            "n_points": 0 if self.mu is None else int(self.mu.size),
+            "mu": self.mu, "var": self.var, "exptime": self.exptime,
+            "a": self.a, "a_sigma": self.a_sigma, "a00_measured": self.a00_measured,
+            "pairs_used": self.pairs_used, "pairs_dropped": self.pairs_dropped,
+            "amp": self.amp, "amps": self.amps, "bad_amps": self.bad_amps,
+            "notes": self.notes, "meta": self.meta})
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (int, np.integer)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(x) else None
+    if x is None or isinstance(x, str):
+        return x
+    return str(x)
+
+
+# --------------------------------------------------------------------------- detection
+
+def _is_fits(path):
+    with open(path, "rb") as fh:
+        return fh.read(9) == b"SIMPLE  ="
+
+
+def _first_data_row(path):
+    """(first line, number of numeric fields of the first numeric line)."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            first = None
+            for line in fh:
+                s = line.strip()
+                if first is None and s:
+                    first = s
+                if not s or s.startswith("#"):
+                    continue
+                parts = s.replace(",", " ").split()
+                try:
+                    [float(p) for p in parts]
+                except ValueError:
+                    continue  # a header line
+                return first, len(parts)
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: neither FITS nor text; accepted inputs are FITS flats, a "
+                         "cp_pipe PTC dataset FITS, a PTC text file (mean, variance) or an "
+                         "a-matrix table (text 'i j value sigma' or ECSV)") from None
+    return first, 0
+
+
+def detect_input_kind(path):
+    """Kind of one input file: 'flats', 'ptc', 'amatrix' or 'cp_pipe'.
+
+    FITS files with a 2-d image HDU are flats; FITS files with a binary
+    table and no image are taken as a cp_pipe PTC dataset (checked when
+    read). Text files starting with ``# %ECSV`` are a-matrix tables; other
+    text files are told apart by the number of numeric columns (2: PTC, 4:
+    a-matrix).
+
+    Parameters
+    ----------
+    path : str or path-like
+
+    Returns
+    -------
+    str
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{path}: no such file")
+    if os.path.isdir(path):
+        raise ValueError(f"{path}: is a directory; give the files themselves (e.g. "
+                         f"{os.path.join(path, '*.fits')})")
+    if _is_fits(path):
+        from astropy.io import fits
+
+        with fits.open(path, memmap=False) as hdul:
+            image = any(h.is_image and h.header.get("NAXIS", 0) == 2 for h in hdul)
+            table = any(isinstance(h, fits.BinTableHDU) for h in hdul)
+        if image:
+            return "flats"
+        if table:
+            return "cp_pipe"
+        raise ValueError(f"{path}: FITS file with neither a 2-d image HDU (a flat) nor a binary "
+                         "table (a cp_pipe PTC dataset); one of those is accepted")
+    first, ncol = _first_data_row(path)
+    if first is not None and first.startswith("# %ECSV"):
+        return "amatrix"
+    if ncol == 2:
+        return "ptc"
+    if ncol == 4:
+        return "amatrix"
+    raise ValueError(f"{path}: text file with {ncol} numeric columns; accepted are 2 columns "
+                     "(a PTC: mean ADU, variance ADU^2) or 4 columns (an a-matrix: i j value "
+                     "sigma), or an ECSV table (# %ECSV) with columns i, j, a, a_err")
+
+
+def read_calibration_input(paths, *, max_lag=8, amp=None, exptime_rtol=1e-3, turnoff_drop=0.05,
+                           min_levels=3, drop_single=False, nsig=5.0, min_pixels=1000):
+    """Read the inputs of ``bfdrift calibrate``: flats, a PTC, an a-matrix or a cp_pipe PTC.
+
+    Parameters
+    ----------
+    paths : str, path-like or sequence of them
+        The input files, all of one kind (see the module documentation).
+        Flats: any number of FITS files; other kinds: exactly one file.
+    max_lag : int, optional
+        Largest covariance lag measured from flats; a-matrices and cp_pipe
+        covariances with larger lags are truncated to it (noted).
+    amp : str, optional
+        cp_pipe: the amplifier to read (default: see :func:`read_cp_pipe_ptc`).
+    exptime_rtol : float, optional
+        Flats: relative tolerance of equal ``EXPTIME``.
+    turnoff_drop : float, optional
+        Flats and PTC files: relative fall of the variance below its running
+        maximum that marks the turn-off.
+    min_levels : int, optional
+        Flats and PTC files: fewest distinct signal levels accepted after the
+        turn-off cut.
+    drop_single : bool, optional
+        Flats: drop (and report) a level holding a single flat instead of
+        raising.
+    nsig, min_pixels
+        Flats: passed to :func:`~lsst_bfdrift.calibration.ptc.pair_covariances`.
+
+    Returns
+    -------
+    CalibrationData
+
+    Raises
+    ------
+    FileNotFoundError
+        A path does not exist.
+    ValueError
+        Unrecognised or bad input, or files of several kinds.
+    """
+    if isinstance(paths, (str, bytes)) or hasattr(paths, "__fspath__"):
+        paths = [paths]
+    paths = [os.fspath(p) for p in paths]
+    if not paths:
+        raise ValueError("no input files given; accepted: FITS flats, a PTC text file, an "
+                         "a-matrix table or a cp_pipe PTC dataset FITS")
+    if len(set(paths)) != len(paths):
+        dup = sorted({p for p in paths if paths.count(p) > 1})
+        raise ValueError(f"{dup[0]}: given more than once; each file may appear once")
+    kinds = {p: detect_input_kind(p) for p in paths}
+    found = sorted(set(kinds.values()), key=INPUT_KINDS.index)
+    if len(found) > 1:
+        listing = "; ".join(f"{p}: {k}" for p, k in kinds.items())
+        raise ValueError(f"inputs of different kinds in one call ({', '.join(found)}): "
+                         f"{listing}; give files of one kind only (flats, ptc, amatrix or "
+                         "cp_pipe)")
+    kind = found[0]
+    if amp is not None and kind != "cp_pipe":
+        raise ValueError(f"{paths[0]}: amp={amp!r} given, but the input is {kind}; amp selects "
+                         "an amplifier of a cp_pipe PTC dataset only")
+    if kind == "flats":
+        return read_flat_pairs(paths, max_lag=max_lag, exptime_rtol=exptime_rtol,
+                               turnoff_drop=turnoff_drop, min_levels=min_levels,
+                               drop_single=drop_single, nsig=nsig, min_pixels=min_pixels)
+    if len(paths) > 1:
+        raise ValueError(f"{paths[1]}: only one {kind} file can be read at a time, got "
+                         f"{len(paths)} ({', '.join(paths)})")
+    if kind == "ptc":
+        return read_ptc_file(paths[0], turnoff_drop=turnoff_drop, min_levels=min_levels)
+    if kind == "amatrix":
+        return read_amatrix_file(paths[0], max_lag=max_lag)
+    return read_cp_pipe_ptc(paths[0], amp=amp, max_lag=max_lag, min_levels=min_levels)
+
+
+# --------------------------------------------------------------------------- flats
+
+def _header_value(headers, key):
+    for h in headers:
+        if key in h:
+            return h[key]
+    return None
+
+
+def _flat_header(path):
+    """Header facts of one flat FITS (no pixel data read)."""
+    from astropy.io import fits
+
+    with fits.open(path, memmap=False) as hdul:
+        image = next((k for k, h in enumerate(hdul) if h.is_image and h.header.get("NAXIS") == 2
+                      and str(h.header.get("EXTNAME", "")).upper() != "MASK"), None)
+        if image is None:
+            raise ValueError(f"{path}: no 2-d image HDU (other than MASK); a flat needs one")
+        hdr = hdul[image].header
+        headers = [hdr, hdul[0].header]
+        shape = (int(hdr["NAXIS2"]), int(hdr["NAXIS1"]))
+        mask = next((k for k, h in enumerate(hdul)
+                     if str(h.header.get("EXTNAME", "")).upper() == "MASK"), None)
+        if mask is not None:
+            mh = hdul[mask].header
+            mshape = (mh.get("NAXIS2"), mh.get("NAXIS1")) if mh.get("NAXIS") == 2 else None
+            if not hdul[mask].is_image or mshape != shape:
+                raise ValueError(f"{path}: MASK HDU has shape {mshape}, the image {shape}; the "
+                                 "mask must be a 2-d image of the image's shape (non-zero = bad)")
+        exptime = _header_value(headers, "EXPTIME")
+        gain = _header_value(headers, "GAIN")
+        bunit = _header_value(headers, "BUNIT")
+    if exptime is None:
+        raise ValueError(f"{path}: no EXPTIME keyword; a flat needs its exposure time (s) as "
+                         "EXPTIME in the image HDU's header or the primary header")
+    try:
+        exptime = float(exptime)
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: EXPTIME = {exptime!r} is not a number; accepted: the exposure "
+                         "time in seconds") from None
+    if not math.isfinite(exptime):
+        raise ValueError(f"{path}: EXPTIME = {exptime} is not finite; accepted: the exposure "
+                         "time in seconds")
+    if gain is not None:
+        try:
+            gain = float(gain)
+        except (TypeError, ValueError):
+            raise ValueError(f"{path}: GAIN = {gain!r} is not a number; accepted: a positive "
+                             "gain in e/ADU") from None
+        if not (math.isfinite(gain) and gain > 0):
+            raise ValueError(f"{path}: GAIN = {gain} is not positive; accepted: a positive gain "
+                             "in e/ADU")
+    units = "adu"
+    if bunit is not None:
+        b = str(bunit).strip().lower()
+        if b in _ELECTRON_UNITS:
+            units = "electron"
+        elif b not in _ADU_UNITS:
+            raise ValueError(f"{path}: BUNIT = {bunit!r} not understood; accepted: 'adu' (or "
+                             "'count', 'DN') or 'electron' (or 'e-')")
+    return {"path": path, "hdu": image, "mask_hdu": mask, "shape": shape, "exptime": exptime,
+            "gain": gain, "units": units, "bunit": bunit}
+
+
+def _flat_pixels(info):
+    """(image, bad-pixel mask, pixels masked by MASK, non-finite pixels)."""
+    from astropy.io import fits
+
+    with fits.open(info["path"], memmap=False) as hdul:
+        data = np.array(hdul[info["hdu"]].data, dtype=np.float64)
+        given = (np.zeros(data.shape, bool) if info["mask_hdu"] is None
+                 else np.asarray(hdul[info["mask_hdu"]].data) != 0)
+    nonfinite = ~np.isfinite(data)
+    return data, given | nonfinite, int(given.sum()), int((nonfinite & ~given).sum())
+
+
+def _group_levels(infos, rtol):
+    """Lists of infos with equal EXPTIME (within rtol), by increasing time."""
+    levels = []
+    for info in sorted(infos, key=lambda d: d["exptime"]):
+        if levels and abs(info["exptime"] - levels[-1][0]["exptime"]) <= (
+                rtol * abs(levels[-1][0]["exptime"])):
+            levels[-1].append(info)
+        else:
+            levels.append([info])
+    return levels
+
+
+def _require_levels(nlev, min_levels, what, files, dropped):
+    if nlev >= min_levels:
+        return
+    why = ""
+    for d in dropped:
+        what_ = ", ".join(d["files"]) if "files" in d else f"point {d['index']}"
+        why += f"; dropped {what_}: {d['reason']}"
+    raise ValueError(f"{files}: {nlev} distinct signal level(s) {what}, fewer than "
+                     f"min_levels={min_levels}; a photon transfer curve needs at least "
+                     f"{min_levels} levels below the turn-off{why}")
+
+
+def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, min_levels=3,
+                    drop_single=False, nsig=5.0, min_pixels=1000):
+    """Covariances of flat pairs read from FITS files.
+
+    See the module documentation (kind ``'flats'``) for the file format,
+    grouping and pairing rules; the options are those of
+    :func:`read_calibration_input`.
+
+    Parameters
+    ----------
+    paths : sequence of str or path-like
+        FITS flats, bias-subtracted (ADU or electrons).
+
+    Returns
+    -------
+    CalibrationData
+        ``kind`` 'flats'; one PTC point per pair used.
+    """
+    paths = [os.fspath(p) for p in paths]
+    if len(paths) < 2:
+        name = paths[0] if paths else "(no file)"
+        raise ValueError(f"{name}: only one flat given; a photon transfer curve needs pairs of "
+                         f"flats (two FITS files with equal EXPTIME) at >= {min_levels} "
+                         "exposure levels")
+    infos = [_flat_header(p) for p in paths]
+    first = infos[0]
+    for info in infos[1:]:
+        if info["shape"] != first["shape"]:
+            raise ValueError(f"{info['path']}: image shape {info['shape']} differs from "
+                             f"{first['path']} {first['shape']}; all flats must have one shape "
+                             "(the same amplifier or sensor region)")
+        if info["units"] != first["units"]:
+            raise ValueError(f"{info['path']}: BUNIT {info['bunit']!r} differs from "
+                             f"{first['path']} {first['bunit']!r}; all flats must be in one unit")
+        g0, g1 = first["gain"], info["gain"]
+        if (g0 is None) != (g1 is None) or (g0 is not None and abs(g1 - g0) > 1e-6 * g0):
+            raise ValueError(f"{info['path']}: GAIN = {g1} differs from {first['path']} "
+                             f"GAIN = {g0}; all flats must share one gain (or none)")
+    notes, dropped = [], []
+    for info in infos:
+        if not info["exptime"] > 0:
+            dropped.append({"files": [info["path"]], "exptime": info["exptime"],
+                            "reason": f"EXPTIME = {info['exptime']} s is not positive (a bias "
+                                      "or dark, not a flat)"})
+    usable = [i for i in infos if i["exptime"] > 0]
+    levels = _group_levels(usable, exptime_rtol)
+    pairs = []
+    for k, level in enumerate(levels):
+        level = sorted(level, key=lambda d: d["path"])
+        if len(level) == 1:
+            only = level[0]
+            others = [lv[0] for lv in levels if lv is not levels[k]]
+            if others:
+                near = min(others, key=lambda d: abs(d["exptime"] - only["exptime"]))
+                rel = abs(near["exptime"] - only["exptime"]) / only["exptime"]
+                hint = (f" (nearest other level: EXPTIME = {near['exptime']:g} s in "
+                        f"{near['path']}, relative difference {rel:.2g} > exptime_rtol="
+                        f"{exptime_rtol:g})")
+            else:
+                hint = ""
+            msg = (f"{only['path']}: the only flat at EXPTIME = {only['exptime']:g} s{hint}; "
+                   "each level needs a pair of flats with equal EXPTIME")
+            if not drop_single:
+                raise ValueError(msg + " (add its partner, or pass drop_single=True to drop it)")
+            dropped.append({"files": [only["path"]], "exptime": only["exptime"],
+                            "reason": "the only flat at its EXPTIME (no partner)"})
+            continue
+        for m in range(0, len(level) - 1, 2):
+            pairs.append((k, level[m], level[m + 1]))
+        if len(level) % 2:
+            odd = level[-1]
+            dropped.append({"files": [odd["path"]], "exptime": odd["exptime"],
+                            "reason": f"odd file out: {len(level)} flats at EXPTIME = "
+                                      f"{odd['exptime']:g} s, paired in file-name order"})
+    files = ", ".join(paths) if len(paths) <= 4 else f"{paths[0]} ... ({len(paths)} flats)"
+    _require_levels(len({k for k, _, _ in pairs}), min_levels, "with a pair of flats", files,
+                    dropped)
+    rows = []
+    for _, f1, f2 in pairs:
+        d1, m1, g1, n1 = _flat_pixels(f1)
+        d2, m2, g2, n2 = _flat_pixels(f2)
+        try:
+            pc = pair_covariances(d1, d2, max_lag=max_lag, mask=m1 | m2, nsig=nsig,
+                                  min_pixels=min_pixels)
+        except ValueError as err:
+            raise ValueError(f"flat pair {f1['path']}, {f2['path']}: {err}") from None
+        del d1, d2
+        rows.append({"files": [f1["path"], f2["path"]],
+                     "exptime": 0.5 * (f1["exptime"] + f2["exptime"]), "mu": pc.mu,
+                     "var": float(pc.cov[0, 0]), "nan_pixels": n1 + n2,
+                     "mask_pixels": g1 + g2, "nmasked": pc.nmasked, "_pc": pc})
+        if n1 + n2:
+            notes.append(f"{f1['path']}, {f2['path']}: {n1 + n2} NaN/inf pixel(s) masked")
+    rows.sort(key=lambda r: r["mu"])
+    mu = np.array([r["mu"] for r in rows])
+    var = np.array([r["var"] for r in rows])
+    turnoff = ptc_turnoff(mu, var, drop=turnoff_drop)
+    used = []
+    for r in rows:
+        if r["mu"] > turnoff:
+            dropped.append({k: v for k, v in r.items() if k != "_pc"}
+                           | {"reason": f"past the PTC turn-off at {turnoff:.6g} "
+                                        f"{first['units']} (the variance falls more than "
+                                        f"{turnoff_drop:.0%} below its running maximum: "
+                                        "saturation)"})
+        else:
+            used.append(r)
+    nlev = len(_group_levels([{"exptime": r["exptime"]} for r in used], exptime_rtol))
+    _require_levels(nlev, min_levels, "remain below the PTC turn-off", files, dropped)
+    units = first["units"]
+    if units == "electron":
+        gain, source = 1.0, "BUNIT = 'electron': signals in electrons"
+    elif first["gain"] is not None:
+        gain, source = first["gain"], "GAIN keyword (e/ADU)"
+    else:
+        gain, source = None, "unknown: no GAIN keyword; signals kept in ADU"
+        notes.append("no GAIN keyword: signals and covariances in ADU, gain to be fitted")
+    if first["bunit"] is None:
+        notes.append("no BUNIT keyword: flats taken to be in ADU")
+    return CalibrationData(
+        kind="flats", files=paths, mu=np.array([r["mu"] for r in used]),
+        var=np.array([r["var"] for r in used]),
+        cov=np.array([r["_pc"].cov for r in used]), npix=np.array([r["_pc"].npix for r in used]),
+        exptime=np.array([r["exptime"] for r in used]), units=units, gain=gain,
+        gain_source=source, turnoff=turnoff,
+        pairs_used=[{k: v for k, v in r.items() if k != "_pc"} for r in used],
+        pairs_dropped=dropped, notes=notes,
+        meta={"max_lag": int(max_lag), "exptime_rtol": exptime_rtol, "shape": list(first["shape"])})
+
+
+# --------------------------------------------------------------------------- PTC text
+
+def read_ptc_file(path, *, turnoff_drop=0.05, min_levels=3):
+    """A two-column PTC text file (eotest format: mean ADU, variance ADU^2).
+
+    Parameters
+    ----------
+    path : str or path-like
+    turnoff_drop, min_levels
+        As in :func:`read_calibration_input`.
+
+    Returns
+    -------
+    CalibrationData
+        ``kind`` 'ptc'; ``mu``, ``var`` below the turn-off, no covariances.
+    """
+    path = os.fspath(path)
+    try:
+        mu, var = read_ptc_text(path)
+    except ValueError as err:
+        msg = str(err)
+        raise ValueError(msg if msg.startswith(path) else f"{path}: {msg}; accepted: lines of "
+                         "two numbers (mean ADU, variance ADU^2), '#' comments") from None
+    bad = ~(np.isfinite(mu) & np.isfinite(var) & (mu > 0) & (var > 0))
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{path}: {int(bad.sum())} PTC point(s) not finite and positive, e.g. "
+                         f"mean {mu[k]!r}, variance {var[k]!r}; accepted: positive means (ADU) "
+                         "and variances (ADU^2)")
+    turnoff = ptc_turnoff(mu, var, drop=turnoff_drop)
+    keep = mu <= turnoff
+    used = [{"index": k, "mu": float(m), "var": float(v)}
+            for k, (m, v) in enumerate(zip(mu, var)) if keep[k]]
+    dropped = [{"index": k, "mu": float(m), "var": float(v),
+                "reason": f"past the PTC turn-off at {turnoff:.6g} ADU (the variance falls more "
+                          f"than {turnoff_drop:.0%} below its running maximum: saturation)"}
+               for k, (m, v) in enumerate(zip(mu, var)) if not keep[k]]
+    _require_levels(int(keep.sum()), min_levels, "remain below the PTC turn-off", path, dropped)
+    return CalibrationData(kind="ptc", files=[path], mu=mu[keep], var=var[keep], units="adu",
+                           gain_source="unknown: a PTC file gives no gain (to be fitted)",
+                           turnoff=turnoff, pairs_used=used, pairs_dropped=dropped,
+                           notes=["PTC file: points sorted by mean; no covariances beyond "
+                                  "the variance"])
+
+
+# --------------------------------------------------------------------------- a-matrix
+
+def _acoeff_square(path, i, j, a, s):
+    """Checked square arrays a[i, j], sigma[i, j] from row values."""
+    i = np.asarray(i, dtype=float)
+    j = np.asarray(j, dtype=float)
+    a = np.asarray(a, dtype=float)
+    s = np.asarray(s, dtype=float)
+    if i.size == 0:
+        raise ValueError(f"{path}: no a_ij rows found; accepted: rows of i j value sigma")
+    lags = np.column_stack([i, j])
+    badlag = ~np.isfinite(lags).all(axis=1) | np.any(lags != np.round(lags), axis=1) | np.any(
+        lags < 0, axis=1)
+    if badlag.any():
+        bad = [(float(x), float(y)) for x, y in lags[badlag][:3]]
+        raise ValueError(f"{path}: lags must be non-negative integers (i serial, j parallel); "
+                         f"found {bad}")
+    if not np.all(np.isfinite(a)):
+        k = int(np.flatnonzero(~np.isfinite(a))[0])
+        raise ValueError(f"{path}: coefficient at lag ({int(i[k])}, {int(j[k])}) is {a[k]}; "
+                         "accepted: finite a_ij (per electron)")
+    badsig = ~(np.isfinite(s) & (s > 0))
+    if badsig.any():
+        ks = np.flatnonzero(badsig)[:3]
+        found = ", ".join(f"({int(i[k])}, {int(j[k])}): {s[k]:g}" for k in ks)
+        raise ValueError(f"{path}: {int(badsig.sum())} a_ij error(s) not positive and finite "
+                         f"(lag: error {found}); accepted: positive 1-sigma errors per electron")
+    ii, jj = i.astype(int), j.astype(int)
+    if not np.any((ii == 0) & (jj == 0)):
+        raise ValueError(f"{path}: no a00 (lag 0, 0) row; the table must include a00, measured "
+                         "or set by the area sum rule")
+    L = int(max(ii.max(), jj.max()))
+    A = np.full((L + 1, L + 1), np.nan)
+    S = np.full((L + 1, L + 1), np.nan)
+    for x, y, v, e in zip(ii, jj, a, s):
+        if not np.isnan(A[x, y]):
+            raise ValueError(f"{path}: lag ({x}, {y}) appears twice; each lag once")
+        A[x, y], S[x, y] = v, e
+    if np.isnan(A).any():
+        miss = [tuple(m) for m in np.argwhere(np.isnan(A))[:3].tolist()]
+        raise ValueError(f"{path}: incomplete table, missing lags e.g. {miss}; accepted: every "
+                         f"lag 0 <= i, j <= {L} once")
+    return A, S
+
+
+def _text_rows(path):
+    rows = []
+    with open(path, encoding="utf-8") as fh:
+        for n, line in enumerate(fh, 1):
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            parts = s.replace(",", " ").split()
+            try:
+                vals = [float(p) for p in parts]
+            except ValueError:
+                if rows:
+                    raise ValueError(f"{path}:{n}: non-numeric row {s!r}; accepted: i j value "
+                                     "sigma") from None
+                continue
+            if len(vals) != 4:
+                raise ValueError(f"{path}:{n}: {len(vals)} columns; accepted: 4 (i j value "
+                                 "sigma)")
+            rows.append(vals)
+    d = np.array(rows).reshape(-1, 4)
+    return d[:, 0], d[:, 1], d[:, 2], d[:, 3]
+
+
+def _ecsv_rows(path):
+    import astropy.units as u
+    from astropy.table import Table
+
+    try:
+        t = Table.read(path, format="ascii.ecsv")
+    except Exception as err:  # noqa: BLE001 - any parse failure is a bad file
+        raise ValueError(f"{path}: not a readable ECSV table ({err}); accepted: ECSV with "
+                         "columns i, j, a, a_err") from None
+    missing = [c for c in ("i", "j", "a", "a_err") if c not in t.colnames]
+    if missing:
+        raise ValueError(f"{path}: ECSV table lacks column(s) {missing} (found {t.colnames}); "
+                         "accepted: columns i (serial lag), j (parallel lag), a, a_err "
+                         "(per electron)")
+    out = []
+    for c in ("i", "j", "a", "a_err"):
+        col = t[c]
+        if getattr(col, "mask", None) is not None and np.any(col.mask):
+            raise ValueError(f"{path}: column {c} has missing values; every row needs i, j, a, "
+                             "a_err")
+        if col.dtype.kind not in "biuf":
+            raise ValueError(f"{path}: column {c} is not numeric (dtype {col.dtype}); accepted: "
+                             "integer lags i, j and float a, a_err")
+        if c in ("a", "a_err") and col.unit is not None:
+            try:
+                vals = (np.asarray(col, float) * col.unit).to_value(1 / u.electron)
+            except u.UnitConversionError:
+                raise ValueError(f"{path}: column {c} has unit {col.unit}; accepted: per "
+                                 "electron (1 / electron) or no unit") from None
+        else:
+            vals = np.asarray(col, float)
+        out.append(vals)
+    return tuple(out), t.meta
+
+
+def read_amatrix_file(path, *, max_lag=None):
+    """An a-matrix table: text ``i j value sigma`` or ECSV ``i, j, a, a_err``.
+
+    Parameters
+    ----------
+    path : str or path-like
+    max_lag : int, optional
+        Truncate to lags <= max_lag (noted).
+
+    Returns
+    -------
+    CalibrationData
+        ``kind`` 'amatrix'; ``a``, ``a_sigma`` [serial, parallel] per electron.
+    """
+    path = os.fspath(path)
+    first, _ = _first_data_row(path)
+    notes = []
+    if first is not None and first.startswith("# %ECSV"):
+        (i, j, a, s), tmeta = _ecsv_rows(path)
+        A, S = _acoeff_square(path, i, j, a, s)
+        table = AcoeffTable(A, S, source=path)
+        table.axis_note = "ECSV columns i (serial), j (parallel) taken as given"
+        if A.shape[0] > 1 and A[1, 0] > A[0, 1]:
+            notes.append(f"a[1,0] = {A[1, 0]:.3g} (serial) exceeds a[0,1] = {A[0, 1]:.3g} "
+                         "(parallel), unlike every measured LSST sensor: check the i/j columns")
+        fmt = "ecsv"
+    else:
+        _acoeff_square(path, *_text_rows(path))  # checks, with this module's messages
+        # the file declares no axes: oriented from the data, as read_acoeff_table(orient=True)
+        table = assign_axes(read_acoeff_table(path, orient=False))
+        fmt = "text"
+    ok, rule = sum_rule_check(table)
+    table.exclude_a00 = ok
+    notes.append(table.axis_note)
+    notes.append(rule)
+    if max_lag is not None and table.max_lag > int(max_lag):
+        notes.append(f"table has lags up to {table.max_lag}, truncated to max_lag={int(max_lag)}")
+        table = table.truncated(max_lag)
+    return CalibrationData(kind="amatrix", files=[path], a=table.a, a_sigma=table.sigma,
+                           a00_measured=not table.exclude_a00,
+                           gain_source="unknown: an a-matrix table gives no gain", notes=notes,
+                           meta={"format": fmt, "axis_note": table.axis_note,
+                                 "sum_rule": rule})
+
+
+# --------------------------------------------------------------------------- cp_pipe
+
+_CP_EXPECTED = ("a cp_pipe PTC dataset (lsst.ip.isr PhotonTransferCurveDataset, schema 'Gen3 "
+                "Photon Transfer Curve'): HDU 1 a binary table with one row per amplifier, "
+                "OBSTYPE = 'PTC' in its header")
+
+
+def _cell(data, col, row):
+    v = data[col][row]
+    return np.asarray(v)
+
+
+def _bad_amps(data):
+    col = data["BAD_AMPS"]
+    if np.asarray(col).size == 0:
+        return []
+    out = set()
+    for row in range(len(data)):
+        for v in np.atleast_1d(np.asarray(col[row])).ravel():
+            v = v.decode() if isinstance(v, bytes) else str(v)
+            if v.strip():
+                out.add(v.strip())
+    return sorted(out)
+
+
+def _cp_amp(path, data, row, version):
+    """One amplifier's row as a dict of arrays (checked shapes)."""
+    name = str(_cell(data, "AMPLIFIER_NAME", row)).strip()
+    fit_type = str(_cell(data, "PTC_FIT_TYPE", row)).strip()
+    side = int(_cell(data, "COV_MATRIX_SIDE", row))
+    side_fit = (int(_cell(data, "COV_MATRIX_SIDE_FULL_COV_FIT", row))
+                if "COV_MATRIX_SIDE_FULL_COV_FIT" in data.names else side)
+    mu = _cell(data, "RAW_MEANS", row).astype(float).ravel()
+    n = mu.size
+    var = _cell(data, "RAW_VARS", row).astype(float).ravel()
+    mask = _cell(data, "EXP_ID_MASK", row).astype(bool).ravel()
+    for col, arr in (("RAW_VARS", var), ("EXP_ID_MASK", mask)):
+        if arr.size != n:
+            raise ValueError(f"{path}: amplifier {name}: column {col} has {arr.size} entries, "
+                             f"RAW_MEANS {n}; {_CP_EXPECTED} with one entry per flat pair")
+    exptime = (_cell(data, "RAW_EXP_TIMES", row).astype(float).ravel()
+               if "RAW_EXP_TIMES" in data.names else None)
+    if exptime is not None and exptime.size != n:
+        exptime = None
+    cov = _cell(data, "COVARIANCES", row).astype(float).ravel()
+    if cov.size not in (0, n * side * side):
+        raise ValueError(f"{path}: amplifier {name}: COVARIANCES has {cov.size} values, expected "
+                         f"{n} x {side} x {side} = {n * side * side} (RAW_MEANS x "
+                         "COV_MATRIX_SIDE^2)")
+    cov = cov.reshape(n, side, side) if cov.size else None
+    cov_sigma = None
+    if cov is not None and "COVARIANCES_SQRT_WEIGHTS" in data.names:
+        w = _cell(data, "COVARIANCES_SQRT_WEIGHTS", row).astype(float).ravel()
+        if w.size == cov.size:
+            with np.errstate(divide="ignore"):
+                cov_sigma = np.where(w > 0, 1.0 / np.where(w > 0, w, 1.0), np.nan).reshape(
+                    cov.shape)
+    amat = _cell(data, "A_MATRIX", row).astype(float).ravel()
+    a = a_sigma = None
+    if fit_type.startswith("FULLCOVARIANCE"):
+        if amat.size != side_fit * side_fit:
+            raise ValueError(f"{path}: amplifier {name}: A_MATRIX has {amat.size} values, "
+                             f"expected {side_fit} x {side_fit} (COV_MATRIX_SIDE_FULL_COV_FIT^2)")
+        if np.all(np.isfinite(amat)):
+            a = amat.reshape(side_fit, side_fit)
+    elif fit_type.startswith("EXPAPPROXIMATION"):
+        pars = _cell(data, "PTC_FIT_PARS", row).astype(float).ravel()
+        errs = _cell(data, "PTC_FIT_PARS_ERROR", row).astype(float).ravel()
+        if pars.size and np.isfinite(pars[0]):
+            a = np.array([[pars[0]]])
+            if errs.size and np.isfinite(errs[0]) and errs[0] > 0:
+                a_sigma = np.array([[errs[0]]])
+    info = {"fit_type": fit_type, "gain": float(_cell(data, "GAIN", row)),
+            "gain_err": float(_cell(data, "GAIN_ERR", row)),
+            "noise": float(_cell(data, "NOISE", row)),
+            "noise_units": "electron" if (version is None or version >= 1.9) else
+            ("electron^2" if fit_type.startswith("FULLCOVARIANCE") else "electron"),
+            "turnoff": float(_cell(data, "PTC_TURNOFF", row)), "cov_matrix_side": side,
+            "cov_matrix_side_full_cov_fit": side_fit}
+    if "NPIXEL_COVARIANCES" in data.names:
+        info["npixel_covariances"] = int(_cell(data, "NPIXEL_COVARIANCES", row))
+    return name, {"mu": mu, "var": var, "mask": mask, "exptime": exptime, "cov": cov,
+                  "cov_sigma": cov_sigma, "a": a, "a_sigma": a_sigma, "info": info}
+
+
+def read_cp_pipe_ptc(path, *, amp=None, max_lag=None, min_levels=3):
+    """Read the PTC dataset FITS written by LSST's cp_pipe.
+
+    The layout read, and the index order, are described in the module
+    documentation (kind ``'cp_pipe'``).
+
+    Parameters
+    ----------
+    path : str or path-like
+    amp : str, optional
+        Amplifier name (``AMPLIFIER_NAME``). None: the only good amplifier,
+        or the inverse-variance average of the good amplifiers' a-matrices
+        when all carry errors; otherwise an error asks to choose.
+    max_lag : int, optional
+        Truncate the a-matrix and covariances to lags <= max_lag (noted).
+    min_levels : int, optional
+        Fewest PTC points kept when the dataset has no a-matrix.
+
+    Returns
+    -------
+    CalibrationData
+        ``kind`` 'cp_pipe'.
+    """
+    from astropy.io import fits
+
+    path = os.fspath(path)
+    with fits.open(path, memmap=False) as hdul:
+        if len(hdul) < 2 or not isinstance(hdul[1], fits.BinTableHDU):
+            found = "no HDU 1" if len(hdul) < 2 else f"HDU 1 is {type(hdul[1]).__name__}"
+            raise ValueError(f"{path}: not {_CP_EXPECTED}; found {found}")
+        hdr = hdul[1].header
+        obstype = hdr.get("OBSTYPE", hdul[0].header.get("OBSTYPE"))
+        calibcls = hdr.get("CALIBCLS")
+        if obstype != "PTC":
+            raise ValueError(f"{path}: not {_CP_EXPECTED}; found OBSTYPE = {obstype!r}"
+                             + (f", CALIBCLS = {calibcls!r}" if calibcls else ""))
+        data = hdul[1].data
+        names = list(data.names) if data is not None else []
+        missing = [c for c in CP_PIPE_COLUMNS if c not in names]
+        if missing:
+            raise ValueError(f"{path}: not {_CP_EXPECTED} with columns {list(CP_PIPE_COLUMNS)}; "
+                             f"missing {missing} (found {names})")
+        if len(data) == 0:
+            raise ValueError(f"{path}: the PTC table has no amplifier rows; {_CP_EXPECTED}")
+        version = hdr.get("PTC_VERSION")
+        version = float(version) if version is not None else None
+        bad_amps = _bad_amps(data)
+        amps = dict(_cp_amp(path, data, row, version) for row in range(len(data)))
+    meta = {"PTC_VERSION": version, "PTC_SCHEMA": hdr.get("PTC_SCHEMA"),
+            "PTC_FIT_TYPE": hdr.get("PTC_FIT_TYPE"), "CALIBCLS": calibcls,
+            "axis_note": "cp_pipe [i, j] = [dx, dy] = [serial, parallel]: not transposed"}
+    notes = []
+    if version is None:
+        notes.append("no PTC_VERSION in the table header: read as the current schema")
+    if calibcls is not None and "PhotonTransferCurveDataset" not in str(calibcls):
+        notes.append(f"CALIBCLS = {calibcls!r}, not PhotonTransferCurveDataset; read by OBSTYPE")
+    good = [n for n in amps if n not in bad_amps]
+    if amp is not None:
+        if amp not in amps:
+            raise ValueError(f"{path}: no amplifier {amp!r}; the file holds {list(amps)}")
+        if amp in bad_amps:
+            raise ValueError(f"{path}: amplifier {amp!r} is in badAmps {bad_amps}; choose one of "
+                             f"{good}")
+        chosen = [amp]
+    elif not good:
+        raise ValueError(f"{path}: every amplifier is in badAmps {bad_amps}; nothing to read")
+    elif len(good) == 1:
+        chosen = good
+    else:
+        with_err = [n for n in good if amps[n]["a_sigma"] is not None]
+        shapes = {amps[n]["a"].shape for n in with_err}
+        if len(with_err) != len(good) or len(shapes) != 1:
+            raise ValueError(
+                f"{path}: {len(good)} good amplifiers {good} (badAmps {bad_amps}) and their "
+                f"a-matrices carry no errors ({amps[good[0]]['info']['fit_type']} fit), so they "
+                "cannot be averaged with inverse-variance weights; choose one with amp='NAME'")
+        chosen = good
+    per_amp = {n: amps[n]["info"] for n in amps}
+    if len(chosen) > 1:
+        w = np.array([1.0 / amps[n]["a_sigma"] ** 2 for n in chosen])
+        a = np.sum(w * np.array([amps[n]["a"] for n in chosen]), axis=0) / w.sum(axis=0)
+        a_sigma = 1.0 / np.sqrt(w.sum(axis=0))
+        notes.append(f"a-matrix: inverse-variance average of {len(chosen)} good amplifiers "
+                     f"{chosen}; PTC points and gain are per amplifier (see amps)")
+        out = CalibrationData(kind="cp_pipe", files=[path], a=a, a_sigma=a_sigma,
+                              a00_measured=True, units="adu",
+                              gain_source="per amplifier (see amps): not averaged",
+                              amp="average of " + ", ".join(chosen), amps=per_amp,
+                              bad_amps=bad_amps, notes=notes, meta=meta)
+        return _truncate(out, max_lag)
+    name = chosen[0]
+    d = amps[name]
+    info = d["info"]
+    turnoff = info["turnoff"]
+    keep = d["mask"] & np.isfinite(d["mu"]) & np.isfinite(d["var"])
+    reasons = np.where(~d["mask"], "rejected by cp_pipe (EXP_ID_MASK False)",
+                       np.where(keep, "", "non-finite mean or variance"))
+    if math.isfinite(turnoff):
+        past = keep & (d["mu"] > turnoff)
+        reasons = np.where(past, f"past cp_pipe's PTC turn-off at {turnoff:.6g} ADU", reasons)
+        keep &= ~past
+    used, dropped = [], []
+    for k in range(d["mu"].size):
+        e = {"index": k, "mu": float(d["mu"][k]), "var": float(d["var"][k])}
+        if d["exptime"] is not None:
+            e["exptime"] = float(d["exptime"][k])
+        if keep[k]:
+            used.append(e)
+        else:
+            dropped.append(e | {"reason": str(reasons[k])})
+    if d["a"] is None:
+        notes.append(f"amplifier {name}: no a-matrix ({info['fit_type']} fit"
+                     + (", A_MATRIX not filled)" if info["fit_type"].startswith("FULL") else ")"))
+        _require_levels(int(keep.sum()), min_levels, "kept", f"{path} amplifier {name}", dropped)
+    elif d["a_sigma"] is None:
+        notes.append("the cp_pipe PTC dataset stores no a-matrix errors (a_sigma None)")
+    order = np.argsort(d["mu"][keep], kind="stable")
+    sel = np.flatnonzero(keep)[order]
+
+    def pick(x):
+        return None if x is None else x[sel]
+
+    a00_measured = None
+    if d["a"] is not None:
+        a00_measured = True
+    gain = info["gain"] if math.isfinite(info["gain"]) and info["gain"] > 0 else None
+    out = CalibrationData(
+        kind="cp_pipe", files=[path], a=d["a"], a_sigma=d["a_sigma"], a00_measured=a00_measured,
+        mu=d["mu"][sel], var=d["var"][sel], cov=pick(d["cov"]), cov_sigma=pick(d["cov_sigma"]),
+        exptime=pick(d["exptime"]), units="adu", gain=gain,
+        gain_err=info["gain_err"] if gain is not None else None,
+        gain_source=f"cp_pipe {info['fit_type']} fit (GAIN column, e/ADU)" if gain else
+        "unknown: GAIN is not a positive number", turnoff=turnoff,
+        pairs_used=[used[i] for i in order], pairs_dropped=dropped, amp=name, amps=per_amp,
+        bad_amps=bad_amps, notes=notes, meta=meta)
+    return _truncate(out, max_lag)
+
+
+def _truncate(out, max_lag):
+    if max_lag is None:
+        return out
+    k = int(max_lag) + 1
+    if out.a is not None and out.a.shape[0] > k:
+        out.notes.append(f"a-matrix lags up to {out.a.shape[0] - 1} truncated to "
+                         f"max_lag={int(max_lag)}")
+        out.a = out.a[:k, :k]
+        out.a_sigma = None if out.a_sigma is None else out.a_sigma[:k, :k]
+    if out.cov is not None and out.cov.shape[1] > k:
+        out.notes.append(f"covariances up to lag {out.cov.shape[1] - 1} truncated to "
+                         f"max_lag={int(max_lag)}")
+        out.cov = out.cov[:, :k, :k]
+        out.cov_sigma = None if out.cov_sigma is None else out.cov_sigma[:, :k, :k]
+    return out
