@@ -44,8 +44,8 @@ from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
-from lsst_bfdrift.validation.stars import (draw_star_pairs, per_star_residuals,  # noqa: E402
-                                           residual_slopes)
+from lsst_bfdrift.validation.stars import (_slope, draw_star_pairs,  # noqa: E402
+                                           per_star_residuals, residual_slopes)
 
 METHODS = ("astier23", "drift")
 
@@ -124,8 +124,10 @@ def main(argv=None):
             say(f" {sensor} {psf}: {len(pairs)} stars (seed {seed})"
                 + (f", drawn in {cost:.0f} s" if cost else ""))
             rec["psfs"][psf] = {}
+            per_template = {}
             for name, tpl in templates.items():
-                fl, rows = per_star_residuals(pairs, tpl, methods=METHODS, sky=1000.0)
+                fl, rows = per_template[name] = per_star_residuals(pairs, tpl, methods=METHODS,
+                                                                   sky=1000.0)
                 res = residual_slopes(fl, rows)
                 u, ue = res["uncorrected"]["size_slope"], res["uncorrected"]["e_slope"]
                 rec["psfs"][psf][name] = res
@@ -135,6 +137,20 @@ def main(argv=None):
                         f"{100 * r['size_slope_err'] / abs(u):.2f} %   e1 "
                         f"{100 * r['e_slope'] / ue:+6.1f} +- {100 * r['e_slope_err'] / abs(ue):.1f}"
                         " % of uncorrected")
+            # paired on the same stars: calibrated minus true template (drift)
+            fl, true_rows = per_template["true (GalSim file)"]
+            u = rec["psfs"][psf]["true (GalSim file)"]["uncorrected"]
+            for name in (k for k in templates if k.startswith("calibrated")):
+                rows = per_template[name][1]
+                ok = np.isfinite(fl)
+                d = {}
+                for col, key, ref in ((0, "size", u["size_slope"]), (1, "e1", u["e_slope"])):
+                    diff = rows["drift"][ok, col] - true_rows["drift"][ok, col]
+                    sl, se = _slope(fl[ok], diff)
+                    d[key] = (100 * sl / ref, 100 * se / abs(ref))
+                rec["psfs"][psf][f"{name} minus true, drift"] = d
+                say(f"  paired {name} minus true, drift: size {d['size'][0]:+.2f} +- "
+                    f"{d['size'][1]:.2f} %, e1 {d['e1'][0]:+.1f} +- {d['e1'][1]:.1f} %")
     say("target: calibrated drift <= 3 % of the size slope and <= 5 % of e1")
     write_text(args.out + ".txt", "\n".join(lines) + "\n")
     write_json(args.out + ".json", out, indent=1, default=float)

@@ -16,7 +16,7 @@ def small_settings():
 @pytest.fixture(scope="session")
 def small_template(small_settings):
     """Template of the default (symmetric) model."""
-    return build_template(SensorParameters(), small_settings)
+    return build_template(SensorParameters.paper(), small_settings)
 
 
 @pytest.fixture

@@ -9,6 +9,8 @@ lacks (with a Markdown report).
 
 from lsst_bfdrift.calibration.fitting import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.ptc import *  # noqa: F401,F403
+from lsst_bfdrift.calibration.data import *  # noqa: F401,F403
+from lsst_bfdrift.calibration.cp_pipe import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.inputs import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.acoeff_fit import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.sensor_fit import *  # noqa: F401,F403

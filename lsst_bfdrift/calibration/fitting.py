@@ -145,7 +145,7 @@ def _check_inputs(data, sigma, mask, start, bounds):
 
 def fit_parameters(model, data, sigma, start, bounds, *, mask=None, jacobian0=None,
                    diff_step=0.02, max_evaluations=40, tol=1e-3, final_jacobian=True,
-                   central=False, progress=False, callback=None):
+                   central=False, update="broyden", progress=False, callback=None):
     """Least-squares fit of model parameters to measured numbers.
 
     Parameters
@@ -177,6 +177,11 @@ def fit_parameters(model, data, sigma, start, bounds, *, mask=None, jacobian0=No
         covariance (recommended; otherwise the updated estimate is used).
     central : bool, optional
         Central instead of forward differences (2n instead of n evaluations).
+    update : {'broyden', 'exact'}, optional
+        After a step, update the Jacobian by Broyden's rule (one evaluation a
+        step; for expensive models) or recompute it by finite differences
+        after every accepted step (for cheap models with many parameters,
+        where Broyden's estimate converges slowly).
     progress : bool, optional
         Progress bar on stderr, one tick per model evaluation.
     callback : callable, optional
@@ -193,6 +198,8 @@ def fit_parameters(model, data, sigma, start, bounds, *, mask=None, jacobian0=No
         non-finite values at the start.
     """
     t0 = time.perf_counter()
+    if update not in ("broyden", "exact"):
+        raise FitError(f"update must be 'broyden' or 'exact', got {update!r}")
     data, sigma, mask, names = _check_inputs(data, sigma, mask, start, bounds)
     n = len(names)
     x0 = np.array([float(start[k]) for k in names])
@@ -278,13 +285,16 @@ def fit_parameters(model, data, sigma, start, bounds, *, mask=None, jacobian0=No
         if not np.all(np.isfinite(rn)):
             lam *= 10.0
             continue
-        # Broyden's rank-one update from this evaluation (accepted or not)
-        dr = rn - r - A @ step
-        A = A + np.outer(dr, step) / (step @ step)
         chi2n = float(rn @ rn)
+        if update == "broyden":
+            # Broyden's rank-one update from this evaluation (accepted or not)
+            dr = rn - r - A @ step
+            A = A + np.outer(dr, step) / (step @ step)
         if chi2n < chi2:
             gain = chi2 - chi2n
             x, r, chi2 = xn, rn, chi2n
+            if update == "exact":
+                A = fd_jacobian(x)[mask] * w[:, None] * scale[None, :]
             lam = max(lam / 3.0, 1e-7)
             if callback is not None:
                 callback(dict(zip(names, map(float, x))), chi2)

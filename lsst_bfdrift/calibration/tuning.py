@@ -263,10 +263,7 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     candidates = dict(CANDIDATES if free is None else free)
     for n, (lo, hi) in candidates.items():
         v = getattr(start, n)
-        if v is not None and v in (lo, hi):  # e.g. a point charge (cloud 0): step inside
-            start = start.replace(**{n: v + (0.01 if v == lo else -0.01) * (hi - lo)})
-            v = getattr(start, n)
-        if v is None or not lo < v < hi:
+        if v is None or not lo <= v <= hi:
             raise CalibrationError(f"start value of {n!r} ({v}) is outside its bounds "
                                    f"({lo}, {hi})")
     names = list(candidates)
@@ -291,6 +288,8 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     for k, n in enumerate(names):
         lo, hi = candidates[n]
         h = 0.02 * max(abs(x0[n]), 1e-3 * (hi - lo))
+        if x0[n] in (lo, hi):  # on a bound (e.g. a point charge): a secant inwards
+            h = 0.1 * (hi - lo)
         if x0[n] + h >= hi:
             h = -h
         J[..., k] = np.nan_to_num((model({**x0, n: x0[n] + h}) - m0) / h)
@@ -306,7 +305,13 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
                                f"{len(chosen)} parameters {chosen}")
     cols = [names.index(n) for n in chosen]
     t1 = time.perf_counter()
-    fit = fit_parameters(model, table.a, table.sigma, {n: x0[n] for n in chosen},
+    # a chosen parameter starting on a bound (e.g. a point charge, cloud 0)
+    # starts 1 % of its span inside
+    fit_start = {}
+    for n in chosen:
+        lo, hi = candidates[n]
+        fit_start[n] = x0[n] if lo < x0[n] < hi else x0[n] + (0.01 if x0[n] == lo else -0.01) * (hi - lo)
+    fit = fit_parameters(model, table.a, table.sigma, fit_start,
                          {n: candidates[n] for n in chosen}, mask=mask, jacobian0=J[..., cols],
                          max_evaluations=max_evaluations)
     seconds["fit"] = time.perf_counter() - t1

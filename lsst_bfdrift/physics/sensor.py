@@ -89,6 +89,12 @@ _PAPER = {"xi0": 1000.0, "channel_depth": 2.0, "clock_separation": 3.0, "v_bss":
 class SensorParameters:
     """Parameters of the electrostatic sensor model.
 
+    The defaults describe the sensor of the bundled default template: an
+    LSST ITL sensor, Rasmussen 2015's structure calibrated to its measured
+    a-matrix (``benchmarks/calibrate_default.py``: the charge dipole, the
+    backside bias and the clock-pair separation). :meth:`paper` gives the
+    paper's nominal values.
+
     Every float accepts an astropy Quantity with compatible units; plain
     numbers are taken in the units below.
 
@@ -158,16 +164,16 @@ class SensorParameters:
 
     pixel_pitch: float = 10.0
     thickness: float = 100.0
-    v_bss: float = -50.0
+    v_bss: float = -69.93
     front_potential: float = 0.0
     acceptor_density: float = 1e12
-    xi0: float = 1000.0
+    xi0: float = 2952.0
     xi_cs: float = -14.3
     xi_ck: float = 5.0
-    clock_separation: float = 3.0
+    clock_separation: float = 0.1
     barrier_height: float = 0.0
-    channel_depth: float = 2.0
-    collection_height: float = None
+    channel_depth: float = 0.368
+    collection_height: float = 0.5
     backside_images: bool = True
     charge_images: int = 1
     charge_cloud: float = 0.0

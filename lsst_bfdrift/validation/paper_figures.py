@@ -27,7 +27,7 @@ _CALIBRATED = {"xi0": 8299.2, "channel_depth": 4.2026, "clock_separation": 2.616
 
 def paper_parameters(**changes):
     """SensorParameters calibrated to the paper's template (plus ``changes``)."""
-    return SensorParameters(**{**_CALIBRATED, **changes})
+    return SensorParameters.paper(**{**_CALIBRATED, **changes})
 
 
 def radial_profile(template):

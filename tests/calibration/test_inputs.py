@@ -12,8 +12,9 @@ from astropy.io import fits
 from astropy.table import Table
 from numpy.testing import assert_allclose, assert_array_equal
 
-from lsst_bfdrift.calibration.inputs import (CP_PIPE_COLUMNS, CalibrationData, detect_input_kind,
-                                             read_calibration_input)
+from lsst_bfdrift.calibration.cp_pipe import CP_PIPE_COLUMNS
+from lsst_bfdrift.calibration.data import CalibrationData
+from lsst_bfdrift.calibration.inputs import (detect_input_kind, read_calibration_input)
 from lsst_bfdrift.calibration.ptc import pair_covariances
 
 EOTEST = "/work/shared/data/measured/eotest_e2v_ptc_amp05.txt"

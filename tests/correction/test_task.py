@@ -332,7 +332,7 @@ def test_third_order_series_against_tight_reference(field, monkeypatch):
         abs3.append(np.max(np.abs(e64 - ref)[ok]))
         assert np.isnan(fast[50, 10])
     assert errs3[0] < 0.02 and errs3[1] < 0.05
-    assert abs3[0] < 0.2 * errs2[0]  # the third-order term helps
+    assert abs3[0] < 0.3 * errs2[0]  # the third-order term helps
     assert 5.0 < errs2[1] / errs2[0] < 12.0  # ~2^3: the 2nd-order series' error is 3rd order
     assert 11.0 < abs3[1] / abs3[0] < 24.0  # ~2^4: the 3rd-order series' error is 4th order
     # a tolerance the series cannot meet a priori falls back to the iteration

@@ -19,7 +19,7 @@ def _land(model, xpix, ypix):
 
 
 def test_backdrop_only_gives_square_pixels():
-    m = SensorModel(SensorParameters(xi_cs=0.0, xi_ck=0.0))
+    m = SensorModel(SensorParameters.paper(xi_cs=0.0, xi_ck=0.0))
     g = pixel_boundaries(m, (-1, 2), (0, 2), edge_samples=3, tol=1e-4)
     nom = g.nominal()
     for a, b in zip(g.displacements(), (0, 0, 0)):
@@ -30,14 +30,14 @@ def test_backdrop_only_gives_square_pixels():
 
 
 def test_symmetric_model_without_charge_is_square():
-    g = pixel_boundaries(SensorModel(), (0, 2), (0, 1), edge_samples=2, tol=1e-4)
+    g = pixel_boundaries(SensorModel(SensorParameters.paper()), (0, 2), (0, 1), edge_samples=2, tol=1e-4)
     for d in g.displacements():
         assert np.abs(d).max() <= 1e-4
 
 
 @pytest.mark.parametrize("axis", ["x", "y"])
 def test_edge_is_where_landing_pixel_changes(axis):
-    m = SensorModel().with_charge({(0, 0): 2e4})
+    m = SensorModel(SensorParameters.paper()).with_charge({(0, 0): 2e4})
     along = np.array([-0.3, 0.1, 0.35])
     b = bisect_boundary(m, along, 0.5, axis, 0, tol=1e-4)
     assert np.all(np.abs(b - 0.5) > 1e-3)  # the aggressor moved its edge
@@ -53,7 +53,7 @@ def test_edge_is_where_landing_pixel_changes(axis):
 
 def test_bracket_is_widened_when_boundary_lies_outside():
     # a 2e4 e aggressor moves its edge by ~0.05 px: far outside a 0.002 px bracket
-    m = SensorModel().with_charge({(0, 0): 2e4})
+    m = SensorModel(SensorParameters.paper()).with_charge({(0, 0): 2e4})
     b = bisect_boundary(m, [0.0], 0.5, "x", 0, tol=1e-4, half_width=0.002)
     assert 0.5 - b[0] > 0.01
     i_lo, _ = _land(m, b - 2e-4, 0.0)
@@ -62,13 +62,13 @@ def test_bracket_is_widened_when_boundary_lies_outside():
 
 
 def test_unreachable_boundary_raises():
-    m = SensorModel()
+    m = SensorModel(SensorParameters.paper())
     with pytest.raises(RuntimeError, match="no boundary found"):
         bisect_boundary(m, [0.0], 0.5, "x", 5, tol=1e-3, max_half_width=1.0)
 
 
 def test_corner_separates_four_pixels():
-    m = SensorModel().with_charge({(0, 0): 3e4})
+    m = SensorModel(SensorParameters.paper()).with_charge({(0, 0): 3e4})
     cx, cy = locate_corners(m, [0.5, -0.5], [0.5, 0.5], [0, -1], [0, 0], tol=1e-4)
     assert np.all(np.abs(cx - np.array([0.5, -0.5])) > 1e-3)
     # The corner lies on both boundaries: independent 1-d bisections at the
@@ -78,7 +78,7 @@ def test_corner_separates_four_pixels():
 
 
 def test_workers_do_not_change_result():
-    m = SensorModel().with_charge({(0, 0): 1e4})
+    m = SensorModel(SensorParameters.paper()).with_charge({(0, 0): 1e4})
     a = pixel_boundaries(m, (0, 2), (0, 1), edge_samples=2, tol=1e-3, workers=1)
     b = pixel_boundaries(m, (0, 2), (0, 1), edge_samples=2, tol=1e-3, workers=2)
     for x, y in zip(a.displacements(), b.displacements()):
@@ -87,8 +87,8 @@ def test_workers_do_not_change_result():
 
 def test_bad_arguments():
     with pytest.raises(ValueError, match="empty pixel range"):
-        pixel_boundaries(SensorModel(), (2, 2), (0, 1))
+        pixel_boundaries(SensorModel(SensorParameters.paper()), (2, 2), (0, 1))
     with pytest.raises(ValueError, match="tol"):
-        pixel_boundaries(SensorModel(), (0, 1), (0, 1), tol=0.5)
+        pixel_boundaries(SensorModel(SensorParameters.paper()), (0, 1), (0, 1), tol=0.5)
     with pytest.raises(ValueError, match="positive integer"):
         uniform_fractions(0)

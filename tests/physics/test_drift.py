@@ -24,7 +24,7 @@ def _reference_endpoint(model, x, y, z0, z_stop):
 
 
 def test_backdrop_only_lines_are_straight(rng):
-    m = SensorModel(SensorParameters(xi_cs=0.0, xi_ck=0.0))
+    m = SensorModel(SensorParameters.paper(xi_cs=0.0, xi_ck=0.0))
     x, y = rng.uniform(-30, 30, 40), rng.uniform(-30, 30, 40)
     res = drift_lines(m, x, y)
     assert_allclose(res.x, x, atol=1e-12)
@@ -34,7 +34,7 @@ def test_backdrop_only_lines_are_straight(rng):
 
 
 def test_matches_dop853_with_aggressor():
-    m = SensorModel().with_charge({(0, 0): 1e4})
+    m = SensorModel(SensorParameters.paper()).with_charge({(0, 0): 1e4})
     starts = [(0.3, 5.0), (-0.2, 3.0), (9.7, 9.9), (10.02, -0.03), (4.0, 4.5), (15.0, 2.0)]
     res = drift_lines(m, [s[0] for s in starts], [s[1] for s in starts])
     for k, (x, y) in enumerate(starts):
@@ -44,25 +44,25 @@ def test_matches_dop853_with_aggressor():
 
 
 def test_conversion_height_below_window():
-    m = SensorModel().with_charge({(0, 0): 1e4})
+    m = SensorModel(SensorParameters.paper()).with_charge({(0, 0): 1e4})
     xe, ye, _ = _reference_endpoint(m, 2.0, 7.0, 60.0, m.params.z_collect)
     res = drift_lines(m, 2.0, 7.0, 60.0)
     assert_allclose([res.x, res.y], [xe, ye], atol=1e-4)
 
 
 def test_lines_avoid_barriers_and_aggressor():
-    m = SensorModel().with_charge({(0, 0): 1e4})
+    m = SensorModel(SensorParameters.paper()).with_charge({(0, 0): 1e4})
     # lines starting just inside the aggressor pixel near its left edge are
     # pushed out of it by the collected charge
     i, j = landing_pixels(m, [0.05, 9.95], [5.0, 5.0])
     assert list(i) == [-1, 1] and list(j) == [0, 0]
     # without the charge the same lines are held by the channel stops
-    i, j = landing_pixels(SensorModel(), [0.05, 9.95], [5.0, 5.0])
+    i, j = landing_pixels(SensorModel(SensorParameters.paper()), [0.05, 9.95], [5.0, 5.0])
     assert list(i) == [0, 0]
 
 
 def test_shape_is_kept():
-    m = SensorModel()
+    m = SensorModel(SensorParameters.paper())
     res = drift_lines(m, np.full((3, 4), 2.0), np.linspace(1, 9, 4))
     assert res.x.shape == (3, 4) and res.steps.shape == (3, 4)
 
@@ -74,13 +74,13 @@ def test_shape_is_kept():
 ])
 def test_bad_starts(kw, match):
     with pytest.raises(ValueError, match=match):
-        drift_lines(SensorModel(), **kw)
+        drift_lines(SensorModel(SensorParameters.paper()), **kw)
 
 
 def test_max_steps_flags_unfinished():
-    res = drift_lines(SensorModel(), [1.0, 2.0], [1.0, 2.0], max_steps=3)
+    res = drift_lines(SensorModel(SensorParameters.paper()), [1.0, 2.0], [1.0, 2.0], max_steps=3)
     assert not res.finished.any()
-    assert (res.z > SensorModel().params.z_collect).all()
+    assert (res.z > SensorModel(SensorParameters.paper()).params.z_collect).all()
 
 
 def test_absorption_length_from_galsim_table():
@@ -107,7 +107,7 @@ def test_conversion_height(rng):
 def test_compiled_engine_equals_numpy_engine(rng):
     """Same algorithm, compiled line by line: identical to rounding, every term kind."""
     from lsst_bfdrift.physics.drift import compile_model
-    m = SensorModel(SensorParameters(bloom_stop=2, edge=-3, xi_guard=2.0,
+    m = SensorModel(SensorParameters.paper(bloom_stop=2, edge=-3, xi_guard=2.0,
                                      truncations=[(1, 0.5, 1, 3.0)], row_overrides=[(1, 1.0)],
                                      row_shifts=[(2, 0.5)]),
                     charge={(0, 0): 1e4, (1, 2): 5e3})

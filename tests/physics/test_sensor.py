@@ -10,11 +10,14 @@ from lsst_bfdrift.physics.sensor import SensorModel, SensorParameters
 
 
 class TestSensorParameters:
-    def test_defaults_are_the_papers_geometry(self):
-        p = SensorParameters()
+    def test_paper_values_and_defaults(self):
+        p = SensorParameters.paper()
         assert (p.pixel_pitch, p.thickness, p.v_bss) == (10.0, 100.0, -50.0)
-        assert (p.xi_cs, p.xi_ck) == (-14.3, 5.0)
+        assert (p.xi_cs, p.xi_ck, p.xi0, p.channel_depth) == (-14.3, 5.0, 1000.0, 2.0)
         assert p.z_collect == p.channel_depth
+        d = SensorParameters()  # the calibrated ITL sensor: the paper's geometry
+        assert (d.pixel_pitch, d.thickness, d.xi_cs, d.xi_ck) == (10.0, 100.0, -14.3, 5.0)
+        assert d.z_collect == d.collection_height == 0.5
 
     def test_quantities_are_converted(self):
         p = SensorParameters(thickness=0.1 * u.mm, v_bss=-40000 * u.mV,
@@ -57,7 +60,7 @@ class TestSensorParameters:
 
 class TestSensorModel:
     def test_terms_of_default_model(self):
-        m = SensorModel()
+        m = SensorModel(SensorParameters.paper())
         assert isinstance(m.terms[0], BackdropField)
         # CS grid and 2 clock grids; their backside images are ~1e-27 and dropped
         assert len(m.terms) == 1 + 3
@@ -102,7 +105,7 @@ class TestSensorModel:
         assert -ex[0] > 0 and -ex[1] < 0
 
     def test_clock_barrier_repels_electrons(self):
-        m = SensorModel(SensorParameters(xi_cs=0.0))
+        m = SensorModel(SensorParameters.paper(xi_cs=0.0))
         _, ey, _ = m.field(5.0, np.array([2.5, -2.5]), 1.0)
         assert -ey[0] > 0 and -ey[1] < 0
 

@@ -46,8 +46,8 @@ class TestBuild:
         """The 'computed' baseline subtracts boundaries without charge (square here)."""
         st = TemplateSettings(**{**small_settings.to_dict(), "baseline": "computed",
                                  "size": 3})
-        a = build_template(SensorParameters(), st)
-        b = build_template(SensorParameters(), TemplateSettings(
+        a = build_template(SensorParameters.paper(), st)
+        b = build_template(SensorParameters.paper(), TemplateSettings(
             **{**small_settings.to_dict(), "size": 3}))
         assert_allclose(a.corner_d, b.corner_d, atol=2 * st.tol)
 
