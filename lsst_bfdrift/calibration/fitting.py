@@ -228,9 +228,9 @@ def fit_parameters(model, data, sigma, start, bounds, *, mask=None, jacobian0=No
     def fd_jacobian(x):
         cols = []
         for k in range(n):
-            h = diff_step * scale[k]
             col = None
-            for sgn in (1.0, -1.0):  # the other side where the model fails on one
+            for sgn in (1.0, -1.0, 0.25, -0.25):  # the other side, then a smaller step,
+                h = diff_step * scale[k]            # where the model fails
                 xp = x.copy()
                 xp[k] = x[k] + sgn * h
                 if not lo[k] < xp[k] < hi[k]:

@@ -43,6 +43,7 @@ import numpy as np
 
 from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable, electrostatic_acoeffs
 from lsst_bfdrift.calibration.fitting import FitError, fit_parameters
+from lsst_bfdrift.calibration.ptc import fit_covariance_model, fit_ptc_exponential
 from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.templates.refine import match_area_coefficients, template_alpha
 from lsst_bfdrift.templates.template import (TemplateSettings, build_template,
@@ -50,7 +51,7 @@ from lsst_bfdrift.templates.template import (TemplateSettings, build_template,
 from lsst_bfdrift.utils.progress import ProgressBar
 
 __all__ = ["CANDIDATES", "CalibrationError", "CalibrationResult", "calibrate",
-           "default_start", "model_acoeffs"]
+           "default_start", "model_acoeffs", "measured_acoeffs"]
 
 #: Candidate free parameters and their bounds: the dipole unit xi0 (e), the
 #: buried-channel depth (um, sets the charge dipole), the collection height
@@ -85,6 +86,52 @@ def model_acoeffs(params, max_lag, *, near_samples=16, far_samples=6, tol=2e-6):
     return electrostatic_acoeffs(params, max_lag=max(L, 1), charge=CHARGE, tol=tol,
                                  near_samples=near_samples, far_samples=far_samples,
                                  definition="alpha")[:L + 1, :L + 1]
+
+
+def measured_acoeffs(data):
+    """The measured a-matrix (an :class:`AcoeffTable`) of any calibration input.
+
+    * An a-matrix with errors (a table, or cp_pipe's EXPAPPROXIMATION a00):
+      as read.
+    * Covariances of flat pairs (flats, or cp_pipe's covariances when it
+      stores no a-matrix errors): the full covariance model of Astier et al.
+      (2019) fitted to them
+      (:func:`~lsst_bfdrift.calibration.ptc.fit_covariance_model`; errors
+      from the covariances' own errors or pixel counts), a00 measured by the
+      curvature of the PTC.
+    * A PTC of means and variances only: a00 alone, from the exponential
+      PTC model (:func:`~lsst_bfdrift.calibration.ptc.fit_ptc_exponential`).
+
+    Parameters
+    ----------
+    data : CalibrationData
+        From :func:`~lsst_bfdrift.calibration.inputs.read_calibration_input`.
+
+    Returns
+    -------
+    AcoeffTable
+        a_ij (1/e), [i serial, j parallel].
+    """
+    src = ", ".join(data.files)
+    if data.a is not None and data.a_sigma is not None:
+        return data.acoeff_table()
+    if data.cov is not None and data.mu is not None and data.cov.shape[1] > 1:
+        sig = data.cov_sigma
+        npix = None if sig is not None else data.npix
+        fit = fit_covariance_model(np.asarray(data.mu, float), np.asarray(data.cov, float),
+                                   sigma=sig, npix=npix,
+                                   gain=1.0 if data.units == "electron" else None)
+        return AcoeffTable(fit["a"], fit["a_err"], source=f"{src} (covariance model fit)",
+                           axis_note="flats: i along x (serial), j along y (parallel)")
+    if data.mu is not None and data.var is not None:
+        e = fit_ptc_exponential(np.asarray(data.mu, float), np.asarray(data.var, float),
+                                mu_max=None)
+        if not (np.isfinite(e["a00_err"]) and e["a00_err"] > 0):
+            raise CalibrationError(f"{src}: the PTC does not measure a00 (error "
+                                   f"{e['a00_err']!r})")
+        return AcoeffTable([[e["a00"]]], [[e["a00_err"]]], source=f"{src} (PTC curvature)",
+                           axis_note="a00 only")
+    raise CalibrationError(f"{src}: no a-matrix, covariances or PTC to calibrate from")
 
 
 class CalibrationResult:

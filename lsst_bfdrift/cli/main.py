@@ -174,12 +174,14 @@ def _cmd_template_plot(args):
 
 def _cmd_calibrate(args):
     from lsst_bfdrift.calibration.inputs import read_calibration_input
-    from lsst_bfdrift.calibration.tuning import calibrate
+    from lsst_bfdrift.calibration.tuning import calibrate, measured_acoeffs
 
     if os.path.exists(args.out) and not args.overwrite:
         raise FileExistsError(f"{args.out} exists (use --overwrite)")
+    if os.path.abspath(args.out) in {os.path.abspath(x) for x in args.input}:
+        raise ValueError(f"--out {args.out} is one of the inputs")
     data = read_calibration_input(args.input, max_lag=args.max_lag)
-    table = data.acoeff_table()
+    table = measured_acoeffs(data)
     res = calibrate(table, free=args.free, refine=not args.no_refine,
                     allow_poor_fit=args.allow_poor_fit, max_chi2_dof=args.max_chi2_dof,
                     progress=not args.quiet)

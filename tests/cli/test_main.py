@@ -290,3 +290,34 @@ def test_validate_stars_defaults(capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["validate-stars", "--match", "polygons"])
     assert "invalid choice" in capsys.readouterr().err
+
+
+def test_calibrate_from_a_ptc_and_refusals(capsys, tmp_path):
+    """bfdrift calibrate on the measured e2v PTC (a00 from its curvature):
+    one parameter, the template and a plot written; an existing --out, an
+    --out that is an input and a poor fit are refused with nothing written."""
+    from lsst_bfdrift.templates.template import DistortionTemplate
+
+    ptc = "/work/shared/data/measured/eotest_e2v_ptc_amp05.txt"
+    out, png = tmp_path / "cal.fits", tmp_path / "cal.png"
+    code, text, _ = _run(capsys, "calibrate", ptc, "--out", str(out), "--plot", str(png),
+                         "--json", "--quiet")
+    assert code == 0
+    s = json.loads(text)
+    assert s["names"] == ["channel_depth"] and s["dof"] == 0
+    assert -3e-6 < s["lags"][0]["a"] < -2e-6 and abs(s["lags"][0]["pull"]) < 0.1
+    assert s["input"]["kind"] == "ptc" and png.exists()
+    tpl = DistortionTemplate.load(out)
+    assert tpl.meta["calibration"]["inputs"] == [ptc]
+    code, _, err = _run(capsys, "calibrate", ptc, "--out", str(out), "--quiet")
+    assert code != 0 and "exists" in err
+    code, _, err = _run(capsys, "calibrate", ptc, "--out", ptc, "--overwrite", "--quiet")
+    assert code != 0 and "one of the inputs" in err
+    tight = tmp_path / "tight.txt"
+    itl = np.loadtxt("/work/shared/data/measured/itl_covariances_21oct19.txt", skiprows=1)
+    itl[:, 3] = 1e-4 * np.abs(itl[:, 2]) + 1e-14  # errors no model meets
+    np.savetxt(tight, itl[(itl[:, 0] <= 2) & (itl[:, 1] <= 2)], header="i j a sigma")
+    bad = tmp_path / "bad.fits"
+    code, _, err = _run(capsys, "calibrate", str(tight), "--out", str(bad), "--free", "v_bss",
+                        "--quiet")
+    assert code != 0 and "poor fit" in err and "worst lags" in err and not bad.exists()
