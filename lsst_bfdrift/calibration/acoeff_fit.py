@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from lsst_bfdrift.calibration.fitting import fit_parameters
+from lsst_bfdrift.calibration.fitting import ParameterFit, fit_parameters
 from lsst_bfdrift.utils.io import data_path
 from lsst_bfdrift.physics.boundaries import pixel_boundaries
 from lsst_bfdrift.physics.polygons import pixel_polygons, polygon_moments
@@ -35,7 +35,7 @@ from lsst_bfdrift.physics.sensor import SensorModel
 
 __all__ = ["AcoeffTable", "read_acoeff_table", "assign_axes", "sum_rule_check",
            "electrostatic_acoeffs", "AcoeffFit", "fit_acoeffs", "DEFAULT_FREE",
-           "lag_radius", "LinearBasis", "default_basis_path", "load_default_basis",
+           "lag_radius", "acoeff_square", "LinearBasis", "default_basis_path", "load_default_basis",
            "linear_basis"]
 
 #: Default free parameters of the fit and their bounds: the barrier dipole
@@ -102,6 +102,72 @@ class AcoeffTable:
                            axis_note=self.axis_note, exclude_a00=self.exclude_a00)
 
 
+def acoeff_square(path, i, j, a, s):
+    """Checked square arrays a[i, j], sigma[i, j] from row values."""
+    i = np.asarray(i, dtype=float)
+    j = np.asarray(j, dtype=float)
+    a = np.asarray(a, dtype=float)
+    s = np.asarray(s, dtype=float)
+    if i.size == 0:
+        raise ValueError(f"{path}: no a_ij rows found; accepted: rows of i j value sigma")
+    lags = np.column_stack([i, j])
+    badlag = ~np.isfinite(lags).all(axis=1) | np.any(lags != np.round(lags), axis=1) | np.any(
+        lags < 0, axis=1)
+    if badlag.any():
+        bad = [(float(x), float(y)) for x, y in lags[badlag][:3]]
+        raise ValueError(f"{path}: lags must be non-negative integers (i serial, j parallel); "
+                         f"found {bad}")
+    if not np.all(np.isfinite(a)):
+        k = int(np.flatnonzero(~np.isfinite(a))[0])
+        raise ValueError(f"{path}: coefficient at lag ({int(i[k])}, {int(j[k])}) is {a[k]}; "
+                         "accepted: finite a_ij (per electron)")
+    badsig = ~(np.isfinite(s) & (s > 0))
+    if badsig.any():
+        ks = np.flatnonzero(badsig)[:3]
+        found = ", ".join(f"({int(i[k])}, {int(j[k])}): {s[k]:g}" for k in ks)
+        raise ValueError(f"{path}: {int(badsig.sum())} a_ij error(s) not positive and finite "
+                         f"(lag: error {found}); accepted: positive 1-sigma errors per electron")
+    ii, jj = i.astype(int), j.astype(int)
+    if not np.any((ii == 0) & (jj == 0)):
+        raise ValueError(f"{path}: no a00 (lag 0, 0) row; the table must include a00, measured "
+                         "or set by the area sum rule")
+    L = int(max(ii.max(), jj.max()))
+    A = np.full((L + 1, L + 1), np.nan)
+    S = np.full((L + 1, L + 1), np.nan)
+    for x, y, v, e in zip(ii, jj, a, s):
+        if not np.isnan(A[x, y]):
+            raise ValueError(f"{path}: lag ({x}, {y}) appears twice; each lag once")
+        A[x, y], S[x, y] = v, e
+    if np.isnan(A).any():
+        miss = [tuple(m) for m in np.argwhere(np.isnan(A))[:3].tolist()]
+        raise ValueError(f"{path}: incomplete table, missing lags e.g. {miss}; accepted: every "
+                         f"lag 0 <= i, j <= {L} once")
+    return A, S
+
+
+def _text_rows(path):
+    rows = []
+    with open(path, encoding="utf-8") as fh:
+        for n, line in enumerate(fh, 1):
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            parts = s.replace(",", " ").split()
+            try:
+                vals = [float(p) for p in parts]
+            except ValueError:
+                if rows:
+                    raise ValueError(f"{path}:{n}: non-numeric row {s!r}; accepted: i j value "
+                                     "sigma") from None
+                continue
+            if len(vals) != 4:
+                raise ValueError(f"{path}:{n}: {len(vals)} columns; accepted: 4 (i j value "
+                                 "sigma)")
+            rows.append(vals)
+    d = np.array(rows).reshape(-1, 4)
+    return d[:, 0], d[:, 1], d[:, 2], d[:, 3]
+
+
 def read_acoeff_table(path, *, orient=True):
     """Read a text table ``i j value sigma`` (one lag per row, header allowed).
 
@@ -120,40 +186,7 @@ def read_acoeff_table(path, *, orient=True):
         Indexed [serial, parallel] when ``orient`` is true, else in the file's
         (i, j) order.
     """
-    rows = []
-    with open(path) as fh:
-        for n, line in enumerate(fh, 1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            parts = s.replace(",", " ").split()
-            try:
-                vals = [float(p) for p in parts]
-            except ValueError:
-                if rows:
-                    raise ValueError(f"{path}:{n}: non-numeric row {s!r}") from None
-                continue  # header
-            if len(vals) != 4:
-                raise ValueError(f"{path}:{n}: expected 4 columns (i j value sigma), "
-                                 f"got {len(vals)}")
-            rows.append(vals)
-    if not rows:
-        raise ValueError(f"{path}: no a_ij rows found")
-    d = np.array(rows)
-    ij = d[:, :2]
-    if np.any(ij != np.round(ij)) or np.any(ij < 0):
-        raise ValueError(f"{path}: lags must be non-negative integers")
-    ij = ij.astype(int)
-    L = int(ij.max())
-    a = np.full((L + 1, L + 1), np.nan)
-    s = np.full((L + 1, L + 1), np.nan)
-    for (i, j), v, e in zip(ij, d[:, 2], d[:, 3]):
-        if np.isfinite(a[i, j]):
-            raise ValueError(f"{path}: lag ({i}, {j}) appears twice")
-        a[i, j], s[i, j] = v, e
-    if np.any(np.isnan(a)):
-        miss = np.argwhere(np.isnan(a))[:3].tolist()
-        raise ValueError(f"{path}: incomplete square table, missing lags e.g. {miss}")
+    a, s = acoeff_square(path, *_text_rows(path))
     table = AcoeffTable(a, s, source=str(path))
     if orient:
         table = assign_axes(table)
@@ -305,8 +338,9 @@ def electrostatic_acoeffs(params, *, max_lag=8, charge=1e5, near_samples=32, far
     return (4.0 * (areas[1] - 1.0) - (areas[0] - 1.0)) / float(charge)
 
 
-class AcoeffFit:
-    """Result of :func:`fit_acoeffs`.
+class AcoeffFit(ParameterFit):
+    """Result of :func:`fit_acoeffs`: a
+    :class:`~lsst_bfdrift.calibration.fitting.ParameterFit` of a_ij.
 
     Attributes
     ----------
@@ -334,19 +368,6 @@ class AcoeffFit:
         Model evaluations.
     """
 
-    def __init__(self, **kw):
-        self.__dict__.update(kw)
-
-    @property
-    def residual(self):
-        """Data minus model (per e), NaN where not in chi2."""
-        return np.where(self.mask, self.data - self.model, np.nan)
-
-    @property
-    def pulls(self):
-        """(data - model) / sigma, NaN where not in chi2."""
-        return self.residual / self.sigma
-
     @property
     def chi2_per_lag(self):
         """Pull squared per lag (0 where not in chi2); sums to ``chi2``."""
@@ -361,14 +382,10 @@ class AcoeffFit:
 
     def as_dict(self):
         """JSON-friendly summary."""
-        return {"names": self.names, "values": self.values, "errors": self.errors,
-                "correlation": np.asarray(self.correlation).tolist(), "chi2": self.chi2,
-                "dof": self.dof, "chi2_dof": self.chi2 / max(self.dof, 1),
-                "model": self.model.tolist(), "data": self.data.tolist(),
-                "sigma": self.sigma.tolist(),
+        return {**super().as_dict(), "model": self.model.tolist(),
+                "data": self.data.tolist(), "sigma": self.sigma.tolist(),
                 "pulls": np.where(self.mask, self.pulls, 0.0).tolist(),
-                "chi2_by_radius": {str(k): v for k, v in self.chi2_by_radius().items()},
-                "seconds": self.seconds, "n_evaluations": self.n_evaluations}
+                "chi2_by_radius": {str(k): v for k, v in self.chi2_by_radius().items()}}
 
 
 def fit_acoeffs(table, params0, free=None, *, model=None, diff_step=0.02, max_evaluations=30,
@@ -421,12 +438,9 @@ def fit_acoeffs(table, params0, free=None, *, model=None, diff_step=0.02, max_ev
                          {n: float(getattr(params0, n)) for n in names}, free, mask=mask,
                          jacobian0=jacobian0, diff_step=diff_step,
                          max_evaluations=max_evaluations, central=True, progress=progress)
-    return AcoeffFit(params=params0.replace(**fit.values), names=names, values=fit.values,
-                     errors=fit.errors, covariance=fit.covariance, correlation=fit.correlation,
-                     model=fit.model, data=table.a.copy(), sigma=table.sigma.copy(), mask=mask,
-                     jacobian=fit.jacobian, chi2=fit.chi2, dof=fit.dof, seconds=fit.seconds,
-                     n_evaluations=fit.n_evaluations, axis_note=table.axis_note,
-                     source=table.source)
+    return AcoeffFit(**{**vars(fit), "params": params0.replace(**fit.values),
+                        "data": table.a.copy(), "sigma": table.sigma.copy(),
+                        "axis_note": table.axis_note, "source": table.source})
 
 
 class LinearBasis:

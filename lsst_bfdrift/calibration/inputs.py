@@ -56,7 +56,8 @@ import os
 
 import numpy as np
 
-from lsst_bfdrift.calibration.acoeff_fit import (AcoeffTable, assign_axes, read_acoeff_table,
+from lsst_bfdrift.calibration.acoeff_fit import (AcoeffTable, acoeff_square, assign_axes,
+                                                 read_acoeff_table,
                                                  sum_rule_check)
 from lsst_bfdrift.calibration.cp_pipe import read_cp_pipe_ptc
 from lsst_bfdrift.calibration.data import (_ADU_UNITS, _ELECTRON_UNITS, INPUT_KINDS,
@@ -483,72 +484,6 @@ def read_ptc_file(path, *, turnoff_drop=0.05, min_levels=3):
 
 # --------------------------------------------------------------------------- a-matrix
 
-def _acoeff_square(path, i, j, a, s):
-    """Checked square arrays a[i, j], sigma[i, j] from row values."""
-    i = np.asarray(i, dtype=float)
-    j = np.asarray(j, dtype=float)
-    a = np.asarray(a, dtype=float)
-    s = np.asarray(s, dtype=float)
-    if i.size == 0:
-        raise ValueError(f"{path}: no a_ij rows found; accepted: rows of i j value sigma")
-    lags = np.column_stack([i, j])
-    badlag = ~np.isfinite(lags).all(axis=1) | np.any(lags != np.round(lags), axis=1) | np.any(
-        lags < 0, axis=1)
-    if badlag.any():
-        bad = [(float(x), float(y)) for x, y in lags[badlag][:3]]
-        raise ValueError(f"{path}: lags must be non-negative integers (i serial, j parallel); "
-                         f"found {bad}")
-    if not np.all(np.isfinite(a)):
-        k = int(np.flatnonzero(~np.isfinite(a))[0])
-        raise ValueError(f"{path}: coefficient at lag ({int(i[k])}, {int(j[k])}) is {a[k]}; "
-                         "accepted: finite a_ij (per electron)")
-    badsig = ~(np.isfinite(s) & (s > 0))
-    if badsig.any():
-        ks = np.flatnonzero(badsig)[:3]
-        found = ", ".join(f"({int(i[k])}, {int(j[k])}): {s[k]:g}" for k in ks)
-        raise ValueError(f"{path}: {int(badsig.sum())} a_ij error(s) not positive and finite "
-                         f"(lag: error {found}); accepted: positive 1-sigma errors per electron")
-    ii, jj = i.astype(int), j.astype(int)
-    if not np.any((ii == 0) & (jj == 0)):
-        raise ValueError(f"{path}: no a00 (lag 0, 0) row; the table must include a00, measured "
-                         "or set by the area sum rule")
-    L = int(max(ii.max(), jj.max()))
-    A = np.full((L + 1, L + 1), np.nan)
-    S = np.full((L + 1, L + 1), np.nan)
-    for x, y, v, e in zip(ii, jj, a, s):
-        if not np.isnan(A[x, y]):
-            raise ValueError(f"{path}: lag ({x}, {y}) appears twice; each lag once")
-        A[x, y], S[x, y] = v, e
-    if np.isnan(A).any():
-        miss = [tuple(m) for m in np.argwhere(np.isnan(A))[:3].tolist()]
-        raise ValueError(f"{path}: incomplete table, missing lags e.g. {miss}; accepted: every "
-                         f"lag 0 <= i, j <= {L} once")
-    return A, S
-
-
-def _text_rows(path):
-    rows = []
-    with open(path, encoding="utf-8") as fh:
-        for n, line in enumerate(fh, 1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            parts = s.replace(",", " ").split()
-            try:
-                vals = [float(p) for p in parts]
-            except ValueError:
-                if rows:
-                    raise ValueError(f"{path}:{n}: non-numeric row {s!r}; accepted: i j value "
-                                     "sigma") from None
-                continue
-            if len(vals) != 4:
-                raise ValueError(f"{path}:{n}: {len(vals)} columns; accepted: 4 (i j value "
-                                 "sigma)")
-            rows.append(vals)
-    d = np.array(rows).reshape(-1, 4)
-    return d[:, 0], d[:, 1], d[:, 2], d[:, 3]
-
-
 def _ecsv_rows(path):
     import astropy.units as u
     from astropy.table import Table
@@ -603,7 +538,7 @@ def read_amatrix_file(path, *, max_lag=None):
     notes = []
     if first is not None and first.startswith("# %ECSV"):
         (i, j, a, s), tmeta = _ecsv_rows(path)
-        A, S = _acoeff_square(path, i, j, a, s)
+        A, S = acoeff_square(path, i, j, a, s)
         table = AcoeffTable(A, S, source=path)
         table.axis_note = "ECSV columns i (serial), j (parallel) taken as given"
         if A.shape[0] > 1 and A[1, 0] > A[0, 1]:
@@ -611,7 +546,6 @@ def read_amatrix_file(path, *, max_lag=None):
                          "(parallel), unlike every measured LSST sensor: check the i/j columns")
         fmt = "ecsv"
     else:
-        _acoeff_square(path, *_text_rows(path))  # checks, with this module's messages
         # the file declares no axes: oriented from the data, as read_acoeff_table(orient=True)
         table = assign_axes(read_acoeff_table(path, orient=False))
         fmt = "text"

@@ -65,10 +65,10 @@ def test_sum_rule_detects_measured_a00():
 
 
 @pytest.mark.parametrize("text, match", [
-    ("0 0 1e-7\n", "expected 4 columns"),
-    ("0 0 1e-7 nan\n0 1 1e-8 1e-9\n1 0 1e-8 1e-9\n1 1 1e-9 1e-9\n", "finite and positive"),
-    ("0 0 1e-7 0\n0 1 1e-8 1e-9\n1 0 1e-8 1e-9\n1 1 1e-9 1e-9\n", "finite and positive"),
-    ("0 0 1e-7 1e-9\n0 1 1e-8 1e-9\n1 0 1e-8 1e-9\n", "incomplete square"),
+    ("0 0 1e-7\n", "accepted: 4"),
+    ("0 0 1e-7 nan\n0 1 1e-8 1e-9\n1 0 1e-8 1e-9\n1 1 1e-9 1e-9\n", "not positive and finite"),
+    ("0 0 1e-7 0\n0 1 1e-8 1e-9\n1 0 1e-8 1e-9\n1 1 1e-9 1e-9\n", "not positive and finite"),
+    ("0 0 1e-7 1e-9\n0 1 1e-8 1e-9\n1 0 1e-8 1e-9\n", "incomplete table"),
     ("0 0 1e-7 1e-9\n0 0 1e-8 1e-9\n", "appears twice"),
     ("0 0 1e-7 1e-9\nzero one two three\n", "non-numeric row"),
     ("0.5 0 1e-7 1e-9\n", "non-negative integers"),
@@ -128,7 +128,7 @@ def test_fit_bad_start_and_too_few_lags(basis):
 @pytest.mark.slow
 def test_quadrant_model_matches_full_template(small_template, small_settings):
     """The symmetric-quadrant a_ij equal ln(area)/Q of the full 5 x 5 template."""
-    a = electrostatic_acoeffs(SensorParameters(), max_lag=2, charge=small_settings.aggressor_charge,
+    a = electrostatic_acoeffs(SensorParameters.paper(), max_lag=2, charge=small_settings.aggressor_charge,
                               near_samples=small_settings.edge_samples, near_lag=2,
                               tol=small_settings.tol)
     area = small_template.moments().area  # [j, i], offsets -2..2
