@@ -3,10 +3,10 @@
 * ``lsst_bfdrift/data/sample_star.fits``: a 64 x 64 image in electrons of a
   bright Moffat star (FWHM 0.7 arcsec at 0.2 arcsec/px, flux 1.5e6 e, centre
   offset (0.25, 0.25) px) on a 1000 e sky, Poisson noise, seed 20151.
-* ``lsst_bfdrift/data/default_template.fits``: the default template, built
-  from ``lsst_bfdrift/data/default_template_config.json``.
+The default template is made by ``python benchmarks/calibrate_default.py
+--write`` (the model calibrated to the measured ITL a-matrix).
 
-Usage: ``python scripts/make_sample_data.py [--star] [--template]``
+Usage: ``python scripts/make_sample_data.py``
 """
 
 import argparse
@@ -37,20 +37,6 @@ def make_star(path):
     print("wrote", path)
 
 
-def make_template(path):
-    from lsst_bfdrift.cli.main import read_config
-    from lsst_bfdrift.templates.template import build_template
-    params, settings = read_config(os.path.join(DATA, "default_template_config.json"))
-    build_template(params, settings, progress=True).save(path, overwrite=True)
-    print("wrote", path)
-
-
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--star", action="store_true")
-    ap.add_argument("--template", action="store_true")
-    a = ap.parse_args()
-    if a.star or not (a.star or a.template):
-        make_star(os.path.join(DATA, "sample_star.fits"))
-    if a.template or not (a.star or a.template):
-        make_template(os.path.join(DATA, "default_template.fits"))
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
+    make_star(os.path.join(DATA, "sample_star.fits"))
