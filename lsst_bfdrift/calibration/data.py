@@ -44,9 +44,9 @@ class CalibrationData:
         rule); None without an a-matrix.
     mu, var : ndarray, shape (n,), or None
         PTC points kept (past the turn-off and rejected points are left out):
-        mean signal (``units``) and variance (``units``^2), sorted by ``mu``.
+        mean signal (``units``) and variance (``units`` squared), sorted by ``mu``.
     cov : ndarray, shape (n, M, M), or None
-        Covariances ``cov[k, di, dj]`` (``units``^2) of the same points.
+        Covariances ``cov[k, di, dj]`` (``units`` squared) of the same points.
     cov_sigma : ndarray, shape (n, M, M), or None
         Their errors, when the source gives them (cp_pipe weights).
     npix : ndarray of int, shape (n, M, M), or None

@@ -99,7 +99,7 @@ class ParameterFit:
         return self.residual / self.sigma
 
     def worst(self, n=3):
-        """The ``n`` points with the largest |pull|: list of (index, pull)."""
+        """The ``n`` points with the largest absolute pull: list of (index, pull)."""
         p = np.where(self.mask, np.abs(np.nan_to_num(self.pulls)), -1.0)
         order = np.argsort(p, axis=None)[::-1][:n]
         return [(tuple(int(v) for v in np.unravel_index(k, p.shape)),
@@ -165,7 +165,7 @@ def fit_parameters(model, data, sigma, start, bounds, *, mask=None, jacobian0=No
         d model / d parameter near the start (parameter order of ``start``),
         e.g. from a linear basis. Default: finite differences at the start.
     diff_step : float, optional
-        Finite-difference step, relative to max(|value|, 1e-3 x bound span).
+        Finite-difference step, relative to max(abs(value), 1e-3 x bound span).
     max_evaluations : int, optional
         Model evaluations allowed for the search (the final Jacobian adds n
         or 2n more).

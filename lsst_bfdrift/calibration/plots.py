@@ -10,7 +10,7 @@ __all__ = ["plot_calibration"]
 def plot_calibration(result):
     """Three panels of a :class:`~lsst_bfdrift.calibration.tuning.CalibrationResult`.
 
-    Left: |a_ij| (1/e) against the lag radius, measured with errors, the
+    Left: abs(a_ij) (1/e) against the lag radius, measured with errors, the
     fitted model, and the final template (refined: equal to the data at the
     measured lags); negative values are open symbols. Middle: the pull map
     (measured - model) / sigma, i serial across, j parallel up. Right: the
