@@ -212,6 +212,17 @@ def _cmd_calibrate(args):
     return 0
 
 
+def _cmd_template_export(args):
+    from lsst_bfdrift.templates.galsim_export import export_galsim_sensor
+    tpl = _load_template(args.file)
+    cfg, dat = export_galsim_sensor(tpl, args.prefix, num_vertices=args.vertices,
+                                    overwrite=args.overwrite)
+    return _emit({"cfg": os.path.abspath(cfg), "dat": os.path.abspath(dat),
+                  "pixels": f"{tpl.size} x {tpl.size}",
+                  "num_vertices": tpl.edge_samples if args.vertices is None else args.vertices,
+                  "charge": tpl.charge}, args.json)
+
+
 def _cmd_template_import(args):
     _refuse_overwrite(args)
     return _save_and_report(import_galsim_sensor(args.name), args)
@@ -535,6 +546,15 @@ def build_parser():
     pl.add_argument("--exaggerate", type=float, help="displacement factor")
     pl.add_argument("--half-width", type=int, help="pixels shown each side")
     pl.set_defaults(func=_cmd_template_plot)
+    ex = tsub.add_parser("export-galsim", help="write GalSim sensor files (.cfg, .dat) that "
+                         "galsim.SiliconSensor(name=PREFIX) reads")
+    ex.add_argument("file", nargs="?", help="template FITS file (default: bundled)")
+    ex.add_argument("prefix", help="output path without extension")
+    ex.add_argument("--vertices", type=int, help="vertices per edge (default: the template's "
+                    "edge samples)")
+    ex.add_argument("--overwrite", action="store_true", help="replace existing files")
+    ex.add_argument("--json", action="store_true")
+    ex.set_defaults(func=_cmd_template_export)
     g = tsub.add_parser("import-galsim", help="convert a GalSim sensor file")
     g.add_argument("name", help="sensor name (e.g. lsst_itl_50_8) or path prefix")
     g.add_argument("--out", required=True)

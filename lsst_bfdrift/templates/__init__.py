@@ -11,3 +11,5 @@ the template, never the reverse.
 from lsst_bfdrift.templates.template import *  # noqa: F401,F403
 from lsst_bfdrift.templates.swept import *  # noqa: F401,F403
 from lsst_bfdrift.templates.galsim_io import *  # noqa: F401,F403
+from lsst_bfdrift.templates.galsim_export import *  # noqa: F401,F403
+from lsst_bfdrift.templates.refine import *  # noqa: F401,F403

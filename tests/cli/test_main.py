@@ -321,3 +321,26 @@ def test_calibrate_from_a_ptc_and_refusals(capsys, tmp_path):
     code, _, err = _run(capsys, "calibrate", str(tight), "--out", str(bad), "--free", "v_bss",
                         "--quiet")
     assert code != 0 and "poor fit" in err and "worst lags" in err and not bad.exists()
+
+
+def test_template_export_galsim(capsys, tmp_path):
+    """bfdrift template export-galsim writes files galsim.SiliconSensor
+    reads, and refuses to overwrite them."""
+    import galsim
+
+    prefix = tmp_path / "default"
+    code, out, _ = _run(capsys, "template", "export-galsim", str(tmp_path / "missing.fits"),
+                        str(prefix))
+    assert code != 0
+    from lsst_bfdrift.templates.template import default_template_path
+    code, out, _ = _run(capsys, "template", "export-galsim", default_template_path(),
+                        str(prefix), "--vertices", "8", "--json")
+    assert code == 0 and json.loads(out)["num_vertices"] == 8
+    sensor = galsim.SiliconSensor(str(prefix), diffusion_factor=0.0)
+    img = galsim.ImageD(5, 5, scale=0.2)
+    img.setCenter(0, 0)
+    img[0, 0] = 1e4
+    assert sensor.calculate_pixel_areas(img)[0, 0] < 0.995
+    code, _, err = _run(capsys, "template", "export-galsim", default_template_path(),
+                        str(prefix))
+    assert code != 0 and "exists" in err
