@@ -47,18 +47,6 @@ __all__ = ["Observations", "pair_statistics", "observations_from_pairs", "diagno
 LINEAR_RANGE = 0.5
 
 
-def _lag_products(x, L):
-    """Mean lagged products of a mean-subtracted image, quadrant [i, j], (i, +-j) averaged."""
-    ny, nx = x.shape
-    out = np.zeros((L + 1, L + 1))
-    for i in range(L + 1):
-        for j in range(L + 1):
-            p1 = np.mean(x[:ny - j, :nx - i] * x[j:, i:])
-            p2 = np.mean(x[j:, :nx - i] * x[:ny - j, i:])
-            out[i, j] = 0.5 * (p1 + p2)
-    return out
-
-
 def pair_statistics(flat1, flat2, *, max_lag=3):
     """mu, C_ij (difference image, halved), S_ij (static) and pixel counts of one pair.
 
@@ -66,15 +54,10 @@ def pair_statistics(flat1, flat2, *, max_lag=3):
     zero for correlations created while the flats fill, mu^2 times the
     autocovariance of a static response pattern.
     """
-    f1 = np.array(flat1, dtype=float)
-    f2 = np.array(flat2, dtype=float)
-    pc = pair_covariances(f1, f2, max_lag=max_lag, min_pixels=min(1000, f1.size // 4))
-    m1, m2 = f1.mean(), f2.mean()
-    f2 = f2 * (m1 / m2)
-    s = f1 + f2
-    d = f1 - f2
-    S = (_lag_products(s - s.mean(), max_lag) - _lag_products(d - d.mean(), max_lag)) / 4.0
-    return pc.mu, pc.cov, S, pc.npix
+    f1 = np.asarray(flat1, dtype=float)
+    pc = pair_covariances(f1, flat2, max_lag=max_lag, min_pixels=min(1000, f1.size // 4),
+                          static=True)
+    return pc.mu, pc.cov, pc.static, pc.npix
 
 
 class Observations:

@@ -42,10 +42,16 @@ class PairCovariance:
         Number of pixel pairs behind each lag.
     nmasked : int
         Pixels masked (input mask, non-finite values, sigma clipping).
+    static : ndarray or None
+        With ``static=True``: S_ij = (Cov(f1 + f2) - Cov(f1 - f2)) / 4 (ADU^2)
+        after scaling f2 to f1's mean, same lags, pixels and weights as
+        ``cov``: zero for correlations created while the flats fill, mu^2
+        times the autocovariance of a response pattern common to both flats.
     """
 
-    def __init__(self, mu, cov, npix, nmasked):
+    def __init__(self, mu, cov, npix, nmasked, static=None):
         self.mu, self.cov, self.npix, self.nmasked = float(mu), cov, npix, int(nmasked)
+        self.static = static
 
 
 def _clip_mask(diff, mask, nsig, iters=3):
@@ -64,7 +70,8 @@ def _clip_mask(diff, mask, nsig, iters=3):
     return mask
 
 
-def pair_covariances(flat1, flat2, *, max_lag=8, mask=None, nsig=5.0, min_pixels=1000):
+def pair_covariances(flat1, flat2, *, max_lag=8, mask=None, nsig=5.0, min_pixels=1000,
+                     static=False):
     """Covariances of a flat pair's difference image by FFT.
 
     The second flat is scaled to the first's mean, the difference is
@@ -85,6 +92,9 @@ def pair_covariances(flat1, flat2, *, max_lag=8, mask=None, nsig=5.0, min_pixels
         Clipping threshold on the difference image.
     min_pixels : int, optional
         Smallest number of pixel pairs accepted for any lag.
+    static : bool, optional
+        Also the static term S_ij of the pair (:class:`PairCovariance`),
+        from the same masked, clipped pixels (diagnosis).
 
     Returns
     -------
@@ -120,24 +130,32 @@ def pair_covariances(flat1, flat2, *, max_lag=8, mask=None, nsig=5.0, min_pixels
     d = np.where(bad, 0.0, diff - diff[~bad].mean())
     ny, nx = d.shape
     shape = (sp_fft.next_fast_len(ny + max_lag), sp_fft.next_fast_len(nx + max_lag))
-    fd = sp_fft.rfft2(d, shape)
-    fw = sp_fft.rfft2(w, shape)
-    prod = sp_fft.irfft2(fd * np.conj(fd), shape)
-    pairs = np.rint(sp_fft.irfft2(fw * np.conj(fw), shape))
     L = max_lag
-    # prod[dy, dx] = sum d(y, x) d(y + dy, x + dx); negative dy wraps to the end
-    pos = (prod[:L + 1, :L + 1], pairs[:L + 1, :L + 1])
-    neg = (np.roll(prod[::-1, :L + 1], 1, axis=0)[:L + 1],
-           np.roll(pairs[::-1, :L + 1], 1, axis=0)[:L + 1])
-    num = pos[0] + neg[0]
-    npairs = pos[1] + neg[1]
+    fw = sp_fft.rfft2(w, shape)
+    npairs = _lagged(np.rint(sp_fft.irfft2(fw * np.conj(fw), shape)), L)
     if npairs.min() < 2 * min_pixels:
         raise ValueError(f"fewer than min_pixels={min_pixels} pixel pairs at some lag")
-    cov = 0.5 * num / npairs  # halved: var(diff) = 2 var(flat)
+    cov = 0.5 * _lagged_products(d, shape, L) / npairs  # halved: var(diff) = 2 var(flat)
+    stat = None
+    if static:
+        tot = np.where(bad, 0.0, a + b * (mu1 / mu2))
+        tot = np.where(bad, 0.0, tot - tot[~bad].mean())
+        stat = ((_lagged_products(tot, shape, L) / npairs - 2.0 * cov) / 4.0).T.copy()
     # arrays above are [dj, di]; return [di, dj]
     return PairCovariance(0.5 * (mu1 + mu2), cov.T.copy(), (npairs // 2).T.astype(int),
-                          int(bad.sum()))
+                          int(bad.sum()), static=stat)
 
+
+def _lagged(prod, L):
+    """Sum of a circular autocorrelation over the lags (dy, +-dx), [dj, di] <= L."""
+    # prod[dy, dx] = sum d(y, x) d(y + dy, x + dx); negative dy wraps to the end
+    return prod[:L + 1, :L + 1] + np.roll(prod[::-1, :L + 1], 1, axis=0)[:L + 1]
+
+
+def _lagged_products(x, shape, L):
+    """Sums of lagged products of a zero-padded image (FFT), [dj, di] <= L."""
+    fx = sp_fft.rfft2(x, shape)
+    return _lagged(sp_fft.irfft2(fx * np.conj(fx), shape), L)
 
 def measure_ptc(pairs, *, max_lag=8, masks=None, **kwargs):
     """Covariances of many flat pairs, sorted by signal.

@@ -162,3 +162,51 @@ def test_full_fit_with_known_gain_and_no_noise(rng):
     assert wrong["chi2"] / wrong["dof"] > 5
     with pytest.raises(ValueError, match="gain"):
         fit_covariance_model(mu, c_noisy, sigma=err, gain=-1.0)
+
+
+def test_static_term_equals_direct_sums_and_finds_a_common_pattern():
+    """S_ij = (Cov(f1 + f2) - Cov(f1 - f2)) / 4 from the FFT estimator equals
+    direct numpy sums over the valid pixel pairs (a mask included), and
+    measures mu^2 times the variance of a response pattern common to both
+    flats (zero without one)."""
+    from lsst_bfdrift.calibration.ptc import pair_covariances
+
+    rng = np.random.default_rng(7)
+    shape, mu = (120, 100), 2e4
+    pattern = rng.normal(0, 3e-3, shape)
+    f1 = rng.poisson(mu * (1 + pattern)).astype(float)
+    f2 = rng.poisson(mu * (1 + pattern)).astype(float)
+    mask = np.zeros(shape, bool)
+    mask[10:14, 20:60] = True
+    pc = pair_covariances(f1, f2, max_lag=2, mask=mask, nsig=50.0, min_pixels=100, static=True)
+    # direct reference over the same pixels
+    ok = ~mask
+    m1, m2 = f1[ok].mean(), f2[ok].mean()
+    s = np.where(ok, f1 + f2 * m1 / m2, 0.0)
+    d = np.where(ok, f1 - f2 * m1 / m2, 0.0)
+    s[ok] -= s[ok].mean()
+    d[ok] -= d[ok].mean()
+
+    def lagged(x, di, dj):
+        num = den = 0.0
+        for sgn in (1, -1) if dj else (1,):
+            a = x[max(0, -sgn * dj):x.shape[0] - max(0, sgn * dj), :x.shape[1] - di]
+            b = x[max(0, sgn * dj):x.shape[0] - max(0, -sgn * dj) or None, di:]
+            wa = ok[max(0, -sgn * dj):x.shape[0] - max(0, sgn * dj), :x.shape[1] - di]
+            wb = ok[max(0, sgn * dj):x.shape[0] - max(0, -sgn * dj) or None, di:]
+            num += (a * b).sum()
+            den += (wa & wb).sum()
+            if dj == 0:
+                num, den = 2 * num, 2 * den  # (i, 0) counted once per sign, as the estimator
+        return num / den
+
+    for di in range(3):
+        for dj in range(3):
+            ref = (lagged(s, di, dj) - lagged(d, di, dj)) / 4.0
+            assert_allclose(pc.static[di, dj], ref, rtol=1e-9, atol=1e-9 * mu)
+            assert_allclose(pc.cov[di, dj], 0.5 * lagged(d, di, dj), rtol=1e-9, atol=1e-9 * mu)
+    assert_allclose(pc.static[0, 0], mu**2 * 9e-6, rtol=0.1)
+    clean = pair_covariances(rng.poisson(mu, shape).astype(float),
+                             rng.poisson(mu, shape).astype(float), max_lag=1, static=True)
+    assert abs(clean.static[0, 0]) < 0.02 * mu
+    assert pair_covariances(f1, f2, max_lag=1).static is None
