@@ -37,7 +37,7 @@ sys.path.insert(0, os.path.join(HERE, ".."))
 from lsst_bfdrift.calibration.acoeff_fit import (AcoeffTable, LinearBasis, default_basis_path,  # noqa: E402
                                      electrostatic_acoeffs, fit_acoeffs, read_acoeff_table)
 from lsst_bfdrift.calibration.diagnosis import Observations, diagnose  # noqa: E402
-from lsst_bfdrift.simulation.injection import simulate_flat_pairs  # noqa: E402
+from lsst_bfdrift.simulation.flats import simulate_flat_pairs  # noqa: E402
 from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
 from lsst_bfdrift.calibration.ptc import fit_covariance_model, measure_ptc, read_ptc_text  # noqa: E402
 from lsst_bfdrift.calibration.report import write_report  # noqa: E402

@@ -9,7 +9,6 @@ galsim.SiliconSensor images and sky-like fields (BF on and off).
 
 from lsst_bfdrift.simulation.effects import *  # noqa: F401,F403
 from lsst_bfdrift.simulation.flats import *  # noqa: F401,F403
-from lsst_bfdrift.simulation.injection import *  # noqa: F401,F403
 from lsst_bfdrift.simulation.stars import *  # noqa: F401,F403
 from lsst_bfdrift.simulation.galsim_twins import *  # noqa: F401,F403
 from lsst_bfdrift.simulation.skysim import *  # noqa: F401,F403

@@ -20,7 +20,7 @@ from lsst_bfdrift.cli.main import main
 from lsst_bfdrift.calibration.diagnosis import (Observations, diagnose, load_input, observations_from_pairs,
                                     pair_statistics)
 from lsst_bfdrift.simulation.effects import ChargeCloud
-from lsst_bfdrift.simulation.injection import _static_pattern, simulate_flat_pairs
+from lsst_bfdrift.simulation.flats import _static_pattern, simulate_flat_pairs
 
 BASIS = os.path.join(os.path.dirname(os.path.dirname(__file__)), "data", "itl_basis_lag3.json")
 E2V = "/work/shared/data/measured/eotest_e2v_ptc_amp05.txt"

@@ -122,3 +122,36 @@ def test_with_responsivity_rescales_the_response(small_template):
     assert r1 / r0 == pytest.approx(-1e-5 / own, rel=1e-9)
     with pytest.raises(ValueError, match="negative"):
         with_responsivity(small_template, 1e-5)
+
+
+def test_galsim_engine_flats_carry_galsims_a00(tmp_path):
+    """Flat pairs filled with GalSim's own pixel areas (an independent
+    simulator): the variance deficit C00 / mu - 1 grows as a00 mu with
+    GalSim's own a00 (within 30 %: 128 x 128 px, 8 pairs, 20 fill steps),
+    and the FITS files carry EXPTIME for the PTC readers."""
+    from astropy.io import fits
+
+    from lsst_bfdrift.calibration.ptc import pair_covariances
+    from lsst_bfdrift.simulation.flats import simulate_flat_pairs, write_flat_pairs
+    from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
+
+    levels = [2e4, 4e4, 6e4, 8e4] * 2
+    pairs = simulate_flat_pairs("lsst_itl_50_8", levels, engine="galsim", shape=(128, 128),
+                                n_steps=20, seed=2)
+    mu = np.array([pair_covariances(a, b, max_lag=1).mu for a, b in pairs])
+    c = np.array([pair_covariances(a, b, max_lag=1).cov[0, 0] for a, b in pairs])
+    slope = np.sum((c / mu - 1) * mu) / np.sum(mu * mu)
+    a00 = galsim_acoeffs("lsst_itl_50_8", 1)[0, 0]
+    assert_allclose(mu, levels, rtol=0.01)
+    assert a00 < 0 and 0.7 < slope / a00 < 1.3
+    paths = write_flat_pairs(pairs[:2], levels[:2], tmp_path, gain=1.5, exptime_per_e=1e-3)
+    with fits.open(paths[1]) as h:
+        assert h[0].header["EXPTIME"] == pytest.approx(20.0) and h[0].header["GAIN"] == 1.5
+    with pytest.raises(ValueError, match="no GalSim sensor"):
+        simulate_flat_pairs("no_such_sensor", [1e4], engine="galsim", shape=(8, 8))
+    with pytest.raises(ValueError, match="kernel"):
+        simulate_flat_pairs("lsst_itl_50_8", [1e4], engine="galsim", inject={"well_filling": (1,)})
+    with pytest.raises(ValueError, match="positive"):
+        simulate_flat_pairs("lsst_itl_50_8", [-1.0], engine="galsim")
+    with pytest.raises(ValueError, match="engine"):
+        simulate_flat_pairs(np.zeros((2, 2)), [1e4], engine="poisson_ccd")
