@@ -27,8 +27,9 @@ The steps:
    lags) unless ``allow_poor_fit``: chi2/dof above ``max_chi2_dof`` with a
    p-value below 1e-3.
 4. **The template.** Built exactly at the best fit, then, with ``refine``,
-   its pixel areas are matched to the measured a_ij at every measured lag
-   by the smallest curl-free boundary change
+   its pixel areas are matched to the measured a_ij where they differ from
+   the model significantly (:func:`refinement_target`: the residual weighted
+   by max(0, 1 - 1/pull^2)) by the smallest curl-free boundary change
    (:func:`~lsst_bfdrift.templates.refine.match_area_coefficients`): the
    model gives the shape of the boundary shifts, the data their divergence.
    The template's ``meta['calibration']`` stores the parameters, their
@@ -51,7 +52,7 @@ from lsst_bfdrift.templates.template import (TemplateSettings, build_template,
 from lsst_bfdrift.utils.progress import ProgressBar
 
 __all__ = ["CANDIDATES", "CalibrationError", "CalibrationResult", "calibrate",
-           "default_start", "model_acoeffs", "measured_acoeffs"]
+           "default_start", "model_acoeffs", "measured_acoeffs", "refinement_target"]
 
 #: Candidate free parameters and their bounds: the dipole unit xi0 (e), the
 #: buried-channel depth (um, sets the charge dipole), the collection height
@@ -132,6 +133,27 @@ def measured_acoeffs(data):
         return AcoeffTable([[e["a00"]]], [[e["a00_err"]]], source=f"{src} (PTC curvature)",
                            axis_note="a00 only")
     raise CalibrationError(f"{src}: no a-matrix, covariances or PTC to calibrate from")
+
+
+def refinement_target(template, table):
+    """The a_ij the refined template is given: the template's own where the
+    data agree with it, the data where they differ significantly.
+
+    Each lag's residual r = measured - template (its linear response) is
+    kept with the weight max(0, 1 - 1 / pull^2), pull = r / sigma: a lag
+    within its error is left to the model (refining it would copy the
+    noise of the measurement into the template), a lag many sigma away is
+    matched (the model lacks something there). NaN where not measured.
+    """
+    c = template.center
+    L = min(table.max_lag, c - 1)
+    model = template_alpha(template)[c:c + L + 1, c:c + L + 1].T
+    a = table.a[:L + 1, :L + 1]
+    r = a - model
+    pull2 = (r / table.sigma[:L + 1, :L + 1]) ** 2
+    with np.errstate(divide="ignore"):
+        w = np.clip(1.0 - 1.0 / pull2, 0.0, 1.0)
+    return np.where(table.mask()[:L + 1, :L + 1], model + w * r, np.nan)
 
 
 class CalibrationResult:
@@ -383,7 +405,7 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
         seconds["build"] = time.perf_counter() - t2
         if refine:
             t3 = time.perf_counter()
-            template = match_area_coefficients(template, np.where(mask, table.a, np.nan),
+            template = match_area_coefficients(template, refinement_target(template, table),
                                                max_lag=min(L, template.center - 1))
             seconds["refine"] = time.perf_counter() - t3
         c = template.center

@@ -21,7 +21,8 @@ def itl():
 def test_calibrates_to_galsim_itl(itl):
     """Two parameters fitted to GalSim's ITL a-matrix (lags <= 2, a00
     included, 5 % errors): a reported fit with covariance; the refined
-    template's areas equal GalSim's at every fitted lag."""
+    template's areas are within one error of GalSim's at every fitted lag
+    (significant residuals are matched, the others left to the model)."""
     res = calibrate(itl, free=["channel_depth", "xi_ck"], settings=SMALL,
                     allow_poor_fit=True)
     f = res.fit
@@ -30,7 +31,8 @@ def test_calibrates_to_galsim_itl(itl):
     assert_allclose(np.diag(f.correlation), 1.0)
     # the fit moved a00 towards GalSim's (the bundled default is 20 % too strong)
     assert abs(f.model[0, 0] / itl.a[0, 0] - 1) < 0.15
-    assert_allclose(res.template_acoeffs, itl.a, rtol=0, atol=2e-10)
+    assert np.all(np.abs(res.template_acoeffs - itl.a) <= 1.001 * itl.sigma)
+    assert abs(res.template_acoeffs[0, 0] / itl.a[0, 0] - 1) < 0.05
     meta = res.template.meta["calibration"]
     assert meta["names"] == f.names and meta["a00_in_fit"] and meta["refined"]
     assert len(meta["covariance"]) == 2
@@ -110,3 +112,23 @@ def test_task_gives_flux_moved_error(itl):
         config=BrighterFatterDriftConfig(compute_geometry=False), template=res.template).run(img)
     assert plain.flux_moved_err is None
     assert_allclose(plain.flux_moved, moved, atol=0)
+
+
+def test_refinement_target_keeps_the_model_within_errors():
+    """Lags within their error keep the template's own a_ij; a lag 10 sigma
+    away is matched to 1 %; unmeasured lags are NaN."""
+    from lsst_bfdrift.calibration.tuning import refinement_target
+    from lsst_bfdrift.templates.refine import template_alpha
+    from lsst_bfdrift.templates.template import build_template
+
+    tpl = build_template(None, SMALL)
+    c = tpl.center
+    own = template_alpha(tpl)[c:c + 3, c:c + 3].T
+    sigma = np.full((3, 3), 1e-9)
+    data = own + 0.5 * sigma
+    data[0, 1] = own[0, 1] + 10 * sigma[0, 1]
+    t = AcoeffTable(data, sigma, exclude_a00=True)
+    target = refinement_target(tpl, t)
+    assert np.isnan(target[0, 0])
+    assert_allclose(target[1, 1], own[1, 1], rtol=0, atol=1e-15)
+    assert_allclose(target[0, 1], data[0, 1], rtol=0, atol=0.011 * 10 * sigma[0, 1])
