@@ -12,7 +12,8 @@ collected-charge dipole (xi0 = 2952 e, channel depth 0.368 um, collection
 height 0.5 um). The fitted values, rounded to four significant digits, are
 the defaults of :class:`~lsst_bfdrift.physics.sensor.SensorParameters`
 (``SensorParameters()`` is this sensor); the template is built from them
-with the bundled settings and its areas refined to the measured a_ij.
+with the bundled settings and its areas refined to the measured a_ij where
+they differ from the model significantly.
 
 Prints the fit, writes ``benchmarks/default_calibration_results.txt`` /
 ``.json``; with ``--write`` it also writes ``lsst_bfdrift/data/
@@ -33,7 +34,7 @@ ROOT = os.path.join(HERE, "..")
 sys.path.insert(0, ROOT)
 
 from lsst_bfdrift.calibration.acoeff_fit import read_acoeff_table  # noqa: E402
-from lsst_bfdrift.calibration.tuning import CHARGE, calibrate  # noqa: E402
+from lsst_bfdrift.calibration.tuning import CHARGE, calibrate, refinement_target  # noqa: E402
 from lsst_bfdrift.physics.sensor import SensorParameters  # noqa: E402
 from lsst_bfdrift.templates.refine import match_area_coefficients  # noqa: E402
 from lsst_bfdrift.templates.template import TemplateSettings, build_template  # noqa: E402
@@ -81,7 +82,7 @@ def main(argv=None):
             print("note: SensorParameters() differs from the fit; update its defaults to",
                   rounded)
         tpl = build_template(params, SETTINGS)
-        tpl = match_area_coefficients(tpl, table.a)
+        tpl = match_area_coefficients(tpl, refinement_target(tpl, table))
         tpl.meta["calibration"] = {
             "source": table.source, "names": f.names, "values": f.values, "errors": f.errors,
             "covariance": np.asarray(f.covariance).tolist(), "chi2": f.chi2, "dof": f.dof,
