@@ -7,7 +7,7 @@ scan and every fixed-pattern feature), then writes
 * ``benchmarks/reproduce_results.json`` (the same content as
   ``bfdrift reproduce --json``) and ``benchmarks/reproduce_results.txt``
   (one ``key: value`` line each, plus the run time);
-* every figure of ``docs/reproduce.rst`` into ``docs/_static/reproduce/``.
+* every figure of ``docs/simulations.rst`` into ``docs/_static/reproduce/``.
 
 Usage (from the repository root)::
 

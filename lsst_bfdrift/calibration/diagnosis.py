@@ -299,7 +299,7 @@ class Diagnosis:
         self.__dict__.update(kw)
 
     def as_dict(self):
-        """JSON-friendly dictionary with the keys documented in ``docs/measured.rst``."""
+        """JSON-friendly dictionary with the keys documented in ``docs/calibration.rst``."""
         return {k: v for k, v in self.__dict__.items() if not k.startswith("_")}
 
 

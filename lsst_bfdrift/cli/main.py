@@ -48,7 +48,7 @@ Subcommands
     Where the electrostatic model is wrong and which effect explains it:
     INPUT is an a_ij table, a PTC text file or a directory of flat pairs;
     chi2/dof, rms and largest residual lags before and after each added
-    effect (see ``docs/measured.rst``).
+    effect (see ``docs/calibration.rst``).
 ``bfdrift maps [IMAGE] [--template FILE] [--out FILE] [--plot PNG] [--json]``
     Final pixel geometry (area, centroid shift, ellipticity maps) of an image
     in electrons; with no IMAGE, the bundled sample star. This is the quick

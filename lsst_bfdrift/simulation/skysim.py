@@ -19,8 +19,7 @@ exposure the star's shrunken pixels collect less sky as well, and every
 correction (rightly) moves that sky flux back with the star's. Sky added
 after the BF simulation is flux the simulation never redistributed, and made
 both correction routes over-correct the size slope by 3-4 % on the field of
-``benchmarks/validate_sky.py`` (``docs/stars.rst``; +0.6 % and -0.2 %
-with it). Each star's box covers its central (2 ``sky_radius`` + 1)^2
+``benchmarks/validate_sky.py`` (``docs/benchmarks.rst``). Each star's box covers its central (2 ``sky_radius`` + 1)^2
 pixels plus a 3-pixel margin and is accumulated in its own image, with sky
 photons spread 3 px beyond it that diffuse in (those landing outside are
 dropped), so the sky is uniform up to the box edge (without this feed,

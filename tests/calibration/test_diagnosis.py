@@ -186,6 +186,6 @@ def test_cli_itl_table_with_shipped_basis(capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["kind"] == "table" and out["n_points"] == 80  # a00 left out (sum rule)
     assert out["effects_added"] == [] and not out["unexplained"]
-    assert out["chi2_dof_before"] < 0.1  # the file's errors are generous (docs/measured.rst)
+    assert out["chi2_dof_before"] < 0.1  # the file's errors are generous (docs/calibration.rst)
     assert out["tried"] == ["charge_cloud"]
     assert len(out["residuals_before"]) == 80
