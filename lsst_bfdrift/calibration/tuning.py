@@ -174,6 +174,12 @@ class CalibrationResult:
         lags.
     template : DistortionTemplate or None
         The calibrated template (None with ``build=False``).
+    built_template : DistortionTemplate or None
+        The template built at the best fit, before refinement.
+    settings : TemplateSettings or None
+        Settings of the build.
+    candidates : dict
+        The candidate parameters and their bounds.
     selection : list of dict
         The parameter choice: per step, the parameter added and the linear
         chi2 after it.
@@ -394,14 +400,14 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
             f"worst lags: {worst}. The model cannot match these data within their errors; "
             "check the errors, or pass allow_poor_fit=True (--allow-poor-fit) to build the "
             "template anyway")
-    template = tpl_a = None
+    template = tpl_a = built = None
     if build:
         t2 = time.perf_counter()
         if settings is None:
             d = dict(load_default_template().meta.get("settings", {}))
             d["aggressor_charge"] = CHARGE
             settings = TemplateSettings.from_dict(d)
-        template = build_template(params, settings)
+        template = built = build_template(params, settings)
         seconds["build"] = time.perf_counter() - t2
         if refine:
             t3 = time.perf_counter()
@@ -419,7 +425,8 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     result = CalibrationResult(params=params, fit=fit, table=table, model=fit.model,
                                template_acoeffs=tpl_a, template=template, selection=selection,
                                sum_rule=_sum_rule(table), seconds=seconds, poor_fit=poor,
-                               refined=bool(refine and build))
+                               refined=bool(refine and build), built_template=built,
+                               settings=settings, candidates=candidates, start=start)
     if template is not None:
         template.meta["params"] = params.to_dict()
         template.meta["calibration"] = {

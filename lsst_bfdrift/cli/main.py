@@ -178,16 +178,31 @@ def _cmd_calibrate(args):
 
     if os.path.exists(args.out) and not args.overwrite:
         raise FileExistsError(f"{args.out} exists (use --overwrite)")
-    if os.path.abspath(args.out) in {os.path.abspath(x) for x in args.input}:
+    if os.path.abspath(args.out) in {os.path.abspath(x) for x in args.input + (args.stars or [])}:
         raise ValueError(f"--out {args.out} is one of the inputs")
+    for x in args.stars or []:
+        if not os.path.isfile(x):
+            raise FileNotFoundError(f"--stars {x}: no such file")
     data = read_calibration_input(args.input, max_lag=args.max_lag)
     table = measured_acoeffs(data)
     res = calibrate(table, free=args.free, refine=not args.no_refine,
                     allow_poor_fit=args.allow_poor_fit, max_chi2_dof=args.max_chi2_dof,
                     progress=not args.quiet)
     res.template.meta["calibration"]["inputs"] = [os.path.abspath(x) for x in args.input]
-    res.template.save(args.out, overwrite=args.overwrite)
+    joint = None
+    if args.stars:
+        from lsst_bfdrift.calibration.star_fit import calibrate_with_stars
+        joint = calibrate_with_stars(res, [os.path.abspath(x) for x in args.stars],
+                                     holdout=args.holdout, gain=args.gain,
+                                     progress=not args.quiet)
+        joint.template.meta["calibration"]["inputs"] = \
+            [os.path.abspath(x) for x in args.input + args.stars]
+        joint.template.save(args.out, overwrite=args.overwrite)
+    else:
+        res.template.save(args.out, overwrite=args.overwrite)
     summary = res.summary()
+    if joint is not None:
+        summary["stars"] = joint.summary()
     summary["input"] = data.summary()
     summary["out"] = os.path.abspath(args.out)
     if args.plot:
@@ -207,8 +222,24 @@ def _cmd_calibrate(args):
           + ", ".join(f"a{i}{j} {p:+.1f} sigma" for (i, j), p in f.worst(3)))
     sr = res.sum_rule
     print(f"  sum rule: sum a_ij = {sr['sum']:+.3e} +- {sr['error']:.1e} per e")
-    print(f"  template: {args.out} ({'areas refined to the data' if res.refined else 'model'})"
-          f" in {res.seconds['total']:.1f} s")
+    if joint is None:
+        print(f"  template: {args.out} ({'areas refined to the data' if res.refined else 'model'})"
+              f" in {res.seconds['total']:.1f} s")
+        return 0
+    c2 = joint.chi2
+    print(f"  with {len(args.stars)} star field(s): directions {', '.join(joint.directions)}; "
+          f"chi2 a-matrix {c2['flats_only']['amatrix']:.1f} -> {c2['joint']['amatrix']:.1f}, "
+          f"star slopes {c2['flats_only']['stars']:.1f} -> {c2['joint']['stars']:.1f}; tension "
+          f"p = {joint.tension['p_value']:.2g}")
+    for n, v in joint.star_information.items():
+        cf = joint.coefficients[n]
+        print(f"  {n:>18s} {cf['parameter_change']:+.3g} +- {cf['parameter_change_err']:.2g} "
+              f"(stars give {100 * v:.0f} % of its information)")
+    for w in joint.warnings:
+        print(f"  warning: {w}")
+    print("  " + joint.held_out_table().replace("\n", "\n  "))
+    print(f"  template: {args.out} (a-matrix and stars) in "
+          f"{res.seconds['total'] + joint.seconds['total']:.1f} s")
     return 0
 
 
@@ -580,6 +611,14 @@ def build_parser():
                          "(default: %(default)s)")
     ca.add_argument("--allow-poor-fit", action="store_true",
                     help="write the template even when the fit is poor")
+    ca.add_argument("--stars", nargs="+", metavar="EXPOSURE",
+                    help="star fields (FITS, electrons or ADU with GAIN) fitted jointly with "
+                         "the a-matrix: corrected star size and shape must not depend on flux")
+    ca.add_argument("--holdout", choices=("auto", "split", "last"), default="auto",
+                    help="stars held out for validation: the last field ('last'), a seeded "
+                         "half of each field ('split'); 'auto': 'last' with two or more fields "
+                         "(default: %(default)s)")
+    ca.add_argument("--gain", type=float, help="e/ADU of star fields in ADU without GAIN")
     ca.add_argument("--plot", help="write a PNG: a_ij against lag, pulls, correlations")
     ca.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     ca.add_argument("--json", action="store_true")

@@ -7,7 +7,6 @@ figures.
 """
 
 
-from lsst_bfdrift.validation.catalog import *  # noqa: F401,F403
 from lsst_bfdrift.validation.shape_correction import *  # noqa: F401,F403
 from lsst_bfdrift.validation.sky import *  # noqa: F401,F403
 from lsst_bfdrift.validation.stars import *  # noqa: F401,F403

@@ -262,7 +262,7 @@ def correct_catalog(catalog, exposure, *, maps=None, template=None, gain=None, m
     Parameters
     ----------
     catalog : QTable
-        From :func:`~lsst_bfdrift.validation.catalog.measure_stars` on ``exposure``.
+        From :func:`~lsst_bfdrift.calibration.catalog.measure_stars` on ``exposure``.
     exposure : ndarray, CCDData, NDData or path
         The recorded image (electrons, or ADU with ``gain``).
     maps : MomentMaps, Struct or dict, optional
@@ -291,7 +291,7 @@ def correct_catalog(catalog, exposure, *, maps=None, template=None, gain=None, m
     """
     from astropy import units as u
 
-    from lsst_bfdrift.validation.catalog import FLAG_EDGE, FLAG_MOMENTS, load_electrons
+    from lsst_bfdrift.calibration.catalog import FLAG_EDGE, FLAG_MOMENTS, load_electrons
     from lsst_bfdrift.geometry.superpose import moment_maps
 
     data, bad, _, _ = load_electrons(exposure, gain=gain, mask=mask)

@@ -49,7 +49,7 @@ from astropy.table import QTable
 
 from lsst_bfdrift.utils.progress import ProgressBar
 
-__all__ = ["measure_stars", "load_electrons", "FLAG_SATURATED", "FLAG_BLENDED", "FLAG_EDGE",
+__all__ = ["StarDetections", "detect_stars", "measure_stars", "load_electrons", "FLAG_SATURATED", "FLAG_BLENDED", "FLAG_EDGE",
            "FLAG_MASKED", "FLAG_MOMENTS", "FLAG_NOT_STAR", "FLAG_NAMES"]
 
 FLAG_SATURATED = 1
@@ -165,9 +165,113 @@ def _hsm(stamp, weight, guess, x0, y0):
             0.5 * t * (1 - e1), 0.5 * t * e2, t, e1, e2, m.moments_sigma)
 
 
+class StarDetections:
+    """Detections of :func:`detect_stars`, reusable on corrected copies of the image.
+
+    Attributes
+    ----------
+    labels : ndarray of int
+        Segmentation map (0 = no source).
+    centroids : ndarray, shape (n, 2)
+        (x, y) of each segment's smoothed-image centroid (px), row k for label k + 1.
+    blended : set of int
+        Labels of segments with several significant peaks.
+    background, rms : ndarray
+        Background and its rms (e per px).
+    bad : ndarray of bool
+        Masked or non-finite pixels of the detection image.
+    saturation : float or None
+        Saturation level (e).
+    gain : float
+        e/ADU applied to the detection image.
+    settings : dict
+        Detection settings.
+    """
+
+    def __init__(self, labels, centroids, blended, background, rms, bad, saturation, gain,
+                 settings):
+        self.labels = labels
+        self.centroids = centroids
+        self.blended = blended
+        self.background = background
+        self.rms = rms
+        self.bad = bad
+        self.saturation = saturation
+        self.gain = gain
+        self.settings = settings
+
+    @property
+    def shape(self):
+        """(ny, nx) of the detection image."""
+        return self.labels.shape
+
+
+def detect_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=5.0,
+                 n_pixels=9, kernel_fwhm=3.0, box_size=64, deblend=True):
+    """Background, segmentation and blend flags of the sources of an exposure.
+
+    Steps 1-3 of the module docstring; :func:`measure_stars` measures the
+    sources. Detections of an image can be reused to measure the same
+    sources on a corrected copy of it (same stars, same stamps and weights),
+    so that the change of each star's moments is the correction's alone.
+
+    Parameters
+    ----------
+    exposure, gain, mask, saturation, threshold, n_pixels, kernel_fwhm, box_size, deblend
+        See :func:`measure_stars`.
+
+    Returns
+    -------
+    StarDetections
+
+    Raises
+    ------
+    ValueError
+        For a blank or non-finite image, an image too small, or no detection.
+    """
+    from photutils.segmentation import detect_sources, make_2dgaussian_kernel
+    from photutils.utils.exceptions import NoDetectionsWarning
+    from scipy import ndimage
+    from scipy.signal import fftconvolve
+
+    data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask, saturation=saturation)
+    if bad.all():
+        raise ValueError("image has no usable pixel (all masked or non-finite)")
+    good_vals = data[~bad]
+    if np.ptp(good_vals) == 0:
+        raise ValueError(f"image is blank (every usable pixel equals {good_vals[0]:g}); "
+                         "no stars can be measured")
+    clean = np.where(bad, 0.0, data)
+    bkg, rms = _background(clean, bad, box_size)
+    if not np.all(np.isfinite(rms)) or np.median(rms) <= 0:
+        raise ValueError("background rms is zero or undefined: the image has no noise "
+                         "(blank or synthetic?); give a noisy image in electrons")
+    sub = np.where(bad, 0.0, data - bkg)
+    kernel = np.asarray(make_2dgaussian_kernel(kernel_fwhm, size=2 * int(kernel_fwhm) + 1))
+    kernel = kernel / kernel.sum()
+    conv = fftconvolve(sub, kernel, mode="same")
+    # noise of the smoothed image: rms * sqrt(sum k^2)
+    thr = threshold * rms * np.sqrt(np.sum(kernel ** 2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NoDetectionsWarning)  # reported as an error below
+        segm = detect_sources(conv, thr, int(n_pixels), mask=bad)
+    if segm is None or segm.n_labels == 0:
+        raise ValueError(f"no sources detected above {threshold:g} sigma: no stars to measure "
+                         "(check the image, its unit/gain and the threshold)")
+    labels = segm.data
+    split = _multi_peak_segments(conv, labels, thr, bad) if deblend else set()
+    cen = ndimage.center_of_mass(np.clip(conv, 0, None), labels,
+                                 index=np.arange(1, labels.max() + 1))
+    centroids = np.array([[c[1], c[0]] for c in cen], float).reshape(-1, 2)
+    return StarDetections(labels, centroids, split, bkg, rms, bad, sat_e, g,
+                          dict(threshold=float(threshold), n_pixels=int(n_pixels),
+                               kernel_fwhm=float(kernel_fwhm), box_size=int(box_size)))
+
+
 def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=5.0,
                   n_pixels=9, kernel_fwhm=3.0, box_size=64, stamp=25, aperture_radius=10.0,
-                  isolation=12.0, size_tolerance=0.3, deblend=True, progress=False):
+                  isolation=12.0, size_tolerance=0.3, deblend=True, detections=None,
+                  progress=False):
     """Detect stars and measure flux, centroid, adaptive moments and flags.
 
     Parameters
@@ -200,6 +304,12 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
         (only applied when at least 5 good sources exist).
     deblend : bool, optional
         Look for several peaks in one segment (flagged blended).
+    detections : StarDetections, optional
+        Detections of this image or of an uncorrected copy of it (same
+        shape), from :func:`detect_stars`: the sources are measured where
+        they were detected, with that background and those flags
+        (detection options are then ignored; ``mask`` and masked pixels of
+        ``exposure`` still count).
     progress : bool, optional
         Progress bar on stderr.
 
@@ -220,45 +330,31 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
     ValueError
         For a blank or non-finite image, an image too small, or no detection.
     """
-    from photutils.segmentation import detect_sources, make_2dgaussian_kernel
     from scipy import ndimage
-    from scipy.signal import fftconvolve
 
-    data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask, saturation=saturation)
-    if bad.all():
-        raise ValueError("image has no usable pixel (all masked or non-finite)")
-    good_vals = data[~bad]
-    if np.ptp(good_vals) == 0:
-        raise ValueError(f"image is blank (every usable pixel equals {good_vals[0]:g}); "
-                         "no stars can be measured")
+    if detections is None:
+        detections = detect_stars(exposure, gain=gain, mask=mask, saturation=saturation,
+                                  threshold=threshold, n_pixels=n_pixels,
+                                  kernel_fwhm=kernel_fwhm, box_size=box_size, deblend=deblend)
+        data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask,
+                                             saturation=saturation)
+    else:
+        data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask,
+                                             saturation=saturation)
+        if data.shape != detections.shape:
+            raise ValueError(f"image shape {data.shape} differs from the detections' "
+                             f"{detections.shape}")
+        bad = bad | detections.bad
+        sat_e = detections.saturation if sat_e is None else sat_e
+    labels = detections.labels
+    bkg, rms = detections.background, detections.rms
+    split = detections.blended
+    cen_x, cen_y = detections.centroids[:, 0], detections.centroids[:, 1]
     stamp = int(stamp) | 1
     half = stamp // 2
-    clean = np.where(bad, 0.0, data)
-    bkg, rms = _background(clean, bad, box_size)
-    if not np.all(np.isfinite(rms)) or np.median(rms) <= 0:
-        raise ValueError("background rms is zero or undefined: the image has no noise "
-                         "(blank or synthetic?); give a noisy image in electrons")
     sub = np.where(bad, 0.0, data - bkg)
-    kernel = np.asarray(make_2dgaussian_kernel(kernel_fwhm, size=2 * int(kernel_fwhm) + 1))
-    kernel = kernel / kernel.sum()
-    conv = fftconvolve(sub, kernel, mode="same")
-    # noise of the smoothed image: rms * sqrt(sum k^2)
-    thr = threshold * rms * np.sqrt(np.sum(kernel ** 2))
-    from photutils.utils.exceptions import NoDetectionsWarning
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", NoDetectionsWarning)  # reported as an error below
-        segm = detect_sources(conv, thr, int(n_pixels), mask=bad)
-    if segm is None or segm.n_labels == 0:
-        raise ValueError(f"no sources detected above {threshold:g} sigma: no stars to measure "
-                         "(check the image, its unit/gain and the threshold)")
-    labels = segm.data
     ny, nx = data.shape
     objs = ndimage.find_objects(labels)
-    split = _multi_peak_segments(conv, labels, thr, bad) if deblend else set()
-    cen = ndimage.center_of_mass(np.clip(conv, 0, None), labels,
-                                 index=np.arange(1, labels.max() + 1))
-    cen_x = np.array([c[1] for c in cen], float)
-    cen_y = np.array([c[0] for c in cen], float)
     rows = []
     yy, xx = np.mgrid[-half:half + 1, -half:half + 1]
     with ProgressBar(len(objs), "stars", enabled=progress) as bar:
@@ -266,7 +362,7 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
             bar(1)
             if sl is None:
                 continue
-            cy, cx = cen[lab - 1]
+            cx, cy = cen_x[lab - 1], cen_y[lab - 1]
             if not (np.isfinite(cx) and np.isfinite(cy)):
                 continue
             flags = 0
@@ -327,7 +423,7 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
         tab[name] = (np.asarray(tab["flags"]) & bit) != 0
     tab["use"] = np.asarray(tab["flags"]) == 0
     tab.meta.update(gain=g, saturation=sat_e, background_rms=float(np.median(rms)),
-                    threshold=float(threshold), stamp=stamp, aperture_radius=float(aperture_radius),
+                    threshold=detections.settings["threshold"], stamp=stamp, aperture_radius=float(aperture_radius),
                     isolation=float(isolation), moments="galsim.hsm.FindAdaptiveMom (adaptive)",
                     shape=[int(ny), int(nx)])
     return tab

@@ -1,4 +1,4 @@
-"""Tests of lsst_bfdrift.validation.catalog: detection, flags, adaptive moments, bad input."""
+"""Tests of lsst_bfdrift.calibration.catalog: detection, flags, adaptive moments, bad input."""
 
 import galsim
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 from astropy.io import fits
 from numpy.testing import assert_allclose
 
-from lsst_bfdrift.validation.catalog import FLAG_BLENDED, FLAG_EDGE, FLAG_MASKED, FLAG_NOT_STAR, \
+from lsst_bfdrift.calibration.catalog import FLAG_BLENDED, FLAG_EDGE, FLAG_MASKED, FLAG_NOT_STAR, \
     FLAG_SATURATED, measure_stars
 
 SKY = 500.0

@@ -1,0 +1,148 @@
+"""End to end: calibrate from GalSim flats, and from flats plus a GalSim star field.
+
+For each GalSim sensor model (default lsst_itl_50_8 and lsst_e2v_50_8):
+
+1. **flats**: flat pairs made with GalSim's own pixel-area response and
+   Poisson noise (:func:`~lsst_bfdrift.simulation.flats.simulate_flat_pairs`,
+   engine 'galsim'), the Astier et al. (2019) fit for a_ij with errors, and
+   :func:`~lsst_bfdrift.calibration.tuning.calibrate` (flats-only template).
+2. **flats + stars**: one sky-like field of the same sensor drawn by
+   galsim.SiliconSensor (:func:`~lsst_bfdrift.simulation.skysim.simulate_star_field`:
+   Moffat PSF varying smoothly over the field, fluxes 1e4-1.5e6 e, sky
+   through the sensor, no truth), and
+   :func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars` (half of
+   the field's stars fitted, half held out).
+3. **validation on other stars**: GalSim stars of the same sensor with a
+   paired no-BF twin (:func:`~lsst_bfdrift.validation.stars.draw_star_pairs`,
+   Moffat, their own seed), corrected by drift with the flats-only, the
+   flats+stars, GalSim's true and the bundled default template.
+
+Prints the held-out field's slopes and the size and e1 slopes left on the
+paired stars, as % of the uncorrected slopes, and writes
+``benchmarks/calibrate_stars_results.txt`` / ``.json``::
+
+    python benchmarks/calibrate_stars.py [--sensors lsst_itl_50_8 lsst_e2v_50_8]
+        [--field-stars 800] [--field-size 2048] [--n-stars 200] [--cache /tmp/cst]
+"""
+
+import argparse
+import os
+import sys
+import time
+import zlib
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))
+sys.path.insert(0, HERE)
+
+from calibrate_sensor import flats_table, star_pairs  # noqa: E402
+from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable  # noqa: E402
+from lsst_bfdrift.calibration.star_fit import calibrate_with_stars  # noqa: E402
+from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
+from lsst_bfdrift.simulation.skysim import simulate_star_field  # noqa: E402
+from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
+from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
+from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
+from lsst_bfdrift.validation.stars import per_star_residuals, residual_slopes  # noqa: E402
+
+
+def cached_flats(sensor, args):
+    path = os.path.join(args.cache, f"flats_{sensor}_{args.flat_size}_{args.pairs_per_level}.npz")
+    if os.path.isfile(path):
+        d = np.load(path)
+        return AcoeffTable(d["a"], d["a_err"], source=f"GalSim {sensor} flats"), 0.0
+    t0 = time.time()
+    table, _ = flats_table(sensor, args)
+    np.savez(path, a=table.a, a_err=table.sigma)
+    return table, time.time() - t0
+
+
+def cached_field(sensor, args):
+    seed = zlib.crc32(f"field:{sensor}".encode()) % 100000
+    path = os.path.join(args.cache, f"field_{sensor}_{args.field_size}_{args.field_stars}_{seed}.npy")
+    if os.path.isfile(path):
+        return np.load(path), seed, 0.0
+    t0 = time.time()
+    f = simulate_star_field((args.field_size,) * 2, args.field_stars, sensor=sensor,
+                            flux=(1e4, 1.5e6), sky=1000.0, seed=seed, progress=True)
+    np.save(path, f["image"])
+    return f["image"], seed, time.time() - t0
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sensors", nargs="+", default=["lsst_itl_50_8", "lsst_e2v_50_8"])
+    ap.add_argument("--field-stars", type=int, default=800)
+    ap.add_argument("--field-size", type=int, default=2048)
+    ap.add_argument("--n-stars", type=int, default=200)
+    ap.add_argument("--flat-size", type=int, default=400)
+    ap.add_argument("--pairs-per-level", type=int, default=2)
+    ap.add_argument("--cache", default="/tmp/cst")
+    ap.add_argument("--pairs", default="/tmp/cs_pairs", help="cache prefix of the paired stars")
+    ap.add_argument("--out", default=os.path.join(HERE, "calibrate_stars_results"))
+    args = ap.parse_args(argv)
+    os.makedirs(args.cache, exist_ok=True)
+    lines, out = [], {"sensors": {}, "machine": "2 cores"}
+
+    def say(s):
+        print(s, flush=True)
+        lines.append(s)
+
+    default = load_default_template()
+    for sensor in args.sensors:
+        rec = out["sensors"][sensor] = {}
+        table, cost = cached_flats(sensor, args)
+        say(f"{sensor}: flats a-matrix (lags <= {table.max_lag})"
+            + (f", flats drawn and fitted in {cost:.0f} s" if cost else " (cached)"))
+        t0 = time.time()
+        res = calibrate(table, allow_poor_fit=True)
+        f = res.fit
+        say(f"  flats-only: {', '.join(f'{n} = {f.values[n]:.4g}' for n in f.names)}; chi2 "
+            f"{f.chi2:.1f} / {f.dof} dof; {time.time() - t0:.0f} s")
+        rec["flats"] = res.summary()
+        img, fseed, fcost = cached_field(sensor, args)
+        say(f"  star field {args.field_size}^2, {args.field_stars} stars (seed {fseed})"
+            + (f", drawn in {fcost:.0f} s" if fcost else " (cached)"))
+        t0 = time.time()
+        joint = calibrate_with_stars(res, [img], seed=fseed, progress=True)
+        say(f"  flats+stars: directions {joint.directions}, "
+            + ", ".join(f"{n} {c['parameter_change']:+.3g} +- {c['parameter_change_err']:.2g}"
+                        for n, c in joint.coefficients.items())
+            + f"; chi2 a-matrix {joint.chi2['flats_only']['amatrix']:.1f} -> "
+            f"{joint.chi2['joint']['amatrix']:.1f} ({joint.chi2['n_amatrix']} lags), stars "
+            f"{joint.chi2['flats_only']['stars']:.1f} -> {joint.chi2['joint']['stars']:.1f} "
+            f"({joint.chi2['n_stars']} slopes); tension p = {joint.tension['p_value']:.2g}; "
+            f"{time.time() - t0:.0f} s")
+        say("  star share of the information: " + ", ".join(
+            f"{n} {v:.2f}" for n, v in joint.star_information.items()))
+        for w in joint.warnings:
+            say(f"  warning: {w}")
+        for ln in joint.held_out_table().splitlines():
+            say("  " + ln)
+        rec["joint"] = joint.summary()
+        templates = {"flats-only": res.template, "flats+stars": joint.template,
+                     "true (GalSim file)": import_galsim_sensor(sensor, match="transfers"),
+                     "bundled default": default}
+        pairs, pseed, pcost = star_pairs(sensor, "moffat", args)
+        say(f"  paired validation stars: {len(pairs)} Moffat (seed {pseed})"
+            + (f", drawn in {pcost:.0f} s" if pcost else ""))
+        rec["validation"] = {}
+        for name, tpl in templates.items():
+            fl, rows = per_star_residuals(pairs, tpl, methods=("drift",), sky=1000.0)
+            r = residual_slopes(fl, rows)
+            u, ue = r["uncorrected"]["size_slope"], r["uncorrected"]["e_slope"]
+            d = r["drift"]
+            rec["validation"][name] = r
+            say(f"    {name:20s} drift  size {100 * d['size_slope'] / u:+6.2f} +- "
+                f"{100 * d['size_slope_err'] / abs(u):.2f} %   e1 {100 * d['e_slope'] / ue:+6.1f}"
+                f" +- {100 * d['e_slope_err'] / abs(ue):.1f} % of uncorrected")
+    say("target: flats+stars drift <= 3 % of the size slope and <= 5 % of e1")
+    write_text(args.out + ".txt", "\n".join(lines) + "\n")
+    write_json(args.out + ".json", out, indent=1, default=float)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

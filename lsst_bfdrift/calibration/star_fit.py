@@ -1,0 +1,517 @@
+"""Calibrate on the sky too: star fields fitted jointly with the flats' a-matrix.
+
+Flats measure the a-matrix: the net area change of each pixel, the
+divergence of the boundary shifts. Stars respond to how the boundaries move,
+including the part flats cannot see (Broughton et al. 2024 found a
+flat-calibrated correction corrects flats better than stars). A star field
+carries that information without truth: after a right correction, star size
+and shape no longer depend on flux at fixed position
+(:func:`~lsst_bfdrift.calibration.star_slopes.shape_flux_relations`).
+
+:func:`calibrate_with_stars` takes the result of
+:func:`~lsst_bfdrift.calibration.tuning.calibrate` (the a-matrix fit and its
+template T_a) and one or several star fields, and fits
+
+.. math::
+
+    T(c) = T_a + \\sum_k c_k \\, \\Delta T_k
+
+where :math:`\\Delta T_k` is the change of the built template when model
+parameter k moves by its step h_k (every candidate of
+:data:`~lsst_bfdrift.calibration.tuning.CANDIDATES`: the directions the
+physics allows, including those the a-matrix does not see), plus the
+direction ``scale``, T_a itself (an overall strength change, c the
+fractional change). Both data sets are linear in c:
+
+* the a-matrix: the template's linear area response is linear in its
+  displacements, so a(c) = a(T_a) + sum_k c_k alpha(Delta T_k) exactly;
+* the stars: each field is corrected by the Task (drift) with T_a and with
+  T_a + Delta T_k, and the same stars (same detections, stamps and weights,
+  :func:`~lsst_bfdrift.calibration.catalog.detect_stars`) give the size,
+  e1 and e2 slopes (per 1e5 e) and their finite differences.
+
+The chi2 is the a-matrix's (measured errors) plus the stars' (slopes / their
+bootstrap errors; a right correction leaves zero). Directions are added one
+at a time while the chi2 drops by more than ln N (the same rule as the
+a-matrix fit); then c is solved by weighted least squares and refined by
+Gauss-Newton steps with exact evaluations of the stars' slopes (the Jacobian
+kept). The result reports:
+
+* each data set's chi2 with T_a and with T(c), and the **tension**: the rise
+  of the a-matrix chi2 needed to null the star slopes, with its p-value
+  (chi2 with as many degrees of freedom as star slopes);
+* per direction, the share of its Fisher information that comes from the
+  stars;
+* **held-out stars**: the slopes, with bootstrap errors, of stars not used
+  in the fit (the last field when there are several, else a seeded half of
+  the stars of the field), before correction, corrected with T_a and with
+  T(c). Only these count as a validation.
+
+How many stars: the size slope of a field is measured to about
+``1 / sqrt(N)`` of its own scatter; the validate-sky benchmark measured it to
+20 % (z = 4.8) with 150 stars of 1e4-1.5e6 e on a 1k x 1k ITL field. A star
+field constrains the template when its uncorrected size slope is detected at
+z > 10: several hundred unsaturated, isolated stars spanning 1e4 to 1e6 e.
+"""
+
+import math
+import time
+
+import numpy as np
+from scipy import stats
+
+from lsst_bfdrift.calibration.catalog import FLAG_NAMES, detect_stars, load_electrons, measure_stars
+from lsst_bfdrift.calibration.star_slopes import FLUX_UNIT, select_stars, shape_flux_relations
+from lsst_bfdrift.calibration.tuning import CalibrationError, _select
+from lsst_bfdrift.templates.refine import template_alpha
+from lsst_bfdrift.templates.template import DistortionTemplate, build_template
+from lsst_bfdrift.utils.progress import ProgressBar
+
+__all__ = ["StarField", "StarCalibrationResult", "calibrate_with_stars", "combine_templates"]
+
+_SLOPES = ("size", "e1", "e2")
+
+
+def combine_templates(base, deltas, coefficients, *, meta=None):
+    """``base`` plus ``sum_k coefficients[k] * deltas[k]`` (displacement arrays).
+
+    Parameters
+    ----------
+    base : DistortionTemplate
+    deltas : sequence of dict
+        Displacement changes: ``corner_d``, ``vedge_d``, ``hedge_d``,
+        ``vedge_t``, ``hedge_t`` arrays (pixel units at ``base.charge``).
+    coefficients : sequence of float
+    meta : dict, optional
+        Metadata of the result (default: the base's).
+
+    Returns
+    -------
+    DistortionTemplate
+    """
+    arr = {}
+    for name in ("corner_d", "vedge_d", "hedge_d", "vedge_t", "hedge_t"):
+        b = getattr(base, name)
+        has = b is not None or any(d.get(name) is not None for d in deltas)
+        if not has:
+            arr[name] = None
+            continue
+        a = np.zeros_like(base.vedge_d if name == "vedge_t" else base.hedge_d) \
+            if b is None else np.array(b, float)
+        for d, c in zip(deltas, coefficients):
+            if d.get(name) is not None and c != 0:
+                a = a + float(c) * d[name]
+        arr[name] = a
+    return DistortionTemplate(arr["corner_d"], arr["vedge_d"], arr["hedge_d"], base.fractions,
+                              base.charge, vedge_t=arr["vedge_t"], hedge_t=arr["hedge_t"],
+                              meta=dict(base.meta if meta is None else meta))
+
+
+def _delta(t1, t0):
+    """Displacement difference t1 - t0 of two templates of the same grid."""
+    if t1.size != t0.size or t1.fractions.size != t0.fractions.size \
+            or not np.isclose(t1.charge, t0.charge):
+        raise ValueError("templates differ in size, edge samples or charge")
+    out = {}
+    for name in ("corner_d", "vedge_d", "hedge_d", "vedge_t", "hedge_t"):
+        a, b = getattr(t1, name), getattr(t0, name)
+        if a is None and b is None:
+            out[name] = None
+            continue
+        a = np.zeros_like(getattr(t1 if b is None else t0, name)) if a is None else a
+        b = np.zeros_like(a) if b is None else b
+        out[name] = a - b
+    return out
+
+
+class StarField:
+    """A star field prepared for the calibration: detections, usable stars, fit/held-out split.
+
+    Parameters
+    ----------
+    exposure : ndarray, CCDData, NDData or path
+        Image in electrons (or ADU with ``gain`` / GAIN keyword); never modified.
+    gain, mask, saturation
+        See :func:`~lsst_bfdrift.calibration.catalog.load_electrons`.
+    min_snr : float, optional
+        Stars below this signal-to-noise ratio are not used.
+    name : str, optional
+        Label in reports (default the file name or ``field<k>``).
+    catalog_kwargs : dict, optional
+        Options of :func:`~lsst_bfdrift.calibration.catalog.detect_stars`.
+    """
+
+    def __init__(self, exposure, *, gain=None, mask=None, saturation=None, min_snr=30.0,
+                 name=None, catalog_kwargs=None):
+        self.name = name or (str(exposure) if isinstance(exposure, str) else "field")
+        data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask,
+                                             saturation=saturation)
+        self.data, self.bad, self.saturation, self.gain = data, bad, sat_e, g
+        self.detections = detect_stars(data, mask=bad, saturation=sat_e,
+                                       **dict(catalog_kwargs or {}))
+        self.catalog = measure_stars(data, mask=bad, saturation=sat_e,
+                                     detections=self.detections)
+        self.min_snr = float(min_snr)
+        self.usable = select_stars(self.catalog, self.min_snr)
+        ny, nx = data.shape
+        self.frame = (0.5 * (nx - 1), 0.5 * (ny - 1), 0.5 * nx, 0.5 * ny)
+        flags = np.asarray(self.catalog["flags"])
+        self.flag_counts = {n[5:]: int(np.sum((flags & b) != 0)) for b, n in FLAG_NAMES.items()}
+        self.fit_stars = self.usable.copy()
+        self.held_out = np.zeros_like(self.usable)
+
+    def split(self, seed):
+        """Hold out a seeded random half of the usable stars (stratified by flux)."""
+        idx = np.flatnonzero(self.usable)
+        order = idx[np.argsort(np.asarray(self.catalog["flux"].value)[idx])]
+        rng = np.random.default_rng(seed)
+        hold = np.zeros(len(self.catalog), bool)
+        for k in range(0, order.size, 2):  # one of each consecutive pair in flux
+            pair = order[k:k + 2]
+            if pair.size == 2 or rng.random() < 0.5:
+                hold[pair[rng.integers(pair.size)]] = True
+        self.held_out = hold
+        self.fit_stars = self.usable & ~hold
+
+    def slopes(self, template, subset, *, n_boot=0, seed=20151):
+        """Size, e1 and e2 slopes (per 1e5 e) of ``subset`` after a drift correction.
+
+        ``template`` None: the uncorrected image.
+        """
+        if template is None:
+            img = self.data
+        else:
+            from astropy import units as u
+            from astropy.nddata import CCDData
+
+            from lsst_bfdrift.correction.task import (BrighterFatterDriftConfig,
+                                                      BrighterFatterDriftTask)
+            cfg = BrighterFatterDriftConfig(method="drift", compute_geometry=False,
+                                            saturation=self.saturation)
+            res = BrighterFatterDriftTask(config=cfg, template=template).run(
+                CCDData(self.data, unit=u.electron, mask=self.bad))
+            img = np.asarray(res.exposure.data, float)
+        cat = measure_stars(img, mask=self.bad, saturation=self.saturation,
+                            detections=self.detections)
+        cat["use"] = np.asarray(subset, bool)
+        rel = shape_flux_relations(cat, min_snr=self.min_snr, n_boot=n_boot, seed=seed,
+                                   frame=self.frame)
+        return {k: (rel[k]["slope"], rel[k]["slope_err"]) for k in _SLOPES} | \
+            {"n_stars": rel["n_stars"]}
+
+
+class StarCalibrationResult:
+    """Result of :func:`calibrate_with_stars`.
+
+    Attributes
+    ----------
+    template : DistortionTemplate
+        The jointly calibrated template T(c).
+    flats_template : DistortionTemplate
+        The a-matrix-only template T_a it started from.
+    directions : list of str
+        The parameter directions used (chosen by the data).
+    coefficients : dict
+        Per direction: ``steps`` (c_k), ``parameter_change`` (c_k h_k, in the
+        parameter's unit) and its error.
+    covariance : ndarray
+        Covariance of the coefficients c.
+    chi2 : dict
+        ``amatrix`` and ``stars`` chi2 with T_a (``flats_only``) and with
+        T(c) (``joint``), and the number of points of each.
+    tension : dict
+        Rise of the a-matrix chi2 needed to null the star slopes, its
+        degrees of freedom and p-value.
+    star_information : dict
+        Per direction, the share of the Fisher information from the stars.
+    fit_slopes, held_out : dict
+        Slopes (value, error; per 1e5 e) of the fitted and of the held-out
+        stars, per field: ``before``, ``flats_only``, ``joint``.
+    selection : list of dict
+    seconds : dict
+    """
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+    def summary(self):
+        """JSON-friendly summary."""
+        keys = ("directions", "coefficients", "chi2", "tension", "star_information",
+                "fit_slopes", "held_out", "selection", "seconds", "fields", "warnings")
+        out = {k: getattr(self, k) for k in keys}
+        out["covariance"] = np.asarray(self.covariance).tolist()
+        return out
+
+    def held_out_table(self):
+        """Text table of the held-out slopes (the validation)."""
+        lines = []
+        for name, d in self.held_out.items():
+            b = d["before"]
+            lines.append(f"held-out stars of {name} ({d['n_stars']} stars), slopes per 1e5 e "
+                         "(% of before):")
+            for what in ("before", "flats_only", "joint"):
+                row = d[what]
+                cells = []
+                for k in ("size", "e1"):
+                    v, e = row[k]
+                    pct = 100 * v / b[k][0] if b[k][0] else float("nan")
+                    cells.append(f"{k} {v:+.3e} +- {e:.1e} ({pct:+6.1f} %)")
+                lines.append(f"  {what:<11s} " + "  ".join(cells))
+        return "\n".join(lines)
+
+
+def _star_vector(slopes_per_field, fields):
+    vals, errs = [], []
+    for f in fields:
+        s = slopes_per_field[f.name]
+        for k in _SLOPES:
+            vals.append(s[k][0])
+            errs.append(s[k][1])
+    return np.array(vals), np.array(errs)
+
+
+def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_directions=6,
+                         n_boot=200, iterations=2, gain=None, min_snr=30.0,
+                         min_stars=30, progress=False):
+    """Refit a calibration jointly to its a-matrix and to star fields.
+
+    Parameters
+    ----------
+    result : CalibrationResult
+        From :func:`~lsst_bfdrift.calibration.tuning.calibrate` (with its
+        template built).
+    stars : sequence
+        Star fields: paths, arrays (electrons), CCDData/NDData, or
+        :class:`StarField` objects.
+    holdout : {'auto', 'split', 'last'}, optional
+        Held-out stars: 'last' holds out the last field (needs two or more),
+        'split' a seeded half of every field's stars, 'auto' 'last' with two
+        or more fields, else 'split'.
+    seed : int, optional
+        Seed of the split and the bootstrap.
+    max_directions : int, optional
+        Most parameter directions the fit may use.
+    n_boot : int, optional
+        Bootstrap resamples of the slope errors.
+    iterations : int, optional
+        Gauss-Newton steps with exact star evaluations after the linear solve.
+    gain : float, optional
+        e/ADU of fields in ADU without a GAIN keyword.
+    min_snr : float, optional
+        Stars below this signal-to-noise ratio are not used.
+    min_stars : int, optional
+        Fewest usable fitted stars per field.
+    progress : bool, optional
+        Progress bar on stderr.
+
+    Returns
+    -------
+    StarCalibrationResult
+
+    Raises
+    ------
+    CalibrationError
+        No template in ``result``, too few usable stars in a field, or no
+        star fields.
+    """
+    t0 = time.perf_counter()
+    if result.template is None or result.built_template is None:
+        raise CalibrationError("calibrate_with_stars needs a calibration with its template "
+                               "built (calibrate(..., build=True))")
+    stars = list(stars) if not isinstance(stars, (str, np.ndarray, StarField)) else [stars]
+    if not stars:
+        raise CalibrationError("no star fields given")
+    fields = []
+    for k, s in enumerate(stars):
+        if isinstance(s, StarField):
+            fields.append(s)
+            continue
+        name = str(s) if isinstance(s, str) or hasattr(s, "__fspath__") else f"field{k}"
+        try:
+            fields.append(StarField(s, gain=gain, min_snr=min_snr, name=name))
+        except ValueError as exc:
+            raise CalibrationError(f"star field {name}: {exc}") from exc
+    names = [f.name for f in fields]
+    if len(set(names)) != len(names):
+        for k, f in enumerate(fields):
+            f.name = f"{f.name}#{k}"
+    if holdout not in ("auto", "split", "last"):
+        raise ValueError(f"holdout must be 'auto', 'split' or 'last', got {holdout!r}")
+    mode = ("last" if len(fields) > 1 else "split") if holdout == "auto" else holdout
+    if mode == "last" and len(fields) < 2:
+        raise CalibrationError("holdout='last' needs two or more star fields")
+    fit_fields = fields[:-1] if mode == "last" else fields
+    hold_fields = fields[-1:] if mode == "last" else fields
+    warn = []
+    for f in fields:
+        if mode == "split":
+            f.split(seed)
+        else:
+            f.fit_stars = f.usable.copy()
+            f.held_out = f.usable.copy()
+        n_fit = int(f.fit_stars.sum()) if f in fit_fields else int(f.usable.sum())
+        if n_fit < min_stars:
+            flagged = ", ".join(f"{v} {k}" for k, v in f.flag_counts.items() if v)
+            raise CalibrationError(
+                f"star field {f.name}: {n_fit} usable stars to fit (SNR >= {f.min_snr:g}; "
+                f"flagged: {flagged or 'none'}); need at least {min_stars}, and several "
+                "hundred isolated, unsaturated stars of 1e4-1e6 e to constrain the template")
+        if f.flag_counts.get("saturated"):
+            warn.append(f"{f.name}: {f.flag_counts['saturated']} saturated stars excluded")
+        if f.flag_counts.get("blended"):
+            warn.append(f"{f.name}: {f.flag_counts['blended']} blended detections excluded")
+    # directions: the built template's change per parameter step
+    params, settings = result.params, result.settings
+    cands = result.candidates
+    base_built = result.built_template
+    ta = result.template
+    table = result.table
+    mask = table.mask()
+    c = ta.center
+    L = min(table.max_lag, c - 1)
+    lag_mask = mask[:L + 1, :L + 1]
+    a_meas = table.a[:L + 1, :L + 1][lag_mask]
+    a_sig = table.sigma[:L + 1, :L + 1][lag_mask]
+
+    def alpha_of(t):
+        return template_alpha(t)[c:c + L + 1, c:c + L + 1].T[lag_mask]
+
+    n_steps = len(cands) + 2 + len(fit_fields) * (len(cands) + 2 + iterations) + len(hold_fields) * 3
+    bar = ProgressBar(n_steps, "stars", enabled=progress)
+    # 'scale': the flats template itself (its overall strength, c = fractional change)
+    dirs, steps = ["scale"], {"scale": 1.0}
+    deltas = [{k: getattr(ta, k) for k in ("corner_d", "vedge_d", "hedge_d", "vedge_t",
+                                            "hedge_t")}]
+    for n, (lo, hi) in cands.items():
+        bar(1)
+        x0 = float(getattr(params, n))
+        h = 0.1 * max(abs(x0), 0.01 * (hi - lo))
+        if x0 + h > hi:
+            h = -h
+        if x0 + h < lo:
+            continue
+        try:
+            tk = build_template(params.replace(**{n: x0 + h}), settings)
+        except (RuntimeError, ValueError) as exc:
+            warn.append(f"direction {n} skipped: the model fails at {n} = {x0 + h:g} ({exc})")
+            continue
+        dirs.append(n)
+        deltas.append(_delta(tk, base_built))
+        steps[n] = h
+    t_dirs = time.perf_counter() - t0
+    # a-matrix Jacobian (exact: linear area response is linear in displacements)
+    a0 = alpha_of(ta)
+    Ja = np.column_stack([alpha_of(combine_templates(ta, [d], [1.0])) - a0 for d in deltas])
+    # star Jacobian by finite differences on the fitted stars
+    fit_slopes = {}
+
+    def star_eval(template, n_b=0):
+        out = {}
+        for f in fit_fields:
+            bar(1)
+            out[f.name] = f.slopes(template, f.fit_stars, n_boot=n_b, seed=seed)
+        return out
+
+    s_before = {f.name: f.slopes(None, f.fit_stars, n_boot=n_boot, seed=seed) for f in fit_fields}
+    s_a = star_eval(ta, n_boot)
+    r_s0, sig_s = _star_vector(s_a, fit_fields)
+    Js = []
+    for d in deltas:
+        s_k = star_eval(combine_templates(ta, [d], [1.0]))
+        Js.append(_star_vector(s_k, fit_fields)[0] - r_s0)
+    Js = np.column_stack(Js)
+    t_jac = time.perf_counter() - t0 - t_dirs
+    # joint linear system
+    r0 = np.concatenate([a0 - a_meas, r_s0])
+    sig = np.concatenate([a_sig, sig_s])
+    J = np.vstack([Ja, Js])
+    n_a = a0.size
+    sel_mask = np.ones(r0.size, bool)
+    chosen, selection = _select(J, r0, sig, sel_mask, dirs, max_params=max_directions)
+    cols = [dirs.index(n) for n in chosen]
+    W = 1.0 / sig ** 2
+    Jc = J[:, cols]
+    F = Jc.T @ (Jc * W[:, None])
+    cov = np.linalg.pinv(F)
+    coef = -cov @ (Jc.T @ (W * r0))
+    # Gauss-Newton refinement with exact star evaluations
+    t_joint = combine_templates(ta, [deltas[k] for k in cols], coef)
+    s_j = None
+    for _ in range(max(int(iterations), 0) + 1):
+        s_j = star_eval(t_joint)
+        r = np.concatenate([alpha_of(t_joint) - a_meas, _star_vector(s_j, fit_fields)[0]])
+        step = -cov @ (Jc.T @ (W * r))
+        if _ >= iterations or np.all(np.abs(step) < 0.02 * np.sqrt(np.diag(cov)) + 1e-12):
+            break
+        coef = coef + step
+        t_joint = combine_templates(ta, [deltas[k] for k in cols], coef)
+    r_fin = np.concatenate([alpha_of(t_joint) - a_meas, _star_vector(s_j, fit_fields)[0]])
+    chi2_a0 = float(np.sum(((a0 - a_meas) / a_sig) ** 2))
+    chi2_s0 = float(np.sum((r_s0 / sig_s) ** 2))
+    chi2_a1 = float(np.sum((r_fin[:n_a] / a_sig) ** 2))
+    chi2_s1 = float(np.sum((r_fin[n_a:] / sig_s) ** 2))
+    # tension: a-matrix chi2 rise needed to null the stars, against chi2(n_star)
+    n_s = r_s0.size
+    rise = max(chi2_a1 + chi2_s1 - chi2_a0, 0.0)
+    tension = {"chi2_rise": rise, "dof": n_s, "p_value": float(stats.chi2.sf(rise, n_s)),
+               "note": "rise of the total chi2 from the a-matrix-only optimum when the star "
+                       "slopes are added; large with a small p-value means the model's "
+                       "directions cannot satisfy both data sets"}
+    if tension["p_value"] < 1e-3:
+        worst = np.argsort(-np.abs(r_fin / sig))[:3]
+        labels = [f"a{i}{j}" for i in range(L + 1) for j in range(L + 1) if lag_mask[i, j]] + \
+            [f"{f.name}:{k}" for f in fit_fields for k in _SLOPES]
+        tension["worst"] = [{"what": labels[w], "pull": float(r_fin[w] / sig[w])} for w in worst]
+        warn.append("tension between the a-matrix and the stars (p = "
+                    f"{tension['p_value']:.1e}); worst: " + ", ".join(
+                        f"{t['what']} pull {t['pull']:+.1f}" for t in tension["worst"]))
+    Fa = Ja[:, cols].T @ (Ja[:, cols] / a_sig[:, None] ** 2)
+    Fs = Js[:, cols].T @ (Js[:, cols] / sig_s[:, None] ** 2)
+    info = {n: float(Fs[k, k] / (Fa[k, k] + Fs[k, k])) if (Fa[k, k] + Fs[k, k]) > 0 else None
+            for k, n in enumerate(chosen)}
+    err = np.sqrt(np.clip(np.diag(cov), 0, None))
+    coefficients = {n: {"steps": float(coef[k]), "steps_err": float(err[k]),
+                        "parameter_change": float(coef[k] * steps[n]),
+                        "parameter_change_err": float(abs(err[k] * steps[n])),
+                        "step": float(steps[n])} for k, n in enumerate(chosen)}
+    big = [n for n in chosen if abs(coefficients[n]["steps"]) > 5]
+    if big:
+        warn.append(f"directions {big} moved by more than 5 steps: beyond the linear range "
+                    "of the template family; check the held-out stars")
+    for f in fit_fields:
+        fit_slopes[f.name] = {"before": s_before[f.name], "flats_only": s_a[f.name],
+                              "joint": f.slopes(t_joint, f.fit_stars, n_boot=n_boot, seed=seed)}
+    held = {}
+    for f in hold_fields:
+        sub = f.held_out
+        row = {}
+        for what, t in (("before", None), ("flats_only", ta), ("joint", t_joint)):
+            bar(1)
+            row[what] = f.slopes(t, sub, n_boot=n_boot, seed=seed + 1)
+        row["n_stars"] = row["before"]["n_stars"]
+        held[f.name] = row
+    meta = dict(ta.meta)
+    calib = dict(meta.get("calibration", {}))
+    calib["stars"] = {"fields": [f.name for f in fields], "holdout": mode,
+                      "directions": chosen, "coefficients": coefficients,
+                      "chi2_amatrix": chi2_a1, "chi2_stars": chi2_s1, "tension": tension,
+                      "held_out": held}
+    meta["calibration"] = calib
+    t_joint.meta = meta
+    bar.done = bar.total
+    if progress:
+        bar._draw(final=True)
+    fields_info = [{"name": f.name, "n_detections": len(f.catalog), "n_usable": int(f.usable.sum()),
+                    "n_fit": int(f.fit_stars.sum()) if f in fit_fields else 0,
+                    "n_held_out": int(f.held_out.sum()) if f in hold_fields else 0,
+                    "flagged": f.flag_counts} for f in fields]
+    return StarCalibrationResult(
+        template=t_joint, flats_template=ta, directions=chosen, coefficients=coefficients,
+        covariance=cov, chi2={"flats_only": {"amatrix": chi2_a0, "stars": chi2_s0},
+                              "joint": {"amatrix": chi2_a1, "stars": chi2_s1},
+                              "n_amatrix": int(n_a), "n_stars": int(n_s)},
+        tension=tension, star_information=info, fit_slopes=fit_slopes, held_out=held,
+        selection=selection, fields=fields_info, warnings=warn,
+        seconds={"directions": t_dirs, "star_jacobian": t_jac,
+                 "total": time.perf_counter() - t0}, flux_unit=FLUX_UNIT,
+        log_n=math.log(max(r0.size, 2)))

@@ -1,0 +1,106 @@
+"""Tests of lsst_bfdrift.calibration.star_fit (joint a-matrix + star-field calibration).
+
+Kinds:
+
+* exactness of the linear family (direct recomputation of the area response
+  of the combined template: a consistency check of the algebra);
+* detections reused on the same image give the catalogue of a fresh
+  detection (consistency);
+* the joint fit on a star field drawn by galsim.SiliconSensor (independent
+  data): a flats template 40 % too weak is pulled back by the stars, and the
+  held-out half of the stars, not fitted, shows it.
+"""
+
+import functools
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from tests.validation._galsim_fields import STRENGTHS, paired_fields
+from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable
+from lsst_bfdrift.calibration.catalog import detect_stars, measure_stars
+from lsst_bfdrift.calibration.star_fit import _delta, calibrate_with_stars, combine_templates
+from lsst_bfdrift.calibration.tuning import CalibrationError, calibrate
+from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
+from lsst_bfdrift.simulation.skysim import scale_template
+from lsst_bfdrift.templates.refine import template_alpha
+from lsst_bfdrift.templates.template import TemplateSettings
+
+STRENGTH = STRENGTHS[2]
+
+
+@functools.lru_cache(maxsize=None)
+def _calibration():
+    """A quick calibration (11 x 11 template, 8 samples per edge) of GalSim ITL's
+    a-matrix at the field's BF strength; its template is refined to those a_ij."""
+    a = STRENGTH * galsim_acoeffs("lsst_itl_50_8", 3)
+    table = AcoeffTable(a, 0.05 * np.abs(a) + 1e-9, source="galsim lsst_itl_50_8 x10")
+    settings = TemplateSettings(size=11, edge_samples=8, aggressor_charge=1e4)
+    return calibrate(table, free=["xi0", "channel_depth"], settings=settings,
+                     allow_poor_fit=True)
+
+
+def test_combined_template_area_response_is_linear():
+    res = _calibration()
+    ta, tb = res.template, res.built_template
+    d = _delta(tb, ta)
+    for c in (-0.7, 0.4, 2.0):
+        mixed = combine_templates(ta, [d], [c])
+        assert_allclose(mixed.corner_d, ta.corner_d + c * (tb.corner_d - ta.corner_d))
+        # alpha of the combination, computed from its polygons, is the combination of alphas
+        assert_allclose(template_alpha(mixed),
+                        (1 - c) * template_alpha(ta) + c * template_alpha(tb),
+                        atol=1e-12 * np.abs(template_alpha(ta)).max() + 1e-16)
+
+
+def test_detections_reused_on_the_same_image_give_the_same_catalogue():
+    img = paired_fields()["images"][2]
+    det = detect_stars(img)
+    a = measure_stars(img)
+    b = measure_stars(img, detections=det)
+    assert len(a) == len(b) == len(det.centroids)
+    for col in ("x", "y", "flux", "T", "e1", "e2", "flags"):
+        assert_allclose(np.asarray(b[col]), np.asarray(a[col]))
+    with pytest.raises(ValueError, match="differs from the detections"):
+        measure_stars(img[:-1], detections=det)
+
+
+def test_stars_pull_a_weak_template_back_and_held_out_stars_show_it():
+    res = _calibration()
+    img = paired_fields()["images"][2]
+    weak = scale_template(res.template, 0.6)
+    # a weak flats template, and an a-matrix too noisy to say so: only the stars can
+    loose = AcoeffTable(res.table.a, 50.0 * res.table.sigma, source="loose")
+    res_weak = type(res)(**{**res.__dict__, "template": weak, "table": loose})
+    joint = calibrate_with_stars(res_weak, [img], min_stars=8, seed=3)
+    assert joint.directions[0] == "scale"
+    assert joint.star_information["scale"] > 0.5
+    # the scale found restores the template within its error (0.6 -> 1: +0.67)
+    sc = joint.coefficients["scale"]
+    assert abs(sc["steps"] - (1 / 0.6 - 1)) < max(3 * sc["steps_err"], 0.25)
+    held = joint.held_out["field0"]
+    before, weak_s, fixed = (held[k]["size"] for k in ("before", "flats_only", "joint"))
+    assert before[0] > 5 * before[1]                  # BF seen on the held-out stars
+    assert weak_s[0] > 2 * weak_s[1]                  # the weak template leaves BF
+    assert abs(fixed[0]) < 0.5 * weak_s[0]            # the stars' fit removes most of it
+    assert abs(fixed[0]) < 3 * fixed[1]
+    # the split: disjoint halves of the usable stars
+    assert joint.fields[0]["n_fit"] + joint.fields[0]["n_held_out"] == \
+        joint.fields[0]["n_usable"]
+
+
+def test_bad_star_inputs_get_clear_errors():
+    res = _calibration()
+    img = paired_fields()["images"][2]
+    with pytest.raises(CalibrationError, match=r"usable stars to fit .*need at least 30"):
+        calibrate_with_stars(res, [img])
+    with pytest.raises(CalibrationError, match="no star fields"):
+        calibrate_with_stars(res, [])
+    with pytest.raises(CalibrationError, match="two or more"):
+        calibrate_with_stars(res, [img], holdout="last", min_stars=8)
+    with pytest.raises(CalibrationError, match="no sources detected"):
+        calibrate_with_stars(res, [np.random.default_rng(1).normal(800, 28, (128, 128))])
+    nores = type(res)(**{**res.__dict__, "template": None})
+    with pytest.raises(CalibrationError, match="template built"):
+        calibrate_with_stars(nores, [img])
