@@ -24,6 +24,7 @@ from astropy.table import Table
 from scipy import fft as sp_fft
 from scipy.optimize import least_squares
 from scipy.signal import convolve2d
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["PairCovariance", "pair_covariances", "measure_ptc", "ptc_exponential_model",
            "fit_ptc_exponential", "ptc_turnoff", "covariance_model", "fit_covariance_model", "read_ptc_text"]
@@ -103,27 +104,27 @@ def pair_covariances(flat1, flat2, *, max_lag=8, mask=None, nsig=5.0, min_pixels
     a = np.array(flat1, dtype=np.float64)
     b = np.array(flat2, dtype=np.float64)
     if a.ndim != 2 or a.shape != b.shape:
-        raise ValueError(f"flats must be 2-d images of equal shape, got {a.shape} and {b.shape}")
+        raise InputError(f"flats must be 2-d images of equal shape, got {a.shape} and {b.shape}")
     if int(max_lag) != max_lag or max_lag < 0:
-        raise ValueError(f"max_lag must be a non-negative integer, got {max_lag!r}")
+        raise InputError(f"max_lag must be a non-negative integer, got {max_lag!r}")
     max_lag = int(max_lag)
     if max_lag >= min(a.shape):
-        raise ValueError(f"max_lag {max_lag} too large for image shape {a.shape}")
+        raise InputError(f"max_lag {max_lag} too large for image shape {a.shape}")
     bad = ~np.isfinite(a) | ~np.isfinite(b)
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != a.shape:
-            raise ValueError(f"mask shape {mask.shape} does not match flats {a.shape}")
+            raise InputError(f"mask shape {mask.shape} does not match flats {a.shape}")
         bad |= mask
     if (~bad).sum() < min_pixels:
-        raise ValueError(f"only {(~bad).sum()} valid pixels, fewer than min_pixels={min_pixels}")
+        raise InputError(f"only {(~bad).sum()} valid pixels, fewer than min_pixels={min_pixels}")
     # Means, difference and clipping, twice: outliers (cosmic rays) must not
     # bias the means that scale the second flat.
     for _ in range(2):
         mu1 = a[~bad].mean()
         mu2 = b[~bad].mean()
         if not (mu1 > 0 and mu2 > 0):
-            raise ValueError(f"flat means must be positive, got {mu1:.4g} and {mu2:.4g} ADU")
+            raise InputError(f"flat means must be positive, got {mu1:.4g} and {mu2:.4g} ADU")
         diff = np.where(bad, 0.0, a - b * (mu1 / mu2))
         bad = _clip_mask(diff, bad, nsig)
     w = (~bad).astype(np.float64)
@@ -134,7 +135,7 @@ def pair_covariances(flat1, flat2, *, max_lag=8, mask=None, nsig=5.0, min_pixels
     fw = sp_fft.rfft2(w, shape)
     npairs = _lagged(np.rint(sp_fft.irfft2(fw * np.conj(fw), shape)), L)
     if npairs.min() < 2 * min_pixels:
-        raise ValueError(f"fewer than min_pixels={min_pixels} pixel pairs at some lag")
+        raise InputError(f"fewer than min_pixels={min_pixels} pixel pairs at some lag")
     cov = 0.5 * _lagged_products(d, shape, L) / npairs  # halved: var(diff) = 2 var(flat)
     stat = None
     if static:
@@ -188,7 +189,7 @@ def measure_ptc(pairs, *, max_lag=8, masks=None, **kwargs):
         m = None if masks is None else masks[k]
         rows.append(pair_covariances(f1, f2, max_lag=max_lag, mask=m, **kwargs))
     if not rows:
-        raise ValueError("no flat pairs given")
+        raise InputError("no flat pairs given")
     rows.sort(key=lambda r: r.mu)
     t = Table()
     t["mu"] = np.array([r.mu for r in rows])
@@ -274,21 +275,21 @@ def fit_ptc_exponential(mu, var, *, sigma=None, mu_max="auto", p0=None):
     mu = np.asarray(mu, dtype=float)
     var = np.asarray(var, dtype=float)
     if mu.shape != var.shape or mu.ndim != 1:
-        raise ValueError("mu and var must be 1-d arrays of equal length")
+        raise InputError("mu and var must be 1-d arrays of equal length")
     good = np.isfinite(mu) & np.isfinite(var) & (mu > 0) & (var > 0)
     if isinstance(mu_max, str):
         if mu_max != "auto":
-            raise ValueError(f"mu_max must be a number, 'auto' or None, got {mu_max!r}")
+            raise InputError(f"mu_max must be a number, 'auto' or None, got {mu_max!r}")
         mu_max = ptc_turnoff(mu[good], var[good])
     if mu_max is not None:
         good &= mu <= mu_max
     if good.sum() < 4:
-        raise ValueError(f"need at least 4 valid PTC points, got {int(good.sum())}")
+        raise InputError(f"need at least 4 valid PTC points, got {int(good.sum())}")
     order = np.argsort(mu[good])
     m, v = mu[good][order], var[good][order]
     s = v if sigma is None else np.asarray(sigma, float)[good][order]
     if np.any(~(s > 0)):
-        raise ValueError("sigma must be positive")
+        raise InputError("sigma must be positive")
     if p0 is None:
         # straight line var = mu / g + n / g^2 through the lowest third
         k = max(3, len(m) // 3)
@@ -391,7 +392,7 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
     mu = np.asarray(mu, dtype=float)
     cov = np.asarray(cov, dtype=float)
     if cov.ndim != 3 or cov.shape[0] != mu.size or cov.shape[1] != cov.shape[2]:
-        raise ValueError(f"cov must have shape (n, L+1, L+1) with n = len(mu), got {cov.shape}")
+        raise InputError(f"cov must have shape (n, L+1, L+1) with n = len(mu), got {cov.shape}")
     L = cov.shape[1] - 1 if max_lag is None else int(max_lag)
     cov = cov[:, :L + 1, :L + 1]
     good = np.isfinite(mu) & np.all(np.isfinite(cov), axis=(1, 2))
@@ -399,7 +400,7 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
         good &= mu <= mu_max
     m, c = mu[good], cov[good]
     if m.size < 5:
-        raise ValueError(f"need at least 5 signal levels, got {m.size}")
+        raise InputError(f"need at least 5 signal levels, got {m.size}")
     known = sigma is not None or npix is not None
     if sigma is not None:
         s = np.asarray(sigma, float)[good][:, :L + 1, :L + 1]
@@ -410,11 +411,11 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
     else:
         s = np.broadcast_to(c[:, 0, 0][:, None, None], c.shape).copy()
     if np.any(~(s > 0)):
-        raise ValueError("covariance errors must be positive")
+        raise InputError("covariance errors must be positive")
     exp = fit_ptc_exponential(m, c[:, 0, 0], mu_max=None)
     g0 = exp["gain"] if gain is None else float(gain)
     if gain is not None and not (np.isfinite(g0) and g0 > 0):
-        raise ValueError(f"gain must be positive, got {gain!r}")
+        raise InputError(f"gain must be positive, got {gain!r}")
     n1 = (L + 1) ** 2
     # start: a_ij from the slope of C_ij / (mu/g) against mu g
     a0 = np.zeros((L + 1, L + 1))
@@ -465,6 +466,6 @@ def read_ptc_text(path):
     """Read a two-column PTC text file (mean ADU, variance ADU^2; '#' comments)."""
     data = np.loadtxt(path, comments="#", ndmin=2)
     if data.shape[1] < 2:
-        raise ValueError(f"{path}: expected two columns (mean, variance)")
+        raise InputError(f"{path}: expected two columns (mean, variance)")
     order = np.argsort(data[:, 0])
     return data[order, 0], data[order, 1]

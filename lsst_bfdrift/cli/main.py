@@ -69,8 +69,11 @@ import numpy as np
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.utils.io import atomic_output, data_path, read_image
 from lsst_bfdrift.simulation.stars import make_psf
+from lsst_bfdrift.utils.errors import (BfdriftError, ComputationError, FitError, InputError,
+                                       InputFileError, InputKeyError, OutputExistsError)
 
-__all__ = ["main", "read_config", "sample_image_path", "make_psf", "read_image"]
+__all__ = ["main", "exit_code", "EXIT_OK", "EXIT_OTHER", "EXIT_INPUT", "EXIT_EXISTS",
+           "EXIT_FIT", "read_config", "sample_image_path", "make_psf", "read_image"]
 
 
 def read_config(path):
@@ -95,13 +98,13 @@ def read_config(path):
         else:
             data = json.loads(raw.decode())
     except Exception as exc:
-        raise ValueError(f"{path}: cannot parse configuration ({exc})") from exc
+        raise InputFileError(f"{path}: cannot parse configuration ({exc})", path) from exc
     if not isinstance(data, dict):
-        raise ValueError(f"{path}: configuration must be a table/object")
+        raise InputFileError(f"{path}: configuration must be a table/object", path)
     # 'provenance' is free-form documentation (e.g. the default's calibration)
     unknown = sorted(set(data) - {"sensor", "template", "provenance"})
     if unknown:
-        raise KeyError(f"{path}: unknown configuration section(s) {unknown}; "
+        raise InputKeyError(f"{path}: unknown configuration section(s) {unknown}; "
                        "expected 'sensor' and/or 'template' (and 'provenance')")
     return (SensorParameters.from_dict(data.get("sensor", {})),
             TemplateSettings.from_dict(data.get("template", {})))
@@ -145,7 +148,7 @@ def _cmd_template_build(args):
 
 def _refuse_overwrite(args):
     if os.path.exists(args.out) and not args.overwrite:
-        raise FileExistsError(f"{args.out} exists (use --overwrite)")
+        raise OutputExistsError(f"{args.out} exists (use --overwrite)")
 
 
 def _save_and_report(tpl, args):
@@ -177,9 +180,9 @@ def _cmd_calibrate(args):
     from lsst_bfdrift.calibration.tuning import calibrate, measured_acoeffs
 
     if os.path.exists(args.out) and not args.overwrite:
-        raise FileExistsError(f"{args.out} exists (use --overwrite)")
+        raise OutputExistsError(f"{args.out} exists (use --overwrite)")
     if os.path.abspath(args.out) in {os.path.abspath(x) for x in args.input}:
-        raise ValueError(f"--out {args.out} is one of the inputs")
+        raise InputError(f"--out {args.out} is one of the inputs")
     data = read_calibration_input(args.input, max_lag=args.max_lag)
     table = measured_acoeffs(data)
     res = calibrate(table, free=args.free, refine=not args.no_refine,
@@ -243,8 +246,8 @@ def _cmd_maps(args):
     path = args.image or sample_image_path()
     image, bad, header = read_image(path)
     if args.gain is not None:
-        if not args.gain > 0:
-            raise ValueError(f"--gain must be positive, got {args.gain}")
+        if not (np.isfinite(args.gain) and args.gain > 0):
+            raise InputError(f"--gain must be a positive finite number (e/ADU), got {args.gain}")
         image = image * args.gain
     tpl = _load_template(args.template)
     with ProgressBar(image.shape[0], "maps", enabled=not args.quiet) as bar:
@@ -291,7 +294,7 @@ def _cmd_ptc(args):
             out[k] = out[k + "_err"] = None  # a variance-only PTC does not constrain them
     else:
         if len(files) < 10 or len(files) % 2:
-            raise ValueError("give one PTC text file or an even number (>= 10) of FITS "
+            raise InputError("give one PTC text file or an even number (>= 10) of FITS "
                              "flats, consecutive files forming pairs")
         table = ptc.measure_ptc(list(zip(files[::2], files[1::2])), max_lag=args.max_lag)
         fit = ptc.fit_covariance_model(table["mu"], table["cov"], npix=table["npix"])
@@ -384,17 +387,18 @@ def _cmd_correct(args):
     if args.gain is not None:
         cfg.gain = args.gain
     cfg.compute_geometry = bool(args.geometry)
+    cfg.validate()  # a bad --gain or --method is a usage error, not one failure per file
     files = list(args.inputs)
     if args.out_dir:
         os.makedirs(args.out_dir, exist_ok=True)
         pairs = output_pairs(files, args.out_dir)
     else:
         if len(files) != 2:
-            raise ValueError("give IN.fits OUT.fits, or several inputs with --out-dir")
+            raise InputError("give IN.fits OUT.fits, or several inputs with --out-dir")
         pairs = [(files[0], files[1])]
     for src, dst in pairs:
         if os.path.abspath(src) == os.path.abspath(dst):
-            raise ValueError(f"refusing to overwrite the input {src}")
+            raise InputError(f"refusing to overwrite the input {src}")
     results = correct_files(pairs, cfg, scheduler=args.scheduler, overwrite=args.overwrite,
                             n_workers=args.n_workers, processes=args.processes,
                             progress=not args.quiet)
@@ -711,16 +715,54 @@ def build_parser():
     return p
 
 
+#: Exit status of ``bfdrift`` for each kind of error (documented in ``docs/cli.rst``):
+#: 0 success; 1 a file-system error (permission, disk full, ...) or files that
+#: failed in ``correct``; 2 usage, a bad argument or a bad input; 3 an output
+#: that exists (without ``--overwrite``) or is one of the inputs; 4 a fit or
+#: computation that failed.
+EXIT_OK, EXIT_OTHER, EXIT_INPUT, EXIT_EXISTS, EXIT_FIT = 0, 1, 2, 3, 4
+
+
+def exit_code(exc):
+    """Exit status of ``bfdrift`` for the exception ``exc`` (see :data:`EXIT_OK`).
+
+    Parameters
+    ----------
+    exc : BfdriftError or OSError
+        The error that ended the command.
+
+    Returns
+    -------
+    code : int
+        2 for :class:`~lsst_bfdrift.utils.errors.InputError` (and an input
+        path that does not exist or is of the wrong kind), 3 for
+        :class:`~lsst_bfdrift.utils.errors.OutputExistsError`, 4 for
+        :class:`~lsst_bfdrift.utils.errors.FitError` and
+        :class:`~lsst_bfdrift.utils.errors.ComputationError`, 1 otherwise.
+    """
+    if isinstance(exc, FileExistsError):
+        return EXIT_EXISTS
+    if isinstance(exc, (FitError, ComputationError)):
+        return EXIT_FIT
+    if isinstance(exc, (InputError, FileNotFoundError, IsADirectoryError, NotADirectoryError)):
+        return EXIT_INPUT
+    return EXIT_OTHER
+
+
 def main(argv=None):
-    """Entry point; returns the exit status (errors: message on stderr, 2)."""
+    """Entry point; returns the exit status (errors: one message on stderr).
+
+    Only the package's errors (:class:`~lsst_bfdrift.utils.errors.BfdriftError`)
+    and ``OSError`` are caught, each mapped to one status by :func:`exit_code`;
+    anything else is a bug and keeps its traceback.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, KeyError, TypeError, OSError, RuntimeError, AttributeError) as exc:
-        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        print(f"bfdrift: error: {msg}", file=sys.stderr)
-        return 2
+    except (BfdriftError, OSError) as exc:
+        print(f"bfdrift: error: {exc}", file=sys.stderr)
+        return exit_code(exc)
 
 
 if __name__ == "__main__":  # pragma: no cover

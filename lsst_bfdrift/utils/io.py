@@ -5,6 +5,7 @@ import os
 import tempfile
 
 import numpy as np
+from lsst_bfdrift.utils.errors import InputError, OutputExistsError
 
 __all__ = ["atomic_output", "write_text", "write_json", "read_image", "data_path"]
 
@@ -19,7 +20,7 @@ def atomic_output(path, *, overwrite=True):
     """
     path = os.fspath(path)
     if os.path.exists(path) and not overwrite:
-        raise FileExistsError(f"{path} exists (use overwrite)")
+        raise OutputExistsError(f"{path} exists (use overwrite)")
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
     suffix = os.path.splitext(path)[1] or ".tmp"
@@ -60,7 +61,7 @@ def read_image(path, *, hdu=None):
             hdu = next((k for k, h in enumerate(hdul) if getattr(h, "data", None) is not None
                         and h.data.ndim == 2), None)
             if hdu is None:
-                raise ValueError(f"{path}: no 2-d image HDU")
+                raise InputError(f"{path}: no 2-d image HDU")
         data = np.array(hdul[hdu].data, dtype=np.float64)
         header = hdul[hdu].header.copy()
     return data, ~np.isfinite(data), header

@@ -37,6 +37,7 @@ any after-correction slope (size, e1 or e2) differs from zero by more than
 """
 
 import numpy as np
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["fit_flux_slope", "shape_flux_relations", "validate_sky", "SkyValidation"]
 
@@ -149,9 +150,9 @@ def fit_flux_slope(x, y, regressor, q, snr, *, poly_order=2, noise_term=True,
     x, y, g, q, snr = x[ok], y[ok], g[ok], q[ok], snr[ok]
     n = x.size
     if n < 6:
-        raise ValueError(f"only {n} usable stars; need at least 6 to fit a size-flux slope")
+        raise InputError(f"only {n} usable stars; need at least 6 to fit a size-flux slope")
     if np.ptp(g) == 0:
-        raise ValueError("all stars have the same flux: no slope can be fitted")
+        raise InputError("all stars have the same flux: no slope can be fitted")
     if frame is None:
         frame = (0.5 * (x.min() + x.max()), 0.5 * (y.min() + y.max()),
                  max(0.5 * np.ptp(x), 1.0), max(0.5 * np.ptp(y), 1.0))
@@ -160,7 +161,7 @@ def fit_flux_slope(x, y, regressor, q, snr, *, poly_order=2, noise_term=True,
         order -= 1
     a, names = _design(x, y, order, g, snr, noise_term, frame)
     if a.shape[1] + 2 > n:
-        raise ValueError(f"only {n} usable stars for {a.shape[1]} parameters")
+        raise InputError(f"only {n} usable stars for {a.shape[1]} parameters")
     coef, cov, alpha_fit, tau, hw, chi2 = _robust_fit(a, q, snr, huber)
     k = names.index("slope")
     err_formal = float(np.sqrt(cov[k, k]))
@@ -229,14 +230,14 @@ def shape_flux_relations(catalog, *, min_snr=30.0, poly_order=2, noise_term=True
     """
     n_all = len(catalog)
     if n_all == 0:
-        raise ValueError("the catalogue is empty: no stars detected")
+        raise InputError("the catalogue is empty: no stars detected")
     ok = _select(catalog, min_snr)
     if ok.sum() < 6:
         flags = np.asarray(catalog["flags"])
         from lsst_bfdrift.validation.catalog import FLAG_NAMES
         why = ", ".join(f"{int(np.sum((flags & b) != 0))} {n[5:]}" for b, n in FLAG_NAMES.items()
                         if np.any(flags & b))
-        raise ValueError(f"only {int(ok.sum())} of {n_all} detections are usable stars with "
+        raise InputError(f"only {int(ok.sum())} of {n_all} detections are usable stars with "
                          f"SNR >= {min_snr:g} (flagged: {why or 'none'}); need at least 6")
     x = catalog["x"].value[ok]
     y = catalog["y"].value[ok]
@@ -335,9 +336,9 @@ def validate_sky(exposure, *, gain=None, mask=None, saturation=None, template=No
     from lsst_bfdrift.validation.shape_correction import correct_catalog
 
     if route not in ("catalog", "pixel", "both", "none"):
-        raise ValueError(f"route must be catalog, pixel, both or none, got {route!r}")
+        raise InputError(f"route must be catalog, pixel, both or none, got {route!r}")
     if not z_crit > 0:
-        raise ValueError(f"z_crit must be positive, got {z_crit}")
+        raise InputError(f"z_crit must be positive, got {z_crit}")
     data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask, saturation=saturation)
     ckw = dict(catalog_kwargs or {})
     cat = measure_stars(data, mask=bad, saturation=sat_e, progress=progress, **ckw)

@@ -44,7 +44,7 @@ def test_build_from_config_then_summary_and_plot(capsys, tmp_path):
     code, out, _ = _run(capsys, "template", "plot", str(out_file), "--out", str(png))
     assert code == 0 and png.read_bytes()[:4] == b"\x89PNG"
     code, _, err = _run(capsys, "template", "build", "--out", str(out_file), "--quiet")
-    assert code == 2 and "exists" in err
+    assert code == 3 and "exists" in err
 
 
 def test_import_galsim(capsys, tmp_path):
@@ -103,6 +103,49 @@ def test_maps_masks_nan_pixels(capsys, tmp_path):
 def test_errors_are_reported(capsys, argv, match):
     code, _, err = _run(capsys, *argv)
     assert code == 2 and match in err
+
+
+@pytest.mark.parametrize("gain", ["0", "nan", "-1", "inf"])
+def test_bad_gain_is_one_usage_error(capsys, tmp_path, gain):
+    """--gain 0 and --gain nan are the same mistake: exit 2 before any file is read."""
+    from lsst_bfdrift.cli.main import EXIT_INPUT, sample_image_path
+    out_file = tmp_path / "corr.fits"
+    code, _, err = _run(capsys, "correct", sample_image_path(), str(out_file), "--gain", gain,
+                        "--quiet")
+    assert code == EXIT_INPUT == 2 and "gain" in err and not out_file.exists()
+    code, _, err = _run(capsys, "maps", "--gain", gain, "--quiet")
+    assert code == 2 and "gain" in err
+
+
+def test_exit_codes_follow_the_error_kind():
+    from lsst_bfdrift.cli.main import exit_code
+    from lsst_bfdrift.utils import errors
+    assert exit_code(errors.InputError("x")) == 2
+    assert exit_code(errors.InputNotFoundError("x", "f")) == 2
+    assert exit_code(FileNotFoundError(2, "No such file", "f")) == 2
+    assert exit_code(errors.OutputExistsError("x")) == 3
+    assert exit_code(errors.FitError("x")) == 4
+    assert exit_code(errors.ComputationError("x")) == 4
+    assert exit_code(PermissionError(13, "Permission denied")) == 1
+    assert exit_code(errors.BfdriftError("x")) == 1
+
+
+def test_only_package_errors_and_oserror_are_caught(capsys, monkeypatch):
+    """A bug (any other exception) keeps its traceback; a package error does not."""
+    import sys
+    from lsst_bfdrift.utils.errors import FitError
+    cli = sys.modules["lsst_bfdrift.cli.main"]  # the package re-exports main() as .main
+
+    def boom(args):
+        raise ZeroDivisionError("a bug")
+    monkeypatch.setattr(cli, "_cmd_template_summary", boom)
+    with pytest.raises(ZeroDivisionError, match="a bug"):
+        main(["template", "summary"])
+
+    def fit_fails(args):
+        raise FitError("poor fit")
+    monkeypatch.setattr(cli, "_cmd_template_summary", fit_fails)
+    assert _run(capsys, "template", "summary")[:3:2] == (4, "bfdrift: error: poor fit\n")
 
 
 def test_unknown_config_key(capsys, tmp_path):
@@ -310,7 +353,7 @@ def test_calibrate_from_a_ptc_and_refusals(capsys, tmp_path):
     tpl = DistortionTemplate.load(out)
     assert tpl.meta["calibration"]["inputs"] == [ptc]
     code, _, err = _run(capsys, "calibrate", ptc, "--out", str(out), "--quiet")
-    assert code != 0 and "exists" in err
+    assert code == 3 and "exists" in err
     code, _, err = _run(capsys, "calibrate", ptc, "--out", ptc, "--overwrite", "--quiet")
     assert code != 0 and "one of the inputs" in err
     tight = tmp_path / "tight.txt"
@@ -320,7 +363,7 @@ def test_calibrate_from_a_ptc_and_refusals(capsys, tmp_path):
     bad = tmp_path / "bad.fits"
     code, _, err = _run(capsys, "calibrate", str(tight), "--out", str(bad), "--free", "v_bss",
                         "--quiet")
-    assert code != 0 and "poor fit" in err and "worst lags" in err and not bad.exists()
+    assert code == 4 and "poor fit" in err and "worst lags" in err and not bad.exists()
 
 
 def test_template_export_galsim(capsys, tmp_path):
