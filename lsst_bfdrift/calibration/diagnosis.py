@@ -472,8 +472,9 @@ def load_input(path, *, max_lag=3):
     """Observations from a path: a_ij table, PTC text file or directory of flat pairs.
 
     A directory's FITS files (``*.fits``, ``*.fit``, ``*.fits.gz``), sorted by
-    name, form consecutive pairs. A text file with 4 numeric columns is an
-    a_ij table (:func:`~lsst_bfdrift.calibration.acoeff_fit.read_acoeff_table`), with 2
+    name, form consecutive pairs; temporary files (``.tmp-*``, see
+    :func:`~lsst_bfdrift.utils.io.data_files`) are ignored. A text file with 4
+    numeric columns is an a_ij table (:func:`~lsst_bfdrift.calibration.acoeff_fit.read_acoeff_table`), with 2
     columns a PTC (:func:`~lsst_bfdrift.calibration.ptc.read_ptc_text`).
 
     Returns
@@ -484,14 +485,13 @@ def load_input(path, *, max_lag=3):
 
     from lsst_bfdrift.calibration.acoeff_fit import read_acoeff_table
     from lsst_bfdrift.calibration.ptc import read_ptc_text
+    from lsst_bfdrift.utils.io import data_files
 
     if os.path.isdir(path):
-        files = sorted(f for f in os.listdir(path)
-                       if f.lower().endswith((".fits", ".fit", ".fits.gz")))
-        if len(files) < 8 or len(files) % 2:
+        full = data_files(path, (".fits", ".fit", ".fits.gz"))  # never a .tmp-* leftover
+        if len(full) < 8 or len(full) % 2:
             raise InputError(f"{path}: need an even number (>= 8) of FITS flats forming "
-                             f"consecutive pairs, found {len(files)}")
-        full = [os.path.join(path, f) for f in files]
+                             f"consecutive pairs, found {len(full)}")
         return observations_from_pairs(list(zip(full[::2], full[1::2])), max_lag=max_lag)
     if not os.path.isfile(path):
         raise InputError(f"{path}: no such file or directory")

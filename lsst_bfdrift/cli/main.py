@@ -12,7 +12,7 @@ Subcommands
     Distorted boundaries (exaggerated) and the area map.
 ``bfdrift template import-galsim NAME --out FILE``
     Convert a GalSim sensor file (e.g. lsst_itl_50_8) to a template file.
-``bfdrift ptc FILES... [--max-lag L] [--json]``
+``bfdrift ptc FILES...|DIR [--max-lag L] [--json]``
     Photon transfer analysis (Astier et al. 2019): either one two-column text
     file (mean ADU, variance ADU^2; exponential C00 fit: gain, a00) or an even
     number of FITS flats taken as consecutive pairs (covariances by FFT, full
@@ -67,7 +67,8 @@ import sys
 import numpy as np
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
-from lsst_bfdrift.utils.io import atomic_output, data_path, read_image
+from lsst_bfdrift.utils.io import (atomic_output, check_output, data_files, data_path,
+                                   read_image)
 from lsst_bfdrift.simulation.stars import make_psf
 from lsst_bfdrift.utils.errors import (BfdriftError, ComputationError, FitError, InputError,
                                        InputFileError, InputKeyError, OutputExistsError)
@@ -142,13 +143,41 @@ def _cmd_template_build(args):
                                    ("workers", args.workers)) if v is not None}
     if overrides:
         settings = type(settings).from_dict({**settings.to_dict(), **overrides})
-    _refuse_overwrite(args)
+    _check_outputs(args, [args.config], {"--out": args.out})
     return _save_and_report(build_template(params, settings, progress=not args.quiet), args)
 
 
-def _refuse_overwrite(args):
-    if os.path.exists(args.out) and not args.overwrite:
-        raise OutputExistsError(f"{args.out} exists (use --overwrite)")
+def _check_outputs(args, inputs, outputs):
+    """The overwrite rule for every output of a command, checked before any work.
+
+    Each output in ``outputs`` (option name -> path or None) goes through
+    :func:`~lsst_bfdrift.utils.io.check_output`: never one of ``inputs``,
+    an existing file only with ``--overwrite``; two options may not name one
+    file.
+
+    Raises
+    ------
+    OutputExistsError
+        An output breaks the rule.
+    """
+    overwrite = bool(getattr(args, "overwrite", False))
+    inputs = [os.fspath(x) for x in inputs if x is not None]
+    seen = {}
+    for option, path in outputs.items():
+        if path is None:
+            continue
+        check_output(path, inputs, overwrite=overwrite, what=option)
+        real = os.path.realpath(path)
+        if real in seen:
+            raise OutputExistsError(f"{option} {path} is also given to {seen[real]}; give "
+                                    "each output its own file")
+        seen[real] = option
+
+
+def _template_input(path):
+    """The template file a command reads (the bundled one when ``path`` is None)."""
+    from lsst_bfdrift.templates.template import default_template_path
+    return default_template_path() if path is None else path
 
 
 def _save_and_report(tpl, args):
@@ -168,6 +197,7 @@ def _cmd_template_summary(args):
 def _cmd_template_plot(args):
     from lsst_bfdrift.templates.plots import plot_template
     from lsst_bfdrift.utils.plotting import save_figure
+    _check_outputs(args, [_template_input(args.file)], {"--out": args.out})
     tpl = _load_template(args.file)
     save_figure(plot_template(tpl, exaggerate=args.exaggerate, half_width=args.half_width),
                 args.out)
@@ -179,10 +209,7 @@ def _cmd_calibrate(args):
     from lsst_bfdrift.calibration.inputs import read_calibration_input
     from lsst_bfdrift.calibration.tuning import calibrate, measured_acoeffs
 
-    if os.path.exists(args.out) and not args.overwrite:
-        raise OutputExistsError(f"{args.out} exists (use --overwrite)")
-    if os.path.abspath(args.out) in {os.path.abspath(x) for x in args.input}:
-        raise InputError(f"--out {args.out} is one of the inputs")
+    _check_outputs(args, args.input, {"--out": args.out, "--plot": args.plot})
     data = read_calibration_input(args.input, max_lag=args.max_lag)
     table = measured_acoeffs(data)
     res = calibrate(table, free=args.free, refine=not args.no_refine,
@@ -227,7 +254,7 @@ def _cmd_template_export(args):
 
 
 def _cmd_template_import(args):
-    _refuse_overwrite(args)
+    _check_outputs(args, [], {"--out": args.out})
     return _save_and_report(import_galsim_sensor(args.name), args)
 
 
@@ -244,6 +271,8 @@ def _cmd_maps(args):
     from lsst_bfdrift.utils.progress import ProgressBar
     from lsst_bfdrift.geometry.superpose import moment_maps
     path = args.image or sample_image_path()
+    _check_outputs(args, [path, _template_input(args.template)],
+                   {"--out": args.out, "--plot": args.plot})
     image, bad, header = read_image(path)
     if args.gain is not None:
         if not (np.isfinite(args.gain) and args.gain > 0):
@@ -282,6 +311,8 @@ def _cmd_maps(args):
 def _cmd_ptc(args):
     from lsst_bfdrift.calibration import ptc
     files = list(args.files)
+    if len(files) == 1 and os.path.isdir(files[0]):  # its FITS flats, never a .tmp-* leftover
+        files = data_files(files[0], (".fits", ".fit", ".fits.gz"))
     if len(files) == 1 and not files[0].lower().endswith((".fits", ".fit", ".fits.gz")):
         mu, var = ptc.read_ptc_text(files[0])
         fit = ptc.fit_ptc_exponential(mu, var)
@@ -311,6 +342,8 @@ def _cmd_ptc(args):
 
 def _cmd_flat_sim(args):
     from lsst_bfdrift.simulation.flats import simulate_flats
+    _check_outputs(args, [_template_input(args.template)],
+                   {"--out": args.out, "--plot": args.plot})
     tpl = _load_template(args.template)
     if args.responsivity is not None:
         # same displacements, attributed to the charge giving dlnA00/Q = responsivity
@@ -346,6 +379,8 @@ def _cmd_flat_sim(args):
 
 def _cmd_star_sim(args):
     from lsst_bfdrift.simulation.stars import simulate_star
+    _check_outputs(args, [_template_input(args.template)],
+                   {"--out": args.out, "--plot": args.plot})
     tpl = _load_template(args.template)
     psf = make_psf(args.psf, args.fwhm, e=args.e, beta=args.beta)
     hist, final = simulate_star(tpl, psf, args.flux, stamp_size=args.stamp,
@@ -396,9 +431,8 @@ def _cmd_correct(args):
         if len(files) != 2:
             raise InputError("give IN.fits OUT.fits, or several inputs with --out-dir")
         pairs = [(files[0], files[1])]
-    for src, dst in pairs:
-        if os.path.abspath(src) == os.path.abspath(dst):
-            raise InputError(f"refusing to overwrite the input {src}")
+    for src, dst in pairs:  # an existing output is one file's failure; an input, a usage error
+        check_output(dst, [s for s, _ in pairs], overwrite=True, what="output")
     results = correct_files(pairs, cfg, scheduler=args.scheduler, overwrite=args.overwrite,
                             n_workers=args.n_workers, processes=args.processes,
                             progress=not args.quiet)
@@ -467,6 +501,9 @@ def _cmd_reproduce(args):
 
 def _cmd_validate_sky(args):
     from lsst_bfdrift.validation.sky import validate_sky
+    _check_outputs(args, [args.image, None if args.galsim_sensor else
+                          _template_input(args.template)],
+                   {"--catalog": args.catalog, "--plot": args.plot})
     if args.galsim_sensor:
         tpl = import_galsim_sensor(args.galsim_sensor)
     else:
@@ -549,6 +586,7 @@ def build_parser():
     pl.add_argument("--out", required=True, help="output PNG")
     pl.add_argument("--exaggerate", type=float, help="displacement factor")
     pl.add_argument("--half-width", type=int, help="pixels shown each side")
+    pl.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     pl.set_defaults(func=_cmd_template_plot)
     ex = tsub.add_parser("export-galsim", help="write GalSim sensor files (.cfg, .dat) that "
                          "galsim.SiliconSensor(name=PREFIX) reads")
@@ -585,12 +623,14 @@ def build_parser():
     ca.add_argument("--allow-poor-fit", action="store_true",
                     help="write the template even when the fit is poor")
     ca.add_argument("--plot", help="write a PNG: a_ij against lag, pulls, correlations")
-    ca.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    ca.add_argument("--overwrite", action="store_true",
+                    help="replace an existing --out or --plot")
     ca.add_argument("--json", action="store_true")
     ca.add_argument("--quiet", action="store_true", help="no progress bar")
     ca.set_defaults(func=_cmd_calibrate)
     pt = sub.add_parser("ptc", help="photon transfer curve fit (gain, a_ij)")
-    pt.add_argument("files", nargs="+", help="PTC text file, or FITS flats in pairs")
+    pt.add_argument("files", nargs="+", help="PTC text file, or FITS flats in pairs (files, or "
+                    "one directory: its FITS files sorted by name)")
     pt.add_argument("--max-lag", type=int, default=3, help="largest covariance lag")
     pt.add_argument("--json", action="store_true")
     pt.set_defaults(func=_cmd_ptc)
@@ -608,6 +648,7 @@ def build_parser():
     fs.add_argument("--seed", type=int, default=20151)
     fs.add_argument("--out", help="write the per-step table (ECSV)")
     fs.add_argument("--plot", help="write a PNG of covariances against mean")
+    fs.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     fs.add_argument("--json", action="store_true")
     fs.add_argument("--quiet", action="store_true")
     fs.set_defaults(func=_cmd_flat_sim)
@@ -627,6 +668,7 @@ def build_parser():
     ss.add_argument("--seed", type=int, default=20151)
     ss.add_argument("--out", help="write the per-step table (ECSV)")
     ss.add_argument("--plot", help="write a PNG like the paper's Fig. 7")
+    ss.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     ss.add_argument("--json", action="store_true")
     ss.add_argument("--quiet", action="store_true")
     ss.set_defaults(func=_cmd_star_sim)
@@ -688,6 +730,7 @@ def build_parser():
     vk.add_argument("--n-boot", type=int, default=200, help="bootstrap resamples")
     vk.add_argument("--catalog", help="write the (corrected) star catalogue (ECSV)")
     vk.add_argument("--plot", help="write a PNG: size/ellipticity vs flux and whiskers")
+    vk.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     vk.add_argument("--json", action="store_true")
     vk.add_argument("--quiet", action="store_true")
     vk.set_defaults(func=_cmd_validate_sky)
@@ -706,6 +749,7 @@ def build_parser():
     m.add_argument("--gain", type=float, help="e/ADU if the image is in ADU")
     m.add_argument("--out", help="write the maps to this FITS file")
     m.add_argument("--plot", help="write a PNG of the maps")
+    m.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     m.add_argument("--samples", type=int, default=None,
                    help="resample the template's edges to this many samples (faster; 8 "
                         "keeps the maps within ~1e-5 of the full ones); default: all")

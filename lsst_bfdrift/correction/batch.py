@@ -17,9 +17,9 @@ import threading
 
 import numpy as np
 
-from lsst_bfdrift.utils.io import atomic_output
+from lsst_bfdrift.utils.io import atomic_output, check_output
 from lsst_bfdrift.utils.progress import ProgressBar
-from lsst_bfdrift.utils.errors import InputError, OutputExistsError
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["correct_file", "correct_files", "output_pairs"]
 
@@ -76,10 +76,7 @@ def correct_file(src, dst, config=None, *, overwrite=False):
     from astropy.io import fits
 
     src, dst = os.fspath(src), os.fspath(dst)
-    if os.path.abspath(src) == os.path.abspath(dst):
-        raise InputError(f"refusing to overwrite the input {src}")
-    if os.path.exists(dst) and not overwrite:
-        raise OutputExistsError(f"{dst} exists (use --overwrite)")
+    check_output(dst, [src], overwrite=overwrite, hint="--overwrite")
     res = _task(_config_json(config)).run(src)
     hdus = [fits.PrimaryHDU(np.asarray(res.exposure.data, np.float32), header=res.header),
             fits.ImageHDU(res.flux_moved.astype(np.float32), name="FLUX_MOVED"),

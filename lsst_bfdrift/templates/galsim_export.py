@@ -40,8 +40,8 @@ import numpy as np
 from lsst_bfdrift.templates.galsim_io import (galsim_nominal_vertices, galsim_sensor_files,
                                               read_galsim_config)
 from lsst_bfdrift.templates.template import DistortionTemplate
-from lsst_bfdrift.utils.io import atomic_output
-from lsst_bfdrift.utils.errors import InputError, InputTypeError, OutputExistsError
+from lsst_bfdrift.utils.io import atomic_output, check_output
+from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["export_galsim_sensor", "DIFFUSION_KEYS"]
 
@@ -95,13 +95,12 @@ def export_galsim_sensor(template, prefix, *, num_vertices=None, pixel_size=None
         ``num_vertices`` below 1.
     """
     if not isinstance(template, DistortionTemplate):
-        raise InputTypeError(f"template must be a DistortionTemplate, got {type(template).__name__}")
+        raise InputTypeError("template must be a DistortionTemplate, "
+                             f"got {type(template).__name__}")
     prefix = os.fspath(prefix)
     cfg_path, dat_path = prefix + ".cfg", prefix + ".dat"
-    if not overwrite:
-        for path in (cfg_path, dat_path):
-            if os.path.exists(path):
-                raise OutputExistsError(f"{path} exists (use overwrite=True / --overwrite)")
+    for path in (cfg_path, dat_path):
+        check_output(path, overwrite=overwrite)
     nv = template.edge_samples if num_vertices is None else int(num_vertices)
     if nv < 1:
         raise InputError(f"num_vertices must be >= 1, got {num_vertices!r}")

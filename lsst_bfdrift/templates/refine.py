@@ -130,7 +130,8 @@ def match_area_coefficients(template, a, *, max_lag=None, iterations=3, free_wei
         the largest shift (px at the template's charge) and the lags matched.
     """
     if not isinstance(template, DistortionTemplate):
-        raise InputTypeError(f"template must be a DistortionTemplate, got {type(template).__name__}")
+        raise InputTypeError("template must be a DistortionTemplate, "
+                             f"got {type(template).__name__}")
     a = np.asarray(a, dtype=float)
     if a.ndim != 2 or a.shape[0] != a.shape[1] or np.all(np.isnan(a)) or np.any(np.isinf(a)):
         raise InputError(f"a_ij must be a square array with finite values, got shape {a.shape}")

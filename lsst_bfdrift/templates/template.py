@@ -26,10 +26,11 @@ from astropy.table import Table
 
 from lsst_bfdrift.physics.boundaries import BoundaryGrid, pixel_boundaries
 from lsst_bfdrift.physics.polygons import pixel_polygons, polygon_moments
-from lsst_bfdrift.utils.io import atomic_output, data_path
+from lsst_bfdrift.utils.io import atomic_output, check_output, data_path
 from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.physics.sensor import SensorModel, SensorParameters, strict_from_dict
-from lsst_bfdrift.utils.errors import InputError, InputNotFoundError, InputTypeError, OutputExistsError, TemplateFileError
+from lsst_bfdrift.utils.errors import (InputError, InputNotFoundError, InputTypeError,
+                                       TemplateFileError)
 
 __all__ = ["TEMPLATE_SCHEMA_VERSION", "TemplateSettings", "DistortionTemplate",
            "TemplateFileError", "build_template", "default_template_path",
@@ -470,8 +471,7 @@ class DistortionTemplate:
         CHECKSUM/DATASUM cards are written on every HDU.
         """
         path = os.fspath(path)
-        if os.path.exists(path) and not overwrite:
-            raise OutputExistsError(f"{path} exists (use overwrite=True)")
+        check_output(path, overwrite=overwrite)
         table = self.to_table()
         hdu = fits.BinTableHDU(table, name="TEMPLATE")
         hdr = hdu.header

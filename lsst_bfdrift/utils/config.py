@@ -21,7 +21,8 @@ import logging
 import math
 
 from lsst_bfdrift.utils.io import atomic_output
-from lsst_bfdrift.utils.errors import FieldValidationError, InputAttributeError, InputError, InputTypeError
+from lsst_bfdrift.utils.errors import (FieldValidationError, InputAttributeError, InputError,
+                                       InputTypeError)
 
 __all__ = ["FieldValidationError", "Field", "ChoiceField", "ConfigurableField", "Config",
            "Struct", "Task"]

@@ -1,6 +1,8 @@
 """Tests of the bfdrift command line (run in-process through main())."""
 
 import json
+import os
+import pathlib
 
 import numpy as np
 import pytest
@@ -179,6 +181,10 @@ def test_ptc_on_fits_pairs(capsys, tmp_path, rng):
     s = json.loads(out)
     assert s["gain"] == pytest.approx(gain, abs=4 * s["gain_err"] + 0.01)
     assert abs(s["a10"]) < 4 * s["a10_err"] + 1e-9
+    (tmp_path / ".tmp-killed.fits").write_bytes(b"")  # a leftover is never a flat
+    code, out2, err = _run(capsys, "ptc", str(tmp_path), "--json", "--max-lag", "1")
+    assert code == 0, err
+    assert json.loads(out2)["gain"] == s["gain"]
 
 
 def test_ptc_needs_pairs(capsys, tmp_path):
@@ -233,7 +239,7 @@ def test_correct(capsys, tmp_path):
             assert hdul[0].data.sum() == pytest.approx(src[0].data.sum(), rel=1e-6)
         assert "AREA" in hdul and "FLUX_MOVED" in hdul
     code, _, err = _run(capsys, "correct", sample_image_path(), sample_image_path(), "--quiet")
-    assert code == 2 and "refusing" in err
+    assert code == 3 and "refusing" in err
     code, out, err = _run(capsys, "correct", sample_image_path(), "--out-dir",
                           str(tmp_path / "many"), "--method", "astier23", "--quiet", "--json")
     assert code == 0 and json.loads(out)["method"] == "astier23"
@@ -387,3 +393,74 @@ def test_template_export_galsim(capsys, tmp_path):
     code, _, err = _run(capsys, "template", "export-galsim", default_template_path(),
                         str(prefix))
     assert code != 0 and "exists" in err
+
+
+def _small_image(path):
+    fits.writeto(path, np.random.default_rng(20).normal(1000.0, 30.0, (16, 16)))
+    return str(path)
+
+
+@pytest.mark.parametrize("argv", [
+    ["maps", "{img}", "--out", "{old}", "--quiet"],
+    ["maps", "{img}", "--plot", "{old}", "--quiet"],
+    ["template", "plot", "--out", "{old}"],
+    ["flat-sim", "--out", "{old}", "--quiet"],
+    ["flat-sim", "--plot", "{old}", "--quiet"],
+    ["star-sim", "--out", "{old}", "--quiet"],
+    ["validate-sky", "{img}", "--catalog", "{old}", "--quiet"],
+    ["validate-sky", "{img}", "--plot", "{old}", "--quiet"],
+    ["calibrate", "{img}", "--out", "{new}", "--plot", "{old}", "--quiet"],
+])
+def test_existing_output_needs_overwrite(capsys, tmp_path, argv):
+    """F1: no command replaces an existing file without --overwrite (exit 3,
+    the file untouched, checked before any work)."""
+    old = tmp_path / "old.out"
+    old.write_text("keep me")
+    fmt = {"img": _small_image(tmp_path / "img.fits"), "old": str(old),
+           "new": str(tmp_path / "new.fits")}
+    code, _, err = _run(capsys, *[a.format(**fmt) for a in argv])
+    assert code == 3 and "exists" in err and "--overwrite" in err, err
+    assert old.read_text() == "keep me" and not (tmp_path / "new.fits").exists()
+
+
+@pytest.mark.parametrize("argv", [
+    ["maps", "{img}", "--out", "{img}"],
+    ["maps", "{img}", "--plot", "{img}"],
+    ["maps", "{img}", "--template", "{tpl}", "--out", "{tpl}"],
+    ["template", "plot", "{tpl}", "--out", "{tpl}"],
+    ["flat-sim", "--template", "{tpl}", "--out", "{tpl}"],
+    ["star-sim", "--template", "{tpl}", "--plot", "{tpl}"],
+    ["validate-sky", "{img}", "--catalog", "{img}"],
+    ["calibrate", "{img}", "--out", "{new}", "--plot", "{img}"],
+    ["correct", "{img}", "{img}"],
+    ["correct", "{img}", "{link}"],
+])
+def test_output_is_never_an_input(capsys, tmp_path, argv):
+    """F1: `bfdrift maps IMG --out IMG` replaced the image; an input is never
+    an output, even with --overwrite or through a symbolic link."""
+    img = _small_image(tmp_path / "img.fits")
+    tpl = tmp_path / "tpl.fits"
+    load_default_template().save(tpl)
+    (tmp_path / "link.fits").symlink_to(img)
+    before = {p: pathlib.Path(p).read_bytes() for p in (img, tpl)}
+    fmt = {"img": img, "tpl": str(tpl), "new": str(tmp_path / "new.fits"),
+           "link": str(tmp_path / "link.fits")}
+    quiet = [] if argv[0] == "template" else ["--quiet"]
+    code, _, err = _run(capsys, *[a.format(**fmt) for a in argv], "--overwrite", *quiet)
+    assert code == 3 and "one of the inputs" in err, err
+    assert {p: pathlib.Path(p).read_bytes() for p in (img, tpl)} == before
+
+
+def test_two_outputs_may_not_share_a_file(capsys, tmp_path):
+    out = str(tmp_path / "x.fits")
+    code, _, err = _run(capsys, "maps", "--out", out, "--plot", out, "--quiet")
+    assert code == 3 and "also given to --out" in err
+
+
+def test_overwrite_replaces_an_existing_plot(capsys, tmp_path):
+    png = tmp_path / "t.png"
+    png.write_text("old")
+    code, _, err = _run(capsys, "template", "plot", "--out", str(png), "--overwrite")
+    assert code == 0, err
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    assert sorted(os.listdir(tmp_path)) == ["t.png"]  # no .tmp-* left
