@@ -37,7 +37,11 @@ from lsst_bfdrift.utils.errors import InputError
 __all__ = ["AcoeffTable", "read_acoeff_table", "assign_axes", "sum_rule_check",
            "electrostatic_acoeffs", "AcoeffFit", "fit_acoeffs", "DEFAULT_FREE",
            "lag_radius", "acoeff_square", "LinearBasis", "default_basis_path", "load_default_basis",
-           "linear_basis"]
+           "linear_basis", "MAX_TABLE_LAG"]
+
+#: Largest lag an a_ij table may hold (measured tables reach ~20; a larger
+#: lag is a typo, and the square arrays grow as its square).
+MAX_TABLE_LAG = 64
 
 #: Default free parameters of the fit and their bounds: the barrier dipole
 #: scale xi0 (e), the channel-stop strength relative to it (xi0), the channel
@@ -128,6 +132,10 @@ def acoeff_square(path, i, j, a, s):
         found = ", ".join(f"({int(i[k])}, {int(j[k])}): {s[k]:g}" for k in ks)
         raise InputError(f"{path}: {int(badsig.sum())} a_ij error(s) not positive and finite "
                          f"(lag: error {found}); accepted: positive 1-sigma errors per electron")
+    if max(i.max(), j.max()) > MAX_TABLE_LAG:
+        k = int(np.argmax(np.maximum(i, j)))
+        raise InputError(f"{path}: lag ({int(i[k])}, {int(j[k])}) is beyond {MAX_TABLE_LAG}; "
+                         f"accepted: lags 0..{MAX_TABLE_LAG} (measured tables reach ~20)")
     ii, jj = i.astype(int), j.astype(int)
     if not np.any((ii == 0) & (jj == 0)):
         raise InputError(f"{path}: no a00 (lag 0, 0) row; the table must include a00, measured "

@@ -147,14 +147,11 @@ class Observations:
 
 def observations_from_pairs(pairs, *, max_lag=3):
     """:class:`Observations` of kind 'flats' from flat pairs (arrays or FITS paths)."""
-    from lsst_bfdrift.utils.io import read_image
+    from lsst_bfdrift.calibration.ptc import read_flat_pair
 
     rows = []
     for f1, f2 in pairs:
-        if not isinstance(f1, np.ndarray):
-            f1 = read_image(f1)[0]
-        if not isinstance(f2, np.ndarray):
-            f2 = read_image(f2)[0]
+        f1, f2 = read_flat_pair(f1, f2)  # same shape and EXPTIME, or an error naming both
         rows.append(pair_statistics(f1, f2, max_lag=max_lag))
     rows.sort(key=lambda r: r[0])
     return Observations.from_flats([r[0] for r in rows], [r[1] for r in rows],

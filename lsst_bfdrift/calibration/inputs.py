@@ -64,6 +64,7 @@ from lsst_bfdrift.calibration.data import (_ADU_UNITS, _ELECTRON_UNITS, INPUT_KI
                                           CalibrationData, _require_levels)
 from lsst_bfdrift.calibration.ptc import pair_covariances, ptc_turnoff, read_ptc_text
 from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
+from lsst_bfdrift.utils.io import hdu_pixels, open_fits
 
 __all__ = ["detect_input_kind", "read_calibration_input", "read_flat_pairs", "read_ptc_file",
            "read_amatrix_file"]
@@ -126,7 +127,7 @@ def detect_input_kind(path):
     if _is_fits(path):
         from astropy.io import fits
 
-        with fits.open(path, memmap=False) as hdul:
+        with open_fits(path) as hdul:
             image = any(h.is_image and h.header.get("NAXIS", 0) == 2 for h in hdul)
             table = any(isinstance(h, fits.BinTableHDU) for h in hdul)
         if image:
@@ -231,9 +232,7 @@ def _header_value(headers, key):
 
 def _flat_header(path):
     """Header facts of one flat FITS (no pixel data read)."""
-    from astropy.io import fits
-
-    with fits.open(path, memmap=False) as hdul:
+    with open_fits(path) as hdul:
         image = next((k for k, h in enumerate(hdul) if h.is_image and h.header.get("NAXIS") == 2
                       and str(h.header.get("EXTNAME", "")).upper() != "MASK"), None)
         if image is None:
@@ -286,12 +285,10 @@ def _flat_header(path):
 
 def _flat_pixels(info):
     """(image, bad-pixel mask, pixels masked by MASK, non-finite pixels)."""
-    from astropy.io import fits
-
-    with fits.open(info["path"], memmap=False) as hdul:
-        data = np.array(hdul[info["hdu"]].data, dtype=np.float64)
+    with open_fits(info["path"]) as hdul:
+        data = hdu_pixels(hdul[info["hdu"]], info["path"])
         given = (np.zeros(data.shape, bool) if info["mask_hdu"] is None
-                 else np.asarray(hdul[info["mask_hdu"]].data) != 0)
+                 else hdu_pixels(hdul[info["mask_hdu"]], info["path"]) != 0)
     nonfinite = ~np.isfinite(data)
     return data, given | nonfinite, int(given.sum()), int((nonfinite & ~given).sum())
 

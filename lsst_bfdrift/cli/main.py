@@ -324,6 +324,9 @@ def _cmd_ptc(args):
         for k in ("a01", "a10", "a11"):
             out[k] = out[k + "_err"] = None  # a variance-only PTC does not constrain them
     else:
+        if args.max_lag < 1:
+            raise InputError(f"--max-lag must be >= 1 for FITS flats (the model's a01 and a10 "
+                             f"need lag 1), got {args.max_lag}")
         if len(files) < 10 or len(files) % 2:
             raise InputError("give one PTC text file or an even number (>= 10) of FITS "
                              "flats, consecutive files forming pairs")

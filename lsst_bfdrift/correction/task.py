@@ -13,6 +13,7 @@ from astropy.io import fits
 from astropy.nddata import CCDData, NDData
 
 from lsst_bfdrift.utils.config import ChoiceField, Config, Field, Struct, Task
+from lsst_bfdrift.utils.io import read_image
 from lsst_bfdrift.correction.solvers import (area_coefficients, correct_coulton18, correct_half_shift,
                          correct_image, coulton18_kernel)
 from lsst_bfdrift.geometry.superpose import moment_maps
@@ -125,13 +126,7 @@ def unpack_exposure(exposure, gain_cfg):
     meta = fits.Header()
     unit = u.electron
     if isinstance(exposure, (str, os.PathLike)):
-        with fits.open(exposure, memmap=False) as hdul:
-            hdu = next((h for h in hdul if getattr(h, "data", None) is not None
-                        and h.data.ndim == 2), None)
-            if hdu is None:
-                raise InputError(f"{exposure}: no 2-d image HDU")
-            data = np.array(hdu.data, dtype=np.float64)
-            meta = hdu.header.copy()
+        data, _, meta = read_image(exposure)  # a truncated file is named as such
         bunit = str(meta.get("BUNIT", "electron")).strip().lower()
         unit = u.adu if bunit in ("adu", "dn", "count", "counts") else u.electron
         kind = "path"
@@ -146,6 +141,9 @@ def unpack_exposure(exposure, gain_cfg):
         data = _as_float64(exposure)
     if data.ndim != 2:
         raise InputError(f"exposure must be a 2-d image, got shape {data.shape}")
+    if 0 in data.shape:
+        raise InputError(f"exposure is empty (shape {data.shape}); accepted: an image of at "
+                         "least 1 x 1 pixels")
     if mask is not None and mask.shape != data.shape:
         raise InputError(f"mask shape {mask.shape} does not match image {data.shape}")
     gain = 1.0

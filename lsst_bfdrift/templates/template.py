@@ -545,9 +545,16 @@ class DistortionTemplate:
             meta = json.loads(meta_str)
         except (KeyError, ValueError) as exc:
             raise TemplateFileError(f"{path}: template header incomplete ({exc})") from exc
+        _check_table(path, data, meta)
         tol = 0.0 if hdr.get("BFSHARED", False) else None
         merge = meta.get("merge", "mean")
-        tpl = cls.from_table(data, fractions, charge, meta=meta, max_mismatch=tol, merge=merge)
+        try:
+            tpl = cls.from_table(data, fractions, charge, meta=meta, max_mismatch=tol,
+                                 merge=merge)
+        except TemplateFileError as exc:
+            raise TemplateFileError(str(exc), path) from exc
+        except (ValueError, IndexError, KeyError, TypeError) as exc:
+            raise TemplateFileError(f"inconsistent TEMPLATE table ({exc})", path) from exc
         if shared:
             if not {"CORNER_D", "VEDGE_D", "HEDGE_D"} <= set(shared):
                 raise TemplateFileError(f"{path}: incomplete shared-boundary extensions")
@@ -564,6 +571,33 @@ class DistortionTemplate:
             raise TemplateFileError(f"{path}: template arrays do not match their SHA-256 "
                                     "(file altered or corrupt)")
         return tpl
+
+
+#: Columns of the TEMPLATE table (see :meth:`DistortionTemplate.to_table`).
+_TABLE_COLUMNS = ("di", "dj", "edge", "c0x", "c0y", "c1x", "c1y", "normal", "tangent")
+
+
+def _check_table(path, table, meta):
+    """Refuse a checksum-valid but malformed template file, naming it."""
+    if not isinstance(meta, dict):
+        raise TemplateFileError(f"BFMETA is JSON but not an object ({type(meta).__name__}); "
+                                "accepted: a JSON object", path)
+    missing = [c for c in _TABLE_COLUMNS if c not in table.colnames]
+    if missing:
+        raise TemplateFileError(f"TEMPLATE table lacks column(s) {missing}; accepted: columns "
+                                f"{list(_TABLE_COLUMNS)}", path)
+    if len(table) == 0:
+        raise TemplateFileError("TEMPLATE table has no rows; accepted: 4 rows (edges) per "
+                                "pixel of an N x N neighbourhood", path)
+    for col in ("di", "dj"):
+        try:
+            v = np.asarray(table[col], dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise TemplateFileError(f"column {col!r} is not numeric ({exc})", path) from exc
+        bad = ~(np.isfinite(v) & (v == np.round(v)))
+        if bad.any():
+            raise TemplateFileError(f"column {col!r} holds non-integer pixel offsets (first: "
+                                    f"{float(v[bad][0])}); accepted: integer offsets", path)
 
 
 def _json_default(obj):

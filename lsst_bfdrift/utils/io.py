@@ -1,4 +1,4 @@
-"""File helpers shared by the package: atomic output, the overwrite rule, image input."""
+"""File helpers shared by the package: atomic output, the overwrite rule, FITS input."""
 
 import contextlib
 import os
@@ -6,11 +6,11 @@ import tempfile
 
 import numpy as np
 
-from lsst_bfdrift.utils.errors import (InputError, InputFileError, InputNotFoundError,
+from lsst_bfdrift.utils.errors import (InputFileError, InputNotFoundError,
                                        OutputExistsError)
 
 __all__ = ["TMP_PREFIX", "is_temporary", "data_files", "check_output", "atomic_output",
-           "write_text", "write_json", "read_image", "data_path"]
+           "write_text", "write_json", "open_fits", "hdu_pixels", "read_image", "data_path"]
 
 #: Prefix of the temporary files of :func:`atomic_output`; directory readers
 #: ignore files whose name starts with it (:func:`is_temporary`).
@@ -179,17 +179,94 @@ def write_json(path, obj, **dump_kwargs):
         json.dump(obj, fh, **dump_kwargs)
 
 
-def read_image(path, *, hdu=None):
-    """Image (float64 copy) and mask from a FITS file; NaN/inf are masked."""
+@contextlib.contextmanager
+def open_fits(path):
+    """``astropy.io.fits.open`` (no memmap) with the package's errors.
+
+    Raises
+    ------
+    InputNotFoundError
+        ``path`` does not exist.
+    InputFileError
+        ``path`` is not a readable FITS file (empty, corrupt, another format).
+    """
     from astropy.io import fits
 
-    with fits.open(path, memmap=False) as hdul:
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise InputNotFoundError(f"{path}: no such file; accepted: a FITS file", path)
+    try:
+        hdul = fits.open(path, memmap=False)
+    except (OSError, ValueError, TypeError, IndexError) as exc:
+        raise InputFileError(f"{path}: not a readable FITS file ({exc}); accepted: a FITS "
+                             "file", path) from exc
+    with hdul:
+        yield hdul
+
+
+def hdu_pixels(hdu, path, dtype=np.float64):
+    """Pixels of one image HDU as a new array, a truncated file named as such.
+
+    Parameters
+    ----------
+    hdu : astropy.io.fits HDU
+    path : str
+        The file (for the message).
+    dtype : numpy dtype, optional
+
+    Returns
+    -------
+    ndarray
+
+    Raises
+    ------
+    InputFileError
+        The file ends before the pixels its header announces ("cannot
+        reshape array" in astropy) or they cannot be decoded.
+    """
+    try:
+        return np.array(hdu.data, dtype=dtype)
+    except (ValueError, TypeError, OSError, IndexError) as exc:
+        hdr = hdu.header
+        shape = tuple(hdr.get(f"NAXIS{k}") for k in range(int(hdr.get("NAXIS", 0) or 0), 0, -1))
+        raise InputFileError(f"{path}: truncated or corrupt FITS file: HDU {hdu.name or 0!s} "
+                             f"announces an image of shape {shape} but its pixels cannot be read "
+                             f"({exc}); re-copy or re-write the file", path) from exc
+
+
+def read_image(path, *, hdu=None):
+    """Image (float64 copy), mask and header from a FITS file; NaN/inf are masked.
+
+    Parameters
+    ----------
+    path : str or path-like
+    hdu : int, optional
+        HDU to read; default the first one holding a 2-d image.
+
+    Returns
+    -------
+    data : ndarray
+    bad : ndarray of bool
+    header : astropy.io.fits.Header
+
+    Raises
+    ------
+    InputNotFoundError, InputFileError
+        See :func:`open_fits` and :func:`hdu_pixels` (a truncated file is
+        named as such).
+    InputError
+        No 2-d image HDU.
+    """
+    path = os.fspath(path)
+    with open_fits(path) as hdul:
         if hdu is None:
-            hdu = next((k for k, h in enumerate(hdul) if getattr(h, "data", None) is not None
-                        and h.data.ndim == 2), None)
+            hdu = next((k for k, h in enumerate(hdul) if h.is_image
+                        and h.header.get("NAXIS") == 2
+                        and all(h.header.get(f"NAXIS{n}", 0) > 0 for n in (1, 2))), None)
             if hdu is None:
-                raise InputError(f"{path}: no 2-d image HDU")
-        data = np.array(hdul[hdu].data, dtype=np.float64)
+                raise InputFileError(f"{path}: no 2-d image HDU; accepted: a FITS file with a "
+                                     "2-d image", path)
+        data = hdu_pixels(hdul[hdu], path)
         header = hdul[hdu].header.copy()
     return data, ~np.isfinite(data), header
 

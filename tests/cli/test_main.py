@@ -464,3 +464,37 @@ def test_overwrite_replaces_an_existing_plot(capsys, tmp_path):
     assert code == 0, err
     assert png.read_bytes()[:4] == b"\x89PNG"
     assert sorted(os.listdir(tmp_path)) == ["t.png"]  # no .tmp-* left
+
+
+def test_crashes_are_clear_errors(capsys, tmp_path):
+    """ptc --max-lag 0 (IndexError), diagnose with lag 100000 (MemoryError),
+    a template with non-integer offsets (IndexError): exit 2, message."""
+    from astropy.table import Table
+    rng = np.random.default_rng(21)
+    files = []
+    for k, m in enumerate(np.geomspace(300, 3e4, 5)):
+        for p in range(2):
+            files.append(str(tmp_path / f"f{k}{p}.fits"))
+            fits.PrimaryHDU(rng.poisson(m, (32, 32)).astype(float)).writeto(files[-1])
+    code, _, err = _run(capsys, "ptc", *files, "--max-lag", "0")
+    assert code == 2 and "--max-lag must be >= 1" in err
+    big = tmp_path / "big.txt"
+    big.write_text("i j a sigma\n0 0 -2e-6 1e-8\n0 1 1e-7 1e-9\n1 0 5e-8 1e-9\n"
+                   "100000 0 1e-9 1e-9\n")
+    code, _, err = _run(capsys, "diagnose", str(big))
+    assert code == 2 and "big.txt: lag (100000, 0) is beyond 64" in err
+    from lsst_bfdrift.templates.template import default_template_path
+    with fits.open(default_template_path()) as hdul:
+        hdus = fits.HDUList([h.copy() for h in hdul])
+    t = Table(hdus["TEMPLATE"].data)
+    t["di"] = t["di"].astype(float) + 0.5
+    hdus["TEMPLATE"] = fits.BinTableHDU(t, header=hdus["TEMPLATE"].header, name="TEMPLATE")
+    bad = tmp_path / "nonint.fits"
+    hdus.writeto(bad, checksum=True)
+    code, _, err = _run(capsys, "template", "summary", str(bad))
+    assert code == 2 and "nonint.fits: column 'di' holds non-integer pixel offsets" in err
+    hdus[0].header["BFMETA"] = "[1, 2]"
+    hdus["TEMPLATE"] = fits.BinTableHDU(t[:0], header=hdus["TEMPLATE"].header, name="TEMPLATE")
+    hdus.writeto(bad, checksum=True, overwrite=True)
+    code, _, err = _run(capsys, "template", "summary", str(bad))
+    assert code == 2 and "not an object" in err
