@@ -35,8 +35,15 @@ from lsst_bfdrift.templates.template import (DistortionTemplate, TemplateSetting
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.geometry.superpose import MomentMaps, moment_maps
 from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
+from lsst_bfdrift.utils.errors import (BfdriftError, ComputationError, FieldValidationError,
+                                       FitError, InputAttributeError, InputError,
+                                       InputFileError, InputKeyError, InputNotFoundError,
+                                       InputTypeError, OutputExistsError, TemplateFileError)
 
 __all__ = ["__version__", "SensorModel", "SensorParameters", "drift_lines", "pixel_boundaries",
            "pixel_polygons", "polygon_moments", "DistortionTemplate", "TemplateSettings",
            "build_template", "load_default_template", "import_galsim_sensor", "MomentMaps",
-           "moment_maps", "BrighterFatterDriftConfig", "BrighterFatterDriftTask"]
+           "moment_maps", "BrighterFatterDriftConfig", "BrighterFatterDriftTask",
+           "BfdriftError", "InputError", "InputTypeError", "InputKeyError", "InputAttributeError",
+           "InputFileError", "InputNotFoundError", "TemplateFileError", "FieldValidationError",
+           "OutputExistsError", "FitError", "ComputationError"]

@@ -32,11 +32,16 @@ from lsst_bfdrift.utils.io import data_path
 from lsst_bfdrift.physics.boundaries import pixel_boundaries
 from lsst_bfdrift.physics.polygons import pixel_polygons, polygon_moments
 from lsst_bfdrift.physics.sensor import SensorModel
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["AcoeffTable", "read_acoeff_table", "assign_axes", "sum_rule_check",
            "electrostatic_acoeffs", "AcoeffFit", "fit_acoeffs", "DEFAULT_FREE",
            "lag_radius", "acoeff_square", "LinearBasis", "default_basis_path", "load_default_basis",
-           "linear_basis"]
+           "linear_basis", "MAX_TABLE_LAG"]
+
+#: Largest lag an a_ij table may hold (measured tables reach ~20; a larger
+#: lag is a typo, and the square arrays grow as its square).
+MAX_TABLE_LAG = 64
 
 #: Default free parameters of the fit and their bounds: the barrier dipole
 #: scale xi0 (e), the channel-stop strength relative to it (xi0), the channel
@@ -71,13 +76,13 @@ class AcoeffTable:
         a = np.array(a, dtype=np.float64)
         sigma = np.array(sigma, dtype=np.float64)
         if a.ndim != 2 or a.shape[0] != a.shape[1]:
-            raise ValueError(f"a_ij must be a square 2-d array, got shape {a.shape}")
+            raise InputError(f"a_ij must be a square 2-d array, got shape {a.shape}")
         if sigma.shape != a.shape:
-            raise ValueError(f"errors have shape {sigma.shape}, coefficients {a.shape}")
+            raise InputError(f"errors have shape {sigma.shape}, coefficients {a.shape}")
         if not np.all(np.isfinite(a)):
-            raise ValueError("a_ij table holds non-finite coefficients")
+            raise InputError("a_ij table holds non-finite coefficients")
         if not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
-            raise ValueError("a_ij errors must be finite and positive (found NaN, inf, zero "
+            raise InputError("a_ij errors must be finite and positive (found NaN, inf, zero "
                              "or negative errors)")
         self.a, self.sigma = a, sigma
         self.max_lag = a.shape[0] - 1
@@ -109,38 +114,42 @@ def acoeff_square(path, i, j, a, s):
     a = np.asarray(a, dtype=float)
     s = np.asarray(s, dtype=float)
     if i.size == 0:
-        raise ValueError(f"{path}: no a_ij rows found; accepted: rows of i j value sigma")
+        raise InputError(f"{path}: no a_ij rows found; accepted: rows of i j value sigma")
     lags = np.column_stack([i, j])
     badlag = ~np.isfinite(lags).all(axis=1) | np.any(lags != np.round(lags), axis=1) | np.any(
         lags < 0, axis=1)
     if badlag.any():
         bad = [(float(x), float(y)) for x, y in lags[badlag][:3]]
-        raise ValueError(f"{path}: lags must be non-negative integers (i serial, j parallel); "
+        raise InputError(f"{path}: lags must be non-negative integers (i serial, j parallel); "
                          f"found {bad}")
     if not np.all(np.isfinite(a)):
         k = int(np.flatnonzero(~np.isfinite(a))[0])
-        raise ValueError(f"{path}: coefficient at lag ({int(i[k])}, {int(j[k])}) is {a[k]}; "
+        raise InputError(f"{path}: coefficient at lag ({int(i[k])}, {int(j[k])}) is {a[k]}; "
                          "accepted: finite a_ij (per electron)")
     badsig = ~(np.isfinite(s) & (s > 0))
     if badsig.any():
         ks = np.flatnonzero(badsig)[:3]
         found = ", ".join(f"({int(i[k])}, {int(j[k])}): {s[k]:g}" for k in ks)
-        raise ValueError(f"{path}: {int(badsig.sum())} a_ij error(s) not positive and finite "
+        raise InputError(f"{path}: {int(badsig.sum())} a_ij error(s) not positive and finite "
                          f"(lag: error {found}); accepted: positive 1-sigma errors per electron")
+    if max(i.max(), j.max()) > MAX_TABLE_LAG:
+        k = int(np.argmax(np.maximum(i, j)))
+        raise InputError(f"{path}: lag ({int(i[k])}, {int(j[k])}) is beyond {MAX_TABLE_LAG}; "
+                         f"accepted: lags 0..{MAX_TABLE_LAG} (measured tables reach ~20)")
     ii, jj = i.astype(int), j.astype(int)
     if not np.any((ii == 0) & (jj == 0)):
-        raise ValueError(f"{path}: no a00 (lag 0, 0) row; the table must include a00, measured "
+        raise InputError(f"{path}: no a00 (lag 0, 0) row; the table must include a00, measured "
                          "or set by the area sum rule")
     L = int(max(ii.max(), jj.max()))
     A = np.full((L + 1, L + 1), np.nan)
     S = np.full((L + 1, L + 1), np.nan)
     for x, y, v, e in zip(ii, jj, a, s):
         if not np.isnan(A[x, y]):
-            raise ValueError(f"{path}: lag ({x}, {y}) appears twice; each lag once")
+            raise InputError(f"{path}: lag ({x}, {y}) appears twice; each lag once")
         A[x, y], S[x, y] = v, e
     if np.isnan(A).any():
         miss = [tuple(m) for m in np.argwhere(np.isnan(A))[:3].tolist()]
-        raise ValueError(f"{path}: incomplete table, missing lags e.g. {miss}; accepted: every "
+        raise InputError(f"{path}: incomplete table, missing lags e.g. {miss}; accepted: every "
                          f"lag 0 <= i, j <= {L} once")
     return A, S
 
@@ -157,11 +166,11 @@ def _text_rows(path):
                 vals = [float(p) for p in parts]
             except ValueError:
                 if rows:
-                    raise ValueError(f"{path}:{n}: non-numeric row {s!r}; accepted: i j value "
+                    raise InputError(f"{path}:{n}: non-numeric row {s!r}; accepted: i j value "
                                      "sigma") from None
                 continue
             if len(vals) != 4:
-                raise ValueError(f"{path}:{n}: {len(vals)} columns; accepted: 4 (i j value "
+                raise InputError(f"{path}:{n}: {len(vals)} columns; accepted: 4 (i j value "
                                  "sigma)")
             rows.append(vals)
     d = np.array(rows).reshape(-1, 4)
@@ -316,13 +325,13 @@ def electrostatic_acoeffs(params, *, max_lag=8, charge=1e5, near_samples=32, far
     """
     if (params.bloom_stop is not None or params.edge is not None or params.column_overrides
             or params.row_overrides or params.row_shifts or params.truncations):
-        raise ValueError("electrostatic_acoeffs needs a model without fixed-pattern features "
+        raise InputError("electrostatic_acoeffs needs a model without fixed-pattern features "
                          "(the quadrant symmetry is used)")
     L = int(max_lag)
     if L < 1:
-        raise ValueError(f"max_lag must be >= 1, got {max_lag}")
+        raise InputError(f"max_lag must be >= 1, got {max_lag}")
     if definition not in ("log", "alpha"):
-        raise ValueError(f"definition must be 'log' or 'alpha', got {definition!r}")
+        raise InputError(f"definition must be 'log' or 'alpha', got {definition!r}")
     scales = (1.0,) if definition == "log" else (1.0, 0.5)
     model = SensorModel(params).with_charge({(0, 0): float(charge)})
     far = _quadrant_areas(model, L + 1, far_samples, tol, "tan", scales)
@@ -420,12 +429,12 @@ def fit_acoeffs(table, params0, free=None, *, model=None, diff_step=0.02, max_ev
     """
     free = dict(DEFAULT_FREE if free is None else free)
     if not free:
-        raise ValueError("no free parameters given")
+        raise InputError("no free parameters given")
     names = list(free)
     for n in names:
         lo, hi = free[n]
         if not lo < getattr(params0, n) < hi:
-            raise ValueError(f"start value of {n!r} ({getattr(params0, n)}) is outside its "
+            raise InputError(f"start value of {n!r} ({getattr(params0, n)}) is outside its "
                              f"bounds {free[n]}")
     L = table.max_lag
     if model is None:
@@ -433,7 +442,7 @@ def fit_acoeffs(table, params0, free=None, *, model=None, diff_step=0.02, max_ev
             return electrostatic_acoeffs(p, max_lag=L, **model_kwargs)
     mask = table.mask()
     if mask.sum() <= len(names):
-        raise ValueError(f"{mask.sum()} lags cannot constrain {len(names)} parameters")
+        raise InputError(f"{mask.sum()} lags cannot constrain {len(names)} parameters")
     fit = fit_parameters(lambda v: model(params0.replace(**v)), table.a, table.sigma,
                          {n: float(getattr(params0, n)) for n in names}, free, mask=mask,
                          jacobian0=jacobian0, diff_step=diff_step,
@@ -467,7 +476,7 @@ class LinearBasis:
                        for n in self.names}
         self.note = note
         if self.jacobian.shape != self.a0.shape + (len(self.names),):
-            raise ValueError("jacobian shape does not match a0 and names")
+            raise InputError("jacobian shape does not match a0 and names")
 
     @property
     def max_lag(self):
@@ -489,7 +498,7 @@ class LinearBasis:
     def dlog_depth(self, max_lag=None):
         """D_ij = d a_ij / d ln(channel depth) at x0 (per e)."""
         if "channel_depth" not in self.names:
-            raise ValueError("the basis has no channel_depth derivative")
+            raise InputError("the basis has no channel_depth derivative")
         k = self.names.index("channel_depth")
         d = self.jacobian[..., k] * self.x0["channel_depth"]
         m = d.shape[0] if max_lag is None else int(max_lag) + 1

@@ -47,6 +47,7 @@ import numpy as np
 from astropy import units as u
 from astropy.table import QTable
 
+from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.utils.progress import ProgressBar
 
 __all__ = ["StarDetections", "detect_stars", "measure_stars", "load_electrons", "FLAG_SATURATED", "FLAG_BLENDED", "FLAG_EDGE",
@@ -99,7 +100,7 @@ def load_electrons(exposure, *, gain=None, mask=None, saturation=None):
     if gain is not None:
         gain = float(gain)
         if not gain > 0:
-            raise ValueError(f"gain must be positive, got {gain}")
+            raise InputError(f"gain must be positive, got {gain}")
     if gain is not None and not isinstance(exposure, (str, bytes)) \
             and not hasattr(exposure, "__fspath__"):
         # force the ADU interpretation for arrays and NDData given with a gain
@@ -116,14 +117,14 @@ def load_electrons(exposure, *, gain=None, mask=None, saturation=None):
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != data.shape:
-            raise ValueError(f"mask shape {mask.shape} does not match image {data.shape}")
+            raise InputError(f"mask shape {mask.shape} does not match image {data.shape}")
         bad |= mask
     if saturation is None and meta is not None and "SATURATE" in meta:
         saturation = float(meta["SATURATE"])
     sat_e = None
     if saturation is not None:
         if not float(saturation) > 0:
-            raise ValueError(f"saturation must be positive, got {saturation}")
+            raise InputError(f"saturation must be positive, got {saturation}")
         sat_e = float(saturation) * g
     return data, bad, sat_e, g
 
@@ -134,7 +135,7 @@ def _background(data, bad, box_size):
     ny, nx = data.shape
     box = int(max(8, min(box_size, ny // 2, nx // 2)))
     if min(ny, nx) < 16:
-        raise ValueError(f"image {nx} x {ny} is too small for a star catalogue (>= 16 px)")
+        raise InputError(f"image {nx} x {ny} is too small for a star catalogue (>= 16 px)")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # photutils warns about boxes excluded by the mask
         bkg = Background2D(data, box, mask=bad, filter_size=(3, 3),
@@ -236,15 +237,15 @@ def detect_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=5
 
     data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask, saturation=saturation)
     if bad.all():
-        raise ValueError("image has no usable pixel (all masked or non-finite)")
+        raise InputError("image has no usable pixel (all masked or non-finite)")
     good_vals = data[~bad]
     if np.ptp(good_vals) == 0:
-        raise ValueError(f"image is blank (every usable pixel equals {good_vals[0]:g}); "
+        raise InputError(f"image is blank (every usable pixel equals {good_vals[0]:g}); "
                          "no stars can be measured")
     clean = np.where(bad, 0.0, data)
     bkg, rms = _background(clean, bad, box_size)
     if not np.all(np.isfinite(rms)) or np.median(rms) <= 0:
-        raise ValueError("background rms is zero or undefined: the image has no noise "
+        raise InputError("background rms is zero or undefined: the image has no noise "
                          "(blank or synthetic?); give a noisy image in electrons")
     sub = np.where(bad, 0.0, data - bkg)
     kernel = np.asarray(make_2dgaussian_kernel(kernel_fwhm, size=2 * int(kernel_fwhm) + 1))
@@ -256,7 +257,7 @@ def detect_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=5
         warnings.simplefilter("ignore", NoDetectionsWarning)  # reported as an error below
         segm = detect_sources(conv, thr, int(n_pixels), mask=bad)
     if segm is None or segm.n_labels == 0:
-        raise ValueError(f"no sources detected above {threshold:g} sigma: no stars to measure "
+        raise InputError(f"no sources detected above {threshold:g} sigma: no stars to measure "
                          "(check the image, its unit/gain and the threshold)")
     labels = segm.data
     split = _multi_peak_segments(conv, labels, thr, bad) if deblend else set()
@@ -342,7 +343,7 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
         data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask,
                                              saturation=saturation)
         if data.shape != detections.shape:
-            raise ValueError(f"image shape {data.shape} differs from the detections' "
+            raise InputError(f"image shape {data.shape} differs from the detections' "
                              f"{detections.shape}")
         bad = bad | detections.bad
         sat_e = detections.saturation if sat_e is None else sat_e

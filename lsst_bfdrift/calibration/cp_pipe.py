@@ -53,6 +53,7 @@ import os
 import numpy as np
 
 from lsst_bfdrift.calibration.data import CalibrationData, _require_levels, _truncate
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["CP_PIPE_COLUMNS", "read_cp_pipe_ptc"]
 
@@ -99,7 +100,7 @@ def _cp_amp(path, data, row, version):
     mask = _cell(data, "EXP_ID_MASK", row).astype(bool).ravel()
     for col, arr in (("RAW_VARS", var), ("EXP_ID_MASK", mask)):
         if arr.size != n:
-            raise ValueError(f"{path}: amplifier {name}: column {col} has {arr.size} entries, "
+            raise InputError(f"{path}: amplifier {name}: column {col} has {arr.size} entries, "
                              f"RAW_MEANS {n}; {_CP_EXPECTED} with one entry per flat pair")
     exptime = (_cell(data, "RAW_EXP_TIMES", row).astype(float).ravel()
                if "RAW_EXP_TIMES" in data.names else None)
@@ -107,7 +108,7 @@ def _cp_amp(path, data, row, version):
         exptime = None
     cov = _cell(data, "COVARIANCES", row).astype(float).ravel()
     if cov.size not in (0, n * side * side):
-        raise ValueError(f"{path}: amplifier {name}: COVARIANCES has {cov.size} values, expected "
+        raise InputError(f"{path}: amplifier {name}: COVARIANCES has {cov.size} values, expected "
                          f"{n} x {side} x {side} = {n * side * side} (RAW_MEANS x "
                          "COV_MATRIX_SIDE^2)")
     cov = cov.reshape(n, side, side) if cov.size else None
@@ -122,7 +123,7 @@ def _cp_amp(path, data, row, version):
     a = a_sigma = None
     if fit_type.startswith("FULLCOVARIANCE"):
         if amat.size != side_fit * side_fit:
-            raise ValueError(f"{path}: amplifier {name}: A_MATRIX has {amat.size} values, "
+            raise InputError(f"{path}: amplifier {name}: A_MATRIX has {amat.size} values, "
                              f"expected {side_fit} x {side_fit} (COV_MATRIX_SIDE_FULL_COV_FIT^2)")
         if np.all(np.isfinite(amat)):
             a = amat.reshape(side_fit, side_fit)
@@ -175,21 +176,21 @@ def read_cp_pipe_ptc(path, *, amp=None, max_lag=None, min_levels=3):
     with fits.open(path, memmap=False) as hdul:
         if len(hdul) < 2 or not isinstance(hdul[1], fits.BinTableHDU):
             found = "no HDU 1" if len(hdul) < 2 else f"HDU 1 is {type(hdul[1]).__name__}"
-            raise ValueError(f"{path}: not {_CP_EXPECTED}; found {found}")
+            raise InputError(f"{path}: not {_CP_EXPECTED}; found {found}")
         hdr = hdul[1].header
         obstype = hdr.get("OBSTYPE", hdul[0].header.get("OBSTYPE"))
         calibcls = hdr.get("CALIBCLS")
         if obstype != "PTC":
-            raise ValueError(f"{path}: not {_CP_EXPECTED}; found OBSTYPE = {obstype!r}"
+            raise InputError(f"{path}: not {_CP_EXPECTED}; found OBSTYPE = {obstype!r}"
                              + (f", CALIBCLS = {calibcls!r}" if calibcls else ""))
         data = hdul[1].data
         names = list(data.names) if data is not None else []
         missing = [c for c in CP_PIPE_COLUMNS if c not in names]
         if missing:
-            raise ValueError(f"{path}: not {_CP_EXPECTED} with columns {list(CP_PIPE_COLUMNS)}; "
+            raise InputError(f"{path}: not {_CP_EXPECTED} with columns {list(CP_PIPE_COLUMNS)}; "
                              f"missing {missing} (found {names})")
         if len(data) == 0:
-            raise ValueError(f"{path}: the PTC table has no amplifier rows; {_CP_EXPECTED}")
+            raise InputError(f"{path}: the PTC table has no amplifier rows; {_CP_EXPECTED}")
         version = hdr.get("PTC_VERSION")
         version = float(version) if version is not None else None
         bad_amps = _bad_amps(data)
@@ -205,20 +206,20 @@ def read_cp_pipe_ptc(path, *, amp=None, max_lag=None, min_levels=3):
     good = [n for n in amps if n not in bad_amps]
     if amp is not None:
         if amp not in amps:
-            raise ValueError(f"{path}: no amplifier {amp!r}; the file holds {list(amps)}")
+            raise InputError(f"{path}: no amplifier {amp!r}; the file holds {list(amps)}")
         if amp in bad_amps:
-            raise ValueError(f"{path}: amplifier {amp!r} is in badAmps {bad_amps}; choose one of "
+            raise InputError(f"{path}: amplifier {amp!r} is in badAmps {bad_amps}; choose one of "
                              f"{good}")
         chosen = [amp]
     elif not good:
-        raise ValueError(f"{path}: every amplifier is in badAmps {bad_amps}; nothing to read")
+        raise InputError(f"{path}: every amplifier is in badAmps {bad_amps}; nothing to read")
     elif len(good) == 1:
         chosen = good
     else:
         with_err = [n for n in good if amps[n]["a_sigma"] is not None]
         shapes = {amps[n]["a"].shape for n in with_err}
         if len(with_err) != len(good) or len(shapes) != 1:
-            raise ValueError(
+            raise InputError(
                 f"{path}: {len(good)} good amplifiers {good} (badAmps {bad_amps}) and their "
                 f"a-matrices carry no errors ({amps[good[0]]['info']['fit_type']} fit), so they "
                 "cannot be averaged with inverse-variance weights; choose one with amp='NAME'")

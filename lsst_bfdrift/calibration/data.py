@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["CalibrationData", "INPUT_KINDS"]
 
@@ -131,9 +132,9 @@ class CalibrationData:
         """
         src = ", ".join(self.files)
         if self.a is None:
-            raise ValueError(f"{src}: no a-matrix was read (kind {self.kind!r})")
+            raise InputError(f"{src}: no a-matrix was read (kind {self.kind!r})")
         if self.a_sigma is None:
-            raise ValueError(f"{src}: the a-matrix has no errors; an AcoeffTable needs "
+            raise InputError(f"{src}: the a-matrix has no errors; an AcoeffTable needs "
                              "positive 1-sigma errors for every lag")
         return AcoeffTable(self.a, self.a_sigma, source=src,
                            axis_note=str(self.meta.get("axis_note", "")),
@@ -178,7 +179,7 @@ def _require_levels(nlev, min_levels, what, files, dropped):
     for d in dropped:
         what_ = ", ".join(d["files"]) if "files" in d else f"point {d['index']}"
         why += f"; dropped {what_}: {d['reason']}"
-    raise ValueError(f"{files}: {nlev} distinct signal level(s) {what}, fewer than "
+    raise InputError(f"{files}: {nlev} distinct signal level(s) {what}, fewer than "
                      f"min_levels={min_levels}; a photon transfer curve needs at least "
                      f"{min_levels} levels below the turn-off{why}")
 

@@ -38,6 +38,7 @@ from scipy.optimize import least_squares
 from lsst_bfdrift.calibration.acoeff_fit import DEFAULT_FREE
 from lsst_bfdrift.simulation.effects import effect_library, EFFECT_NAMES
 from lsst_bfdrift.calibration.ptc import covariance_model, fit_ptc_exponential, pair_covariances, ptc_turnoff
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["Observations", "pair_statistics", "observations_from_pairs", "diagnose",
            "Diagnosis", "LINEAR_RANGE", "load_input"]
@@ -69,7 +70,7 @@ class Observations:
 
     def __init__(self, kind, **kw):
         if kind not in ("table", "ptc", "flats"):
-            raise ValueError(f"unknown input kind {kind!r}")
+            raise InputError(f"unknown input kind {kind!r}")
         self.kind = kind
         self.__dict__.update(kw)
 
@@ -85,11 +86,11 @@ class Observations:
         mu = np.asarray(mu, float)
         var = np.asarray(var, float)
         if mu.shape != var.shape or mu.ndim != 1:
-            raise ValueError("PTC mean and variance must be 1-d arrays of equal length")
+            raise InputError("PTC mean and variance must be 1-d arrays of equal length")
         good = np.isfinite(mu) & np.isfinite(var) & (mu > 0) & (var > 0)
         good &= mu <= ptc_turnoff(mu[good], var[good])  # saturation cut
         if good.sum() < 6:
-            raise ValueError(f"need at least 6 valid PTC points, got {good.sum()}")
+            raise InputError(f"need at least 6 valid PTC points, got {good.sum()}")
         o = np.argsort(mu[good])
         return cls("ptc", mu=mu[good][o], var=var[good][o], max_lag=0,
                    note=f"{good.sum()} points below the turn-off; errors unknown: "
@@ -104,11 +105,11 @@ class Observations:
         npix = np.asarray(npix, float)
         if cov.ndim != 3 or cov.shape != static.shape or cov.shape != npix.shape or \
                 cov.shape[0] != mu.size:
-            raise ValueError("cov, static and npix must have shape (n, L+1, L+1), n = len(mu)")
+            raise InputError("cov, static and npix must have shape (n, L+1, L+1), n = len(mu)")
         if mu.size < 4:
-            raise ValueError(f"need at least 4 flat pairs, got {mu.size}")
+            raise InputError(f"need at least 4 flat pairs, got {mu.size}")
         if not (np.all(np.isfinite(cov)) and np.all(np.isfinite(static))):
-            raise ValueError("non-finite covariances")
+            raise InputError("non-finite covariances")
         return cls("flats", mu=mu, cov=cov, static=static, npix=npix,
                    max_lag=cov.shape[1] - 1, note="")
 
@@ -146,14 +147,11 @@ class Observations:
 
 def observations_from_pairs(pairs, *, max_lag=3):
     """:class:`Observations` of kind 'flats' from flat pairs (arrays or FITS paths)."""
-    from lsst_bfdrift.utils.io import read_image
+    from lsst_bfdrift.calibration.ptc import read_flat_pair
 
     rows = []
     for f1, f2 in pairs:
-        if not isinstance(f1, np.ndarray):
-            f1 = read_image(f1)[0]
-        if not isinstance(f2, np.ndarray):
-            f2 = read_image(f2)[0]
+        f1, f2 = read_flat_pair(f1, f2)  # same shape and EXPTIME, or an error naming both
         rows.append(pair_statistics(f1, f2, max_lag=max_lag))
     rows.sort(key=lambda r: r[0])
     return Observations.from_flats([r[0] for r in rows], [r[1] for r in rows],
@@ -182,9 +180,9 @@ class _Problem:
             self.y, self.sigma, self.labels = obs.data()
             return
         if basis is None:
-            raise ValueError(f"input kind {obs.kind!r} needs an electrostatic basis")
+            raise InputError(f"input kind {obs.kind!r} needs an electrostatic basis")
         if basis.max_lag < obs.max_lag:
-            raise ValueError(f"basis has lags <= {basis.max_lag}, data {obs.max_lag}")
+            raise InputError(f"basis has lags <= {basis.max_lag}, data {obs.max_lag}")
         self.names = list(basis.names)
         self.x0 = np.array([basis.x0[n] for n in self.names])
         self.scale = np.array([max(basis.errors[n], 1e-6 * max(abs(basis.x0[n]), 1.0))
@@ -471,8 +469,9 @@ def load_input(path, *, max_lag=3):
     """Observations from a path: a_ij table, PTC text file or directory of flat pairs.
 
     A directory's FITS files (``*.fits``, ``*.fit``, ``*.fits.gz``), sorted by
-    name, form consecutive pairs. A text file with 4 numeric columns is an
-    a_ij table (:func:`~lsst_bfdrift.calibration.acoeff_fit.read_acoeff_table`), with 2
+    name, form consecutive pairs; temporary files (``.tmp-*``, see
+    :func:`~lsst_bfdrift.utils.io.data_files`) are ignored. A text file with 4
+    numeric columns is an a_ij table (:func:`~lsst_bfdrift.calibration.acoeff_fit.read_acoeff_table`), with 2
     columns a PTC (:func:`~lsst_bfdrift.calibration.ptc.read_ptc_text`).
 
     Returns
@@ -483,17 +482,16 @@ def load_input(path, *, max_lag=3):
 
     from lsst_bfdrift.calibration.acoeff_fit import read_acoeff_table
     from lsst_bfdrift.calibration.ptc import read_ptc_text
+    from lsst_bfdrift.utils.io import data_files
 
     if os.path.isdir(path):
-        files = sorted(f for f in os.listdir(path)
-                       if f.lower().endswith((".fits", ".fit", ".fits.gz")))
-        if len(files) < 8 or len(files) % 2:
-            raise ValueError(f"{path}: need an even number (>= 8) of FITS flats forming "
-                             f"consecutive pairs, found {len(files)}")
-        full = [os.path.join(path, f) for f in files]
+        full = data_files(path, (".fits", ".fit", ".fits.gz"))  # never a .tmp-* leftover
+        if len(full) < 8 or len(full) % 2:
+            raise InputError(f"{path}: need an even number (>= 8) of FITS flats forming "
+                             f"consecutive pairs, found {len(full)}")
         return observations_from_pairs(list(zip(full[::2], full[1::2])), max_lag=max_lag)
     if not os.path.isfile(path):
-        raise ValueError(f"{path}: no such file or directory")
+        raise InputError(f"{path}: no such file or directory")
     ncol = None
     with open(path) as fh:
         for line in fh:
@@ -510,4 +508,4 @@ def load_input(path, *, max_lag=3):
     if ncol == 2:
         mu, var = read_ptc_text(path)
         return Observations.from_ptc(mu, var)
-    raise ValueError(f"{path}: not an a_ij table (4 columns) or a PTC (2 columns)")
+    raise InputError(f"{path}: not an a_ij table (4 columns) or a PTC (2 columns)")

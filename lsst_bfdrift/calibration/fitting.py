@@ -32,12 +32,9 @@ import numpy as np
 from scipy import stats
 
 from lsst_bfdrift.utils.progress import ProgressBar
+from lsst_bfdrift.utils.errors import FitError
 
 __all__ = ["ParameterFit", "fit_parameters", "FitError"]
-
-
-class FitError(ValueError):
-    """The fit is unusable: bad input, or a poor fit when one was refused."""
 
 
 class ParameterFit:

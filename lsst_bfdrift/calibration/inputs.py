@@ -63,6 +63,8 @@ from lsst_bfdrift.calibration.cp_pipe import read_cp_pipe_ptc
 from lsst_bfdrift.calibration.data import (_ADU_UNITS, _ELECTRON_UNITS, INPUT_KINDS,
                                           CalibrationData, _require_levels)
 from lsst_bfdrift.calibration.ptc import pair_covariances, ptc_turnoff, read_ptc_text
+from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
+from lsst_bfdrift.utils.io import hdu_pixels, open_fits
 
 __all__ = ["detect_input_kind", "read_calibration_input", "read_flat_pairs", "read_ptc_file",
            "read_amatrix_file"]
@@ -93,7 +95,7 @@ def _first_data_row(path):
                     continue  # a header line
                 return first, len(parts)
     except UnicodeDecodeError:
-        raise ValueError(f"{path}: neither FITS nor text; accepted inputs are FITS flats, a "
+        raise InputError(f"{path}: neither FITS nor text; accepted inputs are FITS flats, a "
                          "cp_pipe PTC dataset FITS, a PTC text file (mean, variance) or an "
                          "a-matrix table (text 'i j value sigma' or ECSV)") from None
     return first, 0
@@ -118,21 +120,21 @@ def detect_input_kind(path):
     """
     path = os.fspath(path)
     if not os.path.exists(path):
-        raise FileNotFoundError(f"{path}: no such file")
+        raise InputNotFoundError(f"{path}: no such file")
     if os.path.isdir(path):
-        raise ValueError(f"{path}: is a directory; give the files themselves (e.g. "
+        raise InputError(f"{path}: is a directory; give the files themselves (e.g. "
                          f"{os.path.join(path, '*.fits')})")
     if _is_fits(path):
         from astropy.io import fits
 
-        with fits.open(path, memmap=False) as hdul:
+        with open_fits(path) as hdul:
             image = any(h.is_image and h.header.get("NAXIS", 0) == 2 for h in hdul)
             table = any(isinstance(h, fits.BinTableHDU) for h in hdul)
         if image:
             return "flats"
         if table:
             return "cp_pipe"
-        raise ValueError(f"{path}: FITS file with neither a 2-d image HDU (a flat) nor a binary "
+        raise InputError(f"{path}: FITS file with neither a 2-d image HDU (a flat) nor a binary "
                          "table (a cp_pipe PTC dataset); one of those is accepted")
     first, ncol = _first_data_row(path)
     if first is not None and first.startswith("# %ECSV"):
@@ -141,7 +143,7 @@ def detect_input_kind(path):
         return "ptc"
     if ncol == 4:
         return "amatrix"
-    raise ValueError(f"{path}: text file with {ncol} numeric columns; accepted are 2 columns "
+    raise InputError(f"{path}: text file with {ncol} numeric columns; accepted are 2 columns "
                      "(a PTC: mean ADU, variance ADU^2) or 4 columns (an a-matrix: i j value "
                      "sigma), or an ECSV table (# %ECSV) with columns i, j, a, a_err")
 
@@ -189,28 +191,28 @@ def read_calibration_input(paths, *, max_lag=8, amp=None, exptime_rtol=1e-3, tur
         paths = [paths]
     paths = [os.fspath(p) for p in paths]
     if not paths:
-        raise ValueError("no input files given; accepted: FITS flats, a PTC text file, an "
+        raise InputError("no input files given; accepted: FITS flats, a PTC text file, an "
                          "a-matrix table or a cp_pipe PTC dataset FITS")
     if len(set(paths)) != len(paths):
         dup = sorted({p for p in paths if paths.count(p) > 1})
-        raise ValueError(f"{dup[0]}: given more than once; each file may appear once")
+        raise InputError(f"{dup[0]}: given more than once; each file may appear once")
     kinds = {p: detect_input_kind(p) for p in paths}
     found = sorted(set(kinds.values()), key=INPUT_KINDS.index)
     if len(found) > 1:
         listing = "; ".join(f"{p}: {k}" for p, k in kinds.items())
-        raise ValueError(f"inputs of different kinds in one call ({', '.join(found)}): "
+        raise InputError(f"inputs of different kinds in one call ({', '.join(found)}): "
                          f"{listing}; give files of one kind only (flats, ptc, amatrix or "
                          "cp_pipe)")
     kind = found[0]
     if amp is not None and kind != "cp_pipe":
-        raise ValueError(f"{paths[0]}: amp={amp!r} given, but the input is {kind}; amp selects "
+        raise InputError(f"{paths[0]}: amp={amp!r} given, but the input is {kind}; amp selects "
                          "an amplifier of a cp_pipe PTC dataset only")
     if kind == "flats":
         return read_flat_pairs(paths, max_lag=max_lag, exptime_rtol=exptime_rtol,
                                turnoff_drop=turnoff_drop, min_levels=min_levels,
                                drop_single=drop_single, nsig=nsig, min_pixels=min_pixels)
     if len(paths) > 1:
-        raise ValueError(f"{paths[1]}: only one {kind} file can be read at a time, got "
+        raise InputError(f"{paths[1]}: only one {kind} file can be read at a time, got "
                          f"{len(paths)} ({', '.join(paths)})")
     if kind == "ptc":
         return read_ptc_file(paths[0], turnoff_drop=turnoff_drop, min_levels=min_levels)
@@ -230,13 +232,11 @@ def _header_value(headers, key):
 
 def _flat_header(path):
     """Header facts of one flat FITS (no pixel data read)."""
-    from astropy.io import fits
-
-    with fits.open(path, memmap=False) as hdul:
+    with open_fits(path) as hdul:
         image = next((k for k, h in enumerate(hdul) if h.is_image and h.header.get("NAXIS") == 2
                       and str(h.header.get("EXTNAME", "")).upper() != "MASK"), None)
         if image is None:
-            raise ValueError(f"{path}: no 2-d image HDU (other than MASK); a flat needs one")
+            raise InputError(f"{path}: no 2-d image HDU (other than MASK); a flat needs one")
         hdr = hdul[image].header
         headers = [hdr, hdul[0].header]
         shape = (int(hdr["NAXIS2"]), int(hdr["NAXIS1"]))
@@ -246,30 +246,30 @@ def _flat_header(path):
             mh = hdul[mask].header
             mshape = (mh.get("NAXIS2"), mh.get("NAXIS1")) if mh.get("NAXIS") == 2 else None
             if not hdul[mask].is_image or mshape != shape:
-                raise ValueError(f"{path}: MASK HDU has shape {mshape}, the image {shape}; the "
+                raise InputError(f"{path}: MASK HDU has shape {mshape}, the image {shape}; the "
                                  "mask must be a 2-d image of the image's shape (non-zero = bad)")
         exptime = _header_value(headers, "EXPTIME")
         gain = _header_value(headers, "GAIN")
         bunit = _header_value(headers, "BUNIT")
     if exptime is None:
-        raise ValueError(f"{path}: no EXPTIME keyword; a flat needs its exposure time (s) as "
+        raise InputError(f"{path}: no EXPTIME keyword; a flat needs its exposure time (s) as "
                          "EXPTIME in the image HDU's header or the primary header")
     try:
         exptime = float(exptime)
     except (TypeError, ValueError):
-        raise ValueError(f"{path}: EXPTIME = {exptime!r} is not a number; accepted: the exposure "
+        raise InputError(f"{path}: EXPTIME = {exptime!r} is not a number; accepted: the exposure "
                          "time in seconds") from None
     if not math.isfinite(exptime):
-        raise ValueError(f"{path}: EXPTIME = {exptime} is not finite; accepted: the exposure "
+        raise InputError(f"{path}: EXPTIME = {exptime} is not finite; accepted: the exposure "
                          "time in seconds")
     if gain is not None:
         try:
             gain = float(gain)
         except (TypeError, ValueError):
-            raise ValueError(f"{path}: GAIN = {gain!r} is not a number; accepted: a positive "
+            raise InputError(f"{path}: GAIN = {gain!r} is not a number; accepted: a positive "
                              "gain in e/ADU") from None
         if not (math.isfinite(gain) and gain > 0):
-            raise ValueError(f"{path}: GAIN = {gain} is not positive; accepted: a positive gain "
+            raise InputError(f"{path}: GAIN = {gain} is not positive; accepted: a positive gain "
                              "in e/ADU")
     units = "adu"
     if bunit is not None:
@@ -277,7 +277,7 @@ def _flat_header(path):
         if b in _ELECTRON_UNITS:
             units = "electron"
         elif b not in _ADU_UNITS:
-            raise ValueError(f"{path}: BUNIT = {bunit!r} not understood; accepted: 'adu' (or "
+            raise InputError(f"{path}: BUNIT = {bunit!r} not understood; accepted: 'adu' (or "
                              "'count', 'DN') or 'electron' (or 'e-')")
     return {"path": path, "hdu": image, "mask_hdu": mask, "shape": shape, "exptime": exptime,
             "gain": gain, "units": units, "bunit": bunit}
@@ -285,12 +285,10 @@ def _flat_header(path):
 
 def _flat_pixels(info):
     """(image, bad-pixel mask, pixels masked by MASK, non-finite pixels)."""
-    from astropy.io import fits
-
-    with fits.open(info["path"], memmap=False) as hdul:
-        data = np.array(hdul[info["hdu"]].data, dtype=np.float64)
+    with open_fits(info["path"]) as hdul:
+        data = hdu_pixels(hdul[info["hdu"]], info["path"])
         given = (np.zeros(data.shape, bool) if info["mask_hdu"] is None
-                 else np.asarray(hdul[info["mask_hdu"]].data) != 0)
+                 else hdu_pixels(hdul[info["mask_hdu"]], info["path"]) != 0)
     nonfinite = ~np.isfinite(data)
     return data, given | nonfinite, int(given.sum()), int((nonfinite & ~given).sum())
 
@@ -328,22 +326,22 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
     paths = [os.fspath(p) for p in paths]
     if len(paths) < 2:
         name = paths[0] if paths else "(no file)"
-        raise ValueError(f"{name}: only one flat given; a photon transfer curve needs pairs of "
+        raise InputError(f"{name}: only one flat given; a photon transfer curve needs pairs of "
                          f"flats (two FITS files with equal EXPTIME) at >= {min_levels} "
                          "exposure levels")
     infos = [_flat_header(p) for p in paths]
     first = infos[0]
     for info in infos[1:]:
         if info["shape"] != first["shape"]:
-            raise ValueError(f"{info['path']}: image shape {info['shape']} differs from "
+            raise InputError(f"{info['path']}: image shape {info['shape']} differs from "
                              f"{first['path']} {first['shape']}; all flats must have one shape "
                              "(the same amplifier or sensor region)")
         if info["units"] != first["units"]:
-            raise ValueError(f"{info['path']}: BUNIT {info['bunit']!r} differs from "
+            raise InputError(f"{info['path']}: BUNIT {info['bunit']!r} differs from "
                              f"{first['path']} {first['bunit']!r}; all flats must be in one unit")
         g0, g1 = first["gain"], info["gain"]
         if (g0 is None) != (g1 is None) or (g0 is not None and abs(g1 - g0) > 1e-6 * g0):
-            raise ValueError(f"{info['path']}: GAIN = {g1} differs from {first['path']} "
+            raise InputError(f"{info['path']}: GAIN = {g1} differs from {first['path']} "
                              f"GAIN = {g0}; all flats must share one gain (or none)")
     notes, dropped = [], []
     for info in infos:
@@ -370,7 +368,7 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
             msg = (f"{only['path']}: the only flat at EXPTIME = {only['exptime']:g} s{hint}; "
                    "each level needs a pair of flats with equal EXPTIME")
             if not drop_single:
-                raise ValueError(msg + " (add its partner, or pass drop_single=True to drop it)")
+                raise InputError(msg + " (add its partner, or pass drop_single=True to drop it)")
             dropped.append({"files": [only["path"]], "exptime": only["exptime"],
                             "reason": "the only flat at its EXPTIME (no partner)"})
             continue
@@ -392,7 +390,7 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
             pc = pair_covariances(d1, d2, max_lag=max_lag, mask=m1 | m2, nsig=nsig,
                                   min_pixels=min_pixels)
         except ValueError as err:
-            raise ValueError(f"flat pair {f1['path']}, {f2['path']}: {err}") from None
+            raise InputError(f"flat pair {f1['path']}, {f2['path']}: {err}") from None
         del d1, d2
         rows.append({"files": [f1["path"], f2["path"]],
                      "exptime": 0.5 * (f1["exptime"] + f2["exptime"]), "mu": pc.mu,
@@ -458,12 +456,12 @@ def read_ptc_file(path, *, turnoff_drop=0.05, min_levels=3):
         mu, var = read_ptc_text(path)
     except ValueError as err:
         msg = str(err)
-        raise ValueError(msg if msg.startswith(path) else f"{path}: {msg}; accepted: lines of "
+        raise InputError(msg if msg.startswith(path) else f"{path}: {msg}; accepted: lines of "
                          "two numbers (mean ADU, variance ADU^2), '#' comments") from None
     bad = ~(np.isfinite(mu) & np.isfinite(var) & (mu > 0) & (var > 0))
     if bad.any():
         k = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"{path}: {int(bad.sum())} PTC point(s) not finite and positive, e.g. "
+        raise InputError(f"{path}: {int(bad.sum())} PTC point(s) not finite and positive, e.g. "
                          f"mean {mu[k]!r}, variance {var[k]!r}; accepted: positive means (ADU) "
                          "and variances (ADU^2)")
     turnoff = ptc_turnoff(mu, var, drop=turnoff_drop)
@@ -491,27 +489,27 @@ def _ecsv_rows(path):
     try:
         t = Table.read(path, format="ascii.ecsv")
     except Exception as err:  # noqa: BLE001 - any parse failure is a bad file
-        raise ValueError(f"{path}: not a readable ECSV table ({err}); accepted: ECSV with "
+        raise InputError(f"{path}: not a readable ECSV table ({err}); accepted: ECSV with "
                          "columns i, j, a, a_err") from None
     missing = [c for c in ("i", "j", "a", "a_err") if c not in t.colnames]
     if missing:
-        raise ValueError(f"{path}: ECSV table lacks column(s) {missing} (found {t.colnames}); "
+        raise InputError(f"{path}: ECSV table lacks column(s) {missing} (found {t.colnames}); "
                          "accepted: columns i (serial lag), j (parallel lag), a, a_err "
                          "(per electron)")
     out = []
     for c in ("i", "j", "a", "a_err"):
         col = t[c]
         if getattr(col, "mask", None) is not None and np.any(col.mask):
-            raise ValueError(f"{path}: column {c} has missing values; every row needs i, j, a, "
+            raise InputError(f"{path}: column {c} has missing values; every row needs i, j, a, "
                              "a_err")
         if col.dtype.kind not in "biuf":
-            raise ValueError(f"{path}: column {c} is not numeric (dtype {col.dtype}); accepted: "
+            raise InputError(f"{path}: column {c} is not numeric (dtype {col.dtype}); accepted: "
                              "integer lags i, j and float a, a_err")
         if c in ("a", "a_err") and col.unit is not None:
             try:
                 vals = (np.asarray(col, float) * col.unit).to_value(1 / u.electron)
             except u.UnitConversionError:
-                raise ValueError(f"{path}: column {c} has unit {col.unit}; accepted: per "
+                raise InputError(f"{path}: column {c} has unit {col.unit}; accepted: per "
                                  "electron (1 / electron) or no unit") from None
         else:
             vals = np.asarray(col, float)

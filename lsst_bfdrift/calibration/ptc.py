@@ -19,14 +19,126 @@ Conventions
   + 1/6 (2 a*a*a + 5 a*ab)(mu g)^3] + n / g^2.
 """
 
+import warnings
+
 import numpy as np
 from astropy.table import Table
 from scipy import fft as sp_fft
 from scipy.optimize import least_squares
 from scipy.signal import convolve2d
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["PairCovariance", "pair_covariances", "measure_ptc", "ptc_exponential_model",
-           "fit_ptc_exponential", "ptc_turnoff", "covariance_model", "fit_covariance_model", "read_ptc_text"]
+           "fit_ptc_exponential", "ptc_turnoff", "covariance_model", "fit_covariance_model",
+           "read_ptc_text", "read_flat_pair", "count_levels", "MIN_LEVELS", "SIGNAL_RANGE"]
+
+#: Fewest distinct signal levels of any PTC fit.
+MIN_LEVELS = 3
+
+#: Signals (ADU or e) a PTC point may have: beyond, the fit's arithmetic fails
+#: (LAPACK's SVD at ~1e-300, overflow at ~1e150) long before any real sensor.
+SIGNAL_RANGE = (1e-6, 1e8)
+
+
+def count_levels(mu, rtol=1e-3):
+    """Number of distinct signal levels in ``mu`` (closer than ``rtol`` relative: one).
+
+    Parameters
+    ----------
+    mu : array_like
+        Signals (finite).
+    rtol : float, optional
+
+    Returns
+    -------
+    int
+    """
+    m = np.sort(np.asarray(mu, dtype=float))
+    if m.size == 0:
+        return 0
+    return 1 + int(np.sum(np.diff(m) > rtol * np.abs(m[1:])))
+
+
+def _check_points(m, v):
+    """Refuse PTC points no fit can use: out of range, fewer than MIN_LEVELS levels."""
+    lo, hi = SIGNAL_RANGE
+    if m.min() < lo or m.max() > hi or v.max() > hi**2 or v.min() < lo**2:
+        raise InputError(f"PTC signals {m.min():.3g}..{m.max():.3g} or variances "
+                         f"{v.min():.3g}..{v.max():.3g} outside the accepted range (signals "
+                         f"{lo:g}..{hi:g} ADU or e, variances {lo**2:g}..{hi**2:g})")
+    n = count_levels(m)
+    if n < MIN_LEVELS:
+        raise InputError(f"PTC points span {n} distinct signal level(s) (identical points or all "
+                         f"pairs at one level); accepted: at least {MIN_LEVELS} levels, "
+                         "differing by more than 0.1 %")
+
+
+def _fit(resid, start, **kwargs):
+    """least_squares with the package's error when the arithmetic fails."""
+    from lsst_bfdrift.utils.errors import FitError
+    try:
+        with np.errstate(all="ignore"):
+            return least_squares(resid, start, **kwargs)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        raise FitError(f"PTC fit failed on these points ({exc}); check the signals and "
+                       "variances (ADU, ADU^2)") from exc
+
+
+def _exptime(path):
+    from lsst_bfdrift.utils.io import open_fits
+    with open_fits(path) as hdul:
+        for h in hdul:
+            if "EXPTIME" in h.header:
+                try:
+                    return float(h.header["EXPTIME"])
+                except (TypeError, ValueError):
+                    raise InputError(f"{path}: EXPTIME = {h.header['EXPTIME']!r} is not a "
+                                     "number; accepted: the exposure time in seconds") from None
+    return None
+
+
+def read_flat_pair(f1, f2, *, exptime_rtol=1e-3):
+    """The two images of a flat pair, checked as a lab would.
+
+    Parameters
+    ----------
+    f1, f2 : str, path-like or ndarray
+        FITS files (first 2-d image HDU) or arrays.
+    exptime_rtol : float, optional
+        Largest relative difference of the two ``EXPTIME`` keywords (files).
+
+    Returns
+    -------
+    img1, img2 : ndarray
+
+    Raises
+    ------
+    InputError
+        The two have different shapes, different ``EXPTIME`` (beyond
+        ``exptime_rtol``), or only one has ``EXPTIME``; the message names
+        both files.
+    """
+    from lsst_bfdrift.utils.io import read_image
+
+    def is_path(f):
+        return isinstance(f, (str, bytes)) or hasattr(f, "__fspath__")
+
+    imgs = [read_image(f)[0] if is_path(f) else f for f in (f1, f2)]
+    name = [str(f) if is_path(f) else "array" for f in (f1, f2)]
+    s1, s2 = np.shape(imgs[0]), np.shape(imgs[1])
+    if s1 != s2:
+        raise InputError(f"flat pair {name[0]} and {name[1]}: shapes {s1} and {s2} differ; "
+                         "accepted: two flats of one size")
+    if is_path(f1) and is_path(f2):
+        t1, t2 = _exptime(f1), _exptime(f2)
+        if (t1 is None) != (t2 is None):
+            raise InputError(f"flat pair {name[0]} and {name[1]}: EXPTIME given in only one "
+                             "of them; accepted: both or neither")
+        if t1 is not None and not abs(t1 - t2) <= exptime_rtol * max(abs(t1), abs(t2)):
+            raise InputError(f"flat pair {name[0]} and {name[1]}: EXPTIME {t1} and {t2} differ "
+                             f"by more than {exptime_rtol:g} relative; accepted: the two flats "
+                             "of a pair have the same exposure time")
+    return imgs[0], imgs[1]
 
 
 class PairCovariance:
@@ -103,27 +215,27 @@ def pair_covariances(flat1, flat2, *, max_lag=8, mask=None, nsig=5.0, min_pixels
     a = np.array(flat1, dtype=np.float64)
     b = np.array(flat2, dtype=np.float64)
     if a.ndim != 2 or a.shape != b.shape:
-        raise ValueError(f"flats must be 2-d images of equal shape, got {a.shape} and {b.shape}")
+        raise InputError(f"flats must be 2-d images of equal shape, got {a.shape} and {b.shape}")
     if int(max_lag) != max_lag or max_lag < 0:
-        raise ValueError(f"max_lag must be a non-negative integer, got {max_lag!r}")
+        raise InputError(f"max_lag must be a non-negative integer, got {max_lag!r}")
     max_lag = int(max_lag)
     if max_lag >= min(a.shape):
-        raise ValueError(f"max_lag {max_lag} too large for image shape {a.shape}")
+        raise InputError(f"max_lag {max_lag} too large for image shape {a.shape}")
     bad = ~np.isfinite(a) | ~np.isfinite(b)
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != a.shape:
-            raise ValueError(f"mask shape {mask.shape} does not match flats {a.shape}")
+            raise InputError(f"mask shape {mask.shape} does not match flats {a.shape}")
         bad |= mask
     if (~bad).sum() < min_pixels:
-        raise ValueError(f"only {(~bad).sum()} valid pixels, fewer than min_pixels={min_pixels}")
+        raise InputError(f"only {(~bad).sum()} valid pixels, fewer than min_pixels={min_pixels}")
     # Means, difference and clipping, twice: outliers (cosmic rays) must not
     # bias the means that scale the second flat.
     for _ in range(2):
         mu1 = a[~bad].mean()
         mu2 = b[~bad].mean()
         if not (mu1 > 0 and mu2 > 0):
-            raise ValueError(f"flat means must be positive, got {mu1:.4g} and {mu2:.4g} ADU")
+            raise InputError(f"flat means must be positive, got {mu1:.4g} and {mu2:.4g} ADU")
         diff = np.where(bad, 0.0, a - b * (mu1 / mu2))
         bad = _clip_mask(diff, bad, nsig)
     w = (~bad).astype(np.float64)
@@ -134,7 +246,7 @@ def pair_covariances(flat1, flat2, *, max_lag=8, mask=None, nsig=5.0, min_pixels
     fw = sp_fft.rfft2(w, shape)
     npairs = _lagged(np.rint(sp_fft.irfft2(fw * np.conj(fw), shape)), L)
     if npairs.min() < 2 * min_pixels:
-        raise ValueError(f"fewer than min_pixels={min_pixels} pixel pairs at some lag")
+        raise InputError(f"fewer than min_pixels={min_pixels} pixel pairs at some lag")
     cov = 0.5 * _lagged_products(d, shape, L) / npairs  # halved: var(diff) = 2 var(flat)
     stat = None
     if static:
@@ -177,18 +289,13 @@ def measure_ptc(pairs, *, max_lag=8, masks=None, **kwargs):
         Columns ``mu`` (ADU), ``cov`` (ADU^2, shape (L+1, L+1) per row),
         ``npix``, ``nmasked``.
     """
-    from lsst_bfdrift.utils.io import read_image
-
     rows = []
     for k, (f1, f2) in enumerate(pairs):
-        if isinstance(f1, (str, bytes)) or hasattr(f1, "__fspath__"):
-            f1 = read_image(f1)[0]
-        if isinstance(f2, (str, bytes)) or hasattr(f2, "__fspath__"):
-            f2 = read_image(f2)[0]
+        f1, f2 = read_flat_pair(f1, f2)
         m = None if masks is None else masks[k]
         rows.append(pair_covariances(f1, f2, max_lag=max_lag, mask=m, **kwargs))
     if not rows:
-        raise ValueError("no flat pairs given")
+        raise InputError("no flat pairs given")
     rows.sort(key=lambda r: r.mu)
     t = Table()
     t["mu"] = np.array([r.mu for r in rows])
@@ -274,21 +381,22 @@ def fit_ptc_exponential(mu, var, *, sigma=None, mu_max="auto", p0=None):
     mu = np.asarray(mu, dtype=float)
     var = np.asarray(var, dtype=float)
     if mu.shape != var.shape or mu.ndim != 1:
-        raise ValueError("mu and var must be 1-d arrays of equal length")
+        raise InputError("mu and var must be 1-d arrays of equal length")
     good = np.isfinite(mu) & np.isfinite(var) & (mu > 0) & (var > 0)
     if isinstance(mu_max, str):
         if mu_max != "auto":
-            raise ValueError(f"mu_max must be a number, 'auto' or None, got {mu_max!r}")
+            raise InputError(f"mu_max must be a number, 'auto' or None, got {mu_max!r}")
         mu_max = ptc_turnoff(mu[good], var[good])
     if mu_max is not None:
         good &= mu <= mu_max
     if good.sum() < 4:
-        raise ValueError(f"need at least 4 valid PTC points, got {int(good.sum())}")
+        raise InputError(f"need at least 4 valid PTC points, got {int(good.sum())}")
     order = np.argsort(mu[good])
     m, v = mu[good][order], var[good][order]
+    _check_points(m, v)
     s = v if sigma is None else np.asarray(sigma, float)[good][order]
     if np.any(~(s > 0)):
-        raise ValueError("sigma must be positive")
+        raise InputError("sigma must be positive")
     if p0 is None:
         # straight line var = mu / g + n / g^2 through the lowest third
         k = max(3, len(m) // 3)
@@ -301,7 +409,7 @@ def fit_ptc_exponential(mu, var, *, sigma=None, mu_max="auto", p0=None):
     def resid(p):
         return (ptc_exponential_model(m, *p) - v) / s
 
-    res = least_squares(resid, start, x_scale=(0.1, 1e-6, 10.0), method="lm")
+    res = _fit(resid, start, x_scale=(0.1, 1e-6, 10.0), method="lm")
     out = _fit_result(res, ("gain", "a00", "noise"), len(m), known_sigma=sigma is not None)
     out["npoints"] = int(len(m))
     out["mu_max"] = float(m.max())
@@ -391,7 +499,7 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
     mu = np.asarray(mu, dtype=float)
     cov = np.asarray(cov, dtype=float)
     if cov.ndim != 3 or cov.shape[0] != mu.size or cov.shape[1] != cov.shape[2]:
-        raise ValueError(f"cov must have shape (n, L+1, L+1) with n = len(mu), got {cov.shape}")
+        raise InputError(f"cov must have shape (n, L+1, L+1) with n = len(mu), got {cov.shape}")
     L = cov.shape[1] - 1 if max_lag is None else int(max_lag)
     cov = cov[:, :L + 1, :L + 1]
     good = np.isfinite(mu) & np.all(np.isfinite(cov), axis=(1, 2))
@@ -399,7 +507,7 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
         good &= mu <= mu_max
     m, c = mu[good], cov[good]
     if m.size < 5:
-        raise ValueError(f"need at least 5 signal levels, got {m.size}")
+        raise InputError(f"need at least 5 signal levels, got {m.size}")
     known = sigma is not None or npix is not None
     if sigma is not None:
         s = np.asarray(sigma, float)[good][:, :L + 1, :L + 1]
@@ -410,11 +518,11 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
     else:
         s = np.broadcast_to(c[:, 0, 0][:, None, None], c.shape).copy()
     if np.any(~(s > 0)):
-        raise ValueError("covariance errors must be positive")
+        raise InputError("covariance errors must be positive")
     exp = fit_ptc_exponential(m, c[:, 0, 0], mu_max=None)
     g0 = exp["gain"] if gain is None else float(gain)
     if gain is not None and not (np.isfinite(g0) and g0 > 0):
-        raise ValueError(f"gain must be positive, got {gain!r}")
+        raise InputError(f"gain must be positive, got {gain!r}")
     n1 = (L + 1) ** 2
     # start: a_ij from the slope of C_ij / (mu/g) against mu g
     a0 = np.zeros((L + 1, L + 1))
@@ -445,7 +553,7 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
         return ((covariance_model(m, g, a, b, nz) - c) / s).ravel()
 
     scale = np.concatenate([[0.1], np.full(n1, 1e-7), np.full(n1, 1e-8), np.full(n1, 10.0)])
-    res = least_squares(resid, full0[free], x_scale=scale[free], method="trf")
+    res = _fit(resid, full0[free], x_scale=scale[free], method="trf")
     names = np.array(["gain"] + [f"a{i}" for i in range(n1)] + [f"b{i}" for i in range(n1)]
                      + [f"n{i}" for i in range(n1)])[free].tolist()
     stats = _fit_result(res, names, c.size, known_sigma=known)
@@ -463,8 +571,18 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
 
 def read_ptc_text(path):
     """Read a two-column PTC text file (mean ADU, variance ADU^2; '#' comments)."""
-    data = np.loadtxt(path, comments="#", ndmin=2)
+    from lsst_bfdrift.utils.errors import InputFileError
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
+            data = np.loadtxt(path, comments="#", ndmin=2)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise InputFileError(f"cannot read PTC text ({exc}); accepted: two numeric columns "
+                             "(mean ADU, variance ADU^2), '#' comments", path) from exc
+    if data.shape[0] == 0:
+        raise InputFileError("no PTC rows; accepted: two numeric columns (mean ADU, "
+                             "variance ADU^2)", path)
     if data.shape[1] < 2:
-        raise ValueError(f"{path}: expected two columns (mean, variance)")
+        raise InputError(f"{path}: expected two columns (mean, variance)")
     order = np.argsort(data[:, 0])
     return data[order, 0], data[order, 1]

@@ -16,6 +16,7 @@ import numpy as np
 
 from lsst_bfdrift.calibration.fitting import fit_parameters
 from lsst_bfdrift.templates.template import TemplateSettings, build_template
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["CalibrationResult", "template_numbers", "fit_sensor_parameters"]
 
@@ -108,17 +109,17 @@ def fit_sensor_parameters(targets, params0, free, *, settings=CALIBRATION_SETTIN
     CalibrationResult
     """
     if not targets:
-        raise ValueError("no targets given")
+        raise InputError("no targets given")
     for k, (v, s) in targets.items():
         if not (math.isfinite(v) and s > 0):
-            raise ValueError(f"target {k!r} needs a finite value and a positive sigma")
+            raise InputError(f"target {k!r} needs a finite value and a positive sigma")
     names = list(free)
     if not names:
-        raise ValueError("no free parameters given")
+        raise InputError("no free parameters given")
     for n in names:
         lo, hi = free[n]
         if not lo < getattr(params0, n) < hi:
-            raise ValueError(f"start value of {n!r} ({getattr(params0, n)}) is outside "
+            raise InputError(f"start value of {n!r} ({getattr(params0, n)}) is outside "
                              f"its bounds {free[n]}")
     logp = [n for n in names if free[n][0] > 0] if log_params is None else list(log_params)
 

@@ -60,6 +60,7 @@ import time
 import numpy as np
 from scipy import stats
 
+from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.calibration.catalog import FLAG_NAMES, detect_stars, load_electrons, measure_stars
 from lsst_bfdrift.calibration.star_slopes import FLUX_UNIT, select_stars, shape_flux_relations
 from lsst_bfdrift.calibration.tuning import CalibrationError, _select
@@ -111,7 +112,7 @@ def _delta(t1, t0):
     """Displacement difference t1 - t0 of two templates of the same grid."""
     if t1.size != t0.size or t1.fractions.size != t0.fractions.size \
             or not np.isclose(t1.charge, t0.charge):
-        raise ValueError("templates differ in size, edge samples or charge")
+        raise InputError("templates differ in size, edge samples or charge")
     out = {}
     for name in ("corner_d", "vedge_d", "hedge_d", "vedge_t", "hedge_t"):
         a, b = getattr(t1, name), getattr(t0, name)
@@ -336,7 +337,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         for k, f in enumerate(fields):
             f.name = f"{f.name}#{k}"
     if holdout not in ("auto", "split", "last"):
-        raise ValueError(f"holdout must be 'auto', 'split' or 'last', got {holdout!r}")
+        raise InputError(f"holdout must be 'auto', 'split' or 'last', got {holdout!r}")
     mode = ("last" if len(fields) > 1 else "split") if holdout == "auto" else holdout
     if mode == "last" and len(fields) < 2:
         raise CalibrationError("holdout='last' needs two or more star fields")

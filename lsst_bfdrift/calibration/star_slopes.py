@@ -35,6 +35,7 @@ after.
 
 import numpy as np
 
+from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.calibration.catalog import FLAG_NAMES
 
 __all__ = ["FLUX_UNIT", "fit_flux_slope", "select_stars", "shape_flux_relations"]
@@ -149,9 +150,9 @@ def fit_flux_slope(x, y, regressor, q, snr, *, poly_order=2, noise_term=True,
     x, y, g, q, snr = x[ok], y[ok], g[ok], q[ok], snr[ok]
     n = x.size
     if n < 6:
-        raise ValueError(f"only {n} usable stars; need at least 6 to fit a size-flux slope")
+        raise InputError(f"only {n} usable stars; need at least 6 to fit a size-flux slope")
     if np.ptp(g) == 0:
-        raise ValueError("all stars have the same flux: no slope can be fitted")
+        raise InputError("all stars have the same flux: no slope can be fitted")
     if frame is None:
         frame = (0.5 * (x.min() + x.max()), 0.5 * (y.min() + y.max()),
                  max(0.5 * np.ptp(x), 1.0), max(0.5 * np.ptp(y), 1.0))
@@ -160,7 +161,7 @@ def fit_flux_slope(x, y, regressor, q, snr, *, poly_order=2, noise_term=True,
         order -= 1
     a, names = _design(x, y, order, g, snr, noise_term, frame)
     if a.shape[1] + 2 > n:
-        raise ValueError(f"only {n} usable stars for {a.shape[1]} parameters")
+        raise InputError(f"only {n} usable stars for {a.shape[1]} parameters")
     coef, cov, alpha_fit, tau, hw, chi2 = _robust_fit(a, q, snr, huber)
     k = names.index("slope")
     err_formal = float(np.sqrt(cov[k, k]))
@@ -230,13 +231,13 @@ def shape_flux_relations(catalog, *, min_snr=30.0, poly_order=2, noise_term=True
     """
     n_all = len(catalog)
     if n_all == 0:
-        raise ValueError("the catalogue is empty: no stars detected")
+        raise InputError("the catalogue is empty: no stars detected")
     ok = select_stars(catalog, min_snr)
     if ok.sum() < 6:
         flags = np.asarray(catalog["flags"])
         why = ", ".join(f"{int(np.sum((flags & b) != 0))} {n[5:]}" for b, n in FLAG_NAMES.items()
                         if np.any(flags & b))
-        raise ValueError(f"only {int(ok.sum())} of {n_all} detections are usable stars with "
+        raise InputError(f"only {int(ok.sum())} of {n_all} detections are usable stars with "
                          f"SNR >= {min_snr:g} (flagged: {why or 'none'}); need at least 6")
     x = catalog["x"].value[ok]
     y = catalog["y"].value[ok]

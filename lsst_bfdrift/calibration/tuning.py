@@ -50,6 +50,7 @@ from lsst_bfdrift.templates.refine import match_area_coefficients, template_alph
 from lsst_bfdrift.templates.template import (TemplateSettings, build_template,
                                              load_default_template)
 from lsst_bfdrift.utils.progress import ProgressBar
+from lsst_bfdrift.utils.errors import InputTypeError
 
 __all__ = ["CANDIDATES", "CalibrationError", "CalibrationResult", "calibrate",
            "default_start", "model_acoeffs", "measured_acoeffs", "refinement_target"]
@@ -319,7 +320,7 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
         fit (the message names the worst lags) without ``allow_poor_fit``.
     """
     if not isinstance(table, AcoeffTable):
-        raise TypeError("calibrate needs an AcoeffTable (see "
+        raise InputTypeError("calibrate needs an AcoeffTable (see "
                         "lsst_bfdrift.calibration.inputs.read_calibration_input), got "
                         f"{type(table).__name__}")
     t0 = time.perf_counter()

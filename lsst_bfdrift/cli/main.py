@@ -12,7 +12,7 @@ Subcommands
     Distorted boundaries (exaggerated) and the area map.
 ``bfdrift template import-galsim NAME --out FILE``
     Convert a GalSim sensor file (e.g. lsst_itl_50_8) to a template file.
-``bfdrift ptc FILES... [--max-lag L] [--json]``
+``bfdrift ptc FILES...|DIR [--max-lag L] [--json]``
     Photon transfer analysis (Astier et al. 2019): either one two-column text
     file (mean ADU, variance ADU^2; exponential C00 fit: gain, a00) or an even
     number of FITS flats taken as consecutive pairs (covariances by FFT, full
@@ -67,10 +67,15 @@ import sys
 import numpy as np
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
-from lsst_bfdrift.utils.io import atomic_output, data_path, read_image
+from lsst_bfdrift.utils.io import (atomic_output, check_output, data_files, data_path,
+                                   read_image)
 from lsst_bfdrift.simulation.stars import make_psf
+from lsst_bfdrift.utils.errors import (BfdriftError, ComputationError, FitError, InputError,
+                                       InputNotFoundError,
+                                       InputFileError, InputKeyError, OutputExistsError)
 
-__all__ = ["main", "read_config", "sample_image_path", "make_psf", "read_image"]
+__all__ = ["main", "exit_code", "EXIT_OK", "EXIT_OTHER", "EXIT_INPUT", "EXIT_EXISTS",
+           "EXIT_FIT", "read_config", "sample_image_path", "make_psf", "read_image"]
 
 
 def read_config(path):
@@ -95,13 +100,13 @@ def read_config(path):
         else:
             data = json.loads(raw.decode())
     except Exception as exc:
-        raise ValueError(f"{path}: cannot parse configuration ({exc})") from exc
+        raise InputFileError(f"{path}: cannot parse configuration ({exc})", path) from exc
     if not isinstance(data, dict):
-        raise ValueError(f"{path}: configuration must be a table/object")
+        raise InputFileError(f"{path}: configuration must be a table/object", path)
     # 'provenance' is free-form documentation (e.g. the default's calibration)
     unknown = sorted(set(data) - {"sensor", "template", "provenance"})
     if unknown:
-        raise KeyError(f"{path}: unknown configuration section(s) {unknown}; "
+        raise InputKeyError(f"{path}: unknown configuration section(s) {unknown}; "
                        "expected 'sensor' and/or 'template' (and 'provenance')")
     return (SensorParameters.from_dict(data.get("sensor", {})),
             TemplateSettings.from_dict(data.get("template", {})))
@@ -139,13 +144,41 @@ def _cmd_template_build(args):
                                    ("workers", args.workers)) if v is not None}
     if overrides:
         settings = type(settings).from_dict({**settings.to_dict(), **overrides})
-    _refuse_overwrite(args)
+    _check_outputs(args, [args.config], {"--out": args.out})
     return _save_and_report(build_template(params, settings, progress=not args.quiet), args)
 
 
-def _refuse_overwrite(args):
-    if os.path.exists(args.out) and not args.overwrite:
-        raise FileExistsError(f"{args.out} exists (use --overwrite)")
+def _check_outputs(args, inputs, outputs):
+    """The overwrite rule for every output of a command, checked before any work.
+
+    Each output in ``outputs`` (option name -> path or None) goes through
+    :func:`~lsst_bfdrift.utils.io.check_output`: never one of ``inputs``,
+    an existing file only with ``--overwrite``; two options may not name one
+    file.
+
+    Raises
+    ------
+    OutputExistsError
+        An output breaks the rule.
+    """
+    overwrite = bool(getattr(args, "overwrite", False))
+    inputs = [os.fspath(x) for x in inputs if x is not None]
+    seen = {}
+    for option, path in outputs.items():
+        if path is None:
+            continue
+        check_output(path, inputs, overwrite=overwrite, what=option)
+        real = os.path.realpath(path)
+        if real in seen:
+            raise OutputExistsError(f"{option} {path} is also given to {seen[real]}; give "
+                                    "each output its own file")
+        seen[real] = option
+
+
+def _template_input(path):
+    """The template file a command reads (the bundled one when ``path`` is None)."""
+    from lsst_bfdrift.templates.template import default_template_path
+    return default_template_path() if path is None else path
 
 
 def _save_and_report(tpl, args):
@@ -165,6 +198,7 @@ def _cmd_template_summary(args):
 def _cmd_template_plot(args):
     from lsst_bfdrift.templates.plots import plot_template
     from lsst_bfdrift.utils.plotting import save_figure
+    _check_outputs(args, [_template_input(args.file)], {"--out": args.out})
     tpl = _load_template(args.file)
     save_figure(plot_template(tpl, exaggerate=args.exaggerate, half_width=args.half_width),
                 args.out)
@@ -176,13 +210,10 @@ def _cmd_calibrate(args):
     from lsst_bfdrift.calibration.inputs import read_calibration_input
     from lsst_bfdrift.calibration.tuning import calibrate, measured_acoeffs
 
-    if os.path.exists(args.out) and not args.overwrite:
-        raise FileExistsError(f"{args.out} exists (use --overwrite)")
-    if os.path.abspath(args.out) in {os.path.abspath(x) for x in args.input + (args.stars or [])}:
-        raise ValueError(f"--out {args.out} is one of the inputs")
+    _check_outputs(args, args.input + (args.stars or []), {"--out": args.out, "--plot": args.plot})
     for x in args.stars or []:
         if not os.path.isfile(x):
-            raise FileNotFoundError(f"--stars {x}: no such file")
+            raise InputNotFoundError(f"--stars {x}: no such file")
     data = read_calibration_input(args.input, max_lag=args.max_lag)
     table = measured_acoeffs(data)
     res = calibrate(table, free=args.free, refine=not args.no_refine,
@@ -255,7 +286,7 @@ def _cmd_template_export(args):
 
 
 def _cmd_template_import(args):
-    _refuse_overwrite(args)
+    _check_outputs(args, [], {"--out": args.out})
     return _save_and_report(import_galsim_sensor(args.name), args)
 
 
@@ -272,10 +303,12 @@ def _cmd_maps(args):
     from lsst_bfdrift.utils.progress import ProgressBar
     from lsst_bfdrift.geometry.superpose import moment_maps
     path = args.image or sample_image_path()
+    _check_outputs(args, [path, _template_input(args.template)],
+                   {"--out": args.out, "--plot": args.plot})
     image, bad, header = read_image(path)
     if args.gain is not None:
-        if not args.gain > 0:
-            raise ValueError(f"--gain must be positive, got {args.gain}")
+        if not (np.isfinite(args.gain) and args.gain > 0):
+            raise InputError(f"--gain must be a positive finite number (e/ADU), got {args.gain}")
         image = image * args.gain
     tpl = _load_template(args.template)
     with ProgressBar(image.shape[0], "maps", enabled=not args.quiet) as bar:
@@ -310,6 +343,8 @@ def _cmd_maps(args):
 def _cmd_ptc(args):
     from lsst_bfdrift.calibration import ptc
     files = list(args.files)
+    if len(files) == 1 and os.path.isdir(files[0]):  # its FITS flats, never a .tmp-* leftover
+        files = data_files(files[0], (".fits", ".fit", ".fits.gz"))
     if len(files) == 1 and not files[0].lower().endswith((".fits", ".fit", ".fits.gz")):
         mu, var = ptc.read_ptc_text(files[0])
         fit = ptc.fit_ptc_exponential(mu, var)
@@ -321,8 +356,11 @@ def _cmd_ptc(args):
         for k in ("a01", "a10", "a11"):
             out[k] = out[k + "_err"] = None  # a variance-only PTC does not constrain them
     else:
+        if args.max_lag < 1:
+            raise InputError(f"--max-lag must be >= 1 for FITS flats (the model's a01 and a10 "
+                             f"need lag 1), got {args.max_lag}")
         if len(files) < 10 or len(files) % 2:
-            raise ValueError("give one PTC text file or an even number (>= 10) of FITS "
+            raise InputError("give one PTC text file or an even number (>= 10) of FITS "
                              "flats, consecutive files forming pairs")
         table = ptc.measure_ptc(list(zip(files[::2], files[1::2])), max_lag=args.max_lag)
         fit = ptc.fit_covariance_model(table["mu"], table["cov"], npix=table["npix"])
@@ -339,6 +377,8 @@ def _cmd_ptc(args):
 
 def _cmd_flat_sim(args):
     from lsst_bfdrift.simulation.flats import simulate_flats
+    _check_outputs(args, [_template_input(args.template)],
+                   {"--out": args.out, "--plot": args.plot})
     tpl = _load_template(args.template)
     if args.responsivity is not None:
         # same displacements, attributed to the charge giving dlnA00/Q = responsivity
@@ -374,6 +414,8 @@ def _cmd_flat_sim(args):
 
 def _cmd_star_sim(args):
     from lsst_bfdrift.simulation.stars import simulate_star
+    _check_outputs(args, [_template_input(args.template)],
+                   {"--out": args.out, "--plot": args.plot})
     tpl = _load_template(args.template)
     psf = make_psf(args.psf, args.fwhm, e=args.e, beta=args.beta)
     hist, final = simulate_star(tpl, psf, args.flux, stamp_size=args.stamp,
@@ -415,17 +457,17 @@ def _cmd_correct(args):
     if args.gain is not None:
         cfg.gain = args.gain
     cfg.compute_geometry = bool(args.geometry)
+    cfg.validate()  # a bad --gain or --method is a usage error, not one failure per file
     files = list(args.inputs)
     if args.out_dir:
         os.makedirs(args.out_dir, exist_ok=True)
         pairs = output_pairs(files, args.out_dir)
     else:
         if len(files) != 2:
-            raise ValueError("give IN.fits OUT.fits, or several inputs with --out-dir")
+            raise InputError("give IN.fits OUT.fits, or several inputs with --out-dir")
         pairs = [(files[0], files[1])]
-    for src, dst in pairs:
-        if os.path.abspath(src) == os.path.abspath(dst):
-            raise ValueError(f"refusing to overwrite the input {src}")
+    for src, dst in pairs:  # an existing output is one file's failure; an input, a usage error
+        check_output(dst, [s for s, _ in pairs], overwrite=True, what="output")
     results = correct_files(pairs, cfg, scheduler=args.scheduler, overwrite=args.overwrite,
                             n_workers=args.n_workers, processes=args.processes,
                             progress=not args.quiet)
@@ -494,6 +536,9 @@ def _cmd_reproduce(args):
 
 def _cmd_validate_sky(args):
     from lsst_bfdrift.validation.sky import validate_sky
+    _check_outputs(args, [args.image, None if args.galsim_sensor else
+                          _template_input(args.template)],
+                   {"--catalog": args.catalog, "--plot": args.plot})
     if args.galsim_sensor:
         tpl = import_galsim_sensor(args.galsim_sensor)
     else:
@@ -576,6 +621,7 @@ def build_parser():
     pl.add_argument("--out", required=True, help="output PNG")
     pl.add_argument("--exaggerate", type=float, help="displacement factor")
     pl.add_argument("--half-width", type=int, help="pixels shown each side")
+    pl.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     pl.set_defaults(func=_cmd_template_plot)
     ex = tsub.add_parser("export-galsim", help="write GalSim sensor files (.cfg, .dat) that "
                          "galsim.SiliconSensor(name=PREFIX) reads")
@@ -620,12 +666,14 @@ def build_parser():
                          "(default: %(default)s)")
     ca.add_argument("--gain", type=float, help="e/ADU of star fields in ADU without GAIN")
     ca.add_argument("--plot", help="write a PNG: a_ij against lag, pulls, correlations")
-    ca.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    ca.add_argument("--overwrite", action="store_true",
+                    help="replace an existing --out or --plot")
     ca.add_argument("--json", action="store_true")
     ca.add_argument("--quiet", action="store_true", help="no progress bar")
     ca.set_defaults(func=_cmd_calibrate)
     pt = sub.add_parser("ptc", help="photon transfer curve fit (gain, a_ij)")
-    pt.add_argument("files", nargs="+", help="PTC text file, or FITS flats in pairs")
+    pt.add_argument("files", nargs="+", help="PTC text file, or FITS flats in pairs (files, or "
+                    "one directory: its FITS files sorted by name)")
     pt.add_argument("--max-lag", type=int, default=3, help="largest covariance lag")
     pt.add_argument("--json", action="store_true")
     pt.set_defaults(func=_cmd_ptc)
@@ -643,6 +691,7 @@ def build_parser():
     fs.add_argument("--seed", type=int, default=20151)
     fs.add_argument("--out", help="write the per-step table (ECSV)")
     fs.add_argument("--plot", help="write a PNG of covariances against mean")
+    fs.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     fs.add_argument("--json", action="store_true")
     fs.add_argument("--quiet", action="store_true")
     fs.set_defaults(func=_cmd_flat_sim)
@@ -662,6 +711,7 @@ def build_parser():
     ss.add_argument("--seed", type=int, default=20151)
     ss.add_argument("--out", help="write the per-step table (ECSV)")
     ss.add_argument("--plot", help="write a PNG like the paper's Fig. 7")
+    ss.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     ss.add_argument("--json", action="store_true")
     ss.add_argument("--quiet", action="store_true")
     ss.set_defaults(func=_cmd_star_sim)
@@ -723,6 +773,7 @@ def build_parser():
     vk.add_argument("--n-boot", type=int, default=200, help="bootstrap resamples")
     vk.add_argument("--catalog", help="write the (corrected) star catalogue (ECSV)")
     vk.add_argument("--plot", help="write a PNG: size/ellipticity vs flux and whiskers")
+    vk.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     vk.add_argument("--json", action="store_true")
     vk.add_argument("--quiet", action="store_true")
     vk.set_defaults(func=_cmd_validate_sky)
@@ -741,6 +792,7 @@ def build_parser():
     m.add_argument("--gain", type=float, help="e/ADU if the image is in ADU")
     m.add_argument("--out", help="write the maps to this FITS file")
     m.add_argument("--plot", help="write a PNG of the maps")
+    m.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     m.add_argument("--samples", type=int, default=None,
                    help="resample the template's edges to this many samples (faster; 8 "
                         "keeps the maps within ~1e-5 of the full ones); default: all")
@@ -750,16 +802,54 @@ def build_parser():
     return p
 
 
+#: Exit status of ``bfdrift`` for each kind of error (documented in ``docs/cli.rst``):
+#: 0 success; 1 a file-system error (permission, disk full, ...) or files that
+#: failed in ``correct``; 2 usage, a bad argument or a bad input; 3 an output
+#: that exists (without ``--overwrite``) or is one of the inputs; 4 a fit or
+#: computation that failed.
+EXIT_OK, EXIT_OTHER, EXIT_INPUT, EXIT_EXISTS, EXIT_FIT = 0, 1, 2, 3, 4
+
+
+def exit_code(exc):
+    """Exit status of ``bfdrift`` for the exception ``exc`` (see :data:`EXIT_OK`).
+
+    Parameters
+    ----------
+    exc : BfdriftError or OSError
+        The error that ended the command.
+
+    Returns
+    -------
+    code : int
+        2 for :class:`~lsst_bfdrift.utils.errors.InputError` (and an input
+        path that does not exist or is of the wrong kind), 3 for
+        :class:`~lsst_bfdrift.utils.errors.OutputExistsError`, 4 for
+        :class:`~lsst_bfdrift.utils.errors.FitError` and
+        :class:`~lsst_bfdrift.utils.errors.ComputationError`, 1 otherwise.
+    """
+    if isinstance(exc, FileExistsError):
+        return EXIT_EXISTS
+    if isinstance(exc, (FitError, ComputationError)):
+        return EXIT_FIT
+    if isinstance(exc, (InputError, FileNotFoundError, IsADirectoryError, NotADirectoryError)):
+        return EXIT_INPUT
+    return EXIT_OTHER
+
+
 def main(argv=None):
-    """Entry point; returns the exit status (errors: message on stderr, 2)."""
+    """Entry point; returns the exit status (errors: one message on stderr).
+
+    Only the package's errors (:class:`~lsst_bfdrift.utils.errors.BfdriftError`)
+    and ``OSError`` are caught, each mapped to one status by :func:`exit_code`;
+    anything else is a bug and keeps its traceback.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, KeyError, TypeError, OSError, RuntimeError, AttributeError) as exc:
-        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        print(f"bfdrift: error: {msg}", file=sys.stderr)
-        return 2
+    except (BfdriftError, OSError) as exc:
+        print(f"bfdrift: error: {exc}", file=sys.stderr)
+        return exit_code(exc)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -12,6 +12,7 @@ import types
 
 import numba
 import numpy as np
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["fused_transfer", "density_weight", "DENSITY_WEIGHTS"]
 
@@ -133,7 +134,7 @@ def density_weight(density):
     if isinstance(density, (bool, np.bool_)):
         return DENSITY_WEIGHTS["cubic4" if density else "mean2"]
     if density not in DENSITY_WEIGHTS:
-        raise ValueError(f"flux density mode must be one of {sorted(DENSITY_WEIGHTS)}, "
+        raise InputError(f"flux density mode must be one of {sorted(DENSITY_WEIGHTS)}, "
                          f"got {density!r}")
     return DENSITY_WEIGHTS[density]
 
@@ -172,7 +173,7 @@ def fused_transfer(sv, sh, flux, blocked, *, cubic=False, out=None):
     b = np.ascontiguousarray(blocked, dtype=np.bool_)
     ny, nx = f.shape
     if sv.shape != (ny, nx + 1) or sh.shape != (ny + 1, nx) or b.shape != f.shape:
-        raise ValueError(f"shapes do not match: sv {sv.shape}, sh {sh.shape}, flux {f.shape}, "
+        raise InputError(f"shapes do not match: sv {sv.shape}, sh {sh.shape}, flux {f.shape}, "
                          f"blocked {b.shape}")
     if out is None:
         out = np.empty((ny, nx))

@@ -17,8 +17,9 @@ import threading
 
 import numpy as np
 
-from lsst_bfdrift.utils.io import atomic_output
+from lsst_bfdrift.utils.io import atomic_output, check_output
 from lsst_bfdrift.utils.progress import ProgressBar
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["correct_file", "correct_files", "output_pairs"]
 
@@ -30,7 +31,7 @@ def output_pairs(inputs, out_dir):
     names = [dst for _, dst in pairs]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
-        raise ValueError(f"several inputs would write the same output: {dup}")
+        raise InputError(f"several inputs would write the same output: {dup}")
     return pairs
 
 
@@ -75,10 +76,7 @@ def correct_file(src, dst, config=None, *, overwrite=False):
     from astropy.io import fits
 
     src, dst = os.fspath(src), os.fspath(dst)
-    if os.path.abspath(src) == os.path.abspath(dst):
-        raise ValueError(f"refusing to overwrite the input {src}")
-    if os.path.exists(dst) and not overwrite:
-        raise FileExistsError(f"{dst} exists (use --overwrite)")
+    check_output(dst, [src], overwrite=overwrite, hint="--overwrite")
     res = _task(_config_json(config)).run(src)
     hdus = [fits.PrimaryHDU(np.asarray(res.exposure.data, np.float32), header=res.header),
             fits.ImageHDU(res.flux_moved.astype(np.float32), name="FLUX_MOVED"),

@@ -48,6 +48,7 @@ import numpy as np
 from scipy import ndimage
 
 from lsst_bfdrift.correction._edge_kernels import _fused_serial, density_weight, fused_transfer
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["first_order_terms", "active_cells", "active_from_stats", "tolerance", "window_boxes",
            "apriori_ok", "sparse_series"]
@@ -391,7 +392,7 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
     a4 = 1.0 / 24.0 if order >= 4 else 0.0
     reach = (ops.template.size + 1) // 2 + 3
     if cell < reach:
-        raise ValueError(f"cell must be at least {reach} px for this template, got {cell}")
+        raise InputError(f"cell must be at least {reach} px for this template, got {cell}")
     scalar = None if noise_tol is not None else rtol * max(np.abs(img).max(), 1e-300)
 
     def window_limit(y0, y1, x0, x1):

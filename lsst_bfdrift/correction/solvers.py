@@ -54,6 +54,7 @@ from scipy import fft as sp_fft
 from lsst_bfdrift.correction._edge_kernels import density_weight, fused_transfer
 from lsst_bfdrift.correction.series import apriori_ok, first_order_terms, sparse_series, tolerance
 from lsst_bfdrift.templates.swept import OperatorCache, SweptAreas, swept_area_kernels  # noqa: F401 (re-exported)
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["edge_flux_density", "edge_transfer",
            "recorded_image", "correct_image", "correct_series", "correct_half_shift",
@@ -225,17 +226,17 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
         All blocks converged.
     """
     if start not in ("image", "series"):
-        raise ValueError(f"start must be 'image' or 'series', got {start!r}")
+        raise InputError(f"start must be 'image' or 'series', got {start!r}")
     kw = dict(order=order, density=density, max_iter=max_iter, rtol=rtol, noise_tol=noise_tol,
               start=start, workers=workers, dtype=dtype)
     img = np.asarray(image, dtype=np.float64)  # read only below: no copy needed
     if img.ndim != 2:
-        raise ValueError(f"image must be 2-d, got shape {img.shape}")
+        raise InputError(f"image must be 2-d, got shape {img.shape}")
     blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
     if blk.shape != img.shape:
-        raise ValueError(f"blocked shape {blk.shape} does not match image {img.shape}")
+        raise InputError(f"blocked shape {blk.shape} does not match image {img.shape}")
     if strip is not None and int(strip) < 1:
-        raise ValueError(f"strip must be positive, got {strip}")
+        raise InputError(f"strip must be positive, got {strip}")
     ops = _operators(cache, template, workers, dtype)
     info = {} if info is None else info
     info["solver"] = "dense"
@@ -281,7 +282,7 @@ def _operators(cache, template, workers, dtype):
     """``cache`` if it serves these settings, else a new :class:`OperatorCache`."""
     if cache is not None:
         if not isinstance(cache, OperatorCache) or not cache.matches(template, workers, dtype):
-            raise ValueError("cache must be an OperatorCache made for this template, "
+            raise InputError("cache must be an OperatorCache made for this template, "
                              "workers and dtype")
         return cache
     return OperatorCache(template, workers=workers, dtype=dtype)
@@ -442,10 +443,10 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
     """
     img = np.asarray(image, dtype=np.float64)  # read only below: no copy needed
     if img.ndim != 2:
-        raise ValueError(f"image must be 2-d, got shape {img.shape}")
+        raise InputError(f"image must be 2-d, got shape {img.shape}")
     blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
     if blk.shape != img.shape:
-        raise ValueError(f"blocked shape {blk.shape} does not match image {img.shape}")
+        raise InputError(f"blocked shape {blk.shape} does not match image {img.shape}")
     img_eff, blk = _finite(img, blk)
     ny, nx = img.shape
     ops = _operators(None, template, workers, dtype)
@@ -454,7 +455,7 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
     else:
         strip = int(strip)
         if strip < 1:
-            raise ValueError(f"strip must be positive, got {strip}")
+            raise InputError(f"strip must be positive, got {strip}")
         halo = 2 * (template.size + 3)
         flux = np.empty_like(img_eff)
         for r0 in range(0, ny, strip):
@@ -482,12 +483,12 @@ def correct_half_shift(image, template, *, blocked=None, workers=1, dtype=np.flo
     """
     img = np.asarray(image, dtype=np.float64)  # read only below: no copy needed
     if img.ndim != 2:
-        raise ValueError(f"image must be 2-d, got shape {img.shape}")
+        raise InputError(f"image must be 2-d, got shape {img.shape}")
     blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
     if blk.shape != img.shape:
-        raise ValueError(f"blocked shape {blk.shape} does not match image {img.shape}")
+        raise InputError(f"blocked shape {blk.shape} does not match image {img.shape}")
     if strip is not None and int(strip) < 1:
-        raise ValueError(f"strip must be positive, got {strip}")
+        raise InputError(f"strip must be positive, got {strip}")
     img_eff, blk = _finite(img, blk)
     ops = _operators(cache, template, workers, dtype)
     # the first-order pass of the windowed series is exactly this pass
@@ -520,9 +521,9 @@ def coulton18_kernel(a, *, pad=4):
     a = np.asarray(a, float)
     n = a.shape[0]
     if a.shape != (n, n) or n % 2 != 1:
-        raise ValueError(f"a must be square with odd size, got {a.shape}")
+        raise InputError(f"a must be square with odd size, got {a.shape}")
     if abs(a.sum()) > 1e-9 * np.abs(a).sum():
-        raise ValueError("the area coefficients must sum to zero (sum rule)")
+        raise InputError("the area coefficients must sum to zero (sum rule)")
     m = pad * n
     big = np.zeros((m, m))
     c = n // 2

@@ -13,12 +13,14 @@ from astropy.io import fits
 from astropy.nddata import CCDData, NDData
 
 from lsst_bfdrift.utils.config import ChoiceField, Config, Field, Struct, Task
+from lsst_bfdrift.utils.io import read_image
 from lsst_bfdrift.correction.solvers import (area_coefficients, correct_coulton18, correct_half_shift,
                          correct_image, coulton18_kernel)
 from lsst_bfdrift.geometry.superpose import moment_maps
 from lsst_bfdrift.templates.refine import draw_templates
 from lsst_bfdrift.templates.swept import OperatorCache
 from lsst_bfdrift.templates.template import DistortionTemplate, load_default_template
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["BrighterFatterDriftConfig", "BrighterFatterDriftTask", "unpack_exposure", "FLAG_BLOCKED",
            "FLAG_EDGE", "MAX_SWEEP"]
@@ -124,13 +126,7 @@ def unpack_exposure(exposure, gain_cfg):
     meta = fits.Header()
     unit = u.electron
     if isinstance(exposure, (str, os.PathLike)):
-        with fits.open(exposure, memmap=False) as hdul:
-            hdu = next((h for h in hdul if getattr(h, "data", None) is not None
-                        and h.data.ndim == 2), None)
-            if hdu is None:
-                raise ValueError(f"{exposure}: no 2-d image HDU")
-            data = np.array(hdu.data, dtype=np.float64)
-            meta = hdu.header.copy()
+        data, _, meta = read_image(exposure)  # a truncated file is named as such
         bunit = str(meta.get("BUNIT", "electron")).strip().lower()
         unit = u.adu if bunit in ("adu", "dn", "count", "counts") else u.electron
         kind = "path"
@@ -144,19 +140,22 @@ def unpack_exposure(exposure, gain_cfg):
     else:
         data = _as_float64(exposure)
     if data.ndim != 2:
-        raise ValueError(f"exposure must be a 2-d image, got shape {data.shape}")
+        raise InputError(f"exposure must be a 2-d image, got shape {data.shape}")
+    if 0 in data.shape:
+        raise InputError(f"exposure is empty (shape {data.shape}); accepted: an image of at "
+                         "least 1 x 1 pixels")
     if mask is not None and mask.shape != data.shape:
-        raise ValueError(f"mask shape {mask.shape} does not match image {data.shape}")
+        raise InputError(f"mask shape {mask.shape} does not match image {data.shape}")
     gain = 1.0
     if unit in (u.adu, u.count) or str(unit).lower() in ("adu", "dn"):
         gain = gain_cfg if gain_cfg is not None else meta.get("GAIN")
         if gain is None:
-            raise ValueError("image is in ADU: set config.gain or a GAIN header keyword")
+            raise InputError("image is in ADU: set config.gain or a GAIN header keyword")
         gain = float(gain)
         if not gain > 0:
-            raise ValueError(f"gain must be positive, got {gain}")
+            raise InputError(f"gain must be positive, got {gain}")
     elif unit not in (u.electron, u.dimensionless_unscaled):
-        raise ValueError(f"exposure unit must be electron or adu, got {unit}")
+        raise InputError(f"exposure unit must be electron or adu, got {unit}")
     return (data if gain == 1.0 else data * gain), mask, unc, meta, unit, gain, kind
 
 
@@ -171,7 +170,7 @@ def _as_float64(array):
     if array.dtype.kind not in "iuf":
         what = {"b": "boolean", "c": "complex"}.get(array.dtype.kind,
                                                     f"non-numeric ({array.dtype})")
-        raise ValueError(f"exposure data must be real numbers (e or ADU), got a {what} array")
+        raise InputError(f"exposure data must be real numbers (e or ADU), got a {what} array")
     return array.astype(np.float64, copy=False)
 
 
@@ -189,7 +188,7 @@ def _check_range(finite_data, kernel_abs_sum, unit_note):
     # max and -min: no full-size temporary for abs()
     peak = max(float(finite_data.max()), -float(finite_data.min())) if finite_data.size else 0.0
     if kernel_abs_sum * peak > MAX_SWEEP:
-        raise ValueError(
+        raise InputError(
             f"pixel values up to {peak:.3g} e: the template would sweep "
             f"{kernel_abs_sum * peak:.3g} px^2 across an edge (at most {MAX_SWEEP} is "
             f"modelled, i.e. |I| <= {MAX_SWEEP / kernel_abs_sum:.3g} e); set such pixels to "

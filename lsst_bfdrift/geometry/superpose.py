@@ -14,6 +14,7 @@ import numpy as np
 from scipy import fft as sp_fft
 
 from lsst_bfdrift.physics.boundaries import BoundaryGrid
+from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["MomentMaps", "check_charge_image", "superpose_boundaries", "moment_maps",
            "resample_template"]
@@ -40,18 +41,18 @@ def check_charge_image(charge, *, mask=None, name="charge"):
     """
     arr = np.array(charge, dtype=np.float64, copy=True)
     if arr.ndim != 2:
-        raise ValueError(f"{name} image must be 2-d, got shape {arr.shape}")
+        raise InputError(f"{name} image must be 2-d, got shape {arr.shape}")
     if arr.size == 0:
-        raise ValueError(f"{name} image is empty")
+        raise InputError(f"{name} image is empty")
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != arr.shape:
-            raise ValueError(f"mask shape {mask.shape} does not match {name} shape {arr.shape}")
+            raise InputError(f"mask shape {mask.shape} does not match {name} shape {arr.shape}")
         arr[mask] = 0.0
     bad = ~np.isfinite(arr)
     if np.any(bad):
         j, i = np.argwhere(bad)[0]
-        raise ValueError(f"{name} image has {int(bad.sum())} non-finite pixel(s) "
+        raise InputError(f"{name} image has {int(bad.sum())} non-finite pixel(s) "
                          f"(first at x={i}, y={j}); mask them")
     return arr
 
@@ -162,10 +163,10 @@ def resample_template(template, samples):
     """
     ns = template.edge_samples
     if isinstance(samples, (bool, np.bool_)) or not isinstance(samples, (int, np.integer)):
-        raise TypeError(f"samples must be an integer, got {samples!r}")
+        raise InputTypeError(f"samples must be an integer, got {samples!r}")
     samples = int(samples)
     if not 1 <= samples <= ns:
-        raise ValueError(f"samples must be between 1 and the template's {ns} samples per "
+        raise InputError(f"samples must be between 1 and the template's {ns} samples per "
                          f"edge, got {samples}")
     if samples == ns:
         return template
@@ -331,7 +332,7 @@ class MomentMaps:
         names = self._names if names is None else tuple(names)
         unknown = sorted(set(names) - set(self._names))
         if unknown:
-            raise ValueError(f"unknown maps {unknown}; choose from {list(self._names)}")
+            raise InputError(f"unknown maps {unknown}; choose from {list(self._names)}")
         for k in self._names:
             setattr(self, k, np.empty(shape) if k in names else None)
 
@@ -384,9 +385,9 @@ def moment_maps(template, charge, *, mask=None, samples=None, strip=256, workers
     from lsst_bfdrift.geometry._moment_kernels import stack_moments
 
     if np.dtype(dtype) not in (np.dtype(np.float64), np.dtype(np.float32)):
-        raise ValueError(f"dtype must be float64 or float32, got {dtype!r}")
+        raise InputError(f"dtype must be float64 or float32, got {dtype!r}")
     if isinstance(strip, (bool, np.bool_)) or int(strip) != strip or strip < 1:
-        raise ValueError(f"strip must be a positive integer, got {strip!r}")
+        raise InputError(f"strip must be a positive integer, got {strip!r}")
     if samples is not None:
         template = resample_template(template, samples)
     q = check_charge_image(charge, mask=mask)

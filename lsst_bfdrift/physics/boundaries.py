@@ -15,6 +15,7 @@ centred on (i, j) and its nominal corners are at half-integers.
 import numpy as np
 
 from lsst_bfdrift.physics.drift import drift_lines
+from lsst_bfdrift.utils.errors import ComputationError, InputError
 
 __all__ = ["BoundaryGrid", "bisect_boundary", "locate_corners", "pixel_boundaries",
            "uniform_fractions", "edge_fractions"]
@@ -23,7 +24,7 @@ __all__ = ["BoundaryGrid", "bisect_boundary", "locate_corners", "pixel_boundarie
 def uniform_fractions(n):
     """``n`` uniformly spaced sample fractions strictly inside an edge."""
     if int(n) != n or n < 1:
-        raise ValueError(f"number of edge samples must be a positive integer, got {n!r}")
+        raise InputError(f"number of edge samples must be a positive integer, got {n!r}")
     return (np.arange(n) + 1.0) / (n + 1.0)
 
 
@@ -41,7 +42,7 @@ def edge_fractions(n, spacing="uniform"):
         uniform_fractions(n)  # validates n
         theta = -np.pi / 4 + (np.arange(n) + 1.0) * np.pi / (2.0 * (n + 1.0))
         return (np.tan(theta) + 1.0) / 2.0
-    raise ValueError(f"edge spacing must be 'uniform' or 'tan', got {spacing!r}")
+    raise InputError(f"edge spacing must be 'uniform' or 'tan', got {spacing!r}")
 
 
 def bisect_boundary(model, along, across, axis, index, *, tol=1e-4, half_width=0.45,
@@ -113,7 +114,7 @@ def bisect_boundary(model, along, across, axis, index, *, tol=1e-4, half_width=0
             break
         if hw >= max_half_width:
             bad = todo[at_end]
-            raise RuntimeError(
+            raise ComputationError(
                 f"no boundary found within {max_half_width} px of the nominal edge for "
                 f"{bad.size} sample(s), e.g. along={along[bad[0]]:.3f}, axis={axis!r}, "
                 f"index={index[bad[0]]}")
@@ -220,7 +221,7 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
             x[todo], y[todo] = xnew, ynew
             todo = todo[change >= 2.0 * tol]
     if todo.size:
-        raise RuntimeError(f"{todo.size} corner(s) did not converge in {max_passes} passes, "
+        raise ComputationError(f"{todo.size} corner(s) did not converge in {max_passes} passes, "
                            f"e.g. near ({x[todo[0]]:.4f}, {y[todo[0]]:.4f})")
     return x, y
 
@@ -354,9 +355,9 @@ def pixel_boundaries(model, i_range, j_range, *, edge_samples=8, tol=1e-4, z0=No
     i0, i1 = (int(v) for v in i_range)
     j0, j1 = (int(v) for v in j_range)
     if i1 <= i0 or j1 <= j0:
-        raise ValueError(f"empty pixel range i={i_range}, j={j_range}")
+        raise InputError(f"empty pixel range i={i_range}, j={j_range}")
     if not (0 < tol < 0.1):
-        raise ValueError(f"tol must be in (0, 0.1) pixel, got {tol}")
+        raise InputError(f"tol must be in (0, 0.1) pixel, got {tol}")
     fr = edge_fractions(edge_samples, spacing)
     nx, ny = i1 - i0, j1 - j0
     kw = dict(tol=tol, z0=z0, drift_kwargs=drift_kwargs, progress=progress)

@@ -16,6 +16,7 @@ integrated all at once; finished lines leave the active set.
 import os
 
 import numpy as np
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["DriftResult", "drift_lines", "compile_model", "landing_pixels",
            "conversion_height", "absorption_length"]
@@ -134,15 +135,15 @@ def drift_lines(model, x0, y0, z0=None, *, z_stop=None, step_scale=0.15, min_ste
                                      np.asarray(z0, float))
     shape = x0.shape
     if not (np.all(np.isfinite(x0)) and np.all(np.isfinite(y0)) and np.all(np.isfinite(z0))):
-        raise ValueError("drift starting points must be finite")
+        raise InputError("drift starting points must be finite")
     if np.any(z0 > P.thickness + 1e-9) or np.any(z0 < z_stop):
-        raise ValueError(f"conversion heights must lie in [z_stop={z_stop}, "
+        raise InputError(f"conversion heights must lie in [z_stop={z_stop}, "
                          f"thickness={P.thickness}] um")
     if engine not in ("auto", "compiled", "numpy"):
-        raise ValueError(f"engine must be 'auto', 'compiled' or 'numpy', got {engine!r}")
+        raise InputError(f"engine must be 'auto', 'compiled' or 'numpy', got {engine!r}")
     arrays = None if engine == "numpy" else compile_model(model)
     if engine == "compiled" and arrays is None:
-        raise ValueError("this model has terms the compiled engine does not support")
+        raise InputError("this model has terms the compiled engine does not support")
     if arrays is not None:
         from lsst_bfdrift.physics._drift_kernels import drift_batch
         from lsst_bfdrift.physics.constants import COULOMB_UM
@@ -234,7 +235,7 @@ def absorption_length(wavelength):
     table = np.loadtxt(path, skiprows=1)
     wl = np.asarray(wavelength, dtype=float)
     if np.any(~np.isfinite(wl)) or np.any(wl < table[0, 0]) or np.any(wl > table[-1, 0]):
-        raise ValueError(f"wavelength must lie in [{table[0, 0]}, {table[-1, 0]}] nm")
+        raise InputError(f"wavelength must lie in [{table[0, 0]}, {table[-1, 0]}] nm")
     return np.interp(wl, table[:, 0], table[:, 1])
 
 

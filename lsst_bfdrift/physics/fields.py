@@ -18,6 +18,7 @@ direction (+y for a line along x, +x for a line along y) and ``m_z`` along +z.
 import numpy as np
 
 from lsst_bfdrift.physics.constants import COULOMB_UM, SPACE_CHARGE_UM
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = [
     "FieldTerm",
@@ -38,14 +39,14 @@ _AXES = ("x", "y")
 
 def _check_axis(axis):
     if axis not in _AXES:
-        raise ValueError(f"axis must be 'x' or 'y', got {axis!r}")
+        raise InputError(f"axis must be 'x' or 'y', got {axis!r}")
     return axis
 
 
 def _check_finite(name, value):
     arr = np.asarray(value, dtype=float)
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {value!r}")
+        raise InputError(f"{name} must be finite, got {value!r}")
     return arr
 
 
@@ -183,14 +184,14 @@ class BackdropField(FieldTerm):
         self.thickness = float(_check_finite("thickness", thickness))
         self.front_potential = float(_check_finite("front_potential", front_potential))
         if self.thickness <= 0:
-            raise ValueError(f"thickness must be positive, got {self.thickness}")
+            raise InputError(f"thickness must be positive, got {self.thickness}")
         if self.acceptor_density < 0:
-            raise ValueError(
+            raise InputError(
                 f"acceptor_density must be >= 0 cm^-3, got {self.acceptor_density}")
         self.gradient = SPACE_CHARGE_UM * self.acceptor_density  # V/um^2
         self.mean_field = (self.front_potential - self.v_bss) / self.thickness
         if self.ez(self.thickness) <= 0:
-            raise ValueError(
+            raise InputError(
                 "backdrop field does not reach the backside: E_z(t) = "
                 f"{self.ez(self.thickness):.4g} V/um <= 0 (bulk not fully depleted; "
                 "raise |v_bss| or lower acceptor_density)")
@@ -220,11 +221,11 @@ class TabulatedBackdrop(FieldTerm):
         self.z = _check_finite("z", z)
         self.ez_table = _check_finite("ez", ez)
         if self.z.ndim != 1 or self.z.shape != self.ez_table.shape or self.z.size < 2:
-            raise ValueError("z and ez must be 1-d arrays of equal length >= 2")
+            raise InputError("z and ez must be 1-d arrays of equal length >= 2")
         if np.any(np.diff(self.z) <= 0):
-            raise ValueError("z must be strictly increasing")
+            raise InputError("z must be strictly increasing")
         if np.any(self.ez_table <= 0):
-            raise ValueError("tabulated backdrop E_z must be positive everywhere")
+            raise InputError("tabulated backdrop E_z must be positive everywhere")
 
     def field(self, x, y, z):
         ez = np.interp(z, self.z, self.ez_table)
@@ -315,7 +316,7 @@ class PeriodicDipoleGrid(_AxisLine):
         super().__init__(axis, position, height, m_perp, m_z)
         self.pitch = float(_check_finite("pitch", pitch))
         if self.pitch <= 0:
-            raise ValueError(f"pitch must be positive, got {self.pitch}")
+            raise InputError(f"pitch must be positive, got {self.pitch}")
         self.cutoff = float(cutoff)
 
     def field(self, x, y, z):
@@ -366,11 +367,11 @@ class HalfPeriodicDipoleGrid(_AxisLine):
                  m_z=0.0, n_direct=64):
         super().__init__(axis, position, height, m_perp, m_z)
         if side not in (1, -1):
-            raise ValueError(f"side must be +1 or -1, got {side!r}")
+            raise InputError(f"side must be +1 or -1, got {side!r}")
         self.side = int(side)
         self.pitch = float(_check_finite("pitch", pitch))
         if self.pitch <= 0:
-            raise ValueError(f"pitch must be positive, got {self.pitch}")
+            raise InputError(f"pitch must be positive, got {self.pitch}")
         self.n_direct = int(n_direct)
         self._full = PeriodicDipoleGrid(axis, self.pitch, self.position, height=self.height,
                                         m_perp=self.m_perp, m_z=self.m_z, cutoff=np.inf)
@@ -432,7 +433,7 @@ class TruncatedLineDipole(_AxisLine):
     def __init__(self, axis, position, end, *, extends=1, height=0.0, m_perp=0.0, m_z=0.0):
         super().__init__(axis, position, height, m_perp, m_z)
         if extends not in (1, -1):
-            raise ValueError(f"extends must be +1 or -1, got {extends!r}")
+            raise InputError(f"extends must be +1 or -1, got {extends!r}")
         self.extends = int(extends)
         self.end = float(_check_finite("end", end))
 
@@ -485,7 +486,7 @@ class PointDipoles(FieldTerm):
         self.y = np.atleast_1d(_check_finite("y", y)).ravel()
         self.p_z = np.atleast_1d(_check_finite("p_z", p_z)).ravel()
         if not (self.x.shape == self.y.shape == self.p_z.shape):
-            raise ValueError("x, y and p_z must have the same length")
+            raise InputError("x, y and p_z must have the same length")
         self.height = float(_check_finite("height", height))
         self.chunk = int(chunk)
 

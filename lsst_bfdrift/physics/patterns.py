@@ -35,6 +35,7 @@ from astropy.table import Table, vstack
 from lsst_bfdrift.physics.boundaries import pixel_boundaries
 from lsst_bfdrift.physics.polygons import pixel_polygons, polygon_moments
 from lsst_bfdrift.physics.sensor import SensorModel, SensorParameters
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["block_geometry", "tearing_onset", "tearing_summary", "bamboo", "bamboo_summary",
            "jitter_area_map", "channel_stop_area_map", "jitter_response",
@@ -111,7 +112,7 @@ def tearing_onset(params=None, *, weakening=(0.0, 0.25, 0.5, 0.75, 1.0), boundar
     base = SensorParameters() if params is None else params
     f = [float(v) for v in weakening]
     if any(not 0.0 <= v <= 1.0 for v in f):
-        raise ValueError(f"weakening fractions must lie in [0, 1], got {weakening!r}")
+        raise InputError(f"weakening fractions must lie in [0, 1], got {weakening!r}")
     blocks = []
     for v in f:
         trunc = ((float(boundary), 0.0, 1.0, -v * base.xi_cs),) if v else ()
@@ -167,7 +168,7 @@ def bamboo(params=None, *, amplitudes=(0.5, 1.0, 2.0), period=8, n_periods=3, ed
     """
     base = SensorParameters() if params is None else params
     if int(period) != period or period < 2:
-        raise ValueError(f"period must be an integer >= 2 columns, got {period!r}")
+        raise InputError(f"period must be an integer >= 2 columns, got {period!r}")
     blocks = []
     for a in amplitudes:
         p = base.replace(column_overrides=_periodic_overrides(a, int(period), int(n_periods)))
@@ -329,15 +330,15 @@ def structure_function(image, max_lag, *, axis):
     """
     a = np.asarray(image, dtype=float)
     if a.ndim != 2:
-        raise ValueError(f"image must be 2-D, got shape {a.shape}")
+        raise InputError(f"image must be 2-D, got shape {a.shape}")
     if not np.all(np.isfinite(a)):
-        raise ValueError("image contains NaN or inf")
+        raise InputError("image contains NaN or inf")
     ax = {"serial": 1, "parallel": 0}.get(axis)
     if ax is None:
-        raise ValueError(f"axis must be 'serial' or 'parallel', got {axis!r}")
+        raise InputError(f"axis must be 'serial' or 'parallel', got {axis!r}")
     n = a.shape[ax]
     if not 1 <= int(max_lag) < n:
-        raise ValueError(f"max_lag must be between 1 and {n - 1}, got {max_lag!r}")
+        raise InputError(f"max_lag must be between 1 and {n - 1}, got {max_lag!r}")
     lags = np.arange(1, int(max_lag) + 1)
     d = np.empty(lags.size)
     for k, lag in enumerate(lags):

@@ -8,6 +8,7 @@ the vertices are in (pixel units throughout the package).
 
 import numba
 import numpy as np
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["PolygonMoments", "polygon_moments", "points_in_polygons", "pixel_polygons",
            "locate_points", "inside_polygon"]
@@ -60,7 +61,7 @@ def polygon_moments(x, y, *, origin=None):
     x = np.asarray(x, dtype=float)
     y = np.asarray(y, dtype=float)
     if x.shape != y.shape or x.ndim < 1 or x.shape[-1] < 3:
-        raise ValueError(f"x and y must have equal shape (..., N>=3), got {x.shape}, {y.shape}")
+        raise InputError(f"x and y must have equal shape (..., N>=3), got {x.shape}, {y.shape}")
     if origin is None:
         x0 = x.mean(axis=-1)
         y0 = y.mean(axis=-1)

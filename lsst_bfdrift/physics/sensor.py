@@ -19,6 +19,7 @@ from astropy import units as u
 
 from lsst_bfdrift.physics.fields import (BackdropField, HalfPeriodicDipoleGrid, LineDipole, PeriodicDipoleGrid,
                      PointDipoles, TruncatedLineDipole)
+from lsst_bfdrift.utils.errors import InputError, InputKeyError, InputTypeError
 
 __all__ = ["SensorParameters", "SensorModel", "strict_from_dict"]
 
@@ -40,13 +41,13 @@ def _as_float(name, value):
             else:
                 value = value.to_value(u.electron)
         else:
-            raise TypeError(f"parameter {name!r} takes no units")
+            raise InputTypeError(f"parameter {name!r} takes no units")
     try:
         value = float(value)
     except (TypeError, ValueError):
-        raise TypeError(f"parameter {name!r} must be a number, got {value!r}") from None
+        raise InputTypeError(f"parameter {name!r} must be a number, got {value!r}") from None
     if not math.isfinite(value):
-        raise ValueError(f"parameter {name!r} must be finite, got {value!r}")
+        raise InputError(f"parameter {name!r} must be finite, got {value!r}")
     return value
 
 
@@ -58,7 +59,7 @@ def strict_from_dict(cls, mapping, what):
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(mapping) - names)
     if unknown:
-        raise KeyError(f"unknown {what}(s): {', '.join(unknown)}; "
+        raise InputKeyError(f"unknown {what}(s): {', '.join(unknown)}; "
                        f"known: {', '.join(sorted(names))}")
     return cls(**dict(mapping))
 
@@ -74,7 +75,7 @@ def _pairs(name, value, width):
     for item in value:
         item = tuple(item)
         if len(item) != width:
-            raise ValueError(f"each entry of {name} must have {width} numbers, got {item!r}")
+            raise InputError(f"each entry of {name} must have {width} numbers, got {item!r}")
         out.append(tuple(_as_float(name, v) for v in item))
     return tuple(out)
 
@@ -194,11 +195,11 @@ class SensorParameters:
             v = getattr(self, f.name)
             if f.name in ("backside_images",):
                 if not isinstance(v, (bool, np.bool_)):
-                    raise TypeError(f"parameter {f.name!r} must be True or False, got {v!r}")
+                    raise InputTypeError(f"parameter {f.name!r} must be True or False, got {v!r}")
                 setf(self, f.name, bool(v))
             elif f.name in ("charge_images", "edge_side"):
                 if isinstance(v, bool) or int(v) != v:
-                    raise TypeError(f"parameter {f.name!r} must be an integer, got {v!r}")
+                    raise InputTypeError(f"parameter {f.name!r} must be an integer, got {v!r}")
                 setf(self, f.name, int(v))
             elif f.name in ("column_overrides", "row_overrides", "row_shifts"):
                 setf(self, f.name, _pairs(f.name, v, 2))
@@ -213,25 +214,25 @@ class SensorParameters:
     def _validate(self):
         for name in ("pixel_pitch", "thickness", "channel_depth", "xi0", "clock_separation"):
             if getattr(self, name) <= 0:
-                raise ValueError(f"parameter {name!r} must be positive, got {getattr(self, name)}")
+                raise InputError(f"parameter {name!r} must be positive, got {getattr(self, name)}")
         if self.acceptor_density < 0:
-            raise ValueError(f"parameter 'acceptor_density' must be >= 0, got "
+            raise InputError(f"parameter 'acceptor_density' must be >= 0, got "
                              f"{self.acceptor_density}")
         if not self.charge_cloud >= 0:
-            raise ValueError(f"parameter 'charge_cloud' must be >= 0 um, got {self.charge_cloud}")
+            raise InputError(f"parameter 'charge_cloud' must be >= 0 um, got {self.charge_cloud}")
         if self.charge_images < 0:
-            raise ValueError(f"parameter 'charge_images' must be >= 0, got {self.charge_images}")
+            raise InputError(f"parameter 'charge_images' must be >= 0, got {self.charge_images}")
         if self.edge_side not in (1, -1):
-            raise ValueError(f"parameter 'edge_side' must be +1 or -1, got {self.edge_side}")
+            raise InputError(f"parameter 'edge_side' must be +1 or -1, got {self.edge_side}")
         zc = self.z_collect
         if not (self.barrier_height < zc < self.thickness):
-            raise ValueError(f"collection height {zc} um must lie between the barrier plane "
+            raise InputError(f"collection height {zc} um must lie between the barrier plane "
                              f"({self.barrier_height} um) and the backside ({self.thickness} um)")
         if self.clock_separation >= self.pixel_pitch:
-            raise ValueError("clock_separation must be smaller than pixel_pitch")
+            raise InputError("clock_separation must be smaller than pixel_pitch")
         for b, y_end, ext, dxi in self.truncations:
             if ext not in (1.0, -1.0):
-                raise ValueError(f"truncation 'extends' must be +1 or -1, got {ext}")
+                raise InputError(f"truncation 'extends' must be +1 or -1, got {ext}")
         # Building the backdrop checks full depletion.
         self.backdrop()
 
@@ -293,7 +294,7 @@ class SensorModel:
     def __init__(self, params=None, *, charge=None, terms=(), replace_backdrop=False):
         self.params = SensorParameters() if params is None else params
         if not isinstance(self.params, SensorParameters):
-            raise TypeError("params must be a SensorParameters instance")
+            raise InputTypeError("params must be a SensorParameters instance")
         self.charge = {} if charge is None else _check_charge(charge)
         self.extra_terms = list(terms)
         self.replace_backdrop = bool(replace_backdrop)
@@ -424,9 +425,9 @@ def _check_charge(charge):
     for key, q in dict(charge).items():
         key = tuple(int(k) for k in key)
         if len(key) != 2:
-            raise ValueError(f"charge keys must be (i, j) pixel indices, got {key!r}")
+            raise InputError(f"charge keys must be (i, j) pixel indices, got {key!r}")
         q = float(q)
         if not math.isfinite(q):
-            raise ValueError(f"collected charge must be finite, got {q!r} at pixel {key}")
+            raise InputError(f"collected charge must be finite, got {q!r} at pixel {key}")
         out[key] = q
     return out

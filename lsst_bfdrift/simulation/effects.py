@@ -26,6 +26,7 @@ reason.
 """
 
 import numpy as np
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["Effect", "ChargeCloud", "WellFilling", "Diffusion", "GainNonlinearity",
            "StaticArea", "CTI", "EFFECT_NAMES", "effect_library", "full_lags", "quadrant",
@@ -277,7 +278,7 @@ class StaticArea(Effect):
 
     def static(self, mu, L, theta):
         if L != self.max_lag:
-            raise ValueError(f"static_area was built for lags <= {self.max_lag}, data has {L}")
+            raise InputError(f"static_area was built for lags <= {self.max_lag}, data has {L}")
         v = np.asarray(theta, float).reshape(L + 1, L + 1)
         return np.asarray(mu, float)[:, None, None] ** 2 * v
 
@@ -324,7 +325,7 @@ class CTI(Effect):
 
     def __init__(self, axis):
         if axis not in ("serial", "parallel"):
-            raise ValueError(f"CTI axis must be 'serial' or 'parallel', got {axis!r}")
+            raise InputError(f"CTI axis must be 'serial' or 'parallel', got {axis!r}")
         self.axis = axis
         self.name = f"cti_{axis}"
         self._identifiable = {
@@ -350,5 +351,5 @@ def effect_library(names=None, *, max_lag=3):
     by = {e.name: e for e in lib}
     bad = [n for n in names if n not in by]
     if bad:
-        raise ValueError(f"unknown effects {bad}; the vocabulary is {list(EFFECT_NAMES)}")
+        raise InputError(f"unknown effects {bad}; the vocabulary is {list(EFFECT_NAMES)}")
     return [by[n] for n in names]

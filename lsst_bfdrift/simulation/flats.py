@@ -33,6 +33,7 @@ from scipy import fft as sp_fft
 
 from lsst_bfdrift.simulation.effects import ChargeCloud, full_lags
 from lsst_bfdrift.utils.progress import ProgressBar
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["simulate_flat_pairs", "write_flat_pairs", "INJECTABLE", "PeriodicAreas",
            "simulate_flats", "simulate_ptc_levels", "template_area_coefficients",
@@ -53,7 +54,7 @@ class PeriodicAreas:
     def __init__(self, template, shape):
         ny, nx = (int(v) for v in shape)
         if ny < 2 or nx < 2:
-            raise ValueError(f"periodic images need at least 2 x 2 pixels, got {shape}")
+            raise InputError(f"periodic images need at least 2 x 2 pixels, got {shape}")
         self.t = template
         self.shape = (ny, nx)
         c = template.center
@@ -167,11 +168,11 @@ def with_responsivity(template, dlna00_per_e):
     """
     r = float(dlna00_per_e)
     if not (np.isfinite(r) and r < 0):
-        raise ValueError(f"responsivity must be negative and finite, got {dlna00_per_e!r}")
+        raise InputError(f"responsivity must be negative and finite, got {dlna00_per_e!r}")
     c = template.center
     own = np.log(template.moments().area[c, c])
     if not own < 0:
-        raise ValueError("template's central pixel does not shrink; no responsivity to rescale")
+        raise InputError("template's central pixel does not shrink; no responsivity to rescale")
     return type(template)(template.corner_d, template.vedge_d, template.hedge_d,
                           template.fractions, own / r, vedge_t=template.vedge_t,
                           hedge_t=template.hedge_t,
@@ -206,7 +207,7 @@ def template_area_coefficients(template, *, max_lag=3):
     c = template.center
     L = int(max_lag)
     if not 0 <= L <= c:
-        raise ValueError(f"max_lag must be in [0, {c}] for this template, got {max_lag!r}")
+        raise InputError(f"max_lag must be in [0, {c}] for this template, got {max_lag!r}")
     q = template.charge
     full = template.moments(charge=q).area
     half = template.moments(charge=0.5 * q).area
@@ -264,18 +265,18 @@ def simulate_flats(template, *, n_images=1024, shape=(16, 16), step=1000.0, n_st
         ``pairs_err``, ``area_min``, ``area_max``.
     """
     if int(n_images) != n_images or n_images < 4 or n_images % 2:
-        raise ValueError(f"n_images must be an even integer >= 4, got {n_images!r}")
+        raise InputError(f"n_images must be an even integer >= 4, got {n_images!r}")
     if not (np.isfinite(step) and step > 0):
-        raise ValueError(f"step must be positive, got {step!r}")
+        raise InputError(f"step must be positive, got {step!r}")
     if int(n_steps) != n_steps or n_steps < 1:
-        raise ValueError(f"n_steps must be a positive integer, got {n_steps!r}")
+        raise InputError(f"n_steps must be a positive integer, got {n_steps!r}")
     rng = np.random.default_rng(seed) if rng is None else rng
     geo = PeriodicAreas(template, shape)
     ny, nx = geo.shape
     n = int(n_images)
     npix = ny * nx
     if max_lag >= min(ny, nx) // 2:
-        raise ValueError(f"max_lag {max_lag} too large for {ny} x {nx} periodic images")
+        raise InputError(f"max_lag {max_lag} too large for {ny} x {nx} periodic images")
     lags = [(di, dj) for di in range(max_lag + 1) for dj in range(max_lag + 1)]
     charge = np.zeros((n, ny, nx))
     area = np.ones((n, ny, nx))
@@ -355,9 +356,9 @@ def simulate_ptc_levels(template, levels, *, steps_per_level=40, n_images=1024, 
     """
     levels = np.asarray(levels, dtype=float).ravel()
     if levels.size < 1 or not np.all(np.isfinite(levels) & (levels > 0)):
-        raise ValueError("levels must be positive and finite")
+        raise InputError("levels must be positive and finite")
     if int(steps_per_level) != steps_per_level or steps_per_level < 2:
-        raise ValueError(f"steps_per_level must be an integer >= 2, got {steps_per_level!r}")
+        raise InputError(f"steps_per_level must be an integer >= 2, got {steps_per_level!r}")
     n = int(steps_per_level)
     streams = np.random.SeedSequence(seed).spawn(levels.size)
     rows = []
@@ -467,29 +468,29 @@ def simulate_flat_pairs(model, levels, *, engine="linear", shape=(256, 256), n_s
     inject = dict(inject or {})
     bad = [k for k in inject if k not in INJECTABLE]
     if bad:
-        raise ValueError(f"cannot inject {bad}; known: {list(INJECTABLE)}")
+        raise InputError(f"cannot inject {bad}; known: {list(INJECTABLE)}")
     levels = np.atleast_1d(np.asarray(levels, dtype=float))
     if levels.size == 0 or not np.all(np.isfinite(levels)) or np.any(levels <= 0):
-        raise ValueError(f"levels must be positive signals (e), got {levels.tolist()!r}")
+        raise InputError(f"levels must be positive signals (e), got {levels.tolist()!r}")
     shape = tuple(int(v) for v in shape)
     rng = np.random.default_rng(seed)
     if engine == "galsim":
         kernel_only = [k for k in ("charge_cloud", "well_filling") if k in inject]
         if kernel_only:
-            raise ValueError(f"{kernel_only} act on the a_ij kernel: not injectable with "
+            raise InputError(f"{kernel_only} act on the a_ij kernel: not injectable with "
                              "engine='galsim'")
         areas_of = _galsim_areas(model, shape)
     elif engine == "linear":
         a = np.asarray(model, dtype=float)
         if a.ndim != 2 or a.shape[0] != a.shape[1]:
-            raise ValueError(f"engine 'linear' needs a square a_ij array, got shape {a.shape}")
+            raise InputError(f"engine 'linear' needs a square a_ij array, got shape {a.shape}")
         if "charge_cloud" in inject:
             a = ChargeCloud().apply_a(a, inject["charge_cloud"], None)
         ka = _kernel_fft(a, shape)
         kd = None
         if "well_filling" in inject:
             if depth_derivative is None:
-                raise ValueError("well_filling needs depth_derivative")
+                raise InputError("well_filling needs depth_derivative")
             kd = _kernel_fft(np.asarray(depth_derivative, float) * 0.5
                              * inject["well_filling"][0], shape)
 
@@ -499,7 +500,7 @@ def simulate_flat_pairs(model, levels, *, engine="linear", shape=(256, 256), n_s
                 area += sp_fft.irfft2(sp_fft.rfft2(q * q) * kd, shape)
             return area
     else:
-        raise ValueError(f"engine must be 'linear' or 'galsim', got {engine!r}")
+        raise InputError(f"engine must be 'linear' or 'galsim', got {engine!r}")
     static = 0.0
     if "static_area" in inject:
         static = _static_pattern(shape, *inject["static_area"], np.random.default_rng(seed + 1))
@@ -546,7 +547,7 @@ def _galsim_areas(sensor, shape):
     try:
         sim = galsim.SiliconSensor(str(sensor), diffusion_factor=0.0)
     except OSError as exc:
-        raise ValueError(f"engine 'galsim': no GalSim sensor {sensor!r} ({exc})") from None
+        raise InputError(f"engine 'galsim': no GalSim sensor {sensor!r} ({exc})") from None
     ny, nx = shape
 
     def areas_of(q):
@@ -590,7 +591,7 @@ def write_flat_pairs(pairs, levels, directory, *, exptime_per_e=1e-4, gain=1.0, 
     from lsst_bfdrift.utils.io import atomic_output
 
     if len(pairs) != len(levels):
-        raise ValueError(f"{len(pairs)} pairs but {len(levels)} levels")
+        raise InputError(f"{len(pairs)} pairs but {len(levels)} levels")
     paths = []
     for k, ((f1, f2), level) in enumerate(zip(pairs, levels)):
         for tag, img in (("a", f1), ("b", f2)):

@@ -28,6 +28,7 @@ by up to one interval, which weakens the simulated effect by about
 """
 
 import numpy as np
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["shoot_stamp_photons", "sky_box", "accumulate_twins", "galsim_acoeffs"]
 
@@ -98,7 +99,7 @@ def sky_box(stamp, sky_radius, *, margin=SKY_MARGIN):
     c = (stamp + 1) // 2  # central pixel (1-based)
     r = c - 1 if sky_radius is None else min(int(sky_radius), c - 1)
     if r < 0:
-        raise ValueError(f"sky_radius must be >= 0 or None, got {sky_radius!r}")
+        raise InputError(f"sky_radius must be >= 0 or None, got {sky_radius!r}")
     lo, hi = c - r - 0.5 - margin, c + r + 0.5 + margin
     return lo, hi, slice(max(c - 1 - r - margin, 0), c + r + margin)
 
@@ -171,24 +172,24 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
     y = np.asarray(y, float)
     flux = np.asarray(flux, float)
     if not x.shape == y.shape == flux.shape or x.ndim != 1:
-        raise ValueError("x, y and flux must be 1-d arrays of one length")
+        raise InputError("x, y and flux must be 1-d arrays of one length")
     strengths = [float(s) for s in strengths]
     if not strengths or min(strengths) <= 0:
-        raise ValueError(f"strengths must be positive, got {strengths}")
+        raise InputError(f"strengths must be positive, got {strengths}")
     if rng is None:
-        raise ValueError("rng (numpy Generator) is required: it orders the photons")
+        raise InputError("rng (numpy Generator) is required: it orders the photons")
     if not float(updates) > 0:
-        raise ValueError(f"updates must be positive, got {updates!r}")
+        raise InputError(f"updates must be positive, got {updates!r}")
     feed = int(feed)
     if feed < 0 or (feed and box is None):
-        raise ValueError(f"feed must be >= 0 and needs a box, got {feed!r}")
+        raise InputError(f"feed must be >= 0 and needs a box, got {feed!r}")
     stamp = int(stamp)
     outer = None
     if feed:
         lo, hi = (float(v) for v in box)
         i0, i1 = max(int(round(lo + 0.5)), 1), min(int(round(hi - 0.5)), stamp)
         if i1 < i0:
-            raise ValueError(f"box {box} holds no pixel of a {stamp} px stamp")
+            raise InputError(f"box {box} holds no pixel of a {stamp} px stamp")
         ins = (x >= i0 - 0.5) & (x < i1 + 0.5) & (y >= i0 - 0.5) & (y < i1 + 0.5)
         outer = (x[~ins], y[~ins], flux[~ins])
         x, y, flux = x[ins], y[ins], flux[ins]
@@ -196,7 +197,7 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
     n_sky = 0
     if sky > 0:
         if box is None:
-            raise ValueError("box (lo, hi) is required when sky > 0")
+            raise InputError("box (lo, hi) is required when sky > 0")
         lo, hi = (float(v) for v in box)
         lo, hi = lo - feed, hi + feed
         n_sky = int(rng.poisson(float(sky) * (hi - lo) ** 2))
@@ -207,7 +208,7 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
     if sky_mask is not None and n_sky:
         sky_mask = np.asarray(sky_mask, bool)
         if sky_mask.shape != (stamp, stamp):
-            raise ValueError(f"sky_mask must have shape {(stamp, stamp)}, got {sky_mask.shape}")
+            raise InputError(f"sky_mask must have shape {(stamp, stamp)}, got {sky_mask.shape}")
         is_sky = order >= n_star
         ix = np.floor(xs - 0.5).astype(int)
         iy = np.floor(ys - 0.5).astype(int)
@@ -268,9 +269,9 @@ def galsim_acoeffs(sensor, max_lag=8, *, charge=1e4):
     import galsim
 
     if int(max_lag) != max_lag or max_lag < 0:
-        raise ValueError(f"max_lag must be a non-negative integer, got {max_lag!r}")
+        raise InputError(f"max_lag must be a non-negative integer, got {max_lag!r}")
     if not charge > 0:
-        raise ValueError(f"charge must be positive, got {charge!r}")
+        raise InputError(f"charge must be positive, got {charge!r}")
     L = int(max_lag)
     sim = galsim.SiliconSensor(sensor, diffusion_factor=0.0)
     n = 2 * L + 25

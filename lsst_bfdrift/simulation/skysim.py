@@ -37,6 +37,7 @@ from astropy import units as u
 from astropy.table import QTable
 
 from lsst_bfdrift.utils.progress import ProgressBar
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["simulate_star_field", "scale_template"]
 
@@ -52,7 +53,7 @@ def scale_template(template, strength):
     """
     s = float(strength)
     if not s > 0:
-        raise ValueError(f"strength must be positive, got {strength!r}")
+        raise InputError(f"strength must be positive, got {strength!r}")
     t = template.scaled(s)
     return type(template)(t.corner_d, t.vedge_d, t.hedge_d, t.fractions, template.charge,
                           vedge_t=t.vedge_t, hedge_t=t.hedge_t, meta=template.meta)
@@ -65,7 +66,7 @@ def _positions(rng, n, shape, margin, min_sep, max_tries=20000):
     while len(pts) < n:
         tries += 1
         if tries > max_tries:
-            raise ValueError(f"cannot place {n} stars {min_sep} px apart in a {nx} x {ny} field; "
+            raise InputError(f"cannot place {n} stars {min_sep} px apart in a {nx} x {ny} field; "
                              "use fewer stars or a smaller min_separation")
         x = rng.uniform(margin, nx - 1 - margin)
         y = rng.uniform(margin, ny - 1 - margin)
@@ -150,16 +151,16 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
     ny, nx = (int(v) for v in shape)
     stamp = int(stamp)
     if ny < stamp or nx < stamp:
-        raise ValueError(f"field {nx} x {ny} is smaller than one stamp ({stamp} px)")
+        raise InputError(f"field {nx} x {ny} is smaller than one stamp ({stamp} px)")
     if int(n_stars) < 0:
-        raise ValueError(f"n_stars must be >= 0, got {n_stars!r}")
+        raise InputError(f"n_stars must be >= 0, got {n_stars!r}")
     req = [float(v) for v in np.atleast_1d(strength)]
     if not req or min(req) < 0:
-        raise ValueError(f"strength must be >= 0, got {strength}")
+        raise InputError(f"strength must be >= 0, got {strength}")
     if stamp % 2 != 1:
-        raise ValueError(f"stamp must be odd, got {stamp}")
+        raise InputError(f"stamp must be odd, got {stamp}")
     if sky < 0 or not np.isfinite(sky):
-        raise ValueError(f"sky must be finite and >= 0, got {sky!r}")
+        raise InputError(f"sky must be finite and >= 0, got {sky!r}")
     rng = np.random.default_rng(seed)
     half = stamp // 2
     pos = _positions(rng, int(n_stars), (ny, nx), half + 1, float(min_separation))

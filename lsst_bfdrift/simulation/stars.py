@@ -20,6 +20,7 @@ from lsst_bfdrift.simulation._star_kernels import NEIGHBOUR_ORDER, accumulate, i
 from lsst_bfdrift.physics.boundaries import BoundaryGrid
 from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.geometry.superpose import check_charge_image, moment_maps, superpose_boundaries
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["make_psf", "shoot_photons", "image_moments", "StarSimulation", "simulate_star"]
 
@@ -29,14 +30,14 @@ def make_psf(kind, fwhm, *, e=0.0, beta=0.0, beta_moffat=3.5):
     sheared to ellipticity ``e`` at position angle ``beta`` (degrees)."""
     import galsim
     if not fwhm > 0:
-        raise ValueError(f"--fwhm must be positive, got {fwhm}")
+        raise InputError(f"--fwhm must be positive, got {fwhm}")
     if not 0 <= e < 1:
-        raise ValueError(f"--e must be in [0, 1), got {e}")
+        raise InputError(f"--e must be in [0, 1), got {e}")
     makers = {"gaussian": lambda: galsim.Gaussian(fwhm=fwhm),
               "moffat": lambda: galsim.Moffat(beta=beta_moffat, fwhm=fwhm),
               "kolmogorov": lambda: galsim.Kolmogorov(fwhm=fwhm)}
     if kind not in makers:
-        raise ValueError(f"unknown PSF {kind!r}; choose from {sorted(makers)}")
+        raise InputError(f"unknown PSF {kind!r}; choose from {sorted(makers)}")
     psf = makers[kind]()
     return psf.shear(e=e, beta=beta * galsim.degrees) if e > 0 else psf
 
@@ -63,9 +64,9 @@ def shoot_photons(psf, n_photons, *, pixel_scale=0.2, seed=None):
 
     n = int(n_photons)
     if n < 1:
-        raise ValueError(f"n_photons must be positive, got {n_photons!r}")
+        raise InputError(f"n_photons must be positive, got {n_photons!r}")
     if not pixel_scale > 0:
-        raise ValueError(f"pixel_scale must be positive, got {pixel_scale!r}")
+        raise InputError(f"pixel_scale must be positive, got {pixel_scale!r}")
     photons = psf.shoot(n, galsim.BaseDeviate(0 if seed is None else int(seed)))
     return np.asarray(photons.x) / pixel_scale, np.asarray(photons.y) / pixel_scale
 
@@ -151,11 +152,11 @@ class StarSimulation:
     def __init__(self, template, *, stamp_size=31, update_every=1000, layout="shared",
                  seed=None, qdist=None, galsim_box=True):
         if int(stamp_size) != stamp_size or stamp_size < 3:
-            raise ValueError(f"stamp_size must be an integer >= 3, got {stamp_size!r}")
+            raise InputError(f"stamp_size must be an integer >= 3, got {stamp_size!r}")
         if int(update_every) != update_every or update_every < 1:
-            raise ValueError(f"update_every must be a positive integer, got {update_every!r}")
+            raise InputError(f"update_every must be a positive integer, got {update_every!r}")
         if layout not in ("shared", "galsim"):
-            raise ValueError(f"layout must be 'shared' or 'galsim', got {layout!r}")
+            raise InputError(f"layout must be 'shared' or 'galsim', got {layout!r}")
         self.t = template
         self.n = int(stamp_size)
         self.update_every = int(update_every)
@@ -188,7 +189,7 @@ class StarSimulation:
         """
         q = check_charge_image(charge)
         if q.shape != (self.n, self.n):
-            raise ValueError(f"charge must have shape {(self.n, self.n)}, got {q.shape}")
+            raise InputError(f"charge must have shape {(self.n, self.n)}, got {q.shape}")
         self.image = q
         if self.layout == "galsim":
             from lsst_bfdrift.templates.galsim_rules import (add_templates_galsim, edge_boxes, galsim_boxes,
@@ -215,7 +216,7 @@ class StarSimulation:
         """Copy of the current boundaries as a :class:`~lsst_bfdrift.physics.boundaries.BoundaryGrid`
         (absolute positions, pixel units; ``vedge_t``/``hedge_t`` attributes)."""
         if self.layout != "shared":
-            raise ValueError("boundaries() needs layout='shared'; the 'galsim' layout keeps "
+            raise InputError("boundaries() needs layout='shared'; the 'galsim' layout keeps "
                              "edge polylines (attributes _V, _H)")
         g = BoundaryGrid(0, 0, self._corners.copy(), self._vedge.copy(), self._hedge.copy(),
                          self._fr.copy())
@@ -271,9 +272,9 @@ def _check_points(px, py):
     px = np.ascontiguousarray(px, dtype=float).ravel()
     py = np.ascontiguousarray(py, dtype=float).ravel()
     if px.shape != py.shape:
-        raise ValueError(f"px and py must have the same size, got {px.size} and {py.size}")
+        raise InputError(f"px and py must have the same size, got {px.size} and {py.size}")
     if not (np.all(np.isfinite(px)) and np.all(np.isfinite(py))):
-        raise ValueError("photon positions must be finite")
+        raise InputError("photon positions must be finite")
     return px, py
 
 
@@ -320,7 +321,7 @@ def simulate_star(template, psf, flux, *, stamp_size=31, update_every=1000, pixe
     """
     n = int(round(float(flux)))
     if n < 1:
-        raise ValueError(f"flux must be at least 1 conversion, got {flux!r}")
+        raise InputError(f"flux must be at least 1 conversion, got {flux!r}")
     sim = StarSimulation(template, stamp_size=stamp_size, update_every=update_every)
     c = sim.n // 2
     px, py = shoot_photons(psf, n, pixel_scale=pixel_scale, seed=seed)

@@ -40,7 +40,8 @@ import numpy as np
 from lsst_bfdrift.templates.galsim_io import (galsim_nominal_vertices, galsim_sensor_files,
                                               read_galsim_config)
 from lsst_bfdrift.templates.template import DistortionTemplate
-from lsst_bfdrift.utils.io import atomic_output
+from lsst_bfdrift.utils.io import atomic_output, check_output
+from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["export_galsim_sensor", "DIFFUSION_KEYS"]
 
@@ -94,16 +95,15 @@ def export_galsim_sensor(template, prefix, *, num_vertices=None, pixel_size=None
         ``num_vertices`` below 1.
     """
     if not isinstance(template, DistortionTemplate):
-        raise TypeError(f"template must be a DistortionTemplate, got {type(template).__name__}")
+        raise InputTypeError("template must be a DistortionTemplate, "
+                             f"got {type(template).__name__}")
     prefix = os.fspath(prefix)
     cfg_path, dat_path = prefix + ".cfg", prefix + ".dat"
-    if not overwrite:
-        for path in (cfg_path, dat_path):
-            if os.path.exists(path):
-                raise FileExistsError(f"{path} exists (use overwrite=True / --overwrite)")
+    for path in (cfg_path, dat_path):
+        check_output(path, overwrite=overwrite)
     nv = template.edge_samples if num_vertices is None else int(num_vertices)
     if nv < 1:
-        raise ValueError(f"num_vertices must be >= 1, got {num_vertices!r}")
+        raise InputError(f"num_vertices must be >= 1, got {num_vertices!r}")
     params = template.meta.get("params") or {}
     pitch = float(pixel_size if pixel_size is not None else params.get("pixel_pitch", 10.0))
     thick = float(thickness if thickness is not None else params.get("thickness", 100.0))

@@ -21,6 +21,7 @@ import numpy as np
 from astropy.table import Table
 
 from lsst_bfdrift.templates.template import DistortionTemplate
+from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
 
 __all__ = ["import_galsim_sensor", "galsim_sensor_files", "read_galsim_config",
            "galsim_nominal_vertices", "galsim_vertex_table", "read_galsim_sensor", "match_galsim_areas", "edge_integrals",
@@ -73,7 +74,7 @@ def import_galsim_sensor(name="lsst_itl_50_8", *, match="areas", qdist=3, transf
         the match.
     """
     if match not in ("areas", "transfers", "none"):
-        raise ValueError(f"match must be 'areas', 'transfers' or 'none', got {match!r}")
+        raise InputError(f"match must be 'areas', 'transfers' or 'none', got {match!r}")
     tpl = read_galsim_sensor(name)
     if match == "areas":
         tpl = match_galsim_areas(tpl, name)
@@ -93,7 +94,7 @@ def galsim_sensor_files(name):
         cfg, dat = base + ".cfg", base + ".dat"
     for path in (cfg, dat):
         if not os.path.isfile(path):
-            raise FileNotFoundError(f"GalSim sensor file {path} not found")
+            raise InputNotFoundError(f"GalSim sensor file {path} not found")
     return cfg, dat
 
 
@@ -107,7 +108,7 @@ def read_galsim_config(path):
                 continue
             parts = line.split("=", 1)
             if len(parts) != 2:
-                raise ValueError(f"{path}:{lineno}: expected 'key = value', got {line!r}")
+                raise InputError(f"{path}:{lineno}: expected 'key = value', got {line!r}")
             key, value = parts[0].strip(), parts[1].strip()
             for conv in (int, float):
                 try:
@@ -172,11 +173,11 @@ def galsim_vertex_table(name):
         fx, fy = (float(v) for v in str(config["FilledPixelCoords_0_0"]).split()) \
             if isinstance(config["FilledPixelCoords_0_0"], str) else (None, None)
     except KeyError as exc:
-        raise ValueError(f"{cfg}: missing configuration key {exc}") from exc
+        raise InputError(f"{cfg}: missing configuration key {exc}") from exc
     data = np.loadtxt(dat, skiprows=1)
     npv = 4 * nv + 4
     if data.shape != (nx * ny * npv, 5):
-        raise ValueError(f"{dat} has shape {data.shape}, config {cfg} implies "
+        raise InputError(f"{dat} has shape {data.shape}, config {cfg} implies "
                          f"({nx * ny * npv}, 5)")
     xn, yn, kind, _ = galsim_nominal_vertices(nv)
     x0, y0, _, xv, yv = data.T
@@ -199,7 +200,7 @@ def read_galsim_sensor(name):
     nv = int(config["NumVertices"])
     nx, ny = int(config["PixelBoundaryNx"]), int(config["PixelBoundaryNy"])
     if nx != ny or nx % 2 != 1:
-        raise ValueError(f"GalSim sensor stamp must be square and odd, got {nx} x {ny}")
+        raise InputError(f"GalSim sensor stamp must be square and odd, got {nx} x {ny}")
     charge = float(config["CollectedCharge_0_0"])
     _, _, _, fr = galsim_nominal_vertices(nv)
     dx = np.asarray(raw["x"] - raw["x_nom"])
@@ -553,17 +554,17 @@ def galsim_effective_moves(name, *, template=None, engine="galsim", cells=2000, 
         (h = M // 2) assigned to pixel (i - h + a - 1, j - h + b - 1).
     """
     if engine not in _ENGINES:
-        raise ValueError(f"engine must be one of {_ENGINES}, got {engine!r}")
+        raise InputError(f"engine must be one of {_ENGINES}, got {engine!r}")
     if int(cells) != cells or cells < 10:
-        raise ValueError(f"cells must be an integer >= 10, got {cells!r}")
+        raise InputError(f"cells must be an integer >= 10, got {cells!r}")
     if int(margin) != margin or margin < 1:
-        raise ValueError(f"margin must be an integer >= 1, got {margin!r}")
+        raise InputError(f"margin must be an integer >= 1, got {margin!r}")
     if template is None:
         template = read_galsim_sensor(name)
     half = template.center + int(margin)
     charge = template.charge if charge is None else float(charge)
     if not (np.isfinite(charge) and charge > 0):
-        raise ValueError(f"charge must be positive, got {charge!r}")
+        raise InputError(f"charge must be positive, got {charge!r}")
     if engine == "galsim":
         return _moves_galsim(name, template, half, int(cells), qdist, seed, charge)
     return _moves_rules(template, half, int(cells), qdist, seed, charge)

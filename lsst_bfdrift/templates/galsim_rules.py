@@ -30,6 +30,7 @@ import numba
 import numpy as np
 
 from lsst_bfdrift.physics.polygons import inside_polygon
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["galsim_edge_templates", "nominal_edges", "edge_boxes", "galsim_boxes",
            "add_templates_galsim", "accumulate_galsim", "locate_galsim", "layout_areas"]
@@ -96,7 +97,7 @@ def galsim_edge_templates(template, *, qdist=None):
     if qdist is not None:
         q = int(qdist)
         if q < 0:
-            raise ValueError(f"qdist must be >= 0, got {qdist!r}")
+            raise InputError(f"qdist must be >= 0, got {qdist!r}")
         keep_v = np.zeros(tv.shape[:2], bool)
         keep_v[max(c - q, 0):c + q + 1, max(c - q, 0):c + q + 2] = True
         keep_h = np.zeros(th.shape[:2], bool)

@@ -16,6 +16,7 @@ does not move.
 import numpy as np
 
 from lsst_bfdrift.templates.template import DistortionTemplate
+from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["template_alpha", "match_area_coefficients", "draw_templates"]
 
@@ -129,13 +130,14 @@ def match_area_coefficients(template, a, *, max_lag=None, iterations=3, free_wei
         the largest shift (px at the template's charge) and the lags matched.
     """
     if not isinstance(template, DistortionTemplate):
-        raise TypeError(f"template must be a DistortionTemplate, got {type(template).__name__}")
+        raise InputTypeError("template must be a DistortionTemplate, "
+                             f"got {type(template).__name__}")
     a = np.asarray(a, dtype=float)
     if a.ndim != 2 or a.shape[0] != a.shape[1] or np.all(np.isnan(a)) or np.any(np.isinf(a)):
-        raise ValueError(f"a_ij must be a square array with finite values, got shape {a.shape}")
+        raise InputError(f"a_ij must be a square array with finite values, got shape {a.shape}")
     n, c = template.size, template.center
     if max_lag is not None and not 0 <= int(max_lag) <= c - 1:
-        raise ValueError(f"max_lag must be in [0, {c - 1}] for a template of size {n}, "
+        raise InputError(f"max_lag must be in [0, {c - 1}] for a template of size {n}, "
                          f"got {max_lag!r}")
     L = min(a.shape[0] - 1, c - 1 if max_lag is None else int(max_lag))
     matched = _matched(template, a, L)
@@ -192,10 +194,10 @@ def draw_templates(template, n, *, seed=0):
     """
     unc = (template.meta.get("calibration") or {}).get("uncertainty")
     if not unc:
-        raise ValueError("the template carries no calibration uncertainty (meta['calibration']"
+        raise InputError("the template carries no calibration uncertainty (meta['calibration']"
                          "['uncertainty']): calibrate it with lsst_bfdrift.calibration.calibrate")
     if int(n) < 1:
-        raise ValueError(f"n must be a positive number of draws, got {n!r}")
+        raise InputError(f"n must be a positive number of draws, got {n!r}")
     rng = np.random.default_rng(seed)
     c = template.center
     if unc["kind"] == "data":
@@ -211,7 +213,7 @@ def draw_templates(template, n, *, seed=0):
         def delta():
             return jac @ rng.multivariate_normal(np.zeros(cov.shape[0]), cov)
     else:
-        raise ValueError(f"unknown uncertainty kind {unc['kind']!r}")
+        raise InputError(f"unknown uncertainty kind {unc['kind']!r}")
     L = min(sigma.shape[0] - 1, c - 1)
     matched = _matched(template, np.where(np.isfinite(sigma), 0.0, np.nan), L)
     solve = _edge_solver(template, matched, 0.05)

@@ -13,6 +13,7 @@ import threading
 
 import numpy as np
 from scipy import fft as sp_fft
+from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["swept_area_kernels", "SweptAreas", "OperatorCache"]
 
@@ -95,7 +96,7 @@ class SweptAreas:
         self.workers = workers
         self.dtype = np.dtype(dtype)
         if self.dtype not in (np.dtype(np.float64), np.dtype(np.float32)):
-            raise ValueError(f"dtype must be float64 or float32, got {dtype!r}")
+            raise InputError(f"dtype must be float64 or float32, got {dtype!r}")
         q = 1.0 / template.charge
         self.fkv = sp_fft.rfft2((kv * q).astype(self.dtype), self.fshape, workers=workers)
         self.fkh = sp_fft.rfft2((kh * q).astype(self.dtype), self.fshape, workers=workers)
@@ -111,7 +112,7 @@ class SweptAreas:
         """
         c, ny, nx = self.c, self.ny, self.nx
         if np.shape(charge) != (ny, nx):
-            raise ValueError(f"charge must have shape {(ny, nx)}, got {np.shape(charge)}")
+            raise InputError(f"charge must have shape {(ny, nx)}, got {np.shape(charge)}")
         pad = self._arrays.get("pad", self.fshape, self.dtype, zero=True)  # zero beyond (ny, nx)
         prod = self._arrays.get("prod", self.fkv.shape, self.fkv.dtype)
         pad[:ny, :nx] = charge
@@ -140,7 +141,7 @@ class SweptAreas:
         """
         q = np.asarray(charges, self.dtype)
         if q.ndim != 3 or q.shape[1:] != (self.ny, self.nx):
-            raise ValueError(f"expected a stack of shape (k, {self.ny}, {self.nx}), got {q.shape}")
+            raise InputError(f"expected a stack of shape (k, {self.ny}, {self.nx}), got {q.shape}")
         fq = sp_fft.rfft2(q, self.fshape, axes=(-2, -1), workers=self.workers)
         c, ny, nx = self.c, self.ny, self.nx
         sv = sp_fft.irfft2(fq * self.fkv, self.fshape, axes=(-2, -1), workers=self.workers,

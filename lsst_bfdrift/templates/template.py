@@ -26,9 +26,11 @@ from astropy.table import Table
 
 from lsst_bfdrift.physics.boundaries import BoundaryGrid, pixel_boundaries
 from lsst_bfdrift.physics.polygons import pixel_polygons, polygon_moments
-from lsst_bfdrift.utils.io import atomic_output, data_path
+from lsst_bfdrift.utils.io import atomic_output, check_output, data_path
 from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.physics.sensor import SensorModel, SensorParameters, strict_from_dict
+from lsst_bfdrift.utils.errors import (InputError, InputNotFoundError, InputTypeError,
+                                       TemplateFileError)
 
 __all__ = ["TEMPLATE_SCHEMA_VERSION", "TemplateSettings", "DistortionTemplate",
            "TemplateFileError", "build_template", "default_template_path",
@@ -38,10 +40,6 @@ __all__ = ["TEMPLATE_SCHEMA_VERSION", "TemplateSettings", "DistortionTemplate",
 TEMPLATE_SCHEMA_VERSION = 1
 
 _EDGES = ("left", "top", "right", "bottom")
-
-
-class TemplateFileError(ValueError):
-    """A template file is corrupt, truncated, inconsistent or of another version."""
 
 
 @dataclass(frozen=True)
@@ -91,28 +89,28 @@ class TemplateSettings:
         for name in ("size", "edge_samples", "workers"):
             v = getattr(self, name)
             if isinstance(v, bool) or int(v) != v or v < 1:
-                raise ValueError(f"template setting {name!r} must be a positive integer, "
+                raise InputError(f"template setting {name!r} must be a positive integer, "
                                  f"got {v!r}")
             object.__setattr__(self, name, int(v))
         if self.size % 2 != 1:
-            raise ValueError(f"template setting 'size' must be odd, got {self.size}")
+            raise InputError(f"template setting 'size' must be odd, got {self.size}")
         for name in ("aggressor_charge", "tol", "step_scale", "min_step", "max_step"):
             v = float(getattr(self, name))
             if not np.isfinite(v):
-                raise ValueError(f"template setting {name!r} must be finite, got {v!r}")
+                raise InputError(f"template setting {name!r} must be finite, got {v!r}")
             object.__setattr__(self, name, v)
         if self.aggressor_charge == 0:
-            raise ValueError("template setting 'aggressor_charge' must be non-zero")
+            raise InputError("template setting 'aggressor_charge' must be non-zero")
         if not 0 < self.tol < 0.1:
-            raise ValueError(f"template setting 'tol' must be in (0, 0.1) px, got {self.tol}")
+            raise InputError(f"template setting 'tol' must be in (0, 0.1) px, got {self.tol}")
         if self.spacing not in ("uniform", "tan"):
-            raise ValueError(f"template setting 'spacing' must be 'uniform' or 'tan', "
+            raise InputError(f"template setting 'spacing' must be 'uniform' or 'tan', "
                              f"got {self.spacing!r}")
         if self.baseline not in ("nominal", "computed"):
-            raise ValueError(f"template setting 'baseline' must be 'nominal' or 'computed', "
+            raise InputError(f"template setting 'baseline' must be 'nominal' or 'computed', "
                              f"got {self.baseline!r}")
         if not 0 < self.min_step <= self.max_step:
-            raise ValueError("template settings need 0 < min_step <= max_step")
+            raise InputError("template settings need 0 < min_step <= max_step")
 
     @classmethod
     def from_dict(cls, mapping):
@@ -181,16 +179,16 @@ class DistortionTemplate:
         for name, shape in expect.items():
             arr = getattr(self, name)
             if arr.shape != shape:
-                raise ValueError(f"template array {name} has shape {arr.shape}, expected {shape}")
+                raise InputError(f"template array {name} has shape {arr.shape}, expected {shape}")
             if not np.all(np.isfinite(arr)):
-                raise ValueError(f"template array {name} contains non-finite values")
+                raise InputError(f"template array {name} contains non-finite values")
         if n % 2 != 1:
-            raise ValueError(f"template size must be odd, got {n}")
+            raise InputError(f"template size must be odd, got {n}")
         if not (np.all(np.diff(self.fractions) > 0) and self.fractions[0] > 0
                 and self.fractions[-1] < 1):
-            raise ValueError("template edge fractions must increase strictly inside (0, 1)")
+            raise InputError("template edge fractions must increase strictly inside (0, 1)")
         if not np.isfinite(self.charge) or self.charge == 0:
-            raise ValueError(f"template charge must be finite and non-zero, got {self.charge}")
+            raise InputError(f"template charge must be finite and non-zero, got {self.charge}")
 
     # -- basic properties -------------------------------------------------
     @property
@@ -369,7 +367,7 @@ class DistortionTemplate:
         :class:`TemplateFileError`.
         """
         if merge not in ("mean", "nearest"):
-            raise ValueError(f"merge must be 'mean' or 'nearest', got {merge!r}")
+            raise InputError(f"merge must be 'mean' or 'nearest', got {merge!r}")
         di = np.asarray(table["di"], dtype=int)
         dj = np.asarray(table["dj"], dtype=int)
         c = int(max(np.abs(di).max(), np.abs(dj).max()))
@@ -473,8 +471,7 @@ class DistortionTemplate:
         CHECKSUM/DATASUM cards are written on every HDU.
         """
         path = os.fspath(path)
-        if os.path.exists(path) and not overwrite:
-            raise FileExistsError(f"{path} exists (use overwrite=True)")
+        check_output(path, overwrite=overwrite)
         table = self.to_table()
         hdu = fits.BinTableHDU(table, name="TEMPLATE")
         hdr = hdu.header
@@ -516,7 +513,7 @@ class DistortionTemplate:
         """
         path = os.fspath(path)
         if not os.path.exists(path):
-            raise FileNotFoundError(f"template file {path} does not exist")
+            raise InputNotFoundError(f"template file {path} does not exist")
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("error")
@@ -548,9 +545,16 @@ class DistortionTemplate:
             meta = json.loads(meta_str)
         except (KeyError, ValueError) as exc:
             raise TemplateFileError(f"{path}: template header incomplete ({exc})") from exc
+        _check_table(path, data, meta)
         tol = 0.0 if hdr.get("BFSHARED", False) else None
         merge = meta.get("merge", "mean")
-        tpl = cls.from_table(data, fractions, charge, meta=meta, max_mismatch=tol, merge=merge)
+        try:
+            tpl = cls.from_table(data, fractions, charge, meta=meta, max_mismatch=tol,
+                                 merge=merge)
+        except TemplateFileError as exc:
+            raise TemplateFileError(str(exc), path) from exc
+        except (ValueError, IndexError, KeyError, TypeError) as exc:
+            raise TemplateFileError(f"inconsistent TEMPLATE table ({exc})", path) from exc
         if shared:
             if not {"CORNER_D", "VEDGE_D", "HEDGE_D"} <= set(shared):
                 raise TemplateFileError(f"{path}: incomplete shared-boundary extensions")
@@ -569,12 +573,39 @@ class DistortionTemplate:
         return tpl
 
 
+#: Columns of the TEMPLATE table (see :meth:`DistortionTemplate.to_table`).
+_TABLE_COLUMNS = ("di", "dj", "edge", "c0x", "c0y", "c1x", "c1y", "normal", "tangent")
+
+
+def _check_table(path, table, meta):
+    """Refuse a checksum-valid but malformed template file, naming it."""
+    if not isinstance(meta, dict):
+        raise TemplateFileError(f"BFMETA is JSON but not an object ({type(meta).__name__}); "
+                                "accepted: a JSON object", path)
+    missing = [c for c in _TABLE_COLUMNS if c not in table.colnames]
+    if missing:
+        raise TemplateFileError(f"TEMPLATE table lacks column(s) {missing}; accepted: columns "
+                                f"{list(_TABLE_COLUMNS)}", path)
+    if len(table) == 0:
+        raise TemplateFileError("TEMPLATE table has no rows; accepted: 4 rows (edges) per "
+                                "pixel of an N x N neighbourhood", path)
+    for col in ("di", "dj"):
+        try:
+            v = np.asarray(table[col], dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise TemplateFileError(f"column {col!r} is not numeric ({exc})", path) from exc
+        bad = ~(np.isfinite(v) & (v == np.round(v)))
+        if bad.any():
+            raise TemplateFileError(f"column {col!r} holds non-integer pixel offsets (first: "
+                                    f"{float(v[bad][0])}); accepted: integer offsets", path)
+
+
 def _json_default(obj):
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):
         return obj.tolist()
-    raise TypeError(f"cannot serialise {type(obj).__name__}")
+    raise InputTypeError(f"cannot serialise {type(obj).__name__}")
 
 
 def build_template(params=None, settings=None, *, progress=False):

@@ -21,13 +21,11 @@ import logging
 import math
 
 from lsst_bfdrift.utils.io import atomic_output
+from lsst_bfdrift.utils.errors import (FieldValidationError, InputAttributeError, InputError,
+                                       InputTypeError)
 
 __all__ = ["FieldValidationError", "Field", "ChoiceField", "ConfigurableField", "Config",
            "Struct", "Task"]
-
-
-class FieldValidationError(ValueError):
-    """A config value is of the wrong type, out of range, or set on a frozen config."""
 
 
 class _Descriptor:
@@ -69,9 +67,9 @@ class Field(_Descriptor):
 
     def __init__(self, doc, dtype, default=None, check=None, optional=False):
         if dtype not in (int, float, bool, str):
-            raise TypeError(f"unsupported field dtype {dtype!r}")
+            raise InputTypeError(f"unsupported field dtype {dtype!r}")
         if not doc:
-            raise ValueError("every field needs a doc string")
+            raise InputError("every field needs a doc string")
         self.doc, self.dtype, self.check, self.optional = doc, dtype, check, bool(optional)
         self.default = None if default is None else self._convert(default)
 
@@ -111,7 +109,7 @@ class ChoiceField(Field):
 
     def __init__(self, doc, dtype, default=None, allowed=None, optional=False):
         if not allowed:
-            raise ValueError("ChoiceField needs a non-empty 'allowed' mapping")
+            raise InputError("ChoiceField needs a non-empty 'allowed' mapping")
         self.allowed = dict(allowed)
         super().__init__(doc, dtype, default=default, optional=optional)
 
@@ -172,7 +170,7 @@ class Config:
 
     def __setattr__(self, name, value):
         if name not in self._fields():
-            raise AttributeError(f"{type(self).__name__} has no field {name!r}; fields: "
+            raise InputAttributeError(f"{type(self).__name__} has no field {name!r}; fields: "
                                  f"{', '.join(sorted(self._fields()))}")
         object.__setattr__(self, name, value)
 
@@ -231,9 +229,9 @@ class Config:
             data = tomllib.loads(raw.decode()) if toml else json.loads(raw.decode())
         except (UnicodeDecodeError, json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
             kind = "TOML" if toml else "JSON (name the file *.toml for TOML)"
-            raise ValueError(f"{path}: not valid {kind}: {exc}") from None
+            raise InputError(f"{path}: not valid {kind}: {exc}") from None
         if not isinstance(data, dict):
-            raise ValueError(f"{path}: expected a table of field names and values, "
+            raise InputError(f"{path}: expected a table of field names and values, "
                              f"got {type(data).__name__}")
         return cls.from_dict(data)
 
@@ -275,7 +273,7 @@ class Task:
         if config is None:
             config = self.ConfigClass()
         if not isinstance(config, self.ConfigClass):
-            raise TypeError(f"config must be a {self.ConfigClass.__name__}, "
+            raise InputTypeError(f"config must be a {self.ConfigClass.__name__}, "
                             f"got {type(config).__name__}")
         config.validate()
         config.freeze()
@@ -288,7 +286,7 @@ class Task:
         """Build the subtask configured by ConfigurableField ``name``."""
         field = type(self.config)._fields().get(name)
         if not isinstance(field, ConfigurableField):
-            raise AttributeError(f"{type(self.config).__name__} has no configurable field "
+            raise InputAttributeError(f"{type(self.config).__name__} has no configurable field "
                                  f"{name!r}")
         sub = field.target(config=getattr(self.config, name), name=name, parent=self)
         setattr(self, name, sub)

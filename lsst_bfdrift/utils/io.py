@@ -1,4 +1,4 @@
-"""File helpers shared by the package: atomic output, image input."""
+"""File helpers shared by the package: atomic output, the overwrite rule, FITS input."""
 
 import contextlib
 import os
@@ -6,33 +6,161 @@ import tempfile
 
 import numpy as np
 
-__all__ = ["atomic_output", "write_text", "write_json", "read_image", "data_path"]
+from lsst_bfdrift.utils.errors import (InputFileError, InputNotFoundError,
+                                       OutputExistsError)
+
+__all__ = ["TMP_PREFIX", "is_temporary", "data_files", "check_output", "atomic_output",
+           "write_text", "write_json", "open_fits", "hdu_pixels", "read_image", "data_path"]
+
+#: Prefix of the temporary files of :func:`atomic_output`; directory readers
+#: ignore files whose name starts with it (:func:`is_temporary`).
+TMP_PREFIX = ".tmp-"
+
+
+def is_temporary(path):
+    """Whether ``path`` names a temporary file of :func:`atomic_output`.
+
+    Parameters
+    ----------
+    path : str or path-like
+
+    Returns
+    -------
+    bool
+        True when the file name starts with :data:`TMP_PREFIX` (e.g. a
+        partial file left by a killed run).
+    """
+    return os.path.basename(os.fspath(path)).startswith(TMP_PREFIX)
+
+
+def data_files(directory, suffixes):
+    """Data files of ``directory`` with one of ``suffixes``, sorted by name.
+
+    Temporary files of :func:`atomic_output` (``.tmp-*``) are never data
+    and are left out, as are sub-directories.
+
+    Parameters
+    ----------
+    directory : str or path-like
+    suffixes : tuple of str
+        Accepted endings, compared case-insensitively (e.g. ``(".fits",)``).
+
+    Returns
+    -------
+    list of str
+        Full paths.
+    """
+    directory = os.fspath(directory)
+    names = sorted(f for f in os.listdir(directory)
+                   if f.lower().endswith(tuple(suffixes)) and not is_temporary(f))
+    return [os.path.join(directory, f) for f in names
+            if os.path.isfile(os.path.join(directory, f))]
+
+
+def _same_file(a, b):
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)  # hard links
+    except OSError:
+        return False
+
+
+def check_output(path, inputs=(), *, overwrite=False, what="output", hint=None):
+    """The one overwrite rule of every output of the package.
+
+    An output may never be one of the inputs (the same file once symbolic
+    links and relative paths are resolved), even with ``overwrite``; an
+    existing file is replaced only with ``overwrite``.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The output.
+    inputs : iterable of str or path-like, optional
+        The inputs of the command (``None`` entries are skipped).
+    overwrite : bool, optional
+        Whether an existing file that is not an input may be replaced.
+    what : str, optional
+        How the output is named in messages (e.g. ``"--out"``).
+    hint : str, optional
+        How to allow the replacement, in the message; default ``--overwrite``
+        when ``what`` is an option (starts with ``--``), else
+        ``overwrite=True``.
+
+    Raises
+    ------
+    OutputExistsError
+        ``path`` is one of the inputs, is a directory, or exists and
+        ``overwrite`` is False.
+    """
+    path = os.fspath(path)
+    for src in inputs:
+        if src is not None and _same_file(path, os.fspath(src)):
+            raise OutputExistsError(f"refusing to write {what} {path}: it is one of the inputs "
+                                    f"({os.fspath(src)}); give another output file")
+    if os.path.isdir(path):
+        raise OutputExistsError(f"{what} {path} is a directory; give a file name")
+    if os.path.lexists(path) and not overwrite:
+        if hint is None:
+            hint = "--overwrite" if what.startswith("--") else "overwrite=True"
+        raise OutputExistsError(f"{what} {path} exists (use {hint} to replace it)")
+
+
+def _name_the_output(exc, tmp, path):
+    """``exc`` (an OSError about the temporary file) re-worded to name ``path``."""
+    name = exc.filename if isinstance(exc.filename, str) else None
+    if (name and is_temporary(name)) or (tmp and tmp in str(exc)):
+        reason = exc.strerror or str(exc).replace(tmp or name, path)
+        return OSError(exc.errno, f"cannot write {path}: {reason}") if exc.errno else \
+            OSError(f"cannot write {path}: {reason}")
+    return None
 
 
 @contextlib.contextmanager
-def atomic_output(path, *, overwrite=True):
+def atomic_output(path, *, overwrite=True, inputs=()):
     """Yield a temporary path next to ``path``; rename it to ``path`` on success.
 
-    The file appears complete or not at all; on error the temporary file is
-    removed and ``path`` is untouched. Permissions follow the umask (like a
-    plain ``open``), not mkstemp's 0600.
+    The file appears complete or not at all. The temporary file (named
+    ``.tmp-*``, which directory readers ignore) is removed on any exception,
+    KeyboardInterrupt included, and ``path`` is then untouched. Permissions
+    follow the umask (like a plain ``open``), not mkstemp's 0600.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The output file.
+    overwrite : bool, optional
+        Replace an existing file (:func:`check_output`).
+    inputs : iterable, optional
+        Files the output may not replace (:func:`check_output`).
+
+    Yields
+    ------
+    tmp : str
+        The temporary file to write.
     """
     path = os.fspath(path)
-    if os.path.exists(path) and not overwrite:
-        raise FileExistsError(f"{path} exists (use overwrite)")
+    check_output(path, inputs, overwrite=overwrite)
     directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    suffix = os.path.splitext(path)[1] or ".tmp"
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix, dir=directory)
-    os.close(fd)
+    tmp = None
     try:
+        os.makedirs(directory, exist_ok=True)
+        suffix = os.path.splitext(path)[1] or ".tmp"
+        fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, suffix=suffix, dir=directory)
+        os.close(fd)
         yield tmp
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
+    except OSError as exc:
+        renamed = _name_the_output(exc, tmp, path)
+        if renamed is None:
+            raise
+        raise renamed from exc
     finally:
-        if os.path.exists(tmp):
+        if tmp is not None and os.path.lexists(tmp):
             os.remove(tmp)
 
 
@@ -51,17 +179,94 @@ def write_json(path, obj, **dump_kwargs):
         json.dump(obj, fh, **dump_kwargs)
 
 
-def read_image(path, *, hdu=None):
-    """Image (float64 copy) and mask from a FITS file; NaN/inf are masked."""
+@contextlib.contextmanager
+def open_fits(path):
+    """``astropy.io.fits.open`` (no memmap) with the package's errors.
+
+    Raises
+    ------
+    InputNotFoundError
+        ``path`` does not exist.
+    InputFileError
+        ``path`` is not a readable FITS file (empty, corrupt, another format).
+    """
     from astropy.io import fits
 
-    with fits.open(path, memmap=False) as hdul:
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise InputNotFoundError(f"{path}: no such file; accepted: a FITS file", path)
+    try:
+        hdul = fits.open(path, memmap=False)
+    except (OSError, ValueError, TypeError, IndexError) as exc:
+        raise InputFileError(f"{path}: not a readable FITS file ({exc}); accepted: a FITS "
+                             "file", path) from exc
+    with hdul:
+        yield hdul
+
+
+def hdu_pixels(hdu, path, dtype=np.float64):
+    """Pixels of one image HDU as a new array, a truncated file named as such.
+
+    Parameters
+    ----------
+    hdu : astropy.io.fits HDU
+    path : str
+        The file (for the message).
+    dtype : numpy dtype, optional
+
+    Returns
+    -------
+    ndarray
+
+    Raises
+    ------
+    InputFileError
+        The file ends before the pixels its header announces ("cannot
+        reshape array" in astropy) or they cannot be decoded.
+    """
+    try:
+        return np.array(hdu.data, dtype=dtype)
+    except (ValueError, TypeError, OSError, IndexError) as exc:
+        hdr = hdu.header
+        shape = tuple(hdr.get(f"NAXIS{k}") for k in range(int(hdr.get("NAXIS", 0) or 0), 0, -1))
+        raise InputFileError(f"{path}: truncated or corrupt FITS file: HDU {hdu.name or 0!s} "
+                             f"announces an image of shape {shape} but its pixels cannot be read "
+                             f"({exc}); re-copy or re-write the file", path) from exc
+
+
+def read_image(path, *, hdu=None):
+    """Image (float64 copy), mask and header from a FITS file; NaN/inf are masked.
+
+    Parameters
+    ----------
+    path : str or path-like
+    hdu : int, optional
+        HDU to read; default the first one holding a 2-d image.
+
+    Returns
+    -------
+    data : ndarray
+    bad : ndarray of bool
+    header : astropy.io.fits.Header
+
+    Raises
+    ------
+    InputNotFoundError, InputFileError
+        See :func:`open_fits` and :func:`hdu_pixels` (a truncated file is
+        named as such).
+    InputError
+        No 2-d image HDU.
+    """
+    path = os.fspath(path)
+    with open_fits(path) as hdul:
         if hdu is None:
-            hdu = next((k for k, h in enumerate(hdul) if getattr(h, "data", None) is not None
-                        and h.data.ndim == 2), None)
+            hdu = next((k for k, h in enumerate(hdul) if h.is_image
+                        and h.header.get("NAXIS") == 2
+                        and all(h.header.get(f"NAXIS{n}", 0) > 0 for n in (1, 2))), None)
             if hdu is None:
-                raise ValueError(f"{path}: no 2-d image HDU")
-        data = np.array(hdul[hdu].data, dtype=np.float64)
+                raise InputFileError(f"{path}: no 2-d image HDU; accepted: a FITS file with a "
+                                     "2-d image", path)
+        data = hdu_pixels(hdul[hdu], path)
         header = hdul[hdu].header.copy()
     return data, ~np.isfinite(data), header
 

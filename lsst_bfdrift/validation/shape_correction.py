@@ -71,6 +71,7 @@ cancels.
 """
 
 import numpy as np
+from lsst_bfdrift.utils.errors import ComputationError, InputError
 
 __all__ = ["adaptive_moments", "footprint_moments", "correct_star_moments", "correct_catalog"]
 
@@ -129,7 +130,7 @@ def adaptive_moments(x, y, counts, *, sxx=None, syy=None, sxy=None, guess=None,
     for it in range(1, max_iter + 1):
         det = a * b - h * h
         if not det > 0:
-            raise RuntimeError("adaptive moments: weight became degenerate")
+            raise ComputationError("adaptive moments: weight became degenerate")
         ia, ib, ih = b / det, a / det, -h / det  # M^-1
         dx, dy = x - mx, y - my
         q = ia * dx * dx + 2 * ih * dx * dy + ib * dy * dy
@@ -145,7 +146,7 @@ def adaptive_moments(x, y, counts, *, sxx=None, syy=None, sxy=None, guess=None,
             k = 1.0
         s0 = (w * k).sum()
         if not s0 > 0:
-            raise RuntimeError("adaptive moments: weighted flux is not positive")
+            raise ComputationError("adaptive moments: weighted flux is not positive")
         ddx = (w * (dx * k - vx)).sum() / s0
         ddy = (w * (dy * k - vy)).sum() / s0
         mxx = (w * (dx * dx * k - 2 * vx * dx + sxx)).sum() / s0 - ddx * ddx
@@ -163,12 +164,12 @@ def adaptive_moments(x, y, counts, *, sxx=None, syy=None, sxy=None, guess=None,
                 ddx, ddy = 2 * ddx, 2 * ddy  # the weighted centroid also moves halfway
         mx, my, a, b, h = mx + ddx, my + ddy, na, nb, nh
         if not (a > 0 and b > 0):
-            raise RuntimeError("adaptive moments: negative second moment")
+            raise ComputationError("adaptive moments: negative second moment")
         if change < tol:
             t = a + b
             return {"x": mx, "y": my, "ixx": a, "iyy": b, "ixy": h, "T": t,
                     "e1": (a - b) / t, "e2": 2 * h / t, "iterations": it}
-    raise RuntimeError(f"adaptive moments did not converge in {max_iter} iterations")
+    raise ComputationError(f"adaptive moments did not converge in {max_iter} iterations")
 
 
 def footprint_moments(maps):
@@ -203,7 +204,7 @@ def footprint_moments(maps):
         area, e1, e2 = get("area"), get("e1"), get("e2")
         dx, dy = get("centroid_x"), get("centroid_y")
         if any(v is None for v in (area, e1, e2, dx, dy)):
-            raise ValueError("geometry maps need area, centroid_x, centroid_y, e1, e2 (run the "
+            raise InputError("geometry maps need area, centroid_x, centroid_y, e1, e2 (run the "
                              "Task with compute_geometry=True) or a MomentMaps")
         t = np.asarray(area, float) / 6.0
         ixx, iyy, ixy = 0.5 * t * (1 + e1), 0.5 * t * (1 - e1), 0.5 * t * np.asarray(e2)
@@ -212,7 +213,7 @@ def footprint_moments(maps):
            "sxy": np.asarray(ixy, float)}
     shape = out["dx"].shape
     if any(v.shape != shape for v in out.values()) or len(shape) != 2:
-        raise ValueError("geometry maps must be 2-d arrays of one shape")
+        raise InputError("geometry maps must be 2-d arrays of one shape")
     return out
 
 
@@ -297,13 +298,13 @@ def correct_catalog(catalog, exposure, *, maps=None, template=None, gain=None, m
     data, bad, _, _ = load_electrons(exposure, gain=gain, mask=mask)
     if maps is None:
         if template is None:
-            raise ValueError("give the geometry maps or a template to compute them")
+            raise InputError("give the geometry maps or a template to compute them")
         maps = moment_maps(template, np.where(bad, 0.0, data), mask=bad, workers=workers)
     foot = footprint_moments(maps)
     if foot["dx"].shape != data.shape:
-        raise ValueError(f"maps shape {foot['dx'].shape} does not match image {data.shape}")
+        raise InputError(f"maps shape {foot['dx'].shape} does not match image {data.shape}")
     if not 0 <= float(history) <= 1:
-        raise ValueError(f"history must be in [0, 1], got {history}")
+        raise InputError(f"history must be in [0, 1], got {history}")
     out = catalog.copy()
     n = len(out)
     stamp = int(out.meta.get("stamp", 25))

@@ -18,6 +18,7 @@ any after-correction slope (size, e1 or e2) differs from zero by more than
 
 import numpy as np
 
+from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.calibration.star_slopes import shape_flux_relations
 
 __all__ = ["validate_sky", "SkyValidation"]
@@ -106,9 +107,9 @@ def validate_sky(exposure, *, gain=None, mask=None, saturation=None, template=No
     from lsst_bfdrift.validation.shape_correction import correct_catalog
 
     if route not in ("catalog", "pixel", "both", "none"):
-        raise ValueError(f"route must be catalog, pixel, both or none, got {route!r}")
+        raise InputError(f"route must be catalog, pixel, both or none, got {route!r}")
     if not z_crit > 0:
-        raise ValueError(f"z_crit must be positive, got {z_crit}")
+        raise InputError(f"z_crit must be positive, got {z_crit}")
     data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask, saturation=saturation)
     ckw = dict(catalog_kwargs or {})
     cat = measure_stars(data, mask=bad, saturation=sat_e, progress=progress, **ckw)

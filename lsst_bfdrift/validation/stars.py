@@ -24,6 +24,7 @@ from the scatter).
 import numpy as np
 
 from lsst_bfdrift.utils.progress import ProgressBar
+from lsst_bfdrift.utils.errors import ComputationError, InputError
 
 __all__ = ["draw_star_pairs", "per_star_residuals", "residual_slopes", "validate_stars"]
 
@@ -96,7 +97,7 @@ def draw_star_pairs(n_stars, *, sensor="lsst_itl_50_8", psf="moffat", fwhm=(0.6,
     from lsst_bfdrift.simulation.stars import make_psf
 
     if int(n_stars) < 1:
-        raise ValueError(f"n_stars must be positive, got {n_stars!r}")
+        raise InputError(f"n_stars must be positive, got {n_stars!r}")
     rng = np.random.default_rng(seed)
     out = []
     with ProgressBar(int(n_stars), "galsim stars", enabled=progress) as bar:
@@ -215,7 +216,7 @@ def residual_slopes(fluxes, rows):
     ok = np.isfinite(fluxes)
     n = int(ok.sum())
     if n < 3:
-        raise RuntimeError(f"only {n} stars had measurable moments; need >= 3")
+        raise ComputationError(f"only {n} stars had measurable moments; need >= 3")
     f = fluxes[ok]
     ref = rows["astier23"][ok] if "astier23" in rows else None
     out = {}

@@ -189,3 +189,15 @@ def test_cli_itl_table_with_shipped_basis(capsys):
     assert out["chi2_dof_before"] < 0.1  # the file's errors are generous (docs/calibration.rst)
     assert out["tried"] == ["charge_cloud"]
     assert len(out["residuals_before"]) == 80
+
+
+def test_directory_reader_ignores_temporary_files(tmp_path, monkeypatch):
+    """A partial .tmp-* file left by a killed write is never taken as a flat."""
+    from lsst_bfdrift.calibration import diagnosis
+    for k in range(8):
+        fits.writeto(tmp_path / f"flat_{k}.fits", np.ones((8, 8), np.float32))
+    (tmp_path / ".tmp-k1x2.fits").write_bytes(b"")  # killed run
+    monkeypatch.setattr(diagnosis, "observations_from_pairs", lambda pairs, max_lag: pairs)
+    pairs = load_input(str(tmp_path))
+    assert [os.path.basename(p) for pair in pairs for p in pair] == \
+        [f"flat_{k}.fits" for k in range(8)]

@@ -2,11 +2,13 @@
 
 import numpy as np
 import pytest
+from astropy.io import fits
 from numpy.testing import assert_allclose
 
 from lsst_bfdrift.calibration.ptc import (covariance_model, fit_covariance_model, fit_ptc_exponential,
                               measure_ptc, pair_covariances, ptc_exponential_model,
                               read_ptc_text)
+from lsst_bfdrift.utils.errors import InputError
 
 MEASURED = "/work/shared/data/measured/eotest_e2v_ptc_amp05.txt"
 
@@ -210,3 +212,52 @@ def test_static_term_equals_direct_sums_and_finds_a_common_pattern():
                              rng.poisson(mu, shape).astype(float), max_lag=1, static=True)
     assert abs(clean.static[0, 0]) < 0.02 * mu
     assert pair_covariances(f1, f2, max_lag=1).static is None
+
+
+def _flat(path, level, rng, exptime=None, shape=(40, 40)):
+    hdu = fits.PrimaryHDU(rng.poisson(level, shape).astype(float))
+    if exptime is not None:
+        hdu.header["EXPTIME"] = exptime
+    hdu.writeto(path)
+    return str(path)
+
+
+def test_pair_with_different_exptime_or_shape_is_refused(tmp_path):
+    """F2: the two flats of a pair must match (EXPTIME within 1e-3, shape)."""
+    from lsst_bfdrift.calibration.ptc import read_flat_pair
+    rng = np.random.default_rng(2)
+    a = _flat(tmp_path / "a.fits", 1000, rng, exptime=1.0)
+    b = _flat(tmp_path / "b.fits", 2000, rng, exptime=2.0)
+    c = _flat(tmp_path / "c.fits", 1000, rng, exptime=1.0005)
+    d = _flat(tmp_path / "d.fits", 1000, rng, exptime=1.0, shape=(40, 30))
+    e = _flat(tmp_path / "e.fits", 1000, rng)
+    with pytest.raises(InputError, match="a.fits and .*b.fits: EXPTIME 1.0 and 2.0 differ"):
+        measure_ptc([(a, b)], max_lag=1)
+    with pytest.raises(InputError, match="a.fits and .*d.fits: shapes"):
+        measure_ptc([(a, d)], max_lag=1)
+    with pytest.raises(InputError, match="only one"):
+        read_flat_pair(a, e)
+    assert read_flat_pair(a, c)[0].shape == (40, 40)  # within the tolerance
+
+
+@pytest.mark.parametrize("mu, var, match", [
+    (np.full(6, 1000.0), np.full(6, 700.0), "1 distinct signal level"),
+    (np.repeat([1000.0, 2000.0], 3), np.repeat([700.0, 1400.0], 3), "2 distinct"),
+    (np.geomspace(100, 1e5, 8) * 1e-300, np.geomspace(100, 1e5, 8) * 1e-300, "range"),
+    (np.geomspace(100, 1e5, 8) * 1e200, np.geomspace(100, 1e5, 8) * 1e200, "range"),
+])
+def test_degenerate_ptc_is_refused(mu, var, match):
+    """F5: identical points or one level are refused, not fitted with zero error;
+    extreme values give a clear error, not LinAlgError."""
+    with pytest.raises(InputError, match=match):
+        fit_ptc_exponential(mu, var)
+
+
+def test_ptc_text_reader_names_the_file(tmp_path):
+    p = tmp_path / "bad.txt"
+    p.write_text("1 2\nx y\n")
+    with pytest.raises(InputError, match="bad.txt: cannot read PTC text"):
+        read_ptc_text(p)
+    p.write_text("# nothing\n")
+    with pytest.raises(InputError, match="bad.txt: no PTC rows"):
+        read_ptc_text(p)

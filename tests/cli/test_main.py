@@ -1,6 +1,8 @@
 """Tests of the bfdrift command line (run in-process through main())."""
 
 import json
+import os
+import pathlib
 
 import numpy as np
 import pytest
@@ -44,7 +46,7 @@ def test_build_from_config_then_summary_and_plot(capsys, tmp_path):
     code, out, _ = _run(capsys, "template", "plot", str(out_file), "--out", str(png))
     assert code == 0 and png.read_bytes()[:4] == b"\x89PNG"
     code, _, err = _run(capsys, "template", "build", "--out", str(out_file), "--quiet")
-    assert code == 2 and "exists" in err
+    assert code == 3 and "exists" in err
 
 
 def test_import_galsim(capsys, tmp_path):
@@ -105,6 +107,49 @@ def test_errors_are_reported(capsys, argv, match):
     assert code == 2 and match in err
 
 
+@pytest.mark.parametrize("gain", ["0", "nan", "-1", "inf"])
+def test_bad_gain_is_one_usage_error(capsys, tmp_path, gain):
+    """--gain 0 and --gain nan are the same mistake: exit 2 before any file is read."""
+    from lsst_bfdrift.cli.main import EXIT_INPUT, sample_image_path
+    out_file = tmp_path / "corr.fits"
+    code, _, err = _run(capsys, "correct", sample_image_path(), str(out_file), "--gain", gain,
+                        "--quiet")
+    assert code == EXIT_INPUT == 2 and "gain" in err and not out_file.exists()
+    code, _, err = _run(capsys, "maps", "--gain", gain, "--quiet")
+    assert code == 2 and "gain" in err
+
+
+def test_exit_codes_follow_the_error_kind():
+    from lsst_bfdrift.cli.main import exit_code
+    from lsst_bfdrift.utils import errors
+    assert exit_code(errors.InputError("x")) == 2
+    assert exit_code(errors.InputNotFoundError("x", "f")) == 2
+    assert exit_code(FileNotFoundError(2, "No such file", "f")) == 2
+    assert exit_code(errors.OutputExistsError("x")) == 3
+    assert exit_code(errors.FitError("x")) == 4
+    assert exit_code(errors.ComputationError("x")) == 4
+    assert exit_code(PermissionError(13, "Permission denied")) == 1
+    assert exit_code(errors.BfdriftError("x")) == 1
+
+
+def test_only_package_errors_and_oserror_are_caught(capsys, monkeypatch):
+    """A bug (any other exception) keeps its traceback; a package error does not."""
+    import sys
+    from lsst_bfdrift.utils.errors import FitError
+    cli = sys.modules["lsst_bfdrift.cli.main"]  # the package re-exports main() as .main
+
+    def boom(args):
+        raise ZeroDivisionError("a bug")
+    monkeypatch.setattr(cli, "_cmd_template_summary", boom)
+    with pytest.raises(ZeroDivisionError, match="a bug"):
+        main(["template", "summary"])
+
+    def fit_fails(args):
+        raise FitError("poor fit")
+    monkeypatch.setattr(cli, "_cmd_template_summary", fit_fails)
+    assert _run(capsys, "template", "summary")[:3:2] == (4, "bfdrift: error: poor fit\n")
+
+
 def test_unknown_config_key(capsys, tmp_path):
     cfg = tmp_path / "cfg.json"
     cfg.write_text(json.dumps({"sensor": {"thickness": 100, "bogus": 1}}))
@@ -136,6 +181,10 @@ def test_ptc_on_fits_pairs(capsys, tmp_path, rng):
     s = json.loads(out)
     assert s["gain"] == pytest.approx(gain, abs=4 * s["gain_err"] + 0.01)
     assert abs(s["a10"]) < 4 * s["a10_err"] + 1e-9
+    (tmp_path / ".tmp-killed.fits").write_bytes(b"")  # a leftover is never a flat
+    code, out2, err = _run(capsys, "ptc", str(tmp_path), "--json", "--max-lag", "1")
+    assert code == 0, err
+    assert json.loads(out2)["gain"] == s["gain"]
 
 
 def test_ptc_needs_pairs(capsys, tmp_path):
@@ -190,7 +239,7 @@ def test_correct(capsys, tmp_path):
             assert hdul[0].data.sum() == pytest.approx(src[0].data.sum(), rel=1e-6)
         assert "AREA" in hdul and "FLUX_MOVED" in hdul
     code, _, err = _run(capsys, "correct", sample_image_path(), sample_image_path(), "--quiet")
-    assert code == 2 and "refusing" in err
+    assert code == 3 and "refusing" in err
     code, out, err = _run(capsys, "correct", sample_image_path(), "--out-dir",
                           str(tmp_path / "many"), "--method", "astier23", "--quiet", "--json")
     assert code == 0 and json.loads(out)["method"] == "astier23"
@@ -310,7 +359,7 @@ def test_calibrate_from_a_ptc_and_refusals(capsys, tmp_path):
     tpl = DistortionTemplate.load(out)
     assert tpl.meta["calibration"]["inputs"] == [ptc]
     code, _, err = _run(capsys, "calibrate", ptc, "--out", str(out), "--quiet")
-    assert code != 0 and "exists" in err
+    assert code == 3 and "exists" in err
     code, _, err = _run(capsys, "calibrate", ptc, "--out", ptc, "--overwrite", "--quiet")
     assert code != 0 and "one of the inputs" in err
     tight = tmp_path / "tight.txt"
@@ -320,7 +369,7 @@ def test_calibrate_from_a_ptc_and_refusals(capsys, tmp_path):
     bad = tmp_path / "bad.fits"
     code, _, err = _run(capsys, "calibrate", str(tight), "--out", str(bad), "--free", "v_bss",
                         "--quiet")
-    assert code != 0 and "poor fit" in err and "worst lags" in err and not bad.exists()
+    assert code == 4 and "poor fit" in err and "worst lags" in err and not bad.exists()
 
 
 def test_template_export_galsim(capsys, tmp_path):
@@ -344,3 +393,108 @@ def test_template_export_galsim(capsys, tmp_path):
     code, _, err = _run(capsys, "template", "export-galsim", default_template_path(),
                         str(prefix))
     assert code != 0 and "exists" in err
+
+
+def _small_image(path):
+    fits.writeto(path, np.random.default_rng(20).normal(1000.0, 30.0, (16, 16)))
+    return str(path)
+
+
+@pytest.mark.parametrize("argv", [
+    ["maps", "{img}", "--out", "{old}", "--quiet"],
+    ["maps", "{img}", "--plot", "{old}", "--quiet"],
+    ["template", "plot", "--out", "{old}"],
+    ["flat-sim", "--out", "{old}", "--quiet"],
+    ["flat-sim", "--plot", "{old}", "--quiet"],
+    ["star-sim", "--out", "{old}", "--quiet"],
+    ["validate-sky", "{img}", "--catalog", "{old}", "--quiet"],
+    ["validate-sky", "{img}", "--plot", "{old}", "--quiet"],
+    ["calibrate", "{img}", "--out", "{new}", "--plot", "{old}", "--quiet"],
+])
+def test_existing_output_needs_overwrite(capsys, tmp_path, argv):
+    """F1: no command replaces an existing file without --overwrite (exit 3,
+    the file untouched, checked before any work)."""
+    old = tmp_path / "old.out"
+    old.write_text("keep me")
+    fmt = {"img": _small_image(tmp_path / "img.fits"), "old": str(old),
+           "new": str(tmp_path / "new.fits")}
+    code, _, err = _run(capsys, *[a.format(**fmt) for a in argv])
+    assert code == 3 and "exists" in err and "--overwrite" in err, err
+    assert old.read_text() == "keep me" and not (tmp_path / "new.fits").exists()
+
+
+@pytest.mark.parametrize("argv", [
+    ["maps", "{img}", "--out", "{img}"],
+    ["maps", "{img}", "--plot", "{img}"],
+    ["maps", "{img}", "--template", "{tpl}", "--out", "{tpl}"],
+    ["template", "plot", "{tpl}", "--out", "{tpl}"],
+    ["flat-sim", "--template", "{tpl}", "--out", "{tpl}"],
+    ["star-sim", "--template", "{tpl}", "--plot", "{tpl}"],
+    ["validate-sky", "{img}", "--catalog", "{img}"],
+    ["calibrate", "{img}", "--out", "{new}", "--plot", "{img}"],
+    ["correct", "{img}", "{img}"],
+    ["correct", "{img}", "{link}"],
+])
+def test_output_is_never_an_input(capsys, tmp_path, argv):
+    """F1: `bfdrift maps IMG --out IMG` replaced the image; an input is never
+    an output, even with --overwrite or through a symbolic link."""
+    img = _small_image(tmp_path / "img.fits")
+    tpl = tmp_path / "tpl.fits"
+    load_default_template().save(tpl)
+    (tmp_path / "link.fits").symlink_to(img)
+    before = {p: pathlib.Path(p).read_bytes() for p in (img, tpl)}
+    fmt = {"img": img, "tpl": str(tpl), "new": str(tmp_path / "new.fits"),
+           "link": str(tmp_path / "link.fits")}
+    quiet = [] if argv[0] == "template" else ["--quiet"]
+    code, _, err = _run(capsys, *[a.format(**fmt) for a in argv], "--overwrite", *quiet)
+    assert code == 3 and "one of the inputs" in err, err
+    assert {p: pathlib.Path(p).read_bytes() for p in (img, tpl)} == before
+
+
+def test_two_outputs_may_not_share_a_file(capsys, tmp_path):
+    out = str(tmp_path / "x.fits")
+    code, _, err = _run(capsys, "maps", "--out", out, "--plot", out, "--quiet")
+    assert code == 3 and "also given to --out" in err
+
+
+def test_overwrite_replaces_an_existing_plot(capsys, tmp_path):
+    png = tmp_path / "t.png"
+    png.write_text("old")
+    code, _, err = _run(capsys, "template", "plot", "--out", str(png), "--overwrite")
+    assert code == 0, err
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    assert sorted(os.listdir(tmp_path)) == ["t.png"]  # no .tmp-* left
+
+
+def test_crashes_are_clear_errors(capsys, tmp_path):
+    """ptc --max-lag 0 (IndexError), diagnose with lag 100000 (MemoryError),
+    a template with non-integer offsets (IndexError): exit 2, message."""
+    from astropy.table import Table
+    rng = np.random.default_rng(21)
+    files = []
+    for k, m in enumerate(np.geomspace(300, 3e4, 5)):
+        for p in range(2):
+            files.append(str(tmp_path / f"f{k}{p}.fits"))
+            fits.PrimaryHDU(rng.poisson(m, (32, 32)).astype(float)).writeto(files[-1])
+    code, _, err = _run(capsys, "ptc", *files, "--max-lag", "0")
+    assert code == 2 and "--max-lag must be >= 1" in err
+    big = tmp_path / "big.txt"
+    big.write_text("i j a sigma\n0 0 -2e-6 1e-8\n0 1 1e-7 1e-9\n1 0 5e-8 1e-9\n"
+                   "100000 0 1e-9 1e-9\n")
+    code, _, err = _run(capsys, "diagnose", str(big))
+    assert code == 2 and "big.txt: lag (100000, 0) is beyond 64" in err
+    from lsst_bfdrift.templates.template import default_template_path
+    with fits.open(default_template_path()) as hdul:
+        hdus = fits.HDUList([h.copy() for h in hdul])
+    t = Table(hdus["TEMPLATE"].data)
+    t["di"] = t["di"].astype(float) + 0.5
+    hdus["TEMPLATE"] = fits.BinTableHDU(t, header=hdus["TEMPLATE"].header, name="TEMPLATE")
+    bad = tmp_path / "nonint.fits"
+    hdus.writeto(bad, checksum=True)
+    code, _, err = _run(capsys, "template", "summary", str(bad))
+    assert code == 2 and "nonint.fits: column 'di' holds non-integer pixel offsets" in err
+    hdus[0].header["BFMETA"] = "[1, 2]"
+    hdus["TEMPLATE"] = fits.BinTableHDU(t[:0], header=hdus["TEMPLATE"].header, name="TEMPLATE")
+    hdus.writeto(bad, checksum=True, overwrite=True)
+    code, _, err = _run(capsys, "template", "summary", str(bad))
+    assert code == 2 and "not an object" in err

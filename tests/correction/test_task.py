@@ -361,3 +361,16 @@ def test_fv4_density_is_exact_for_cubic_profiles():
         assert np.max(np.abs(other[:, 2:-2] - p(x[2:-1]))) > 1e-3
     with pytest.raises(ValueError, match="density mode"):
         edge_flux_density(img, mode="quintic")
+
+
+@pytest.mark.parametrize("method", ["drift", "astier23", "coulton18"])
+@pytest.mark.parametrize("shape", [(0, 5), (5, 0), (0, 0)])
+def test_empty_image_is_refused(method, shape):
+    """An empty image is a clear error for every method (was ZeroDivisionError,
+    'range() arg 3', 'zero-size array', or an empty result)."""
+    from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
+    from lsst_bfdrift.utils.errors import InputError
+    task = BrighterFatterDriftTask(BrighterFatterDriftConfig(method=method,
+                                                             compute_geometry=False))
+    with pytest.raises(InputError, match=r"empty \(shape"):
+        task.run(np.zeros(shape))
