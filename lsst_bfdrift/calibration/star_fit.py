@@ -71,6 +71,10 @@ from lsst_bfdrift.utils.progress import ProgressBar
 __all__ = ["StarField", "StarCalibrationResult", "calibrate_with_stars", "combine_templates"]
 
 _SLOPES = ("size", "e1", "e2")
+#: Finite-difference step of the star Jacobian (in units of each direction).
+_EPS = 0.25
+#: Prior width (steps) of every direction of the template family.
+PRIOR_STEPS = 3.0
 
 
 def combine_templates(base, deltas, coefficients, *, meta=None):
@@ -416,31 +420,58 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     s_before = {f.name: f.slopes(None, f.fit_stars, n_boot=n_boot, seed=seed) for f in fit_fields}
     s_a = star_eval(ta, n_boot)
     r_s0, sig_s = _star_vector(s_a, fit_fields)
-    Js = []
-    for d in deltas:
-        s_k = star_eval(combine_templates(ta, [d], [1.0]))
-        Js.append(_star_vector(s_k, fit_fields)[0] - r_s0)
-    Js = np.column_stack(Js)
+    Js, keep = [], []
+    for k, d in enumerate(deltas):
+        # a quarter step: small enough that bright pixels stay in the modelled range
+        try:
+            s_k = star_eval(combine_templates(ta, [d], [_EPS]))
+        except InputError as exc:
+            warn.append(f"direction {dirs[k]} skipped: the stars cannot be corrected with "
+                        f"it ({exc})")
+            continue
+        keep.append(k)
+        Js.append((_star_vector(s_k, fit_fields)[0] - r_s0) / _EPS)
+    dirs = [dirs[k] for k in keep]
+    deltas = [deltas[k] for k in keep]
+    Ja = Ja[:, keep]
+    Js = np.column_stack(Js) if Js else np.zeros((r_s0.size, 0))
+    if not dirs:
+        raise CalibrationError("no direction of the template family can be evaluated on "
+                               "the star fields")
     t_jac = time.perf_counter() - t0 - t_dirs
     # joint linear system
-    r0 = np.concatenate([a0 - a_meas, r_s0])
-    sig = np.concatenate([a_sig, sig_s])
-    J = np.vstack([Ja, Js])
+    # plus a Gaussian prior of PRIOR_STEPS steps per direction: keeps directions the
+    # data hardly see inside the linear range of the family
+    nd = len(dirs)
     n_a = a0.size
+    r0 = np.concatenate([a0 - a_meas, r_s0, np.zeros(nd)])
+    sig = np.concatenate([a_sig, sig_s, np.full(nd, PRIOR_STEPS)])
+    J = np.vstack([Ja, Js, np.eye(nd)])
     sel_mask = np.ones(r0.size, bool)
-    chosen, selection = _select(J, r0, sig, sel_mask, dirs, max_params=max_directions)
+    sel_mask[n_a + r_s0.size:] = False  # ln N counts the data, not the prior rows
+    chosen, selection = _select(J[:n_a + r_s0.size], r0[:n_a + r_s0.size],
+                                sig[:n_a + r_s0.size], sel_mask[:n_a + r_s0.size], dirs,
+                                max_params=max_directions, always_first=False)
     cols = [dirs.index(n) for n in chosen]
+    rows = np.r_[np.arange(n_a + r_s0.size), n_a + r_s0.size + np.asarray(cols, int)]
+    J, r0, sig = J[rows][:, cols], r0[rows], sig[rows]
     W = 1.0 / sig ** 2
-    Jc = J[:, cols]
+    Jc = J
     F = Jc.T @ (Jc * W[:, None])
-    cov = np.linalg.pinv(F)
+    cov = np.linalg.pinv(F) if cols else np.zeros((0, 0))
     coef = -cov @ (Jc.T @ (W * r0))
     # Gauss-Newton refinement with exact star evaluations
     t_joint = combine_templates(ta, [deltas[k] for k in cols], coef)
     s_j = None
     for _ in range(max(int(iterations), 0) + 1):
-        s_j = star_eval(t_joint)
-        r = np.concatenate([alpha_of(t_joint) - a_meas, _star_vector(s_j, fit_fields)[0]])
+        try:
+            s_j = star_eval(t_joint)
+        except InputError as exc:
+            raise CalibrationError(
+                f"the joint template ({', '.join(f'{n} {c:+.3g} steps' for n, c in zip(chosen, coef))}) "
+                f"cannot correct the star fields: {exc}") from exc
+        r = np.concatenate([alpha_of(t_joint) - a_meas, _star_vector(s_j, fit_fields)[0],
+                            coef])
         step = -cov @ (Jc.T @ (W * r))
         if _ >= iterations or np.all(np.abs(step) < 0.02 * np.sqrt(np.diag(cov)) + 1e-12):
             break
@@ -459,10 +490,12 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                        "slopes are added; large with a small p-value means the model's "
                        "directions cannot satisfy both data sets"}
     if tension["p_value"] < 1e-3:
-        worst = np.argsort(-np.abs(r_fin / sig))[:3]
+        sig_d = np.concatenate([a_sig, sig_s])
+        worst = np.argsort(-np.abs(r_fin / sig_d))[:3]
         labels = [f"a{i}{j}" for i in range(L + 1) for j in range(L + 1) if lag_mask[i, j]] + \
             [f"{f.name}:{k}" for f in fit_fields for k in _SLOPES]
-        tension["worst"] = [{"what": labels[w], "pull": float(r_fin[w] / sig[w])} for w in worst]
+        tension["worst"] = [{"what": labels[w], "pull": float(r_fin[w] / sig_d[w])}
+                            for w in worst]
         warn.append("tension between the a-matrix and the stars (p = "
                     f"{tension['p_value']:.1e}); worst: " + ", ".join(
                         f"{t['what']} pull {t['pull']:+.1f}" for t in tension["worst"]))

@@ -242,8 +242,9 @@ def _sum_rule(table):
                     "is zero within its error when the lags beyond the table are small"}
 
 
-def _select(J, r, sigma, mask, names, *, max_params):
-    """Greedy choice of columns of J (linearised model) by chi2 drop > ln N."""
+def _select(J, r, sigma, mask, names, *, max_params, always_first=True):
+    """Greedy choice of columns of J (linearised model) by chi2 drop > ln N
+    (the first column without the test when ``always_first``)."""
     w = 1.0 / sigma[mask]
     A = J[mask] * w[:, None]
     b = -r[mask] * w
@@ -265,7 +266,7 @@ def _select(J, r, sigma, mask, names, *, max_params):
         if best is None:
             break
         drop = chi2_now - best[1]
-        if chosen and drop < max(math.log(n_points), 1.0):
+        if (chosen or not always_first) and drop < max(math.log(n_points), 1.0):
             break
         chosen.append(best[0])
         chi2_now = best[1]

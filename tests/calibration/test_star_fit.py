@@ -21,24 +21,30 @@ from tests.validation._galsim_fields import STRENGTHS, paired_fields
 from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable
 from lsst_bfdrift.calibration.catalog import detect_stars, measure_stars
 from lsst_bfdrift.calibration.star_fit import _delta, calibrate_with_stars, combine_templates
-from lsst_bfdrift.calibration.tuning import CalibrationError, calibrate
+from lsst_bfdrift.calibration.tuning import CANDIDATES, CalibrationError, CalibrationResult
+from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 from lsst_bfdrift.simulation.skysim import scale_template
-from lsst_bfdrift.templates.refine import template_alpha
-from lsst_bfdrift.templates.template import TemplateSettings
+from lsst_bfdrift.templates.refine import match_area_coefficients, template_alpha
+from lsst_bfdrift.templates.template import TemplateSettings, build_template
 
 STRENGTH = STRENGTHS[2]
 
 
 @functools.lru_cache(maxsize=None)
 def _calibration():
-    """A quick calibration (11 x 11 template, 8 samples per edge) of GalSim ITL's
-    a-matrix at the field's BF strength; its template is refined to those a_ij."""
+    """A calibration result without the search (the bundled sensor's parameters,
+    an 11 x 11 template with 8 samples per edge) whose template is refined to
+    GalSim ITL's a-matrix at the field's BF strength."""
     a = STRENGTH * galsim_acoeffs("lsst_itl_50_8", 3)
     table = AcoeffTable(a, 0.05 * np.abs(a) + 1e-9, source="galsim lsst_itl_50_8 x10")
     settings = TemplateSettings(size=11, edge_samples=8, aggressor_charge=1e4)
-    return calibrate(table, free=["xi0", "channel_depth"], settings=settings,
-                     allow_poor_fit=True)
+    params = SensorParameters()
+    built = build_template(params, settings)
+    template = match_area_coefficients(built, table.a, max_lag=3)
+    return CalibrationResult(params=params, table=table, template=template,
+                             built_template=built, settings=settings,
+                             candidates=dict(CANDIDATES))
 
 
 def test_combined_template_area_response_is_linear():
@@ -104,3 +110,16 @@ def test_bad_star_inputs_get_clear_errors():
     nores = type(res)(**{**res.__dict__, "template": None})
     with pytest.raises(CalibrationError, match="template built"):
         calibrate_with_stars(nores, [img])
+
+
+def test_a_right_template_is_left_alone():
+    # the flats template already corrects the field: no direction passes the ln N test
+    res = _calibration()
+    img = paired_fields()["images"][2]
+    loose = AcoeffTable(res.table.a, 50.0 * res.table.sigma, source="loose")
+    joint = calibrate_with_stars(type(res)(**{**res.__dict__, "table": loose}), [img],
+                                 min_stars=8, seed=3)
+    assert joint.directions == []
+    held = joint.held_out["field0"]
+    assert held["joint"]["size"] == held["flats_only"]["size"]
+    assert abs(held["joint"]["size"][0]) < 3 * held["joint"]["size"][1]

@@ -362,6 +362,14 @@ def test_calibrate_from_a_ptc_and_refusals(capsys, tmp_path):
     assert code == 3 and "exists" in err
     code, _, err = _run(capsys, "calibrate", ptc, "--out", ptc, "--overwrite", "--quiet")
     assert code != 0 and "one of the inputs" in err
+    code, _, err = _run(capsys, "calibrate", ptc, "--out", str(tmp_path / "s.fits"), "--stars",
+                        str(tmp_path / "nofield.fits"), "--quiet")
+    assert code == 2 and "nofield.fits: no such file" in err
+    field = _small_image(tmp_path / "field.fits")
+    code, _, err = _run(capsys, "calibrate", ptc, "--out", field, "--stars", field,
+                        "--overwrite", "--quiet")
+    assert code == 3 and "input" in err
+    assert not (tmp_path / "s.fits").exists()
     tight = tmp_path / "tight.txt"
     itl = np.loadtxt("/work/shared/data/measured/itl_covariances_21oct19.txt", skiprows=1)
     itl[:, 3] = 1e-4 * np.abs(itl[:, 2]) + 1e-14  # errors no model meets

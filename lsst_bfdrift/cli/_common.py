@@ -1,0 +1,70 @@
+"""Helpers shared by the ``bfdrift`` commands: templates in, JSON or text out, the overwrite rule."""
+
+import json
+import os
+
+from lsst_bfdrift.utils.errors import OutputExistsError
+from lsst_bfdrift.utils.io import check_output
+
+__all__ = []
+
+
+def _load_template(path):
+    from lsst_bfdrift.templates.template import DistortionTemplate, load_default_template
+    return load_default_template() if path is None else DistortionTemplate.load(path)
+
+
+def _print_json(obj):
+    print(json.dumps(obj, indent=2, sort_keys=True, default=float))
+
+
+def _emit(obj, as_json, width=18):
+    """Print ``obj`` as JSON, or as aligned ``key: value`` lines."""
+    if as_json:
+        _print_json(obj)
+    else:
+        for k, v in obj.items():
+            print(f"{k:>{width}s}: {v}")
+    return 0
+
+
+def _check_outputs(args, inputs, outputs):
+    """The overwrite rule for every output of a command, checked before any work.
+
+    Each output in ``outputs`` (option name -> path or None) goes through
+    :func:`~lsst_bfdrift.utils.io.check_output`: never one of ``inputs``,
+    an existing file only with ``--overwrite``; two options may not name one
+    file.
+
+    Raises
+    ------
+    OutputExistsError
+        An output breaks the rule.
+    """
+    overwrite = bool(getattr(args, "overwrite", False))
+    inputs = [os.fspath(x) for x in inputs if x is not None]
+    seen = {}
+    for option, path in outputs.items():
+        if path is None:
+            continue
+        check_output(path, inputs, overwrite=overwrite, what=option)
+        real = os.path.realpath(path)
+        if real in seen:
+            raise OutputExistsError(f"{option} {path} is also given to {seen[real]}; give "
+                                    "each output its own file")
+        seen[real] = option
+
+
+def _template_input(path):
+    """The template file a command reads (the bundled one when ``path`` is None)."""
+    from lsst_bfdrift.templates.template import default_template_path
+    return default_template_path() if path is None else path
+
+
+def _save_and_report(tpl, args):
+    tpl.save(args.out, overwrite=True)
+    if args.json:
+        _print_json(tpl.summary())
+    else:
+        print(f"wrote {args.out}")
+    return 0
