@@ -121,6 +121,14 @@ def _print_json(obj):
     print(json.dumps(obj, indent=2, sort_keys=True, default=float))
 
 
+def _save_plot(fig, path, summary=None):
+    """Write the figure of ``--plot``; its absolute path in ``summary['plot']``."""
+    from lsst_bfdrift.utils.plotting import save_figure
+    save_figure(fig, path)
+    if summary is not None:
+        summary["plot"] = os.path.abspath(path)
+
+
 def _emit(obj, as_json, width=18):
     """Print ``obj`` as JSON, or as aligned ``key: value`` lines."""
     if as_json:
@@ -164,10 +172,9 @@ def _cmd_template_summary(args):
 
 def _cmd_template_plot(args):
     from lsst_bfdrift.templates.plots import plot_template
-    from lsst_bfdrift.utils.plotting import save_figure
     tpl = _load_template(args.file)
-    save_figure(plot_template(tpl, exaggerate=args.exaggerate, half_width=args.half_width),
-                args.out)
+    _save_plot(plot_template(tpl, exaggerate=args.exaggerate, half_width=args.half_width),
+               args.out)
     print(f"wrote {args.out}")
     return 0
 
@@ -192,9 +199,7 @@ def _cmd_calibrate(args):
     summary["out"] = os.path.abspath(args.out)
     if args.plot:
         from lsst_bfdrift.calibration.plots import plot_calibration
-        from lsst_bfdrift.utils.plotting import save_figure
-        save_figure(plot_calibration(res), args.plot)
-        summary["plot"] = os.path.abspath(args.plot)
+        _save_plot(plot_calibration(res), args.plot, summary)
     if args.json:
         _print_json(summary)
         return 0
@@ -269,10 +274,8 @@ def _cmd_maps(args):
         summary["out"] = os.path.abspath(args.out)
     if args.plot:
         from lsst_bfdrift.geometry.plots import plot_moment_maps
-        from lsst_bfdrift.utils.plotting import save_figure
-        save_figure(plot_moment_maps(maps, image=np.where(bad, np.nan, image),
-                                     title=os.path.basename(path)), args.plot)
-        summary["plot"] = os.path.abspath(args.plot)
+        _save_plot(plot_moment_maps(maps, image=np.where(bad, np.nan, image),
+                                    title=os.path.basename(path)), args.plot, summary)
     return _emit(summary, args.json, 20)
 
 
@@ -321,8 +324,7 @@ def _cmd_flat_sim(args):
             tab.write(tmp, format="ascii.ecsv", overwrite=True)
     if args.plot:
         from lsst_bfdrift.simulation.plots import plot_flat_simulation
-        from lsst_bfdrift.utils.plotting import save_figure
-        save_figure(plot_flat_simulation(tab, tpl), args.plot)
+        _save_plot(plot_flat_simulation(tab, tpl), args.plot)
     steps = [{"mu": float(r["mu"]),
               **{f"C{i}{j}_paper": float(r["paper"][i, j] * r["mu"]) for i in range(2)
                  for j in range(2)},
@@ -354,8 +356,7 @@ def _cmd_star_sim(args):
             hist.write(tmp, format="ascii.ecsv", overwrite=True)
     if args.plot:
         from lsst_bfdrift.simulation.plots import plot_star_history
-        from lsst_bfdrift.utils.plotting import save_figure
-        save_figure(plot_star_history(hist), args.plot)
+        _save_plot(plot_star_history(hist), args.plot)
     last = hist[-1]
     out = {"psf": args.psf, "fwhm_arcsec": args.fwhm, "flux": args.flux,
            "template_charge": tpl.charge, "lost": final["lost"],
@@ -481,10 +482,8 @@ def _cmd_validate_sky(args):
             cat.write(tmp, format="ascii.ecsv", overwrite=True)
         out["catalog"] = os.path.abspath(args.catalog)
     if args.plot:
-        from lsst_bfdrift.utils.plotting import save_figure
         from lsst_bfdrift.validation.plots import plot_sky_validation
-        save_figure(plot_sky_validation(res), args.plot)
-        out["plot"] = os.path.abspath(args.plot)
+        _save_plot(plot_sky_validation(res), args.plot, out)
     if args.json:
         _print_json(out)
     else:
