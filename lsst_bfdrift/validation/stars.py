@@ -237,20 +237,8 @@ def validate_stars(pairs, template, *, methods=("coulton18", "astier23", "drift"
                    progress=False):
     """Size and ellipticity slopes before and after each correction.
 
-    :func:`per_star_residuals` then :func:`residual_slopes`.
-
-    Parameters
-    ----------
-    pairs : list of dict
-        From :func:`draw_star_pairs`.
-    template : DistortionTemplate
-        Green's function used by the corrections.
-    methods : sequence of str, optional
-        Task methods to compare.
-    sky : float, optional
-        Sky level subtracted before measuring moments (e).
-    progress : bool, optional
-        Progress bar.
+    :func:`per_star_residuals` (whose parameters these are) then
+    :func:`residual_slopes`.
 
     Returns
     -------
