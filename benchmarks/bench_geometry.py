@@ -5,10 +5,7 @@ second moments and e1/e2 of every pixel's final polygon) with the bundled
 default template (21 x 21, 32 samples per edge) used as it is, and with its
 edge profiles resampled to fewer samples (``samples=k``, moment-preserving,
 :func:`~lsst_bfdrift.geometry.superpose.resample_template`), in double and single
-precision FFTs. ``previous code`` is ``moment_maps`` as of commit
-``b7eead9`` (one unbatched FFT per channel, full template; its
-``superpose.py`` and ``_kernels.py`` read with ``git show``), when git is
-available. Every configuration runs in its own process, one after the
+precision FFTs. Every configuration runs in its own process, one after the
 other in one run (compare ratios only; CPU seconds, ``time.process_time`` of
 the process, depend less on other jobs than wall-clock seconds); memory is the peak RSS
 (``ru_maxrss``) minus the RSS just before the call (image and libraries
@@ -39,27 +36,16 @@ sys.path.insert(0, os.path.dirname(HERE))
 
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 ROOT = os.path.dirname(HERE)
-BASELINE_COMMIT = "b7eead9"
 
 CHILD = r"""
-import importlib.util, json, os, resource, sys, time
+import json, os, resource, sys, time
 import numpy as np
 sys.path.insert(0, {root!r})
 from lsst_bfdrift.templates.template import load_default_template
 import lsst_bfdrift.geometry.superpose as S
-n, kind, samples, dtype, tmp, prev = {size}, {kind!r}, {samples!r}, {dtype!r}, {tmp!r}, {prev!r}
+n, kind, samples, dtype, tmp = {size}, {kind!r}, {samples!r}, {dtype!r}, {tmp!r}
 mm = S.moment_maps
-kw = dict(workers=2)
-if prev:
-    for name in ("_kernels_previous", "_superpose_previous"):
-        spec = importlib.util.spec_from_file_location("lsst_bfdrift." + name,
-                                                      os.path.join(tmp, name + ".py"))
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = mod
-        spec.loader.exec_module(mod)
-    mm = mod.moment_maps
-else:
-    kw.update(samples=samples, dtype=np.dtype(dtype))
+kw = dict(workers=2, samples=samples, dtype=np.dtype(dtype))
 rng = np.random.default_rng(1)
 if kind == "stars":
     img = rng.poisson(1000.0, (n, n)).astype(np.float64)
@@ -82,7 +68,7 @@ names = ("area", "dx", "dy", "e1", "e2")
 nominal = dict(area=1.0, dx=0.0, dy=0.0, e1=0.0, e2=0.0)
 ref_path = os.path.join(tmp, kind + "_{{}}.npy")
 acc = {{}}
-if samples is None and dtype == "float64" and not prev:
+if samples is None and dtype == "float64":
     for k in names:
         np.save(ref_path.format(k), getattr(maps, k))
 else:
@@ -98,47 +84,29 @@ print(json.dumps(dict(seconds=dt, cpu_seconds=cpu, peak_rss_mb=peak - base, imag
 """
 
 
-def _write_previous(tmp):
-    """Write superpose.py and _kernels.py of BASELINE_COMMIT into ``tmp``; False if no git."""
-    try:
-        for path, name in (("lsst_bfdrift/_kernels.py", "_kernels_previous"),
-                           ("lsst_bfdrift/superpose.py", "_superpose_previous")):
-            src = subprocess.run(["git", "show", f"{BASELINE_COMMIT}:{path}"], cwd=ROOT,
-                                 check=True, capture_output=True, text=True).stdout
-            src = src.replace("from ._kernels import", "from ._kernels_previous import")
-            with open(os.path.join(tmp, name + ".py"), "w") as fh:
-                fh.write(src)
-    except (OSError, subprocess.CalledProcessError):
-        return False
-    return True
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=4096)
     ap.add_argument("--out", default=os.path.join(HERE, "geometry_results"))
     args = ap.parse_args()
     tmp = tempfile.mkdtemp(prefix="bench_geometry_")
-    prev = _write_previous(tmp)
-    # (label, image, samples, dtype, previous code); the full float64 run of
-    # each image comes first: it writes the reference maps
-    runs = [("full 32, float64", "stars", None, "float64", False)]
-    if prev:
-        runs.append((f"previous code ({BASELINE_COMMIT})", "stars", None, "float64", True))
-    runs += [("full 32, float32", "stars", None, "float32", False),
-             ("samples 8, float64", "stars", 8, "float64", False),
-             ("samples 8, float32 (Task)", "stars", 8, "float32", False),
-             ("samples 6, float32", "stars", 6, "float32", False),
-             ("samples 4, float32", "stars", 4, "float32", False),
-             ("full 32, float64", "flat", None, "float64", False),
-             ("samples 8, float32 (Task)", "flat", 8, "float32", False),
-             ("samples 6, float32", "flat", 6, "float32", False),
-             ("samples 4, float32", "flat", 4, "float32", False)]
+    # (label, image, samples, dtype); the full float64 run of each image comes
+    # first: it writes the reference maps
+    runs = [("full 32, float64", "stars", None, "float64"),
+            ("full 32, float32", "stars", None, "float32"),
+            ("samples 8, float64", "stars", 8, "float64"),
+            ("samples 8, float32 (Task)", "stars", 8, "float32"),
+            ("samples 6, float32", "stars", 6, "float32"),
+            ("samples 4, float32", "stars", 4, "float32"),
+            ("full 32, float64", "flat", None, "float64"),
+            ("samples 8, float32 (Task)", "flat", 8, "float32"),
+            ("samples 6, float32", "flat", 6, "float32"),
+            ("samples 4, float32", "flat", 4, "float32")]
     rows = []
     try:
-        for label, kind, samples, dtype, use_prev in runs:
+        for label, kind, samples, dtype in runs:
             code = CHILD.format(root=ROOT, size=args.size, kind=kind, samples=samples,
-                                dtype=dtype, tmp=tmp, prev=use_prev)
+                                dtype=dtype, tmp=tmp)
             proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
             if proc.returncode:
                 sys.exit(f"{kind} {label} failed:\n{proc.stderr[-3000:]}")

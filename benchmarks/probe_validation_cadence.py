@@ -6,12 +6,15 @@ sequence, same per-star seeds; only stars with flux >= ``--fmin`` are
 simulated) through ``galsim.SiliconSensor`` (BF twin strength 1 and BF-free
 twin strength 1e-9, same photons and sensor seed) with
 
-* the default cadence: ``updates=100``, ``min_nrecalc=1e4`` (as validate-stars);
-* a fast cadence: ``updates=1000``, ``min_nrecalc=100`` (about 1000 boundary
-  updates per exposure);
+* a slow cadence: ``updates=100``, ``min_nrecalc=1e4`` (GalSim's own
+  ``nrecalc`` default; about 100 boundary updates per exposure);
+* the cadence of validate-stars (the default of
+  :func:`~lsst_bfdrift.validation.stars.draw_star_pairs` and of
+  ``bfdrift validate-stars``): ``updates=1000``, ``min_nrecalc=100``
+  (about 1000 boundary updates per exposure);
 * a faster one: ``updates=3000``, ``min_nrecalc=30`` (convergence check);
 * GalSim ``qdist=4`` (boundary changes computed one pixel further out than
-  the default 3) at the default and the 1000-update cadence
+  GalSim's default 3) at the 100- and the 1000-update cadence
   (``updates:min_nrecalc:qdist``);
 
 and measures the residual size and e1 slopes of every correction method with

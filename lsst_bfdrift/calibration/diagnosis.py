@@ -33,12 +33,12 @@ Inputs (:class:`Observations`):
 
 import numpy as np
 from scipy import stats
-from scipy.optimize import least_squares
 
 from lsst_bfdrift.calibration.acoeff_fit import DEFAULT_FREE
-from lsst_bfdrift.simulation.effects import effect_library, EFFECT_NAMES
+from lsst_bfdrift.calibration.fitting import fit_parameters
 from lsst_bfdrift.calibration.ptc import covariance_model, fit_ptc_exponential, pair_covariances, ptc_turnoff
 from lsst_bfdrift.utils.errors import InputError
+from lsst_bfdrift.simulation.effects import effect_library, EFFECT_NAMES
 
 __all__ = ["Observations", "pair_statistics", "observations_from_pairs", "diagnose",
            "Diagnosis", "LINEAR_RANGE", "load_input"]
@@ -253,7 +253,14 @@ class _Problem:
         return np.concatenate([c.ravel(), s.ravel()])
 
     def fit(self, effects, start=None, train=None):
-        """Least-squares fit; returns dict with x, errors, chi2, model."""
+        """Fit of base model plus ``effects`` with the package's fit engine
+        (:func:`~lsst_bfdrift.calibration.fitting.fit_parameters`, Jacobian
+        recomputed after every accepted step: the model is cheap).
+
+        ``start`` replaces the first values of the start (e.g. the previous
+        stage's optimum); ``train`` is the mask of the points in chi2.
+        Returns dict with x, errors, chi2 (over ``train``), model (all points).
+        """
         lo = [self.lo] + [np.array([b[0] for b in e.bounds]) for e in effects]
         hi = [self.hi] + [np.array([b[1] for b in e.bounds]) for e in effects]
         sc = [self.scale] + [np.array(e.scale) for e in effects]
@@ -274,19 +281,19 @@ class _Problem:
                 k += s
             return x[:nb], out
 
-        def resid(u):
-            xb, th = split(u * sc)
-            return ((self.predict(xb, effects, th) - self.y) / self.sigma)[sel]
+        names = [f"p{k}" for k in range(x0.size)]
 
-        res = least_squares(resid, x0 / sc, bounds=(lo / sc, hi / sc), method="trf",
-                            x_scale=1.0, max_nfev=200)
-        x = res.x * sc
-        J = res.jac
-        cov = np.linalg.pinv(J.T @ J) * np.outer(sc, sc)
-        err = np.sqrt(np.clip(np.diag(cov), 0, None))
+        def model(v):
+            xb, th = split(np.array([v[k] for k in names]))
+            return self.predict(xb, effects, th)
+
+        fit = fit_parameters(model, self.y, self.sigma, dict(zip(names, x0)),
+                             {k: (a, b) for k, a, b in zip(names, lo, hi)}, mask=sel,
+                             update="exact", max_evaluations=200 * (x0.size + 1))
+        x = np.array([fit.values[k] for k in names])
+        err = np.array([fit.errors[k] for k in names])
         xb, th = split(x)
-        model = self.predict(xb, effects, th)
-        return {"x": x, "err": err, "chi2": float(np.sum(res.fun**2)), "model": model,
+        return {"x": x, "err": err, "chi2": fit.chi2, "model": fit.model,
                 "n_params": x.size, "thetas": th, "theta_err": split(err)[1]}
 
 

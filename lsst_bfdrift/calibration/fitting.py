@@ -3,13 +3,17 @@
 Every fit of the package's model to data goes through :func:`fit_parameters`:
 the a-matrix fit of the electrostatic model
 (:func:`~lsst_bfdrift.calibration.acoeff_fit.fit_acoeffs`), the fit of
-template numbers (:func:`~lsst_bfdrift.calibration.sensor_fit.fit_sensor_parameters`)
-and :func:`~lsst_bfdrift.calibration.tuning.calibrate`.
+template numbers (:func:`~lsst_bfdrift.calibration.sensor_fit.fit_sensor_parameters`),
+:func:`~lsst_bfdrift.calibration.tuning.calibrate` and the fits of base model
+plus effects in :func:`~lsst_bfdrift.calibration.diagnosis.diagnose`.
 
 The model is a callable of a parameter dict returning an array shaped like
 the data. The engine minimises chi2 = sum(((model - data) / sigma)^2) over
 the points in ``mask`` with a bounded Levenberg-Marquardt iteration in
-scaled parameters. Model evaluations are the expensive part (each is a set
+scaled parameters. Bounds are handled by an active set: a parameter held on
+a bound by the gradient is taken out of the step and the others are solved
+for without it, so that strongly correlated parameters still reach the
+constrained optimum when one of them ends on a bound. Model evaluations are the expensive part (each is a set
 of drift-line bisections), so the engine
 
 * accepts a starting Jacobian (``jacobian0``: e.g. from a linear basis, an
@@ -140,6 +144,44 @@ def _check_inputs(data, sigma, mask, start, bounds):
     return data, sigma, mask, names
 
 
+def _bounded_step(A, r, x, scale, lo, hi, lam):
+    """Levenberg-Marquardt step from ``x`` that respects the box [lo, hi].
+
+    ``A`` is the weighted Jacobian in scaled parameters u = x / scale and
+    ``r`` the weighted residual. A parameter on a bound whose gradient points
+    out of the box is held there, and the step is solved for the others
+    alone; a parameter that the step would carry across a bound is put on
+    it and the step solved again for the rest (which then take up what it
+    cannot do). Clipping the full step instead loses the compensation of
+    correlated parameters and stalls the descent. Returns the new point.
+    """
+    g = A.T @ r
+    H = A.T @ A
+    M = H + lam * np.diag(np.maximum(np.diag(H), 1e-12))
+    ulo, uhi, u = lo / scale, hi / scale, x / scale
+    tiny = 1e-9 * np.maximum(np.abs(u), 1.0)
+    fixed = ((u - ulo <= tiny) & (g > 0)) | ((uhi - u <= tiny) & (g < 0))
+    du = np.zeros_like(u)
+    du[fixed] = np.clip(u, ulo, uhi)[fixed] - u[fixed]
+    for _ in range(u.size + 1):
+        free = ~fixed
+        if not np.any(free):
+            break
+        rhs = -(g[free] + M[np.ix_(free, fixed)] @ du[fixed])
+        Mf = M[np.ix_(free, free)]
+        try:
+            du[free] = np.linalg.solve(Mf, rhs)
+        except np.linalg.LinAlgError:
+            du[free] = np.linalg.lstsq(Mf, rhs, rcond=None)[0]
+        un = u + du
+        out = free & ((un < ulo) | (un > uhi))
+        if not np.any(out):
+            break
+        du[out] = np.clip(un, ulo, uhi)[out] - u[out]
+        fixed = fixed | out
+    return np.clip((u + du) * scale, lo, hi)
+
+
 def fit_parameters(model, data, sigma, start, bounds, *, mask=None, jacobian0=None,
                    diff_step=0.02, max_evaluations=40, tol=1e-3, final_jacobian=True,
                    central=False, update="broyden", progress=False, callback=None):
@@ -260,19 +302,13 @@ def fit_parameters(model, data, sigma, start, bounds, *, mask=None, jacobian0=No
     A = J[mask] * w[:, None] * scale[None, :]
     x, r = x0.copy(), weighted(m0)
     chi2 = float(r @ r)
+    margin = 1e-6 * np.where(np.isfinite(span), span, 0)
+    lo_in, hi_in = lo + margin, hi - margin  # the iteration stays strictly inside
     lam = 1e-3
     converged = False
     n_start = len(cache)
     while len(cache) - n_start < max_evaluations:
-        g = A.T @ r
-        H = A.T @ A
-        D = np.diag(np.maximum(np.diag(H), 1e-12))
-        try:
-            du = -np.linalg.solve(H + lam * D, g)
-        except np.linalg.LinAlgError:
-            du = -np.linalg.lstsq(H + lam * D, g, rcond=None)[0]
-        xn = np.clip(x + du * scale, lo + 1e-6 * np.where(np.isfinite(span), span, 0),
-                     hi - 1e-6 * np.where(np.isfinite(span), span, 0))
+        xn = _bounded_step(A, r, x, scale, lo_in, hi_in, lam)
         step = (xn - x) / scale
         if not np.any(step):
             converged = True

@@ -68,3 +68,11 @@ def _save_and_report(tpl, args):
     else:
         print(f"wrote {args.out}")
     return 0
+
+
+def _save_plot(fig, path, summary=None):
+    """Write the figure of ``--plot``; its absolute path in ``summary['plot']``."""
+    from lsst_bfdrift.utils.plotting import save_figure
+    save_figure(fig, path)
+    if summary is not None:
+        summary["plot"] = os.path.abspath(path)

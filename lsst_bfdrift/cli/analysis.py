@@ -5,7 +5,7 @@ import json
 import os
 
 from lsst_bfdrift.cli._common import (_check_outputs, _emit, _load_template, _print_json,
-                                      _template_input)
+                                      _save_plot, _template_input)
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
 from lsst_bfdrift.utils.io import atomic_output, data_files
@@ -45,9 +45,7 @@ def _cmd_calibrate(args):
     summary["out"] = os.path.abspath(args.out)
     if args.plot:
         from lsst_bfdrift.calibration.plots import plot_calibration
-        from lsst_bfdrift.utils.plotting import save_figure
-        save_figure(plot_calibration(res), args.plot)
-        summary["plot"] = os.path.abspath(args.plot)
+        _save_plot(plot_calibration(res), args.plot, summary)
     if args.json:
         _print_json(summary)
         return 0
@@ -187,10 +185,8 @@ def _cmd_validate_sky(args):
             cat.write(tmp, format="ascii.ecsv", overwrite=True)
         out["catalog"] = os.path.abspath(args.catalog)
     if args.plot:
-        from lsst_bfdrift.utils.plotting import save_figure
         from lsst_bfdrift.validation.plots import plot_sky_validation
-        save_figure(plot_sky_validation(res), args.plot)
-        out["plot"] = os.path.abspath(args.plot)
+        _save_plot(plot_sky_validation(res), args.plot, out)
     if args.json:
         _print_json(out)
     else:

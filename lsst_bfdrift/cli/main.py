@@ -70,7 +70,7 @@ from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.utils.io import atomic_output, check_output, data_path, read_image
 from lsst_bfdrift.simulation.stars import make_psf
 from lsst_bfdrift.cli._common import (_check_outputs, _emit, _load_template, _print_json,
-                                      _save_and_report, _template_input)
+                                      _save_and_report, _save_plot, _template_input)
 from lsst_bfdrift.cli.analysis import (_cmd_calibrate, _cmd_diagnose, _cmd_ptc,
                                        _cmd_reproduce, _cmd_validate_sky, _cmd_validate_stars)
 from lsst_bfdrift.utils.errors import (BfdriftError, ComputationError, FitError, InputError,
@@ -138,11 +138,10 @@ def _cmd_template_summary(args):
 
 def _cmd_template_plot(args):
     from lsst_bfdrift.templates.plots import plot_template
-    from lsst_bfdrift.utils.plotting import save_figure
     _check_outputs(args, [_template_input(args.file)], {"--out": args.out})
     tpl = _load_template(args.file)
-    save_figure(plot_template(tpl, exaggerate=args.exaggerate, half_width=args.half_width),
-                args.out)
+    _save_plot(plot_template(tpl, exaggerate=args.exaggerate, half_width=args.half_width),
+               args.out)
     print(f"wrote {args.out}")
     return 0
 
@@ -206,10 +205,8 @@ def _cmd_maps(args):
         summary["out"] = os.path.abspath(args.out)
     if args.plot:
         from lsst_bfdrift.geometry.plots import plot_moment_maps
-        from lsst_bfdrift.utils.plotting import save_figure
-        save_figure(plot_moment_maps(maps, image=np.where(bad, np.nan, image),
-                                     title=os.path.basename(path)), args.plot)
-        summary["plot"] = os.path.abspath(args.plot)
+        _save_plot(plot_moment_maps(maps, image=np.where(bad, np.nan, image),
+                                    title=os.path.basename(path)), args.plot, summary)
     return _emit(summary, args.json, 20)
 
 
@@ -230,8 +227,7 @@ def _cmd_flat_sim(args):
             tab.write(tmp, format="ascii.ecsv", overwrite=True)
     if args.plot:
         from lsst_bfdrift.simulation.plots import plot_flat_simulation
-        from lsst_bfdrift.utils.plotting import save_figure
-        save_figure(plot_flat_simulation(tab, tpl), args.plot)
+        _save_plot(plot_flat_simulation(tab, tpl), args.plot)
     steps = [{"mu": float(r["mu"]),
               **{f"C{i}{j}_paper": float(r["paper"][i, j] * r["mu"]) for i in range(2)
                  for j in range(2)},
@@ -265,8 +261,7 @@ def _cmd_star_sim(args):
             hist.write(tmp, format="ascii.ecsv", overwrite=True)
     if args.plot:
         from lsst_bfdrift.simulation.plots import plot_star_history
-        from lsst_bfdrift.utils.plotting import save_figure
-        save_figure(plot_star_history(hist), args.plot)
+        _save_plot(plot_star_history(hist), args.plot)
     last = hist[-1]
     out = {"psf": args.psf, "fwhm_arcsec": args.fwhm, "flux": args.flux,
            "template_charge": tpl.charge, "lost": final["lost"],

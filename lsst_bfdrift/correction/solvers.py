@@ -229,14 +229,7 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
         raise InputError(f"start must be 'image' or 'series', got {start!r}")
     kw = dict(order=order, density=density, max_iter=max_iter, rtol=rtol, noise_tol=noise_tol,
               start=start, workers=workers, dtype=dtype)
-    img = np.asarray(image, dtype=np.float64)  # read only below: no copy needed
-    if img.ndim != 2:
-        raise InputError(f"image must be 2-d, got shape {img.shape}")
-    blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
-    if blk.shape != img.shape:
-        raise InputError(f"blocked shape {blk.shape} does not match image {img.shape}")
-    if strip is not None and int(strip) < 1:
-        raise InputError(f"strip must be positive, got {strip}")
+    img, blk = _checked(image, blocked, strip)
     ops = _operators(cache, template, workers, dtype)
     info = {} if info is None else info
     info["solver"] = "dense"
@@ -293,6 +286,20 @@ def _limit(img_eff, noise_tol, rtol):
     if noise_tol is not None:
         return tolerance(img_eff, noise_tol)
     return rtol * max(np.abs(img_eff).max(), 1e-300)
+
+
+def _checked(image, blocked, strip):
+    """The image as float64 (no copy when it is one: the solvers only read it)
+    and the blocked mask, checked with the strip height."""
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim != 2:
+        raise InputError(f"image must be 2-d, got shape {img.shape}")
+    blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
+    if blk.shape != img.shape:
+        raise InputError(f"blocked shape {blk.shape} does not match image {img.shape}")
+    if strip is not None and int(strip) < 1:
+        raise InputError(f"strip must be positive, got {strip}")
+    return img, blk
 
 
 def _finite(img, blocked):
@@ -441,12 +448,7 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
     converged : bool
         True (no iteration).
     """
-    img = np.asarray(image, dtype=np.float64)  # read only below: no copy needed
-    if img.ndim != 2:
-        raise InputError(f"image must be 2-d, got shape {img.shape}")
-    blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
-    if blk.shape != img.shape:
-        raise InputError(f"blocked shape {blk.shape} does not match image {img.shape}")
+    img, blk = _checked(image, blocked, strip)
     img_eff, blk = _finite(img, blk)
     ny, nx = img.shape
     ops = _operators(None, template, workers, dtype)
@@ -454,8 +456,6 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
         flux, _ = _series_block(img_eff, blk, ops(img.shape), order, density)
     else:
         strip = int(strip)
-        if strip < 1:
-            raise InputError(f"strip must be positive, got {strip}")
         halo = 2 * (template.size + 3)
         flux = np.empty_like(img_eff)
         for r0 in range(0, ny, strip):
@@ -481,14 +481,7 @@ def correct_half_shift(image, template, *, blocked=None, workers=1, dtype=np.flo
     -------
     flux, iterations (1), converged (True)
     """
-    img = np.asarray(image, dtype=np.float64)  # read only below: no copy needed
-    if img.ndim != 2:
-        raise InputError(f"image must be 2-d, got shape {img.shape}")
-    blk = np.zeros(img.shape, bool) if blocked is None else np.asarray(blocked, bool)
-    if blk.shape != img.shape:
-        raise InputError(f"blocked shape {blk.shape} does not match image {img.shape}")
-    if strip is not None and int(strip) < 1:
-        raise InputError(f"strip must be positive, got {strip}")
+    img, blk = _checked(image, blocked, strip)
     img_eff, blk = _finite(img, blk)
     ops = _operators(cache, template, workers, dtype)
     # the first-order pass of the windowed series is exactly this pass

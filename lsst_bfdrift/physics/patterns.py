@@ -216,16 +216,7 @@ def jitter_area_map(params=None, *, sigma=0.1, shape=(32, 32), seed=1, edge_samp
     shifts : ndarray
         The displacements (um) of row boundaries ``-margin .. rows + margin``.
     """
-    base = SensorParameters() if params is None else params
-    ny, nx = (int(v) for v in shape)
-    margin = 4
-    rng = np.random.default_rng(seed)
-    bs = np.arange(-margin, ny + margin + 1)
-    shifts = rng.normal(0.0, sigma, bs.size)
-    p = base.replace(row_shifts=tuple((float(b), float(s)) for b, s in zip(bs, shifts)))
-    col = block_geometry(p, (0, 1), (0, ny), edge_samples=edge_samples, tol=tol)
-    area = np.repeat(np.asarray(col["area"])[:, None], nx, axis=1)
-    return area, shifts
+    return _random_stripes(params, "row_shifts", sigma, shape, seed, edge_samples, tol)
 
 
 def channel_stop_area_map(params=None, *, sigma=0.5, shape=(32, 32), seed=2, edge_samples=8,
@@ -244,16 +235,27 @@ def channel_stop_area_map(params=None, *, sigma=0.5, shape=(32, 32), seed=2, edg
     deltas : ndarray
         The strength changes (xi0) of column boundaries ``-margin .. columns + margin``.
     """
+    return _random_stripes(params, "column_overrides", sigma, shape, seed, edge_samples, tol)
+
+
+def _random_stripes(params, field, sigma, shape, seed, edge_samples, tol):
+    """Area map of Gaussian values (standard deviation ``sigma``) on every
+    boundary of one direction, patch plus a margin of 4: ``field`` is
+    'row_shifts' (row boundaries; one column computed) or 'column_overrides'
+    (column boundaries; one row computed); the line is repeated across the
+    patch. Returns (area, values)."""
     base = SensorParameters() if params is None else params
     ny, nx = (int(v) for v in shape)
     margin = 4
-    rng = np.random.default_rng(seed)
-    bs = np.arange(-margin, nx + margin + 1)
-    deltas = rng.normal(0.0, sigma, bs.size)
-    p = base.replace(column_overrides=tuple((float(b), float(d)) for b, d in zip(bs, deltas)))
-    row = block_geometry(p, (0, nx), (0, 1), edge_samples=edge_samples, tol=tol)
-    area = np.repeat(np.asarray(row["area"])[None, :], ny, axis=0)
-    return area, deltas
+    rows = field == "row_shifts"
+    bs = np.arange(-margin, (ny if rows else nx) + margin + 1)
+    values = np.random.default_rng(seed).normal(0.0, sigma, bs.size)
+    p = base.replace(**{field: tuple((float(b), float(v)) for b, v in zip(bs, values))})
+    if rows:
+        line = block_geometry(p, (0, 1), (0, ny), edge_samples=edge_samples, tol=tol)
+        return np.repeat(np.asarray(line["area"])[:, None], nx, axis=1), values
+    line = block_geometry(p, (0, nx), (0, 1), edge_samples=edge_samples, tol=tol)
+    return np.repeat(np.asarray(line["area"])[None, :], ny, axis=0), values
 
 
 def jitter_response(params=None, *, delta=0.2, half_width=6, edge_samples=8, tol=1e-5):

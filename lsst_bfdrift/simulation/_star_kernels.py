@@ -29,6 +29,7 @@ import numba
 import numpy as np
 
 from lsst_bfdrift.physics.polygons import inside_polygon
+from lsst_bfdrift.templates.galsim_rules import BOX_MARGIN, collect_batch
 
 __all__ = ["NEIGHBOUR_ORDER", "BOX_MARGIN", "add_templates", "inner_boxes", "locate",
            "accumulate"]
@@ -36,11 +37,6 @@ __all__ = ["NEIGHBOUR_ORDER", "BOX_MARGIN", "add_templates", "inner_boxes", "loc
 #: Order in which candidate pixels (di, dj) are tested (nominal pixel first).
 NEIGHBOUR_ORDER = np.array([(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1),
                             (-1, 1), (-1, -1)], dtype=np.int64)
-
-
-#: Margin (px) by which the inner box is shrunk: far above the rounding of the
-#: crossing test (~1e-15 px), far below any physical distance.
-BOX_MARGIN = 1e-9
 
 
 @numba.njit(cache=True)
@@ -179,42 +175,34 @@ def accumulate(px, py, batch, image, nominal, corners, vedge, hedge, fr, vt, ht,
     Adds to ``image`` (pixel found by the moving polygons) and ``nominal``
     (undistorted grid) in place; returns the number of photons that landed in
     no pixel of the stamp. After each batch the charge it added is
-    superposed with the template (``scale`` = 1 / template charge).
+    superposed with the template (``scale`` = 1 / template charge). The
+    binning of a batch is :func:`~lsst_bfdrift.templates.galsim_rules.collect_batch`,
+    shared with GalSim's layout.
     """
-    ny, nx = image.shape
     nv = 4 + 4 * fr.shape[0]
     xs = np.empty(nv)
     ys = np.empty(nv)
+    ny, nx = image.shape
     dq = np.zeros((ny, nx))
     changed = np.empty(ny * nx, dtype=np.int64)
+    oi = np.empty(min(batch, px.shape[0]), dtype=np.int64)
+    oj = np.empty_like(oi)
     lost = 0
     n = px.shape[0]
     for s in range(0, n, batch):
         e = min(s + batch, n)
-        nch = 0
         for p in range(s, e):
-            i, j = _locate_one(px[p], py[p], corners, vedge, hedge, fr, vt, ht, has_t, order,
-                               box, xs, ys)
-            if i >= 0:
-                image[j, i] += 1.0
-                if dq[j, i] == 0.0:
-                    changed[nch] = j * nx + i
-                    nch += 1
-                dq[j, i] += 1.0
-            else:
-                lost += 1
-            i0 = int(np.floor(px[p] + 0.5))
-            j0 = int(np.floor(py[p] + 0.5))
-            if 0 <= i0 < nx and 0 <= j0 < ny:
-                nominal[j0, i0] += 1.0
-        jlo, jhi, ilo, ihi = ny, -1, nx, -1
+            oi[p - s], oj[p - s] = _locate_one(px[p], py[p], corners, vedge, hedge, fr, vt, ht,
+                                               has_t, order, box, xs, ys)
+        nch, nl, jlo, jhi, ilo, ihi = collect_batch(oi[:e - s], oj[:e - s], px[s:e], py[s:e],
+                                                    image, nominal, dq, changed)
+        lost += nl
         for m in range(nch):
             j = changed[m] // nx
             i = changed[m] - j * nx
             _add_one(dq[j, i] * scale, j, i, c, corners, vedge, hedge, vt, ht, has_t,
                      kc, kv, kh, kvt, kht)
             dq[j, i] = 0.0
-            jlo, jhi, ilo, ihi = min(jlo, j), max(jhi, j), min(ilo, i), max(ihi, i)
         if nch > 0:
             # pixels whose boundaries moved: within c + 1 of a changed pixel
             inner_boxes(corners, vedge, hedge, fr, vt, ht, has_t, max(jlo - c - 1, 0),

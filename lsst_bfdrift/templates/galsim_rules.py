@@ -33,13 +33,15 @@ from lsst_bfdrift.physics.polygons import inside_polygon
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["galsim_edge_templates", "nominal_edges", "edge_boxes", "galsim_boxes",
-           "add_templates_galsim", "accumulate_galsim", "locate_galsim", "layout_areas"]
+           "add_templates_galsim", "accumulate_galsim", "locate_galsim", "layout_areas",
+           "collect_batch"]
 
 # GalSim's neighbour offsets, indexed 0 (nominal) and 1..8 around the pixel
 _XOFF = np.array([0, 1, 1, 0, -1, -1, -1, 0, 1], dtype=np.int64)
 _YOFF = np.array([0, 0, 1, 1, 1, 0, -1, -1, -1], dtype=np.int64)
 
-#: Margin (px) of the inner boxes (see :mod:`lsst_bfdrift.simulation._star_kernels`).
+#: Margin (px) by which the inner boxes of both layouts are shrunk: far above
+#: the rounding of the crossing test (~1e-15 px), far below any physical distance.
 BOX_MARGIN = 1e-9
 
 
@@ -311,41 +313,67 @@ def add_templates_galsim(dq, scale, c, V, H, tv, th):
 
 
 @numba.njit(cache=True)
+def collect_batch(oi, oj, px, py, image, nominal, dq, changed):
+    """Bin one batch of located conversions; shared by both layouts' accumulation.
+
+    ``oi``, ``oj``: pixel of each conversion by the moving boundaries (one
+    off the stamp is lost); ``px``, ``py``: its position, binned on the
+    undistorted grid into ``nominal``. Adds to ``image`` and ``nominal`` and
+    to the batch's charge ``dq`` in place, and lists the pixels whose ``dq``
+    became non-zero in ``changed`` (flat indices, in order of their first
+    conversion). Returns (number changed, number lost, jlo, jhi, ilo, ihi),
+    the last four the bounding box of the changed pixels (empty: ny, -1,
+    nx, -1).
+    """
+    ny, nx = image.shape
+    nch = 0
+    lost = 0
+    jlo, jhi, ilo, ihi = ny, -1, nx, -1
+    for p in range(oi.shape[0]):
+        i = oi[p]
+        j = oj[p]
+        if 0 <= i < nx and 0 <= j < ny:
+            image[j, i] += 1.0
+            if dq[j, i] == 0.0:
+                changed[nch] = j * nx + i
+                nch += 1
+                jlo, jhi, ilo, ihi = min(jlo, j), max(jhi, j), min(ilo, i), max(ihi, i)
+            dq[j, i] += 1.0
+        else:
+            lost += 1
+        i0 = int(np.floor(px[p] + 0.5))
+        j0 = int(np.floor(py[p] + 0.5))
+        if 0 <= i0 < nx and 0 <= j0 < ny:
+            nominal[j0, i0] += 1.0
+    return nch, lost, jlo, jhi, ilo, ihi
+
+
+@numba.njit(cache=True)
 def accumulate_galsim(px, py, u, batch, image, nominal, V, H, box, scale, c, tv, th,
                       galsim_box):
     """As :func:`lsst_bfdrift.simulation._star_kernels.accumulate`, with GalSim's layout and rule."""
-    ny, nx = image.shape
     nv = 4 * V.shape[2]
     xs = np.empty(nv)
     ys = np.empty(nv)
+    ny, nx = image.shape
     dq = np.zeros((ny, nx))
     changed = np.empty(ny * nx, dtype=np.int64)
+    oi = np.empty(min(batch, px.shape[0]), dtype=np.int64)
+    oj = np.empty_like(oi)
     lost = 0
     n = px.shape[0]
     for s in range(0, n, batch):
         e = min(s + batch, n)
-        nch = 0
         for p in range(s, e):
-            i, j = _locate_one(px[p], py[p], u[p], V, H, box, xs, ys)
-            if 0 <= i < nx and 0 <= j < ny:
-                image[j, i] += 1.0
-                if dq[j, i] == 0.0:
-                    changed[nch] = j * nx + i
-                    nch += 1
-                dq[j, i] += 1.0
-            else:
-                lost += 1
-            i0 = int(np.floor(px[p] + 0.5))
-            j0 = int(np.floor(py[p] + 0.5))
-            if 0 <= i0 < nx and 0 <= j0 < ny:
-                nominal[j0, i0] += 1.0
-        jlo, jhi, ilo, ihi = ny, -1, nx, -1
+            oi[p - s], oj[p - s] = _locate_one(px[p], py[p], u[p], V, H, box, xs, ys)
+        nch, nl, jlo, jhi, ilo, ihi = collect_batch(oi[:e - s], oj[:e - s], px[s:e], py[s:e],
+                                                    image, nominal, dq, changed)
+        lost += nl
         for m in range(nch):
             j = changed[m] // nx
             i = changed[m] - j * nx
             _add_one(dq[j, i] * scale, j, i, c, V, H, tv, th)
             dq[j, i] = 0.0
-            jlo, jhi, ilo, ihi = min(jlo, j), max(jhi, j), min(ilo, i), max(ihi, i)
         if nch > 0:
             if galsim_box:
                 galsim_boxes(V, H, max(jlo - c - 1, 0), min(jhi + c + 2, ny),

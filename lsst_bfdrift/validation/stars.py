@@ -10,8 +10,8 @@ MODEL_NOTES.md section 8).
 The sky must be collected through the sensor like the star: in a real
 exposure the star's shrunken pixels collect less sky too, and every
 correction (rightly) moves sky flux back along with the star's. Adding the
-sky to the images after the BF simulation (``sky_through_sensor=False``, the
-old behaviour) shifts every correction's residual size slope by about
+sky to the images after the BF simulation (``sky_through_sensor=False``)
+shifts every correction's residual size slope by about
 -4 % of the uncorrected slope for a sky of 1000 e (``docs/benchmarks.rst``).
 
 Every correction method is applied to the BF image, and its adaptive
@@ -238,20 +238,8 @@ def validate_stars(pairs, template, *, methods=("coulton18", "astier23", "drift"
                    progress=False):
     """Size and ellipticity slopes before and after each correction.
 
-    :func:`per_star_residuals` then :func:`residual_slopes`.
-
-    Parameters
-    ----------
-    pairs : list of dict
-        From :func:`draw_star_pairs`.
-    template : DistortionTemplate
-        Green's function used by the corrections.
-    methods : sequence of str, optional
-        Task methods to compare.
-    sky : float, optional
-        Sky level subtracted before measuring moments (e).
-    progress : bool, optional
-        Progress bar.
+    :func:`per_star_residuals` (whose parameters these are) then
+    :func:`residual_slopes`.
 
     Returns
     -------

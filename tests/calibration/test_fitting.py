@@ -95,6 +95,31 @@ def test_bounds_are_respected():
     assert fit.at_bound == ["a"]
 
 
+@pytest.mark.parametrize("update", ["broyden", "exact"])
+def test_correlated_parameters_reach_the_bounded_optimum(update):
+    """Strongly correlated parameters, one of which ends on a bound: the others
+    must take up what the bounded one cannot do (reference: scipy's bounded
+    linear least squares)."""
+    from scipy.optimize import lsq_linear
+
+    x = np.linspace(0.0, 1.0, 30)
+    X = np.stack([np.ones_like(x), x + 0.02 * x**2, x + 0.04 * x**3, x**2], axis=1)
+    y = X @ np.array([0.2, 3.0, -1.0, 0.3]) + 0.01 * np.sin(7 * x)
+    sigma = np.full(x.size, 0.01)
+    names = ["c", "b1", "b2", "q"]
+    lo, hi = np.array([0.0, -2.0, -0.5, -1.0]), np.array([1.0, 1.5, 2.0, 1.0])
+    ref = lsq_linear(X / sigma[:, None], y / sigma, bounds=(lo, hi), tol=1e-12)
+    assert list(ref.active_mask) == [0, 0, 1, 0]
+    fit = fit_parameters(lambda v: X @ np.array([v[k] for k in names]), y, sigma,
+                         {"c": 0.5, "b1": 0.0, "b2": 0.5, "q": 0.0},
+                         {k: (a, b) for k, a, b in zip(names, lo, hi)}, update=update,
+                         max_evaluations=200, tol=1e-6)
+    chi2_ref = float(np.sum(((X @ ref.x - y) / sigma) ** 2))
+    assert fit.chi2 < chi2_ref + 1e-4
+    assert fit.at_bound == ["b2"]
+    assert_allclose([fit.values[k] for k in names], ref.x, atol=1e-4)
+
+
 @pytest.mark.parametrize("kwargs, match", [
     ({"start": {"a": 2.0}}, "outside its bounds"),
     ({"start": {}}, "no free parameters"),

@@ -74,6 +74,16 @@ class TestBuild:
             TemplateSettings.from_dict({"sise": 3})
 
 
+def _bump_schema(h):
+    h["TEMPLATE"].header["BFSCHEMA"] = TEMPLATE_SCHEMA_VERSION + 1
+
+def _scale_normals(h):  # the FITS checksum is rewritten: only the hash sees it
+    h["TEMPLATE"].data["normal"][:] *= 1.5
+
+def _move_one_corner_view(h):  # one pixel's view of a shared corner
+    h["TEMPLATE"].data["c0x"][0] += 0.01
+
+
 class TestFileIO:
     def test_round_trip_is_exact(self, small_template, tmp_path):
         path = tmp_path / "t.fits"
@@ -117,39 +127,19 @@ class TestFileIO:
         with pytest.raises(TemplateFileError, match="cannot read|SHA-256"):
             DistortionTemplate.load(path)
 
-    def _rewrite(self, src, dst, edit):
+    @pytest.mark.parametrize("edit, match", [
+        (_bump_schema, "schema version"),
+        (_scale_normals, "SHA-256|inconsistent"),
+        (_move_one_corner_view, "inconsistent"),
+    ], ids=["version_mismatch", "altered_data_with_valid_checksum_fails_hash",
+            "inconsistent_shared_edges"])
+    def test_edited_file_fails(self, small_template, tmp_path, edit, match):
+        src, dst = tmp_path / "a.fits", tmp_path / "b.fits"
+        small_template.save(src)
         with fits.open(src) as hdul:
             edit(hdul)
             hdul.writeto(dst, checksum=True)
-
-    def test_version_mismatch(self, small_template, tmp_path):
-        src, dst = tmp_path / "a.fits", tmp_path / "b.fits"
-        small_template.save(src)
-
-        def edit(h):
-            h["TEMPLATE"].header["BFSCHEMA"] = TEMPLATE_SCHEMA_VERSION + 1
-        self._rewrite(src, dst, edit)
-        with pytest.raises(TemplateFileError, match="schema version"):
-            DistortionTemplate.load(dst)
-
-    def test_altered_data_with_valid_checksum_fails_hash(self, small_template, tmp_path):
-        src, dst = tmp_path / "a.fits", tmp_path / "b.fits"
-        small_template.save(src)
-
-        def edit(h):
-            h["TEMPLATE"].data["normal"][:] *= 1.5
-        self._rewrite(src, dst, edit)
-        with pytest.raises(TemplateFileError, match="SHA-256|inconsistent"):
-            DistortionTemplate.load(dst)
-
-    def test_inconsistent_shared_edges(self, small_template, tmp_path):
-        src, dst = tmp_path / "a.fits", tmp_path / "b.fits"
-        small_template.save(src)
-
-        def edit(h):
-            h["TEMPLATE"].data["c0x"][0] += 0.01  # one pixel's view of a corner
-        self._rewrite(src, dst, edit)
-        with pytest.raises(TemplateFileError, match="inconsistent"):
+        with pytest.raises(TemplateFileError, match=match):
             DistortionTemplate.load(dst)
 
     def test_missing_file(self, tmp_path):
