@@ -6,21 +6,20 @@ elsewhere still shows its traceback). Each subclass also derives from the
 builtin exception a caller would have caught before, so ``except ValueError``
 (or ``FileExistsError``, ``TypeError``, ...) keeps working:
 
-=========================  ==============================  =====================
-class                      also a                          ``bfdrift`` exit code
-=========================  ==============================  =====================
-:class:`InputError`        ``ValueError``                  2
-:class:`InputTypeError`    ``ValueError``, ``TypeError``   2
-:class:`InputKeyError`     ``ValueError``, ``KeyError``    2
-:class:`InputFileError`    ``ValueError``                  2
-:class:`InputNotFoundError`  ``ValueError``,               2
-                           ``FileNotFoundError``
-:class:`TemplateFileError`  ``ValueError``                 2
-:class:`FieldValidationError`  ``ValueError``              2
-:class:`OutputExistsError`  ``FileExistsError``            3
-:class:`FitError`          ``ValueError``                  4
-:class:`ComputationError`  ``RuntimeError``                4
-=========================  ==============================  =====================
+=============================  =====================================  =====================
+class                          also a                                 ``bfdrift`` exit code
+=============================  =====================================  =====================
+:class:`InputError`            ``ValueError``                         2
+:class:`InputTypeError`        ``ValueError``, ``TypeError``          2
+:class:`InputKeyError`         ``ValueError``, ``KeyError``           2
+:class:`InputFileError`        ``ValueError``                         2
+:class:`InputNotFoundError`    ``ValueError``, ``FileNotFoundError``  2
+:class:`TemplateFileError`     ``ValueError``                         2
+:class:`FieldValidationError`  ``ValueError``                         2
+:class:`OutputExistsError`     ``FileExistsError``                    3
+:class:`FitError`              ``ValueError``                         4
+:class:`ComputationError`      ``RuntimeError``                       4
+=============================  =====================================  =====================
 
 Any other ``OSError`` (permission denied, disk full) gives exit code 1 in the
 command line; see ``docs/cli.rst``.
