@@ -128,7 +128,14 @@ def unpack_exposure(exposure, gain_cfg):
     if isinstance(exposure, (str, os.PathLike)):
         data, _, meta = read_image(exposure)  # a truncated file is named as such
         bunit = str(meta.get("BUNIT", "electron")).strip().lower()
-        unit = u.adu if bunit in ("adu", "dn", "count", "counts") else u.electron
+        if bunit in _ADU_UNITS:
+            unit = u.adu
+        elif bunit in _ELECTRON_UNITS:
+            unit = u.electron
+        else:
+            raise InputError(f"{os.fspath(exposure)}: BUNIT = {meta['BUNIT']!r} is not a charge "
+                             "image; accepted: electron (e, e-, electrons) or ADU (adu, dn, "
+                             "count)")
         kind = "path"
     elif isinstance(exposure, NDData):
         kind = "ccddata" if isinstance(exposure, CCDData) else "nddata"
@@ -137,6 +144,10 @@ def unpack_exposure(exposure, gain_cfg):
         unc = exposure.uncertainty
         meta = fits.Header(exposure.meta) if exposure.meta else fits.Header()
         unit = exposure.unit if exposure.unit is not None else u.electron
+    elif isinstance(exposure, np.ma.MaskedArray):
+        kind = "masked"
+        data = _as_float64(exposure.data)
+        mask = np.array(np.ma.getmaskarray(exposure), bool)
     else:
         data = _as_float64(exposure)
     if data.ndim != 2:
@@ -150,13 +161,23 @@ def unpack_exposure(exposure, gain_cfg):
     if unit in (u.adu, u.count) or str(unit).lower() in ("adu", "dn"):
         gain = gain_cfg if gain_cfg is not None else meta.get("GAIN")
         if gain is None:
-            raise InputError("image is in ADU: set config.gain or a GAIN header keyword")
+            raise InputError("image is in ADU: give a gain (--gain, config.gain) or a GAIN "
+                             "header keyword")
+        if isinstance(gain, (bool, np.bool_)) or not isinstance(gain, (int, float, np.number)):
+            raise InputError(f"gain {gain!r} (GAIN keyword or config.gain) is not a number of "
+                             "e/ADU")
         gain = float(gain)
         if not gain > 0:
             raise InputError(f"gain must be positive, got {gain}")
     elif unit not in (u.electron, u.dimensionless_unscaled):
         raise InputError(f"exposure unit must be electron or adu, got {unit}")
     return (data if gain == 1.0 else data * gain), mask, unc, meta, unit, gain, kind
+
+
+#: BUNIT spellings of a charge image in electrons (a missing BUNIT means electrons).
+_ELECTRON_UNITS = ("electron", "electrons", "e", "e-", "")
+#: BUNIT spellings of an image in ADU.
+_ADU_UNITS = ("adu", "dn", "count", "counts")
 
 
 def _as_float64(array):
@@ -230,15 +251,18 @@ class BrighterFatterDriftTask(Task):
 
         Parameters
         ----------
-        exposure : CCDData, NDData, ndarray or path
+        exposure : CCDData, NDData, numpy.ma.MaskedArray, ndarray or path
             Image in electrons (or ADU with ``config.gain`` / a GAIN keyword).
+            Masked pixels (NDData and MaskedArray masks) neither give nor
+            receive charge and are flagged. A FITS file's BUNIT must say
+            electron or ADU (other units, e.g. e/s or MJy/sr, are refused).
             Never modified.
 
         Returns
         -------
         Struct
             ``exposure`` (corrected, same type as given; mask and uncertainty
-            carried), ``area``, ``centroid_x``, ``centroid_y`` (shift from the
+            carried; a MaskedArray's mask gains the blocked pixels), ``area``, ``centroid_x``, ``centroid_y`` (shift from the
             pixel centre, px), ``e1``, ``e2`` (None if ``compute_geometry`` is
             off), ``flux_moved`` (e; sums to zero), ``flux_moved_err`` (e; its
             standard deviation over templates drawn from the calibration
@@ -308,6 +332,8 @@ class BrighterFatterDriftTask(Task):
             out = cls(out_data, unit=unit, mask=new_mask, uncertainty=unc, meta=header)
         elif kind == "path":
             out = CCDData(out_data, unit=unit, mask=blocked, meta=header)
+        elif kind == "masked":
+            out = np.ma.MaskedArray(out_data, mask=mask | blocked)
         else:
             out = out_data
         if moved_err is not None:

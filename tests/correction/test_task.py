@@ -155,6 +155,39 @@ def test_adu_without_gain_is_an_error():
         BrighterFatterDriftTask().run(ccd)
 
 
+def test_masked_array_mask_is_honoured(star):
+    # reference: the same image as CCDData with the same mask (independent path)
+    image = star[0].copy()
+    mask = np.zeros(image.shape, bool)
+    mask[image.shape[0] // 2, image.shape[1] // 2 + 1] = True   # next to the star's core
+    res = BrighterFatterDriftTask().run(np.ma.MaskedArray(image, mask=mask))
+    ref = BrighterFatterDriftTask().run(CCDData(image, unit=u.electron, mask=mask))
+    assert isinstance(res.exposure, np.ma.MaskedArray)
+    assert_allclose(res.exposure.data, ref.exposure.data)
+    assert np.array_equal(res.exposure.mask, ref.exposure.mask)
+    j, i = np.argwhere(mask)[0]
+    assert res.flux_moved[j, i] == 0 and res.flags[j, i] & FLAG_BLOCKED
+    assert res.exposure.data[j, i] == image[j, i]
+    plain = BrighterFatterDriftTask().run(image)
+    assert plain.flux_moved[j, i] != 0    # the mask changed the result
+
+
+@pytest.mark.parametrize("bunit", ["e/s", "MJy/sr", "photon"])
+def test_fits_units_other_than_charge_are_refused(tmp_path, bunit):
+    from astropy.io import fits
+    path = tmp_path / "img.fits"
+    fits.writeto(path, np.full((16, 16), 100.0), fits.Header({"BUNIT": bunit}))
+    with pytest.raises(ValueError, match="is not a charge image"):
+        BrighterFatterDriftTask().run(str(path))
+
+
+@pytest.mark.parametrize("gain", ["abc", True])
+def test_gain_keyword_must_be_a_number(gain):
+    ccd = CCDData(np.ones((30, 30)), unit=u.adu, meta={"GAIN": gain})
+    with pytest.raises(ValueError, match="is not a number"):
+        BrighterFatterDriftTask().run(ccd)
+
+
 def test_saturation_blocks_pixels(star):
     image = star[0]
     cfg = BrighterFatterDriftConfig(saturation=float(image.max()) * 0.9, compute_geometry=False)
