@@ -58,7 +58,8 @@ from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["edge_flux_density", "edge_transfer",
            "recorded_image", "correct_image", "correct_series", "correct_half_shift",
-           "area_coefficients", "coulton18_kernel", "correct_coulton18"]
+           "area_coefficients", "coulton18_kernel", "correct_coulton18", "MAX_SWEEP",
+           "refuse_out_of_range"]
 
 
 def edge_flux_density(flux, *, mode="cubic4", blocked=None):
@@ -159,7 +160,7 @@ def recorded_image(flux, swept, *, order=3, density="cubic4", blocked=None, dens
 
 def correct_image(image, template, *, order=3, density="cubic4", blocked=None, max_iter=10,
                   rtol=1e-7, noise_tol=None, start="image", workers=1, dtype=np.float64,
-                  strip=None, sparse=False, cache=None, info=None):
+                  strip=None, sparse=False, cache=None, info=None, check_range=True):
     """Flux that square pixels would have collected, from a recorded image.
 
     Parameters
@@ -216,6 +217,10 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
         Filled with ``solver`` ('sparse' or 'dense') and, for the sparse
         solver, its window statistics.
 
+    check_range : bool, optional
+        Refuse images the model cannot describe
+        (:func:`refuse_out_of_range`); the Task checks before it calls.
+
     Returns
     -------
     flux : ndarray
@@ -231,6 +236,8 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
               start=start, workers=workers, dtype=dtype)
     img, blk = _checked(image, blocked, strip)
     ops = _operators(cache, template, workers, dtype)
+    if check_range:
+        refuse_out_of_range(_finite(img, blk)[0], ops.kernel_abs_sum)
     info = {} if info is None else info
     info["solver"] = "dense"
     if sparse and start == "series":
@@ -286,6 +293,44 @@ def _limit(img_eff, noise_tol, rtol):
     if noise_tol is not None:
         return tolerance(img_eff, noise_tol)
     return rtol * max(np.abs(img_eff).max(), 1e-300)
+
+
+#: Largest K max|I| accepted (K: the template's largest sum of abs(swept-area
+#: kernel) over one edge, px^2 per electron): beyond it one pixel's charge
+#: would sweep more than a whole pixel's area across an edge, far outside any
+#: physical full well and outside the model (the solver's series needs
+#: K max|I| well below 1; the brightest star cores of the benchmarks reach
+#: about 0.25).
+MAX_SWEEP = 1.0
+
+
+def refuse_out_of_range(finite_data, kernel_abs_sum, unit_note=""):
+    """Refuse images whose values the brighter-fatter model cannot describe.
+
+    Parameters
+    ----------
+    finite_data : ndarray
+        The image's finite values (e).
+    kernel_abs_sum : float
+        The template's largest sum of abs(swept-area kernel) over one edge
+        (px^2 per e; :attr:`~lsst_bfdrift.templates.swept.OperatorCache.kernel_abs_sum`).
+    unit_note : str, optional
+        Appended to the message.
+
+    Raises
+    ------
+    InputError
+        When ``kernel_abs_sum * max|I|`` exceeds :data:`MAX_SWEEP`.
+    """
+    # max and -min: no full-size temporary for abs()
+    peak = max(float(finite_data.max()), -float(finite_data.min())) if finite_data.size else 0.0
+    if kernel_abs_sum * peak > MAX_SWEEP:
+        raise InputError(
+            f"pixel values up to {peak:.3g} e: the template would sweep "
+            f"{kernel_abs_sum * peak:.3g} px^2 across an edge (at most {MAX_SWEEP} is "
+            f"modelled, i.e. |I| <= {MAX_SWEEP / kernel_abs_sum:.3g} e); set such pixels to "
+            f"NaN (masked and saturated pixels still act as aggressors with their value)"
+            f"{unit_note}")
 
 
 def _checked(image, blocked, strip):
@@ -408,7 +453,7 @@ def _series_block(img, blk, swept, order, density, *, terms=2):
 
 
 def correct_series(image, template, *, order=3, density="mean2", blocked=None, workers=1,
-                   dtype=np.float64, strip=None):
+                   dtype=np.float64, strip=None, check_range=True):
     """Flux that square pixels would have collected, by the inverse series.
 
     Solves I = R(F) (the time-history model of :func:`recorded_image`) to
@@ -439,6 +484,10 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
         halo give the full-frame result (to rounding) with memory bounded by
         the block size. None: the whole image at once.
 
+    check_range : bool, optional
+        Refuse images the model cannot describe
+        (:func:`refuse_out_of_range`); the Task checks before it calls.
+
     Returns
     -------
     flux : ndarray
@@ -452,6 +501,8 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
     img_eff, blk = _finite(img, blk)
     ny, nx = img.shape
     ops = _operators(None, template, workers, dtype)
+    if check_range:
+        refuse_out_of_range(img_eff, ops.kernel_abs_sum)
     if strip is None or int(strip) >= ny:
         flux, _ = _series_block(img_eff, blk, ops(img.shape), order, density)
     else:
@@ -468,14 +519,15 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
 
 
 def correct_half_shift(image, template, *, blocked=None, workers=1, dtype=np.float64,
-                       strip=None, cache=None):
+                       strip=None, cache=None, check_range=True):
     """One flux-conserving pass with half the final shift (Astier & Regnault 2023).
 
     F = I - G(I; I) / 2: swept areas and edge flux densities (two-pixel mean)
     both from the recorded image; no iteration, as in the paper. ``dtype``
     as for :class:`~lsst_bfdrift.templates.swept.SweptAreas`. ``strip`` (rows per block, overlapping by
     ``(N + 1) // 2 + 2`` rows, which gives the whole-image result exactly)
-    and ``cache`` as for :func:`correct_image`.
+    and ``cache`` as for :func:`correct_image`; ``check_range`` refuses
+    images the model cannot describe (:func:`refuse_out_of_range`).
 
     Returns
     -------
@@ -484,6 +536,8 @@ def correct_half_shift(image, template, *, blocked=None, workers=1, dtype=np.flo
     img, blk = _checked(image, blocked, strip)
     img_eff, blk = _finite(img, blk)
     ops = _operators(cache, template, workers, dtype)
+    if check_range:
+        refuse_out_of_range(img_eff, ops.kernel_abs_sum)
     # the first-order pass of the windowed series is exactly this pass
     flux = first_order_terms(img_eff, blk, ops, strip=strip, cubic="mean2",
                              keep_swept=False)[0]

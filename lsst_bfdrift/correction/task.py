@@ -14,8 +14,9 @@ from astropy.nddata import CCDData, NDData
 
 from lsst_bfdrift.utils.config import ChoiceField, Config, Field, Struct, Task
 from lsst_bfdrift.utils.io import read_image
-from lsst_bfdrift.correction.solvers import (area_coefficients, correct_coulton18, correct_half_shift,
-                         correct_image, coulton18_kernel)
+from lsst_bfdrift.correction.solvers import (area_coefficients, correct_coulton18,
+                                             correct_half_shift, correct_image,
+                                             coulton18_kernel, refuse_out_of_range)
 from lsst_bfdrift.geometry.superpose import moment_maps
 from lsst_bfdrift.templates.refine import draw_templates
 from lsst_bfdrift.templates.swept import OperatorCache
@@ -23,7 +24,7 @@ from lsst_bfdrift.templates.template import DistortionTemplate, load_default_tem
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["BrighterFatterDriftConfig", "BrighterFatterDriftTask", "unpack_exposure", "FLAG_BLOCKED",
-           "FLAG_EDGE", "MAX_SWEEP"]
+           "FLAG_EDGE"]
 
 #: Flag bit: pixel masked, saturated or non-finite (no flux exchanged).
 FLAG_BLOCKED = 1
@@ -102,7 +103,7 @@ def _correct(data, template, blocked, cfg, dtype, cache):
     if cfg.method == "astier23":
         flux, iterations, converged = correct_half_shift(
             data, template, blocked=blocked, workers=cfg.workers, dtype=dtype,
-            strip=cfg.strip, cache=cache)
+            strip=cfg.strip, cache=cache, check_range=False)
     elif cfg.method == "coulton18":
         order = density = "n/a"
         kernel = coulton18_kernel(area_coefficients(template))
@@ -114,7 +115,7 @@ def _correct(data, template, blocked, cfg, dtype, cache):
             data, template, order=order, density=density, blocked=blocked,
             max_iter=cfg.max_iter, rtol=cfg.rtol, noise_tol=cfg.noise_tol, start=cfg.start,
             workers=cfg.workers, dtype=dtype, strip=cfg.strip, sparse=cfg.sparse,
-            cache=cache, info=solver)
+            cache=cache, info=solver, check_range=False)
     return flux, iterations, converged, order, density, solver
 
 
@@ -195,28 +196,6 @@ def _as_float64(array):
     return array.astype(np.float64, copy=False)
 
 
-#: Largest K max|I| accepted (K: the template's largest sum of abs(swept-area
-#: kernel) over one edge, px^2 per electron): beyond it one pixel's charge
-#: would sweep more than a whole pixel's area across an edge, far outside any
-#: physical full well and outside the model (the solver's series needs
-#: K max|I| well below 1; the brightest star cores of the benchmarks reach
-#: about 0.25).
-MAX_SWEEP = 1.0
-
-
-def _check_range(finite_data, kernel_abs_sum, unit_note):
-    """Refuse images whose values the brighter-fatter model cannot describe."""
-    # max and -min: no full-size temporary for abs()
-    peak = max(float(finite_data.max()), -float(finite_data.min())) if finite_data.size else 0.0
-    if kernel_abs_sum * peak > MAX_SWEEP:
-        raise InputError(
-            f"pixel values up to {peak:.3g} e: the template would sweep "
-            f"{kernel_abs_sum * peak:.3g} px^2 across an edge (at most {MAX_SWEEP} is "
-            f"modelled, i.e. |I| <= {MAX_SWEEP / kernel_abs_sum:.3g} e); set such pixels to "
-            f"NaN (masked and saturated pixels still act as aggressors with their value)"
-            f"{unit_note}")
-
-
 class BrighterFatterDriftTask(Task):
     """Correct the brighter-fatter effect with an electrostatic template.
 
@@ -280,7 +259,7 @@ class BrighterFatterDriftTask(Task):
         if cfg.saturation is not None:
             blocked |= finite_data >= cfg.saturation
         dtype = np.float32 if cfg.fft_precision == "float32" else np.float64
-        _check_range(finite_data, self._operators(dtype).kernel_abs_sum,
+        refuse_out_of_range(finite_data, self._operators(dtype).kernel_abs_sum,
                      f"; the image was converted with gain {gain} e/ADU" if gain != 1.0
                      else "; is the image in ADU without a gain?")
         # the maps first: their working arrays are freed before the solver's
