@@ -230,12 +230,18 @@ def detect_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=5
     ValueError
         For a blank or non-finite image, an image too small, or no detection.
     """
+    data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask, saturation=saturation)
+    return _detect(data, bad, sat_e, g, threshold=threshold, n_pixels=n_pixels,
+                   kernel_fwhm=kernel_fwhm, box_size=box_size, deblend=deblend)
+
+
+def _detect(data, bad, sat_e, g, *, threshold, n_pixels, kernel_fwhm, box_size, deblend):
+    """:func:`detect_stars` of an image already in electrons."""
     from photutils.segmentation import detect_sources, make_2dgaussian_kernel
     from photutils.utils.exceptions import NoDetectionsWarning
     from scipy import ndimage
     from scipy.signal import fftconvolve
 
-    data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask, saturation=saturation)
     if bad.all():
         raise InputError("image has no usable pixel (all masked or non-finite)")
     good_vals = data[~bad]
@@ -333,15 +339,11 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
     """
     from scipy import ndimage
 
+    data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask, saturation=saturation)
     if detections is None:
-        detections = detect_stars(exposure, gain=gain, mask=mask, saturation=saturation,
-                                  threshold=threshold, n_pixels=n_pixels,
-                                  kernel_fwhm=kernel_fwhm, box_size=box_size, deblend=deblend)
-        data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask,
-                                             saturation=saturation)
+        detections = _detect(data, bad, sat_e, g, threshold=threshold, n_pixels=n_pixels,
+                             kernel_fwhm=kernel_fwhm, box_size=box_size, deblend=deblend)
     else:
-        data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask,
-                                             saturation=saturation)
         if data.shape != detections.shape:
             raise InputError(f"image shape {data.shape} differs from the detections' "
                              f"{detections.shape}")

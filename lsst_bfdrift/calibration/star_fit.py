@@ -54,7 +54,6 @@ field constrains the template when its uncorrected size slope is detected at
 z > 10: several hundred unsaturated, isolated stars spanning 1e4 to 1e6 e.
 """
 
-import math
 import time
 
 import numpy as np
@@ -164,6 +163,7 @@ class StarField:
         self.flag_counts = {n[5:]: int(np.sum((flags & b) != 0)) for b, n in FLAG_NAMES.items()}
         self.fit_stars = self.usable.copy()
         self.held_out = np.zeros_like(self.usable)
+        self._corrected = {}
 
     def split(self, seed):
         """Hold out a seeded random half of the usable stars (stratified by flux)."""
@@ -178,14 +178,14 @@ class StarField:
         self.held_out = hold
         self.fit_stars = self.usable & ~hold
 
-    def slopes(self, template, subset, *, n_boot=0, seed=20151):
-        """Size, e1 and e2 slopes (per 1e5 e) of ``subset`` after a drift correction.
-
-        ``template`` None: the uncorrected image.
-        """
+    def corrected_catalog(self, template):
+        """Catalogue of the same stars after a drift correction with ``template``
+        (None: the uncorrected image). Kept per template: the fit, the
+        bootstrap and the held-out stars reuse one correction."""
         if template is None:
-            img = self.data
-        else:
+            return self.catalog
+        key = id(template)
+        if key not in self._corrected:
             from astropy import units as u
             from astropy.nddata import CCDData
 
@@ -195,9 +195,17 @@ class StarField:
                                             saturation=self.saturation)
             res = BrighterFatterDriftTask(config=cfg, template=template).run(
                 CCDData(self.data, unit=u.electron, mask=self.bad))
-            img = np.asarray(res.exposure.data, float)
-        cat = measure_stars(img, mask=self.bad, saturation=self.saturation,
-                            detections=self.detections)
+            cat = measure_stars(np.asarray(res.exposure.data, float), mask=self.bad,
+                                saturation=self.saturation, detections=self.detections)
+            self._corrected[key] = (template, cat)  # the template kept: its id stays unique
+        return self._corrected[key][1]
+
+    def slopes(self, template, subset, *, n_boot=0, seed=20151):
+        """Size, e1 and e2 slopes (per 1e5 e) of ``subset`` after a drift correction.
+
+        ``template`` None: the uncorrected image.
+        """
+        cat = self.corrected_catalog(template).copy(copy_data=False)
         cat["use"] = np.asarray(subset, bool)
         rel = shape_flux_relations(cat, min_snr=self.min_snr, n_boot=n_boot, seed=seed,
                                    frame=self.frame)
@@ -447,16 +455,13 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     r0 = np.concatenate([a0 - a_meas, r_s0, np.zeros(nd)])
     sig = np.concatenate([a_sig, sig_s, np.full(nd, PRIOR_STEPS)])
     J = np.vstack([Ja, Js, np.eye(nd)])
-    sel_mask = np.ones(r0.size, bool)
-    sel_mask[n_a + r_s0.size:] = False  # ln N counts the data, not the prior rows
-    chosen, selection = _select(J[:n_a + r_s0.size], r0[:n_a + r_s0.size],
-                                sig[:n_a + r_s0.size], sel_mask[:n_a + r_s0.size], dirs,
-                                max_params=max_directions, always_first=False)
+    n_data = n_a + r_s0.size  # ln N counts the data, not the prior rows
+    chosen, selection = _select(J[:n_data], r0[:n_data], sig[:n_data], np.ones(n_data, bool),
+                                dirs, max_params=max_directions, always_first=False)
     cols = [dirs.index(n) for n in chosen]
-    rows = np.r_[np.arange(n_a + r_s0.size), n_a + r_s0.size + np.asarray(cols, int)]
-    J, r0, sig = J[rows][:, cols], r0[rows], sig[rows]
+    rows = np.r_[np.arange(n_data), n_data + np.asarray(cols, int)]
+    Jc, r0, sig = J[rows][:, cols], r0[rows], sig[rows]
     W = 1.0 / sig ** 2
-    Jc = J
     F = Jc.T @ (Jc * W[:, None])
     cov = np.linalg.pinv(F) if cols else np.zeros((0, 0))
     coef = -cov @ (Jc.T @ (W * r0))
@@ -547,5 +552,4 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         tension=tension, star_information=info, fit_slopes=fit_slopes, held_out=held,
         selection=selection, fields=fields_info, warnings=warn,
         seconds={"directions": t_dirs, "star_jacobian": t_jac,
-                 "total": time.perf_counter() - t0}, flux_unit=FLUX_UNIT,
-        log_n=math.log(max(r0.size, 2)))
+                 "total": time.perf_counter() - t0}, flux_unit=FLUX_UNIT)
