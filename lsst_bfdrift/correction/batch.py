@@ -169,7 +169,7 @@ def correct_files(pairs, config=None, *, scheduler=None, overwrite=False, n_work
         if scheduler == "local":
             cluster = LocalCluster(n_workers=int(n_workers),
                                    threads_per_worker=int(threads_per_worker),
-                                   processes=bool(processes), dashboard_address=None)
+                                   processes=bool(processes), dashboard_address=":0")
             client = Client(cluster)
         else:
             client = Client(scheduler)

@@ -311,7 +311,7 @@ def test_correct_files_through_a_scheduler_address(capsys, tmp_path):
         names.append(str(path))
     serial = correct_files(output_pairs(names, tmp_path / "serial"))
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, protocol="tcp",
-                      dashboard_address=None) as cluster:
+                      dashboard_address=":0") as cluster:
         address = cluster.scheduler_address
         assert address.startswith("tcp://")
         code, out, err = _run(capsys, "correct", *names, "--out-dir", str(tmp_path / "remote"),
