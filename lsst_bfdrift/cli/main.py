@@ -73,7 +73,8 @@ from lsst_bfdrift.cli._common import (_check_outputs, _emit, _load_template, _pr
                                       _save_and_report, _save_plot, _template_input)
 from lsst_bfdrift.cli.analysis import (_cmd_calibrate, _cmd_diagnose, _cmd_ptc,
                                        _cmd_reproduce, _cmd_validate_sky, _cmd_validate_stars)
-from lsst_bfdrift.utils.errors import (BfdriftError, ComputationError, FitError, InputError,
+from lsst_bfdrift.utils.errors import (BfdriftError, ComputationError, FieldValidationError,
+                                       FitError, InputError,
                                        InputFileError, InputKeyError)
 
 __all__ = ["main", "exit_code", "EXIT_OK", "EXIT_OTHER", "EXIT_INPUT", "EXIT_EXISTS",
@@ -283,8 +284,9 @@ def _cmd_star_sim(args):
 def _cmd_correct(args):
     from lsst_bfdrift.correction.batch import correct_files, output_pairs
     from lsst_bfdrift.correction.task import BrighterFatterDriftConfig
+    from lsst_bfdrift.utils.config import load_config
     cfg = BrighterFatterDriftConfig() if args.config is None else \
-        BrighterFatterDriftConfig.load(args.config)
+        load_config(BrighterFatterDriftConfig, args.config)
     if args.method:
         cfg.method = args.method
     if args.gain is not None:
@@ -445,7 +447,8 @@ def build_parser():
     co = sub.add_parser("correct", help="brighter-fatter correction of FITS images")
     co.add_argument("inputs", nargs="+", help="IN.fits OUT.fits, or inputs with --out-dir")
     co.add_argument("--out-dir", help="directory for the corrected files (same names)")
-    co.add_argument("--config", help="BrighterFatterDriftConfig as JSON or TOML")
+    co.add_argument("--config", help="BrighterFatterDriftConfig: a pex_config override file "
+                    "(config.method = 'astier23'), or a JSON/TOML table of field values")
     co.add_argument("--method", help="drift, astier23 or coulton18")
     co.add_argument("--gain", type=float, help="e/ADU for images in ADU")
     co.add_argument("--geometry", action="store_true", help="also write the geometry maps")
@@ -557,7 +560,8 @@ def exit_code(exc):
         return EXIT_EXISTS
     if isinstance(exc, (FitError, ComputationError)):
         return EXIT_FIT
-    if isinstance(exc, (InputError, FileNotFoundError, IsADirectoryError, NotADirectoryError)):
+    if isinstance(exc, (InputError, FieldValidationError, FileNotFoundError, IsADirectoryError,
+                        NotADirectoryError)):
         return EXIT_INPUT
     return EXIT_OTHER
 
@@ -573,7 +577,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (BfdriftError, OSError) as exc:
+    except (BfdriftError, FieldValidationError, OSError) as exc:
         print(f"bfdrift: error: {exc}", file=sys.stderr)
         return exit_code(exc)
 

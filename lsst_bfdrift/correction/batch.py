@@ -18,6 +18,7 @@ import threading
 import numpy as np
 
 from lsst_bfdrift.utils.io import atomic_output, check_output
+from lsst_bfdrift.utils.config import config_from_dict
 from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.utils.errors import InputError
 
@@ -39,7 +40,7 @@ def output_pairs(inputs, out_dir):
 def _task(config_json):
     """One Task per configuration and process (the template is loaded once)."""
     from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
-    cfg = BrighterFatterDriftConfig.from_dict(json.loads(config_json))
+    cfg = config_from_dict(BrighterFatterDriftConfig, json.loads(config_json))
     return BrighterFatterDriftTask(config=cfg)
 
 
@@ -48,8 +49,8 @@ def _config_json(config):
     if config is None:
         config = BrighterFatterDriftConfig()
     if isinstance(config, BrighterFatterDriftConfig):
-        config = config.to_dict()
-    BrighterFatterDriftConfig.from_dict(dict(config))  # validate before any work
+        config = config.toDict()
+    config_from_dict(BrighterFatterDriftConfig, dict(config)).validate()  # before any work
     return json.dumps(config, sort_keys=True)
 
 

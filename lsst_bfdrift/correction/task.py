@@ -5,6 +5,7 @@ for the flux redistribution and :func:`~lsst_bfdrift.geometry.superpose.moment_m
 for the final pixel geometry predicted from the recorded image.
 """
 
+import math
 import os
 
 import numpy as np
@@ -12,7 +13,9 @@ from astropy import units as u
 from astropy.io import fits
 from astropy.nddata import CCDData, NDData
 
-from lsst_bfdrift.utils.config import ChoiceField, Config, Field, Struct, Task
+import lsst.pex.config as pexConfig
+
+from lsst_bfdrift.utils.config import Struct, Task
 from lsst_bfdrift.utils.io import read_image
 from lsst_bfdrift.correction.solvers import (area_coefficients, correct_coulton18,
                                              correct_half_shift, correct_image,
@@ -21,7 +24,7 @@ from lsst_bfdrift.geometry.superpose import moment_maps
 from lsst_bfdrift.templates.refine import draw_templates
 from lsst_bfdrift.templates.swept import OperatorCache
 from lsst_bfdrift.templates.template import DistortionTemplate, load_default_template
-from lsst_bfdrift.utils.errors import InputError
+from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["BrighterFatterDriftConfig", "BrighterFatterDriftTask", "unpack_exposure", "FLAG_BLOCKED",
            "FLAG_EDGE"]
@@ -41,57 +44,74 @@ _METHODS = {
 }
 
 
-class BrighterFatterDriftConfig(Config):
-    """Configuration of :class:`BrighterFatterDriftTask`."""
+class BrighterFatterDriftConfig(pexConfig.Config):
+    """Configuration of :class:`BrighterFatterDriftTask` (an ``lsst.pex.config`` Config).
 
-    template = Field("template FITS file; None uses the bundled default", str, default=None,
-                     optional=True)
-    method = ChoiceField("correction method", str, default="drift", allowed=_METHODS)
-    order = Field("terms of the time-history series for method 'drift' (2 = half shift)",
-                  int, default=3, check=lambda v: 2 <= v <= 8)
-    density = ChoiceField("flux density at pixel edges (drift)", str, default="fv4",
-                          allowed={"mean2": "mean of the two pixels beside the edge",
-                                   "cubic4": "four-point interpolation along the normal",
-                                   "fv4": "four-point finite-volume reconstruction from "
-                                          "pixel averages"})
-    max_iter = Field("largest number of solver iterations", int, default=10,
-                     check=lambda v: v >= 1)
-    rtol = Field("convergence: max |I - R(F)| / max |I| (when noise_tol is None)", float,
-                 default=1e-7, check=lambda v: 0 < v < 1)
-    noise_tol = Field("convergence: |I - R(F)| <= noise_tol * sqrt(I) in every pixel "
-                      "(fraction of the Poisson noise); None: use rtol", float, default=0.05,
-                      optional=True, check=lambda v: 0 < v < 1)
-    start = ChoiceField("first guess of the drift solver", str, default="series",
-                        allowed={"series": "third-order inverse series (three operator calls), "
-                                                  "iterated only if an a-priori bound requires",
-                                 "image": "the recorded image"})
-    fft_precision = ChoiceField("precision of the FFT convolutions", str, default="float32",
-                                allowed={"float32": "single (half the time and memory)",
-                                         "float64": "double"})
-    strip = Field("rows per block for the drift and astier23 solvers (bounded memory); "
-                  "None: whole image", int, default=512, optional=True, check=lambda v: v >= 16)
-    sparse = Field("drift with start='series': second- and third-order terms only in windows "
-                   "around the sources that need them (bounded error; dense fallback)", bool,
-                   default=True)
-    gain = Field("e/ADU for images in ADU (None: read GAIN from the header)", float,
-                 default=None, optional=True, check=lambda v: v > 0)
-    saturation = Field("level (e) at and above which pixels are blocked; None: no limit",
-                       float, default=None, optional=True, check=lambda v: v > 0)
-    compute_geometry = Field("compute area, centroid and ellipticity maps", bool, default=True)
-    geometry_samples = Field("samples per pixel edge for the geometry maps (template edges "
-                             "resampled keeping swept areas and moments to first order: "
-                             "~1e-5 of the signal for area and centroid, ~2e-4 for e2, 4x "
-                             "less CPU than the 32-sample default; superpose.resample_template);"
-                             " templates with no more samples are used as they are; None: the "
-                             "template's own", int, default=8, optional=True,
-                             check=lambda v: v >= 1)
-    workers = Field("FFT threads", int, default=2, check=lambda v: v >= 1)
-    uncertainty_draws = Field("templates drawn from the calibration uncertainty stored in a "
-                              "calibrated template (bfdrift calibrate) to give flux_moved_err, "
-                              "the standard deviation of flux_moved; each costs one more "
-                              "correction; 0: off", int, default=0,
-                              check=lambda v: v == 0 or v >= 2)
-    uncertainty_seed = Field("seed of the template draws", int, default=0)
+    Field names are snake_case, as everywhere in the package. A config file is
+    a pex_config override file (``config.method = "astier23"``), read with
+    :func:`~lsst_bfdrift.utils.config.load_config`.
+    """
+
+    template = pexConfig.Field(
+        doc="template FITS file; None uses the bundled default", dtype=str, default=None,
+        optional=True)
+    method = pexConfig.ChoiceField(
+        doc="correction method", dtype=str, default="drift", allowed=_METHODS, optional=False)
+    order = pexConfig.Field(
+        doc="terms of the time-history series for method 'drift' (2 = half shift)",
+        dtype=int, default=3, check=lambda v: 2 <= v <= 8)
+    density = pexConfig.ChoiceField(
+        doc="flux density at pixel edges (drift)", dtype=str, default="fv4", optional=False,
+        allowed={"mean2": "mean of the two pixels beside the edge",
+                 "cubic4": "four-point interpolation along the normal",
+                 "fv4": "four-point finite-volume reconstruction from pixel averages"})
+    max_iter = pexConfig.Field(
+        doc="largest number of solver iterations", dtype=int, default=10,
+        check=lambda v: v >= 1)
+    rtol = pexConfig.Field(
+        doc="convergence: max |I - R(F)| / max |I| (when noise_tol is None)", dtype=float,
+        default=1e-7, check=lambda v: 0 < v < 1)
+    noise_tol = pexConfig.Field(
+        doc="convergence: |I - R(F)| <= noise_tol * sqrt(I) in every pixel (fraction of the "
+            "Poisson noise); None: use rtol", dtype=float, default=0.05, optional=True,
+        check=lambda v: 0 < v < 1)
+    start = pexConfig.ChoiceField(
+        doc="first guess of the drift solver", dtype=str, default="series", optional=False,
+        allowed={"series": "third-order inverse series (three operator calls), iterated only "
+                           "if an a-priori bound requires",
+                 "image": "the recorded image"})
+    fft_precision = pexConfig.ChoiceField(
+        doc="precision of the FFT convolutions", dtype=str, default="float32", optional=False,
+        allowed={"float32": "single (half the time and memory)", "float64": "double"})
+    strip = pexConfig.Field(
+        doc="rows per block for the drift and astier23 solvers (bounded memory); None: whole "
+            "image", dtype=int, default=512, optional=True, check=lambda v: v >= 16)
+    sparse = pexConfig.Field(
+        doc="drift with start='series': second- and third-order terms only in windows around "
+            "the sources that need them (bounded error; dense fallback)", dtype=bool,
+        default=True)
+    gain = pexConfig.Field(
+        doc="e/ADU for images in ADU (None: read GAIN from the header)", dtype=float,
+        default=None, optional=True, check=lambda v: math.isfinite(v) and v > 0)
+    saturation = pexConfig.Field(
+        doc="level (e) at and above which pixels are blocked; None: no limit", dtype=float,
+        default=None, optional=True, check=lambda v: math.isfinite(v) and v > 0)
+    compute_geometry = pexConfig.Field(
+        doc="compute area, centroid and ellipticity maps", dtype=bool, default=True)
+    geometry_samples = pexConfig.Field(
+        doc="samples per pixel edge for the geometry maps (template edges resampled keeping "
+            "swept areas and moments to first order: ~1e-5 of the signal for area and "
+            "centroid, ~2e-4 for e2, 4x less CPU than the 32-sample default; "
+            "superpose.resample_template); templates with no more samples are used as they "
+            "are; None: the template's own", dtype=int, default=8, optional=True,
+        check=lambda v: v >= 1)
+    workers = pexConfig.Field(doc="FFT threads", dtype=int, default=2, check=lambda v: v >= 1)
+    uncertainty_draws = pexConfig.Field(
+        doc="templates drawn from the calibration uncertainty stored in a calibrated template "
+            "(bfdrift calibrate) to give flux_moved_err, the standard deviation of "
+            "flux_moved; each costs one more correction; 0: off", dtype=int, default=0,
+        check=lambda v: v == 0 or v >= 2)
+    uncertainty_seed = pexConfig.Field(doc="seed of the template draws", dtype=int, default=0)
 
 
 def _correct(data, template, blocked, cfg, dtype, cache):
@@ -208,7 +228,12 @@ class BrighterFatterDriftTask(Task):
     _DefaultName = "brighterFatterDrift"
 
     def __init__(self, config=None, *, template=None, **kwargs):
+        if config is not None and not isinstance(config, self.ConfigClass):
+            raise InputTypeError(f"config must be a {self.ConfigClass.__name__}, got "
+                                 f"{type(config).__name__}")
         super().__init__(config=config, **kwargs)
+        self.config.validate()
+        self.config.freeze()
         if template is not None:
             self.template = template
         elif self.config.template is None:

@@ -15,7 +15,7 @@ class                          also a                                 ``bfdrift`
 :class:`InputFileError`        ``ValueError``                         2
 :class:`InputNotFoundError`    ``ValueError``, ``FileNotFoundError``  2
 :class:`TemplateFileError`     ``ValueError``                         2
-:class:`FieldValidationError`  ``ValueError``                         2
+:class:`FieldValidationError`  ``ValueError`` (pex_config's)           2
 :class:`OutputExistsError`     ``FileExistsError``                    3
 :class:`FitError`              ``ValueError``                         4
 :class:`ComputationError`      ``RuntimeError``                       4
@@ -24,6 +24,8 @@ class                          also a                                 ``bfdrift`
 Any other ``OSError`` (permission denied, disk full) gives exit code 1 in the
 command line; see ``docs/cli.rst``.
 """
+
+import lsst.pex.config as _pexConfig
 
 __all__ = ["BfdriftError", "InputError", "InputTypeError", "InputKeyError",
            "InputAttributeError", "InputFileError",
@@ -94,8 +96,10 @@ class TemplateFileError(InputFileError):
     """A template file is corrupt, truncated, inconsistent or of another version."""
 
 
-class FieldValidationError(InputError):
-    """A config value is of the wrong type, out of range, or set on a frozen config."""
+#: A config value is of the wrong type, out of range, or set on a frozen config:
+#: ``lsst.pex.config.FieldValidationError`` itself (a ``ValueError``, not a
+#: :class:`BfdriftError`; ``bfdrift`` maps it to exit status 2 all the same).
+FieldValidationError = _pexConfig.FieldValidationError
 
 
 class OutputExistsError(BfdriftError, FileExistsError):

@@ -11,12 +11,18 @@ def test_every_error_is_a_bfdrift_error_and_its_builtin():
     pairs = [(e.InputError, ValueError), (e.InputTypeError, TypeError),
              (e.InputKeyError, KeyError), (e.InputAttributeError, AttributeError),
              (e.InputFileError, ValueError), (e.InputNotFoundError, FileNotFoundError),
-             (e.TemplateFileError, ValueError), (e.FieldValidationError, ValueError),
+             (e.TemplateFileError, ValueError),
              (e.OutputExistsError, FileExistsError), (e.FitError, ValueError),
              (e.ComputationError, RuntimeError)]
     for cls, builtin in pairs:
         assert issubclass(cls, e.BfdriftError) and issubclass(cls, builtin), cls
         assert getattr(lsst_bfdrift, cls.__name__) is cls
+    # config errors are lsst.pex.config's own (a ValueError, exit status 2)
+    import lsst.pex.config as pexConfig
+    assert e.FieldValidationError is pexConfig.FieldValidationError
+    assert issubclass(e.FieldValidationError, ValueError)
+    from lsst_bfdrift.cli.main import EXIT_INPUT, exit_code
+    assert exit_code(e.FieldValidationError.__new__(e.FieldValidationError)) == EXIT_INPUT
 
 
 def test_existing_errors_are_re_parented_not_copied():
@@ -48,5 +54,5 @@ def test_package_raises_its_own_errors():
     from lsst_bfdrift.physics.sensor import SensorParameters
     with pytest.raises(errors.InputKeyError, match="bogus"):
         SensorParameters.from_dict({"bogus": 1})
-    with pytest.raises(errors.BfdriftError, match="gain"):
+    with pytest.raises(errors.FieldValidationError, match="gain"):  # pex_config's
         lsst_bfdrift.BrighterFatterDriftConfig(gain=-1.0).validate()
