@@ -54,7 +54,9 @@ Subcommands
     in electrons; with no IMAGE, the bundled sample star. This is the quick
     start's main job.
 
-Config files (JSON or TOML) have up to two tables: ``sensor`` (keys of
+Build config files are pex_config override files of
+:class:`~lsst_bfdrift.templates.build_config.TemplateBuildConfig`, or JSON/TOML
+with up to two tables: ``sensor`` (keys of
 :class:`~lsst_bfdrift.physics.sensor.SensorParameters`) and ``template`` (keys of
 :class:`~lsst_bfdrift.templates.template.TemplateSettings`). Unknown keys are errors.
 """
@@ -82,37 +84,15 @@ __all__ = ["main", "exit_code", "EXIT_OK", "EXIT_OTHER", "EXIT_INPUT", "EXIT_EXI
 
 
 def read_config(path):
-    """Read a JSON or TOML build configuration.
+    """Read a build configuration (:func:`~lsst_bfdrift.templates.build_config.read_build_config`).
 
     Returns
     -------
     params : SensorParameters
     settings : TemplateSettings
     """
-    from lsst_bfdrift.physics.sensor import SensorParameters
-    from lsst_bfdrift.templates.template import TemplateSettings
-
-    if path is None:
-        return SensorParameters(), TemplateSettings()
-    with open(path, "rb") as fh:
-        raw = fh.read()
-    try:
-        if str(path).endswith(".toml"):
-            import tomllib
-            data = tomllib.loads(raw.decode())
-        else:
-            data = json.loads(raw.decode())
-    except Exception as exc:
-        raise InputFileError(f"{path}: cannot parse configuration ({exc})", path) from exc
-    if not isinstance(data, dict):
-        raise InputFileError(f"{path}: configuration must be a table/object", path)
-    # 'provenance' is free-form documentation (e.g. the default's calibration)
-    unknown = sorted(set(data) - {"sensor", "template", "provenance"})
-    if unknown:
-        raise InputKeyError(f"{path}: unknown configuration section(s) {unknown}; "
-                       "expected 'sensor' and/or 'template' (and 'provenance')")
-    return (SensorParameters.from_dict(data.get("sensor", {})),
-            TemplateSettings.from_dict(data.get("template", {})))
+    from lsst_bfdrift.templates.build_config import read_build_config
+    return read_build_config(path)
 
 
 def sample_image_path():
@@ -330,7 +310,9 @@ def build_parser():
     tsub = tp.add_subparsers(dest="action", required=True)
     b = tsub.add_parser("build", help="compute a template from the model")
     b.add_argument("--out", required=True, help="output FITS file")
-    b.add_argument("--config", help="JSON or TOML file with 'sensor' and 'template' tables")
+    b.add_argument("--config", help="TemplateBuildConfig: a pex_config override file "
+                   "(config.sensor.v_bss = -60.0), or JSON/TOML with 'sensor' and 'template' "
+                   "tables")
     b.add_argument("--size", type=int, help="neighbourhood side N (odd)")
     b.add_argument("--charge", type=float, help="aggressor charge (e)")
     b.add_argument("--samples", type=int, help="samples per edge")

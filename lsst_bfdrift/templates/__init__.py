@@ -4,7 +4,8 @@ Takes a sensor model (or GalSim's sensor files); gives the
 :class:`DistortionTemplate` of one aggressor pixel (corner and edge-sample
 displacements, FITS I/O with checksums), its swept-area operators (the FFT
 kernels of the correction) and the import from GalSim. GalSim I/O depends on
-the template, never the reverse.
+the template, never the reverse. The build configuration is an
+``lsst.pex.config`` Config (:mod:`~lsst_bfdrift.templates.build_config`).
 """
 
 
@@ -13,3 +14,4 @@ from lsst_bfdrift.templates.swept import *  # noqa: F401,F403
 from lsst_bfdrift.templates.galsim_io import *  # noqa: F401,F403
 from lsst_bfdrift.templates.galsim_export import *  # noqa: F401,F403
 from lsst_bfdrift.templates.refine import *  # noqa: F401,F403
+from lsst_bfdrift.templates.build_config import *  # noqa: F401,F403
