@@ -303,7 +303,11 @@ def _cmd_correct(args):
 
 def build_parser():
     """The argparse parser of ``bfdrift``."""
-    p = argparse.ArgumentParser(prog="bfdrift", description="Electrostatic brighter-fatter model (Rasmussen 2015): templates and pixel-geometry maps.")
+    from lsst_bfdrift import __version__
+    p = argparse.ArgumentParser(prog="bfdrift", description="Electrostatic brighter-fatter "
+                                "model (Rasmussen 2015): templates and pixel-geometry maps.")
+    p.add_argument("--version", action="version", version=f"bfdrift {__version__}",
+                   help="print the package version and exit")
     sub = p.add_subparsers(dest="command", required=True)
 
     tp = sub.add_parser("template", help="build, inspect and convert templates")
@@ -344,7 +348,7 @@ def build_parser():
     ex.set_defaults(func=_cmd_template_export)
     g = tsub.add_parser("import-galsim", help="convert a GalSim sensor file")
     g.add_argument("name", help="sensor name (e.g. lsst_itl_50_8) or path prefix")
-    g.add_argument("--out", required=True)
+    g.add_argument("--out", required=True, help="output template FITS file")
     g.add_argument("--overwrite", action="store_true")
     g.add_argument("--json", action="store_true")
     g.set_defaults(func=_cmd_template_import)
@@ -393,12 +397,12 @@ def build_parser():
     fs.add_argument("--responsivity", type=float,
                     help="rescale the template to this dlnA00 per electron; write it "
                     "as --responsivity=-1e-5 (a leading minus needs the = form)")
-    fs.add_argument("--n-images", type=int, default=1024)
+    fs.add_argument("--n-images", type=int, default=1024, help="periodic images simulated")
     fs.add_argument("--size", type=int, default=16, help="side of each periodic image")
     fs.add_argument("--step", type=float, default=1000.0, help="electrons per pixel per step")
-    fs.add_argument("--steps", type=int, default=250)
-    fs.add_argument("--max-lag", type=int, default=3)
-    fs.add_argument("--seed", type=int, default=20151)
+    fs.add_argument("--steps", type=int, default=250, help="exposure steps per image")
+    fs.add_argument("--max-lag", type=int, default=3, help="largest covariance lag (px)")
+    fs.add_argument("--seed", type=int, default=20151, help="random seed")
     fs.add_argument("--out", help="write the per-step table (ECSV)")
     fs.add_argument("--plot", help="write a PNG of covariances against mean")
     fs.add_argument("--overwrite", action="store_true", help="replace existing outputs")
@@ -408,17 +412,19 @@ def build_parser():
 
     ss = sub.add_parser("star-sim", help="star simulation with moving boundaries")
     ss.add_argument("--template", help="template FITS file (default: bundled)")
-    ss.add_argument("--psf", default="gaussian", help="gaussian, moffat or kolmogorov")
+    ss.add_argument("--psf", default="gaussian", choices=("gaussian", "moffat", "kolmogorov"),
+                    help="PSF profile")
     ss.add_argument("--fwhm", type=float, default=0.6, help="arcsec")
     ss.add_argument("--e", type=float, default=0.05, help="PSF ellipticity")
     ss.add_argument("--beta", type=float, default=30.0, help="PSF position angle (deg)")
     ss.add_argument("--flux", type=float, default=2e6, help="conversions (e)")
     ss.add_argument("--stamp", type=int, default=31, help="stamp side (px)")
-    ss.add_argument("--update-every", type=int, default=1000)
+    ss.add_argument("--update-every", type=int, default=1000,
+                    help="electrons between boundary updates")
     ss.add_argument("--pixel-scale", type=float, default=0.2, help="arcsec per px")
     ss.add_argument("--dx", type=float, default=0.25, help="centre offset (px)")
     ss.add_argument("--dy", type=float, default=0.25, help="centre offset (px)")
-    ss.add_argument("--seed", type=int, default=20151)
+    ss.add_argument("--seed", type=int, default=20151, help="random seed")
     ss.add_argument("--out", help="write the per-step table (ECSV)")
     ss.add_argument("--plot", help="write a PNG like the paper's Fig. 7")
     ss.add_argument("--overwrite", action="store_true", help="replace existing outputs")
@@ -431,7 +437,8 @@ def build_parser():
     co.add_argument("--out-dir", help="directory for the corrected files (same names)")
     co.add_argument("--config", help="BrighterFatterDriftConfig: a pex_config override file "
                     "(config.method = 'astier23'), or a JSON/TOML table of field values")
-    co.add_argument("--method", help="drift, astier23 or coulton18")
+    co.add_argument("--method", choices=("drift", "astier23", "coulton18"),
+                    help="correction method (default: the config's, drift)")
     co.add_argument("--gain", type=float, help="e/ADU for images in ADU")
     co.add_argument("--geometry", action="store_true", help="also write the geometry maps")
     co.add_argument("--overwrite", action="store_true")
@@ -445,8 +452,9 @@ def build_parser():
     co.set_defaults(func=_cmd_correct)
 
     vs = sub.add_parser("validate-stars", help="corrections on galsim.SiliconSensor stars")
-    vs.add_argument("--n-stars", type=int, default=200)
-    vs.add_argument("--psf", default="moffat", help="moffat, kolmogorov or gaussian")
+    vs.add_argument("--n-stars", type=int, default=200, help="stars per flux level")
+    vs.add_argument("--psf", default="moffat", choices=("moffat", "kolmogorov", "gaussian"),
+                    help="PSF profile")
     vs.add_argument("--sensor", default="lsst_itl_50_8", help="GalSim sensor name")
     vs.add_argument("--template", help="template for the corrections (default: the sensor's)")
     vs.add_argument("--match", default="transfers", choices=("transfers", "areas", "none"),
@@ -510,7 +518,25 @@ def build_parser():
     m.add_argument("--json", action="store_true")
     m.add_argument("--quiet", action="store_true")
     m.set_defaults(func=_cmd_maps)
+    _show_defaults(p)
     return p
+
+
+_COMMON_HELP = {"--json": "print the result as JSON on stdout", "--seed": "random seed",
+                "--quiet": "no progress bar",
+                "--overwrite": "replace existing output files (never an input)"}
+
+
+def _show_defaults(parser):
+    """Every (sub)command's --help shows each option's default and a line for
+    each option (the flags common to many commands get their line here)."""
+    parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
+    for action in parser._actions:
+        if not action.help and action.option_strings:
+            action.help = _COMMON_HELP.get(action.option_strings[-1])
+        if isinstance(action, argparse._SubParsersAction):
+            for child in action.choices.values():
+                _show_defaults(child)
 
 
 #: Exit status of ``bfdrift`` for each kind of error (documented in ``docs/cli.rst``):

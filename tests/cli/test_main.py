@@ -506,3 +506,42 @@ def test_crashes_are_clear_errors(capsys, tmp_path):
     hdus.writeto(bad, checksum=True, overwrite=True)
     code, _, err = _run(capsys, "template", "summary", str(bad))
     assert code == 2 and "not an object" in err
+
+
+def _subparsers(parser, path=()):
+    import argparse
+    yield path, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, child in action.choices.items():
+                yield from _subparsers(child, path + (name,))
+
+
+def test_every_option_has_a_help_line_and_its_default(capsys):
+    """--help of every command lists each option with a description, its default
+    and its choices (issue 19: the CLI explains itself)."""
+    from lsst_bfdrift.cli.main import build_parser
+    n = 0
+    for path, parser in _subparsers(build_parser()):
+        for action in parser._actions:
+            if action.option_strings and action.dest != "help":
+                assert action.help, (path, action.option_strings)
+                n += 1
+        if not path:
+            continue
+        with pytest.raises(SystemExit):
+            main(list(path) + ["--help"])
+        out = capsys.readouterr().out
+        if path == ("correct",):
+            assert "{drift,astier23,coulton18}" in out and "(default: 2)" in out
+        if path == ("star-sim",):
+            assert "{gaussian,moffat,kolmogorov}" in out and "(default: gaussian)" in out
+    assert n > 100
+
+
+def test_version(capsys):
+    import lsst_bfdrift
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.strip() == f"bfdrift {lsst_bfdrift.__version__}"
