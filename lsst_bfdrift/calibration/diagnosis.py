@@ -40,7 +40,8 @@ from lsst_bfdrift.calibration.ptc import covariance_model, fit_ptc_exponential, 
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.simulation.effects import effect_library, EFFECT_NAMES
 
-__all__ = ["Observations", "pair_statistics", "observations_from_pairs", "diagnose",
+__all__ = ["Observations", "pair_statistics", "edge_profile", "edge_signature",
+           "observations_from_pairs", "diagnose",
            "Diagnosis", "LINEAR_RANGE", "load_input"]
 
 #: Fractional range around the expansion point within which the linearised
@@ -48,17 +49,113 @@ __all__ = ["Observations", "pair_statistics", "observations_from_pairs", "diagno
 LINEAR_RANGE = 0.5
 
 
-def pair_statistics(flat1, flat2, *, max_lag=3):
+def pair_statistics(flat1, flat2, *, max_lag=3, border=None):
     """mu, C_ij (difference image, halved), S_ij (static) and pixel counts of one pair.
 
     S_ij = (Cov(f1 + f2) - Cov(f1 - f2)) / 4 after scaling f2 to f1's mean:
     zero for correlations created while the flats fill, mu^2 times the
-    autocovariance of a static response pattern.
+    autocovariance of a static response pattern. Pixels within
+    :data:`~lsst_bfdrift.calibration.ptc.EDGE_BORDER` of the image edges are
+    left out (:func:`edge_profile` looks at them).
     """
     f1 = np.asarray(flat1, dtype=float)
     pc = pair_covariances(f1, flat2, max_lag=max_lag, min_pixels=min(1000, f1.size // 4),
-                          static=True)
+                          static=True, border=border)
     return pc.mu, pc.cov, pc.static, pc.npix
+
+
+def edge_profile(flat1, flat2, *, border=None):
+    """Relative signal of the pixel rings at the image edges, and its error.
+
+    Ring k holds the pixels at distance k (0 = the outermost row and column)
+    from the nearest edge, for k below the border that the covariances leave
+    out (:func:`~lsst_bfdrift.calibration.ptc.edge_border`).
+
+    Returns
+    -------
+    ratio, sigma : ndarray
+        Mean of the pair sum in each ring over its mean in the interior, minus
+        1, and the standard error of that number (from the scatter of the
+        ring's pixels).
+    """
+    from lsst_bfdrift.calibration.ptc import edge_border
+
+    a = np.asarray(flat1, dtype=float)
+    b = np.asarray(flat2, dtype=float)
+    tot = a + b
+    ny, nx = tot.shape
+    bd = edge_border(tot.shape, border)
+    yy, xx = np.mgrid[:ny, :nx]
+    dist = np.minimum(np.minimum(yy, ny - 1 - yy), np.minimum(xx, nx - 1 - xx))
+    good = np.isfinite(tot)
+    inner = tot[(dist >= bd) & good]
+    m = inner.mean()
+    ratio, sigma = np.zeros(bd), np.zeros(bd)
+    for k in range(bd):
+        ring = tot[(dist == k) & good]
+        ratio[k] = ring.mean() / m - 1.0
+        sigma[k] = np.hypot(ring.std() / np.sqrt(ring.size), inner.std() / np.sqrt(inner.size)) / m
+    return ratio, sigma
+
+
+def edge_signature(mu, ratio, sigma, *, p_threshold=1e-3):
+    """Test of the edge rings against the interior over all pairs.
+
+    Parameters
+    ----------
+    mu : ndarray, shape (n,)
+        Pair means.
+    ratio, sigma : ndarray, shape (n, K)
+        :func:`edge_profile` of each pair.
+    p_threshold : float, optional
+        p-value below which the rings differ from the interior.
+
+    Returns
+    -------
+    dict
+        ``chi2``, ``dof``, ``p_value``, ``detected``; ``slope`` (relative
+        change per ring and per e of signal, from a fit ratio = c + s mu per
+        ring), ``constant`` (the c), ``at_top`` (ratio at the highest signal)
+        and ``description``: what the rings show, with the sign and the rings
+        involved, e.g. dimmer edges growing with signal (no charge beyond the
+        edge pulls the boundaries less: a simulation's or a sensor's edge) or
+        a constant offset (illumination or response).
+    """
+    mu = np.asarray(mu, float)
+    ratio = np.asarray(ratio, float)
+    sigma = np.asarray(sigma, float)
+    pulls = ratio / sigma
+    chi2 = float(np.sum(pulls**2))
+    dof = int(pulls.size)
+    p = float(stats.chi2.sf(chi2, dof))
+    K = ratio.shape[1]
+    slope, const = np.zeros(K), np.zeros(K)
+    for k in range(K):
+        w = 1.0 / sigma[:, k] ** 2
+        A = np.stack([np.ones_like(mu), mu], axis=1)
+        coef = np.linalg.lstsq(A * np.sqrt(w)[:, None], ratio[:, k] * np.sqrt(w), rcond=None)[0]
+        const[k], slope[k] = coef
+    top = int(np.argmax(mu))
+    detected = p < p_threshold
+    desc = "edge rings consistent with the interior"
+    if detected:
+        sig_rings = [k for k in range(K) if np.sqrt(np.sum(pulls[:, k] ** 2)) >
+                     np.sqrt(mu.size) + 3.0]
+        rings = sig_rings or [int(np.argmax(np.sum(pulls**2, axis=0)))]
+        r0 = ratio[top, rings[0]]
+        grows = abs(slope[rings[0]] * mu[top]) > abs(const[rings[0]])
+        desc = (f"edge signature: pixels {', '.join(str(k) for k in rings)} px from the image "
+                f"edge are {abs(r0) * 100:.2g} % {'dimmer' if r0 < 0 else 'brighter'} than the "
+                f"interior at {mu[top]:.3g} (ring {rings[0]}; chi2 {chi2:.0f} for {dof} points, "
+                f"p = {p:.1e}); "
+                + ("it grows with the signal (charge missing beyond the edge: boundaries there "
+                   "move less, as in a simulation with open edges or at a sensor's edge)"
+                   if grows else "it does not grow with the signal (illumination or response "
+                   "at the edges)")
+                + f"; these pixels ({K} px band) are left out of the fit")
+    return {"chi2": chi2, "dof": dof, "p_value": p, "detected": bool(detected),
+            "slope": slope.tolist(), "constant": const.tolist(),
+            "at_top": ratio[top].tolist(), "description": desc}
 
 
 class Observations:
@@ -145,17 +242,27 @@ class Observations:
                 np.concatenate([sc.ravel(), ss.ravel()]), lab)
 
 
-def observations_from_pairs(pairs, *, max_lag=3):
-    """:class:`Observations` of kind 'flats' from flat pairs (arrays or FITS paths)."""
+def observations_from_pairs(pairs, *, max_lag=3, border=None):
+    """:class:`Observations` of kind 'flats' from flat pairs (arrays or FITS paths).
+
+    ``border`` (px, default :data:`~lsst_bfdrift.calibration.ptc.EDGE_BORDER`)
+    is left out of the covariances; the rings inside it are measured by
+    :func:`edge_profile` and tested by :func:`diagnose`.
+    """
     from lsst_bfdrift.calibration.ptc import read_flat_pair
 
     rows = []
     for f1, f2 in pairs:
         f1, f2 = read_flat_pair(f1, f2)  # same shape and EXPTIME, or an error naming both
-        rows.append(pair_statistics(f1, f2, max_lag=max_lag))
+        rows.append(pair_statistics(f1, f2, max_lag=max_lag, border=border)
+                    + edge_profile(f1, f2, border=border))
     rows.sort(key=lambda r: r[0])
-    return Observations.from_flats([r[0] for r in rows], [r[1] for r in rows],
-                                   [r[2] for r in rows], [r[3] for r in rows])
+    obs = Observations.from_flats([r[0] for r in rows], [r[1] for r in rows],
+                                  [r[2] for r in rows], [r[3] for r in rows])
+    if rows[0][4].size:  # no rings with border=0
+        obs.edge_ratio = np.array([r[4] for r in rows])
+        obs.edge_sigma = np.array([r[5] for r in rows])
+    return obs
 
 
 class _Problem:
@@ -458,6 +565,13 @@ def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1
                    f"(p = {last['p_value']:.2f})"
                    + (" after adding " + ", ".join(e.name for e in current) if current
                       else " with the base model alone"))
+    edge = None
+    if getattr(obs, "edge_ratio", None) is not None:
+        edge = edge_signature(obs.mu, obs.edge_ratio, obs.edge_sigma, p_threshold=p_threshold)
+        if edge["detected"]:
+            # a finding about pixels outside the fit: named in the verdict, but the
+            # fit's own residual decides `unexplained`
+            verdict += "; " + edge["description"]
     for r in rounds:
         for s in r:
             s.pop("fit", None)
@@ -469,7 +583,8 @@ def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1
                      residuals_before=_per_lag(problem, first),
                      residuals_after=per_lag, verdict=verdict, worst_lag=worst_lag,
                      worst_lag_p=lag_p[worst_lag],
-                     unexplained=bool(unexplained), n_points=int(n), note=obs.note)
+                     unexplained=bool(unexplained), n_points=int(n), note=obs.note,
+                     edge=edge)
 
 
 def load_input(path, *, max_lag=3):

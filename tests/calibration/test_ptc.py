@@ -22,11 +22,20 @@ def _direct_cov(d, w, di, dj):
     return (a * b).sum(), n
 
 
-def test_fft_covariances_equal_real_space_sums(rng):
+@pytest.mark.parametrize("border", [0, 6])
+def test_fft_covariances_equal_real_space_sums(rng, border):
+    """Against direct real-space sums; with a border, over the pixels inside it."""
     f1 = rng.normal(1000.0, 30.0, (60, 70))
     f2 = rng.normal(1000.0, 30.0, (60, 70))
+    f1[0, :] += 500.0  # an edge row that only the border removes
     mask = rng.random((60, 70)) < 0.05
-    pc = pair_covariances(f1, f2, max_lag=3, mask=mask, nsig=50.0, min_pixels=100)
+    pc = pair_covariances(f1, f2, max_lag=3, mask=mask, nsig=50.0, min_pixels=100,
+                          border=border)
+    if border:
+        assert pc.nmasked == mask.sum()  # masked pixels counted, the border itself not
+        mask = mask.copy()
+        mask[:border] = mask[-border:] = True
+        mask[:, :border] = mask[:, -border:] = True
     mu1, mu2 = f1[~mask].mean(), f2[~mask].mean()
     diff = f1 - f2 * mu1 / mu2
     d = np.where(mask, 0.0, diff - diff[~mask].mean())
@@ -180,7 +189,8 @@ def test_static_term_equals_direct_sums_and_finds_a_common_pattern():
     f2 = rng.poisson(mu * (1 + pattern)).astype(float)
     mask = np.zeros(shape, bool)
     mask[10:14, 20:60] = True
-    pc = pair_covariances(f1, f2, max_lag=2, mask=mask, nsig=50.0, min_pixels=100, static=True)
+    pc = pair_covariances(f1, f2, max_lag=2, mask=mask, nsig=50.0, min_pixels=100, static=True,
+                          border=0)
     # direct reference over the same pixels
     ok = ~mask
     m1, m2 = f1[ok].mean(), f2[ok].mean()

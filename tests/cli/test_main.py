@@ -221,8 +221,11 @@ def test_star_sim(capsys, tmp_path):
 
 
 def test_star_sim_bad_psf(capsys):
-    code, _, err = _run(capsys, "star-sim", "--psf", "airy", "--quiet")
-    assert code == 2 and "unknown PSF" in err
+    """An unknown PSF is a usage error (exit 2) that lists the choices."""
+    with pytest.raises(SystemExit) as exc:
+        main(["star-sim", "--psf", "airy", "--quiet"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "invalid choice: 'airy'" in err and "kolmogorov" in err
 
 
 def test_correct(capsys, tmp_path):

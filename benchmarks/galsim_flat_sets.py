@@ -1,0 +1,82 @@
+"""Effect-free flat sets made by GalSim, for the diagnosis's false-alarm rate (issue 15).
+
+Each set is drawn by :func:`lsst_bfdrift.simulation.flats.simulate_flat_pairs`
+with ``engine='galsim'``: every flat fills in steps, each step adds Poisson
+electrons with the pixel areas that ``galsim.SiliconSensor.calculate_pixel_areas``
+gives for the charge collected so far (GalSim's own BF; no effect of the
+package's library is present). Sets differ in sensor, size, level ladder,
+pairs per level and seed, drawn from a seeded generator, so that nothing is
+tuned to one configuration.
+
+    python benchmarks/galsim_flat_sets.py --n-sets 50 --out /work/flatcache
+
+Writes one ``set_NNN.npz`` per set (flats as float32 electrons, the levels,
+EXPTIME per flat, the configuration) and skips sets that exist, so it can be
+stopped and resumed. Prints the time per set.
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(HERE, ".."))
+
+from lsst_bfdrift.simulation.flats import simulate_flat_pairs  # noqa: E402
+
+SENSORS = ("lsst_itl_50_8", "lsst_e2v_50_8")
+SIZES = (160, 200, 240)
+
+
+def set_config(k, *, seed=2026):
+    """Configuration of set ``k`` (deterministic in ``k`` and ``seed``)."""
+    rng = np.random.default_rng([seed, k])
+    n_levels = int(rng.integers(8, 13))
+    top = float(rng.uniform(6e4, 9e4))
+    levels = np.geomspace(float(rng.uniform(2e3, 6e3)), top, n_levels)
+    return {"index": k, "sensor": SENSORS[k % len(SENSORS)],
+            "size": int(SIZES[int(rng.integers(len(SIZES)))]),
+            "pairs_per_level": int(rng.integers(2, 5)),
+            "levels": [float(v) for v in levels], "n_steps": 20,
+            "seed": int(rng.integers(1 << 30))}
+
+
+def draw_set(cfg):
+    """Flats (n_pairs, 2, ny, nx) float32 in e, levels per pair, EXPTIME per pair."""
+    levels = np.repeat(cfg["levels"], cfg["pairs_per_level"])
+    pairs = simulate_flat_pairs(cfg["sensor"], levels, engine="galsim",
+                                shape=(cfg["size"],) * 2, n_steps=cfg["n_steps"],
+                                seed=cfg["seed"])
+    flats = np.array([[p[0], p[1]] for p in pairs], dtype=np.float32)
+    return flats, levels, levels * 1e-4  # EXPTIME (s): 1e4 e/s, no shutter error
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n-sets", type=int, default=50)
+    ap.add_argument("--first", type=int, default=0)
+    ap.add_argument("--out", default="/work/flatcache")
+    args = ap.parse_args(argv)
+    os.makedirs(args.out, exist_ok=True)
+    for k in range(args.first, args.first + args.n_sets):
+        path = os.path.join(args.out, f"set_{k:03d}.npz")
+        if os.path.exists(path):
+            continue
+        cfg = set_config(k)
+        t0 = time.time()
+        flats, levels, exptime = draw_set(cfg)
+        tmp = path + ".tmp.npz"
+        np.savez_compressed(tmp, flats=flats, levels=levels, exptime=exptime,
+                            config=json.dumps(cfg))
+        os.replace(tmp, path)
+        print(f"set {k:3d}: {cfg['sensor']} {cfg['size']}^2, {len(cfg['levels'])} levels x "
+              f"{cfg['pairs_per_level']} pairs, top {cfg['levels'][-1]:.0f} e: "
+              f"{time.time() - t0:.0f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()
