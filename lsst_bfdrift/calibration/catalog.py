@@ -50,7 +50,7 @@ from astropy.table import QTable
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.utils.progress import ProgressBar
 
-__all__ = ["StarDetections", "detect_stars", "measure_stars", "load_electrons", "FLAG_SATURATED", "FLAG_BLENDED", "FLAG_EDGE",
+__all__ = ["StarDetections", "detect_stars", "measure_stars", "hsm_moments", "load_electrons", "FLAG_SATURATED", "FLAG_BLENDED", "FLAG_EDGE",
            "FLAG_MASKED", "FLAG_MOMENTS", "FLAG_NOT_STAR", "FLAG_NAMES"]
 
 FLAG_SATURATED = 1
@@ -144,15 +144,42 @@ def _background(data, bad, box_size):
     return np.asarray(bkg.background, float), rms
 
 
-def _hsm(stamp, weight, guess, x0, y0):
-    """HSM adaptive moments of a stamp; None on failure."""
+def hsm_moments(stamp, *, weight=None, guess=None, origin=(1, 1), guess_sig=2.0):
+    """GalSim HSM adaptive moments of a stamp: the package's one HSM call.
+
+    Parameters
+    ----------
+    stamp : ndarray
+        Background-subtracted pixels (e).
+    weight : ndarray of bool, optional
+        Pixels to use (default all).
+    guess : (float, float), optional
+        Centroid guess (x, y) in the stamp's coordinates (``origin`` based).
+    origin : (int, int), optional
+        (x, y) of the stamp's first pixel (GalSim's ``xmin``, ``ymin``).
+    guess_sig : float, optional
+        Starting Gaussian sigma (px).
+
+    Returns
+    -------
+    dict or None
+        ``x``, ``y`` (px), ``sigma`` (HSM's det(M)^(1/4), px), ``e1``, ``e2``
+        (distortion), ``t_det`` = 2 sigma^2 and ``t`` = Mxx + Myy (px^2), and
+        ``mxx``, ``myy``, ``mxy``; None when HSM fails or the shape is
+        unphysical.
+    """
     import galsim
 
-    img = galsim.ImageD(np.ascontiguousarray(stamp), xmin=x0, ymin=y0)
-    wim = galsim.ImageI(np.ascontiguousarray(weight.astype(np.int32)), xmin=x0, ymin=y0)
+    x0, y0 = origin
+    img = galsim.ImageD(np.ascontiguousarray(stamp, dtype=np.float64), xmin=x0, ymin=y0)
+    kw = {"guess_sig": guess_sig, "strict": False}
+    if weight is not None:
+        kw["weight"] = galsim.ImageI(np.ascontiguousarray(np.asarray(weight).astype(np.int32)),
+                                     xmin=x0, ymin=y0)
+    if guess is not None:
+        kw["guess_centroid"] = galsim.PositionD(*guess)
     try:
-        m = galsim.hsm.FindAdaptiveMom(img, weight=wim, guess_sig=2.0, strict=False,
-                                       guess_centroid=galsim.PositionD(*guess))
+        m = galsim.hsm.FindAdaptiveMom(img, **kw)
     except (galsim.GalSimError, RuntimeError, ValueError):
         return None
     if m.moments_status != 0 or not m.moments_sigma > 0:
@@ -161,9 +188,19 @@ def _hsm(stamp, weight, guess, x0, y0):
     esq = e1 * e1 + e2 * e2
     if not esq < 1:
         return None
-    t = 2.0 * m.moments_sigma ** 2 / np.sqrt(1.0 - esq)  # det(M)^(1/4) = sigma
-    return (m.moments_centroid.x, m.moments_centroid.y, 0.5 * t * (1 + e1),
-            0.5 * t * (1 - e1), 0.5 * t * e2, t, e1, e2, m.moments_sigma)
+    t_det = 2.0 * m.moments_sigma ** 2
+    t = t_det / np.sqrt(1.0 - esq)  # det(M)^(1/4) = sigma
+    return {"x": m.moments_centroid.x, "y": m.moments_centroid.y, "sigma": m.moments_sigma,
+            "e1": e1, "e2": e2, "t_det": t_det, "t": t, "mxx": 0.5 * t * (1 + e1),
+            "myy": 0.5 * t * (1 - e1), "mxy": 0.5 * t * e2}
+
+
+def _hsm(stamp, weight, guess, x0, y0):
+    """The catalogue's row of :func:`hsm_moments` (x, y, mxx, myy, mxy, t, e1, e2, sigma)."""
+    m = hsm_moments(stamp, weight=weight, guess=guess, origin=(x0, y0))
+    if m is None:
+        return None
+    return (m["x"], m["y"], m["mxx"], m["myy"], m["mxy"], m["t"], m["e1"], m["e2"], m["sigma"])
 
 
 class StarDetections:

@@ -23,6 +23,7 @@ from the scatter).
 
 import numpy as np
 
+from lsst_bfdrift.calibration.catalog import hsm_moments
 from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.utils.errors import ComputationError, InputError
 
@@ -128,14 +129,9 @@ def draw_star_pairs(n_stars, *, sensor="lsst_itl_50_8", psf="moffat", fwhm=(0.6,
 
 
 def _moments(arr, sky):
-    import galsim
-    try:
-        m = galsim.hsm.FindAdaptiveMom(galsim.ImageD(arr - sky))
-    except galsim.GalSimError:
-        return None
-    if m.moments_status != 0:
-        return None
-    return 2.0 * m.moments_sigma**2, m.observed_shape.e1, m.observed_shape.e2
+    """(T_det = 2 sigma^2, e1, e2) of a sky-subtracted stamp (:func:`hsm_moments`)."""
+    m = hsm_moments(np.asarray(arr, float) - sky, guess_sig=5.0)
+    return None if m is None else (m["t_det"], m["e1"], m["e2"])
 
 
 def _slope(x, y):

@@ -122,3 +122,27 @@ def test_bad_images_get_clear_errors(tmp_path):
     fits.PrimaryHDU(rng.normal(0, 1, (64, 64)), header=hdr).writeto(path)
     with pytest.raises(ValueError, match="GAIN"):
         measure_stars(str(path))
+
+
+def test_hsm_moments_of_an_elliptical_gaussian():
+    """Independent reference: adaptive moments of a noise-free elliptical Gaussian are
+    its own second moments; both size definitions follow (t = Mxx + Myy,
+    t_det = 2 sqrt(det M))."""
+    from numpy.testing import assert_allclose
+
+    from lsst_bfdrift.calibration.catalog import hsm_moments
+    from lsst_bfdrift.validation.stars import _moments
+    mxx, myy, mxy = 5.0, 3.0, 0.8
+    inv = np.linalg.inv([[mxx, mxy], [mxy, myy]])
+    yy, xx = np.mgrid[:61, :61] - 30.0
+    img = 1e5 * np.exp(-0.5 * (inv[0, 0] * xx**2 + 2 * inv[0, 1] * xx * yy + inv[1, 1] * yy**2))
+    m = hsm_moments(img, origin=(0, 0))
+    assert_allclose([m["mxx"], m["myy"], m["mxy"]], [mxx, myy, mxy], rtol=2e-3)
+    assert_allclose(m["t"], mxx + myy, rtol=2e-3)
+    det = mxx * myy - mxy**2
+    assert_allclose(m["t_det"], 2 * np.sqrt(det), rtol=2e-3)
+    assert_allclose([m["x"], m["y"]], [30.0, 30.0], atol=1e-6)
+    # the validation's star measure is the same call (t_det, e1, e2)
+    t_det, e1, e2 = _moments(img + 7.0, 7.0)
+    assert_allclose([t_det, e1, e2], [m["t_det"], m["e1"], m["e2"]], rtol=1e-6, atol=1e-9)
+    assert hsm_moments(np.zeros((20, 20))) is None
