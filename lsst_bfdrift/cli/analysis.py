@@ -58,6 +58,9 @@ def _cmd_calibrate(args):
           + ", ".join(f"a{i}{j} {p:+.1f} sigma" for (i, j), p in f.worst(3)))
     sr = res.sum_rule
     print(f"  sum rule: sum a_ij = {sr['sum']:+.3e} +- {sr['error']:.1e} per e")
+    if data.kind == "flats":
+        print(f"  input: {len(data.pairs_used)} flat pair(s) used at {data.n_levels} level(s); "
+              f"dropped: {_dropped_text(data.pairs_dropped) or 'none'}")
     if joint is None:
         print(f"  template: {args.out} ({'areas refined to the data' if res.refined else 'model'})"
               f" in {res.seconds['total']:.1f} s")
@@ -98,20 +101,36 @@ def _cmd_ptc(args):
         if args.max_lag < 1:
             raise InputError(f"--max-lag must be >= 1 for FITS flats (the model's a01 and a10 "
                              f"need lag 1), got {args.max_lag}")
-        if len(files) < 10 or len(files) % 2:
-            raise InputError("give one PTC text file or an even number (>= 10) of FITS "
-                             "flats, consecutive files forming pairs")
-        table = ptc.measure_ptc(list(zip(files[::2], files[1::2])), max_lag=args.max_lag)
+        # the reader of `bfdrift calibrate`: pairs by EXPTIME, masks, turn-off
+        from lsst_bfdrift.calibration.inputs import read_calibration_input
+        data = read_calibration_input(files, max_lag=args.max_lag)
+        if data.kind != "flats":
+            raise InputError(f"{files[0]}: a {data.kind} input; bfdrift ptc takes one PTC text "
+                             "file or FITS flat pairs")
+        table = {"mu": data.mu, "cov": data.cov, "npix": data.npix}
         fit = ptc.fit_covariance_model(table["mu"], table["cov"], npix=table["npix"])
         out = {"input": files, "model": "full covariance model (Astier et al. 2019 eq. 20)",
-               "gain": fit["gain"], "gain_err": fit["gain_err"], "npairs": len(table),
-               "chi2": fit["chi2"], "dof": fit["dof"]}
+               "gain": fit["gain"], "gain_err": fit["gain_err"], "npairs": int(data.mu.size),
+               "chi2": fit["chi2"], "dof": fit["dof"], "units": data.units,
+               "pairs_used": data.summary()["pairs_used"],
+               "pairs_dropped": data.summary()["pairs_dropped"], "notes": data.notes}
         for name, (i, j) in (("a00", (0, 0)), ("a01", (0, 1)), ("a10", (1, 0)),
                              ("a11", (1, 1))):
             out[name] = float(fit["a"][i, j])
             out[name + "_err"] = float(fit["a_err"][i, j])
         out["a"] = fit["a"].tolist()
+        if not args.json:
+            out = dict(out, pairs_used=f"{len(out['pairs_used'])} pair(s) at "
+                       f"{data.n_levels} level(s)",
+                       pairs_dropped=_dropped_text(out["pairs_dropped"]) or "none",
+                       notes="; ".join(out["notes"]) or "none")
     return _emit(out, args.json, 14)
+
+
+def _dropped_text(dropped):
+    """One line per dropped pair or file: which and why."""
+    return "; ".join(f"{', '.join(os.path.basename(f) for f in d.get('files', []))} "
+                     f"({d['reason']})" if d.get("files") else d["reason"] for d in dropped)
 
 
 def _cmd_validate_stars(args):

@@ -14,9 +14,9 @@ Subcommands
     Convert a GalSim sensor file (e.g. lsst_itl_50_8) to a template file.
 ``bfdrift ptc FILES...|DIR [--max-lag L] [--json]``
     Photon transfer analysis (Astier et al. 2019): either one two-column text
-    file (mean ADU, variance ADU^2; exponential C00 fit: gain, a00) or an even
-    number of FITS flats taken as consecutive pairs (covariances by FFT, full
-    model: gain and a_ij).
+    file (mean ADU, variance ADU^2; exponential C00 fit: gain, a00) or FITS
+    flats paired by EXPTIME as ``calibrate`` reads them (covariances by FFT,
+    full model: gain and a_ij; the pairs used and dropped are listed).
 ``bfdrift flat-sim [--template FILE] [--n-images N] [--steps K] ... [--json]``
     Flat-field simulation with moving boundaries: per-step covariances by the
     paper's all-pairs estimator and LSST's per-pair estimator.

@@ -172,15 +172,22 @@ def test_ptc_on_fits_pairs(capsys, tmp_path, rng):
     gain = 1.3
     files = []
     for k, m in enumerate(np.geomspace(300, 3e4, 6)):
-        for p in range(2):
+        for p in range(3 if k == 2 else 2):  # a third flat at one level: the odd one out
             path = tmp_path / f"flat_{k}_{p}.fits"
-            fits.PrimaryHDU(rng.poisson(m * gain, (120, 120)) / gain).writeto(path)
+            hdr = fits.Header({"EXPTIME": m / 1e3})
+            fits.PrimaryHDU(rng.poisson(m * gain, (120, 120)) / gain, header=hdr).writeto(path)
             files.append(str(path))
     code, out, err = _run(capsys, "ptc", *files, "--json", "--max-lag", "1")
     assert code == 0, err
     s = json.loads(out)
     assert s["gain"] == pytest.approx(gain, abs=4 * s["gain_err"] + 0.01)
     assert abs(s["a10"]) < 4 * s["a10_err"] + 1e-9
+    # the reader states which pairs it used and which file it dropped, and why
+    assert len(s["pairs_used"]) == 6 and s["npairs"] == 6
+    (drop,) = s["pairs_dropped"]
+    assert drop["files"] == [files[6]] and "odd file out" in drop["reason"]
+    code, text, err = _run(capsys, "ptc", *files, "--max-lag", "1")
+    assert code == 0 and "6 pair(s) at 6 level(s)" in text and "flat_2_2.fits (odd file" in text
     (tmp_path / ".tmp-killed.fits").write_bytes(b"")  # a leftover is never a flat
     code, out2, err = _run(capsys, "ptc", str(tmp_path), "--json", "--max-lag", "1")
     assert code == 0, err
@@ -189,7 +196,7 @@ def test_ptc_on_fits_pairs(capsys, tmp_path, rng):
 
 def test_ptc_needs_pairs(capsys, tmp_path):
     code, _, err = _run(capsys, "ptc", "a.fits", "b.fits", "c.fits")
-    assert code == 2 and "pairs" in err
+    assert code == 2 and "a.fits" in err
 
 
 def test_flat_sim(capsys, tmp_path):
