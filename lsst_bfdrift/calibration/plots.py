@@ -1,10 +1,12 @@
-"""Figure of a calibration: measured and model a_ij, pulls, parameter correlations."""
+"""Figures of a calibration: measured and model a_ij, pulls, parameter correlations;
+and, for a calibration with star fields, the held-out slopes and what each data
+set constrains."""
 
 import numpy as np
 
 from lsst_bfdrift.utils.plotting import plt  # Agg backend set there
 
-__all__ = ["plot_calibration"]
+__all__ = ["plot_calibration", "plot_star_calibration"]
 
 
 def plot_calibration(result):
@@ -72,5 +74,62 @@ def plot_calibration(result):
             ax.text(b_, a_, f"{corr[a_, b_]:.2f}", ha="center", va="center", fontsize=7)
     ax.set_title("parameter correlations")
     fig.suptitle(f"calibration of {result.table.source or 'an a-matrix'}", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def plot_star_calibration(result):
+    """Three panels of a :class:`~lsst_bfdrift.calibration.star_fit.StarCalibrationResult`.
+
+    Left and middle: the size and e1 slopes against flux (per 1e5 e) of the
+    **held-out** stars of each field, uncorrected and corrected with the
+    a-matrix-only template and with the joint one, with 1-sigma errors (zero
+    is the target; the fitted stars are not shown, so the figure is a
+    validation). Right: per fitted direction, the share of its information
+    from the stars (the rest from the a-matrix), and the chi2 of each data set
+    before and after in the title.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
+    whats = (("before", "uncorrected", "0.5"), ("flats_only", "a-matrix template", "tab:blue"),
+             ("joint", "joint template", "tab:red"))
+    fields = list(result.held_out)
+    for ax, key in zip(axes[:2], ("size", "e1")):
+        for k, (what, label, color) in enumerate(whats):
+            vals = [result.held_out[f][what][key] for f in fields]
+            x = np.arange(len(fields)) + 0.2 * (k - 1)
+            ax.errorbar(x, [v for v, _ in vals], yerr=[e for _, e in vals], fmt="o",
+                        color=color, label=label, capsize=3)
+        ax.axhline(0.0, color="k", lw=0.8)
+        ax.set_xticks(range(len(fields)),
+                      [f"{f}\n({result.held_out[f]['n_stars']} stars)" for f in fields],
+                      fontsize=8)
+        unit = "T (px^2)" if key == "size" else "e1"
+        ax.set_ylabel(f"held-out {key} slope: d{unit} per 1e5 e")
+        ax.set_title(f"{key} slope of held-out stars (target 0)")
+        ax.legend(fontsize=8)
+    ax = axes[2]
+    names = list(result.star_information)
+    share = [100 * result.star_information[n] for n in names]
+    if names:
+        ax.barh(range(len(names)), share, color="tab:orange", label="stars")
+        ax.barh(range(len(names)), [100 - v for v in share], left=share, color="tab:blue",
+                label="a-matrix")
+        ax.set_yticks(range(len(names)), names, fontsize=8)
+        ax.legend(fontsize=8, loc="lower right")
+    else:
+        ax.text(0.5, 0.5, "no direction entered the fit", ha="center", va="center",
+                transform=ax.transAxes)
+    ax.set_xlim(0, 100)
+    ax.set_xlabel("share of the information (%)")
+    c2 = result.chi2
+    ax.set_title(f"chi2 a-matrix {c2['flats_only']['amatrix']:.0f} -> "
+                 f"{c2['joint']['amatrix']:.0f}, stars {c2['flats_only']['stars']:.0f} -> "
+                 f"{c2['joint']['stars']:.0f}; tension p = {result.tension['p_value']:.2g}",
+                 fontsize=9)
+    fig.suptitle("calibration with star fields: held-out validation", fontsize=10)
     fig.tight_layout()
     return fig

@@ -17,7 +17,12 @@ def _cmd_calibrate(args):
     from lsst_bfdrift.calibration.inputs import read_calibration_input
     from lsst_bfdrift.calibration.tuning import calibrate, measured_acoeffs
 
-    _check_outputs(args, args.input + (args.stars or []), {"--out": args.out, "--plot": args.plot})
+    stars_plot = None
+    if args.plot and args.stars:
+        root, ext = os.path.splitext(args.plot)
+        stars_plot = root + "_stars" + (ext or ".png")
+    _check_outputs(args, args.input + (args.stars or []),
+                   {"--out": args.out, "--plot": args.plot, "--plot (stars)": stars_plot})
     for x in args.stars or []:
         if not os.path.isfile(x):
             raise InputNotFoundError(f"--stars {x}: no such file")
@@ -44,8 +49,11 @@ def _cmd_calibrate(args):
     summary["input"] = data.summary()
     summary["out"] = os.path.abspath(args.out)
     if args.plot:
-        from lsst_bfdrift.calibration.plots import plot_calibration
+        from lsst_bfdrift.calibration.plots import plot_calibration, plot_star_calibration
         _save_plot(plot_calibration(res), args.plot, summary)
+        if joint is not None:  # a second figure next to the first: NAME_stars.png
+            _save_plot(plot_star_calibration(joint), stars_plot)
+            summary["plot_stars"] = os.path.abspath(stars_plot)
     if args.json:
         _print_json(summary)
         return 0

@@ -94,6 +94,16 @@ def test_stars_pull_a_weak_template_back_and_held_out_stars_show_it():
     # the split: disjoint halves of the usable stars
     assert joint.fields[0]["n_fit"] + joint.fields[0]["n_held_out"] == \
         joint.fields[0]["n_usable"]
+    # the figure of the held-out validation draws the three slopes with their errors
+    from lsst_bfdrift.calibration.plots import plot_star_calibration
+    fig = plot_star_calibration(joint)
+    ax = fig.axes[0]
+    drawn = [c for c in ax.containers if hasattr(c, "lines")]
+    assert len(drawn) == 3
+    assert_allclose(drawn[2].lines[0].get_ydata()[0], fixed[0])
+    assert fig.axes[2].get_yticklabels()[0].get_text() == "scale"
+    import matplotlib.pyplot as plt
+    plt.close(fig)
 
 
 def test_bad_star_inputs_get_clear_errors():
