@@ -64,3 +64,19 @@ html_theme_options = {
 html_static_path = ["_static"]
 html_title = f"{project} {release}"
 html_show_sourcelink = True
+
+
+def _skip_lsst_members(app, what, name, obj, skip, options):
+    """Leave out the members that lsst.pex.config / lsst.pipe.base define (config
+    fields, connection descriptors, their sentinels): their docstrings are not
+    numpydoc, and the package's configs are tabulated in the user guide."""
+    module = getattr(type(obj), "__module__", "") or ""
+    own = getattr(obj, "__module__", "") or ""
+    if module.startswith(("lsst.pex", "lsst.pipe", "lsst.daf")) or \
+            own.startswith(("lsst.pex", "lsst.pipe", "lsst.daf")):
+        return True
+    return None
+
+
+def setup(app):
+    app.connect("autodoc-skip-member", _skip_lsst_members)

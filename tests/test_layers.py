@@ -15,7 +15,7 @@ import lsst_bfdrift
 
 #: Stages in data-flow order: each imports only from those before it.
 LAYERS = ("utils", "physics", "templates", "geometry", "correction", "simulation",
-          "calibration", "validation", "cli")
+          "calibration", "validation", "pipeline", "cli")
 
 ROOT = pathlib.Path(lsst_bfdrift.__file__).parent
 

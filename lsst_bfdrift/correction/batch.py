@@ -55,14 +55,18 @@ def _config_json(config):
 
 
 def correct_file(src, dst, config=None, *, overwrite=False):
-    """Correct one FITS file and write the result atomically.
+    """Correct one FITS file and write the result atomically, in the input's layout.
 
     Parameters
     ----------
     src, dst : str or path
-        Input image and output file (FITS: corrected image in e or ADU as the
-        input, ``FLUX_MOVED`` (e), ``BFFLAGS`` and, with
-        ``config.compute_geometry``, the geometry maps).
+        Input image and output file. The output keeps every HDU and header of
+        the input (:func:`~lsst_bfdrift.utils.exposure.write_exposure`): the
+        image is corrected in place (same HDU, dtype and compression), an
+        LSST ``MASK`` gains the ``BF`` plane (declared by its ``MP_BF`` card)
+        for the pixels the correction flagged, ``VARIANCE`` is kept; then
+        ``FLUX_MOVED`` (e), ``BFFLAGS`` and, with ``config.compute_geometry``,
+        the geometry maps are appended, each with ``BUNIT`` and a description.
     config : BrighterFatterDriftConfig or dict, optional
         Task configuration (default: the defaults).
     overwrite : bool, optional
@@ -76,22 +80,38 @@ def correct_file(src, dst, config=None, *, overwrite=False):
     """
     from astropy.io import fits
 
+    from lsst_bfdrift.utils.exposure import read_exposure, write_exposure
+
     src, dst = os.fspath(src), os.fspath(dst)
     check_output(dst, [src], overwrite=overwrite, hint="--overwrite")
-    res = _task(_config_json(config)).run(src)
-    hdus = [fits.PrimaryHDU(np.asarray(res.exposure.data, np.float32), header=res.header),
-            fits.ImageHDU(res.flux_moved.astype(np.float32), name="FLUX_MOVED"),
-            fits.ImageHDU(res.flags.astype(np.int16), name="BFFLAGS")]
+    exposure = read_exposure(src)
+    res = _task(_config_json(config)).run(exposure)
+    extra = [_described(fits.ImageHDU(res.flux_moved.astype(np.float32), name="FLUX_MOVED"),
+                        "electron", "flux moved into each pixel by the correction"),
+             _described(fits.ImageHDU(res.flags.astype(np.int16), name="BFFLAGS"), "",
+                        "bit 1: blocked (masked, saturated, non-finite); bit 2: within the "
+                        "template's reach of the border")]
     if res.area is not None:
-        for name in ("area", "centroid_x", "centroid_y", "e1", "e2"):
-            hdus.append(fits.ImageHDU(getattr(res, name).astype(np.float32),
-                                      name=name.upper()))
-    with atomic_output(dst, overwrite=overwrite) as tmp:
-        fits.HDUList(hdus).writeto(tmp, overwrite=True, checksum=True)
+        for name, unit, what in (("area", "pixel2", "final pixel area (px^2)"),
+                                 ("centroid_x", "pixel", "centroid shift along x (px)"),
+                                 ("centroid_y", "pixel", "centroid shift along y (px)"),
+                                 ("e1", "", "pixel ellipticity e1"),
+                                 ("e2", "", "pixel ellipticity e2")):
+            extra.append(_described(fits.ImageHDU(getattr(res, name).astype(np.float32),
+                                                  name=name.upper()), unit, what))
+    write_exposure(dst, res.exposure, extra_hdus=extra, overwrite=overwrite, inputs=[src])
     return {"input": src, "output": dst, "iterations": int(res.iterations),
-            "converged": bool(res.converged),
+            "converged": bool(res.converged), "layout": exposure.layout,
             "flux_moved_abs_sum": float(np.abs(res.flux_moved).sum()),
             "flux_moved_sum": float(res.flux_moved.sum())}
+
+
+def _described(hdu, unit, what):
+    """``hdu`` with BUNIT and a one-line description (``BFDESC``)."""
+    if unit:
+        hdu.header["BUNIT"] = unit
+    hdu.header["BFDESC"] = what[:68]
+    return hdu
 
 
 _NUMBA_LOCK = threading.Lock()

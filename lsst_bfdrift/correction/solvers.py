@@ -328,9 +328,9 @@ def refuse_out_of_range(finite_data, kernel_abs_sum, unit_note=""):
         raise InputError(
             f"pixel values up to {peak:.3g} e: the template would sweep "
             f"{kernel_abs_sum * peak:.3g} px^2 across an edge (at most {MAX_SWEEP} is "
-            f"modelled, i.e. |I| <= {MAX_SWEEP / kernel_abs_sum:.3g} e); set such pixels to "
-            f"NaN (masked and saturated pixels still act as aggressors with their value)"
-            f"{unit_note}")
+            f"modelled, i.e. |I| <= {MAX_SWEEP / kernel_abs_sum:.3g} e); mask them (a "
+            f"blocking mask plane, or NaN): masked pixels beyond that are interpolated as "
+            f"aggressors{unit_note}")
 
 
 def _checked(image, blocked, strip):

@@ -16,8 +16,9 @@ from astropy.nddata import CCDData, NDData
 import lsst.pex.config as pexConfig
 
 from lsst_bfdrift.utils.config import Struct, Task
-from lsst_bfdrift.utils.io import read_image
-from lsst_bfdrift.correction.solvers import (area_coefficients, correct_coulton18,
+from lsst_bfdrift.utils.exposure import (BLOCKING_PLANES, MaskedExposure, add_mask_plane,
+                                         plane_mask, read_exposure)
+from lsst_bfdrift.correction.solvers import (MAX_SWEEP, area_coefficients, correct_coulton18,
                                              correct_half_shift, correct_image,
                                              coulton18_kernel, refuse_out_of_range)
 from lsst_bfdrift.geometry.superpose import moment_maps
@@ -26,7 +27,8 @@ from lsst_bfdrift.templates.swept import OperatorCache
 from lsst_bfdrift.templates.template import DistortionTemplate, load_default_template
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
-__all__ = ["BrighterFatterDriftConfig", "BrighterFatterDriftTask", "unpack_exposure", "FLAG_BLOCKED",
+__all__ = ["BrighterFatterDriftConfig", "BrighterFatterDriftTask", "unpack_exposure",
+           "template_digest", "FLAG_BLOCKED",
            "FLAG_EDGE"]
 
 #: Flag bit: pixel masked, saturated or non-finite (no flux exchanged).
@@ -112,6 +114,22 @@ class BrighterFatterDriftConfig(pexConfig.Config):
             "flux_moved; each costs one more correction; 0: off", dtype=int, default=0,
         check=lambda v: v == 0 or v >= 2)
     uncertainty_seed = pexConfig.Field(doc="seed of the template draws", dtype=int, default=0)
+    blocking_mask_planes = pexConfig.ListField(
+        doc="mask planes whose pixels neither give nor receive charge (where the exposure "
+            "declares them; other planes, e.g. DETECTED, never block)", dtype=str,
+        default=list(BLOCKING_PLANES))
+    masked_aggressors = pexConfig.ChoiceField(
+        doc="charge of masked pixels as aggressors (they never exchange flux)", dtype=str,
+        default="keep", optional=False,
+        allowed={"keep": "their recorded value (a saturated core's charge is real); a masked "
+                         "pixel beyond the model's range is interpolated all the same",
+                 "interpolate": "the mean of the unmasked pixels in the 5 x 5 box around "
+                                "them, as ip_isr interpolates defects before BF; recorded "
+                                "values restored after"})
+    bf_mask_plane = pexConfig.Field(
+        doc="mask plane added to exposures with bit-plane masks for the pixels the correction "
+            "flags (flags != 0: blocked, or within the template's reach of the border)",
+        dtype=str, default="BF")
 
 
 def _correct(data, template, blocked, cfg, dtype, cache):
@@ -139,25 +157,41 @@ def _correct(data, template, blocked, cfg, dtype, cache):
     return flux, iterations, converged, order, density, solver
 
 
-def unpack_exposure(exposure, gain_cfg):
+def unpack_exposure(exposure, gain_cfg, *, blocking=BLOCKING_PLANES):
     """data (float64, e; no copy when possible), mask, uncertainty, meta, unit, gain,
-    kind."""
+    kind.
+
+    ``mask`` is the boolean mask of blocked pixels: an NDData/MaskedArray mask,
+    or the ``blocking`` planes of a bit-plane mask (MaskedExposure, afw
+    Exposure).
+    """
     kind = "ndarray"
     mask = unc = None
     meta = fits.Header()
     unit = u.electron
     if isinstance(exposure, (str, os.PathLike)):
-        data, _, meta = read_image(exposure)  # a truncated file is named as such
-        bunit = str(meta.get("BUNIT", "electron")).strip().lower()
-        if bunit in _ADU_UNITS:
-            unit = u.adu
-        elif bunit in _ELECTRON_UNITS:
-            unit = u.electron
-        else:
-            raise InputError(f"{os.fspath(exposure)}: BUNIT = {meta['BUNIT']!r} is not a charge "
-                             "image; accepted: electron (e, e-, electrons) or ADU (adu, dn, "
-                             "count)")
+        exposure = read_exposure(exposure)  # a truncated file is named as such
         kind = "path"
+    if isinstance(exposure, MaskedExposure):
+        kind = "path" if kind == "path" else "exposure"
+        data = _as_float64(exposure.image)
+        mask = plane_mask(exposure.mask, exposure.mask_planes, blocking)
+        meta = fits.Header(exposure.header)
+        for key in ("GAIN", "SATURATE"):
+            if key not in meta and exposure.header_value(key) is not None:
+                meta[key] = exposure.header_value(key)  # INHERIT from the primary
+        unit = _bunit(exposure.unit(), exposure.path or "exposure")
+    elif _is_afw_like(exposure):
+        kind = "afw"
+        data = _as_float64(exposure.image.array)
+        m = exposure.mask
+        mask = plane_mask(np.asarray(m.array), m.getMaskPlaneDict(), blocking)
+        md = exposure.getMetadata()
+        md = md.toDict() if hasattr(md, "toDict") else dict(md or {})
+        meta = fits.Header({k: v for k, v in md.items() if isinstance(v, (int, float, str, bool))
+                            and len(k) <= 8})
+        unit = _bunit(str(md.get("LSST ISR UNITS", md.get("BUNIT", ""))).strip().lower(),
+                      "exposure")
     elif isinstance(exposure, NDData):
         kind = "ccddata" if isinstance(exposure, CCDData) else "nddata"
         data = _as_float64(exposure.data)
@@ -193,6 +227,58 @@ def unpack_exposure(exposure, gain_cfg):
     elif unit not in (u.electron, u.dimensionless_unscaled):
         raise InputError(f"exposure unit must be electron or adu, got {unit}")
     return (data if gain == 1.0 else data * gain), mask, unc, meta, unit, gain, kind
+
+
+#: ``LSST ISR BF CORR METHOD`` of each method (ip_isr's names where they apply).
+_LSST_METHOD = {"drift": "LSST_BFDRIFT", "astier23": "ASTIER23", "coulton18": "COULTON18"}
+
+
+def _version():
+    from lsst_bfdrift import __version__
+    return __version__
+
+
+def template_digest(template):
+    """First 16 hex digits of the sha1 of a template's displacements (its identity)."""
+    import hashlib
+
+    h = hashlib.sha1()
+    for name in ("corner_d", "vedge_d", "hedge_d", "fractions"):
+        arr = getattr(template, name, None)
+        if arr is not None:
+            h.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
+    h.update(repr(float(template.charge)).encode())
+    return h.hexdigest()[:16]
+
+
+def _fill_masked(image, fill, blocked):
+    """``image`` with the ``fill`` pixels replaced by the mean of the pixels that are
+    not blocked in the 5 x 5 box around each (the image median where a box has none)."""
+    from scipy.ndimage import uniform_filter
+
+    good = ~blocked
+    num = uniform_filter(np.where(good, image, 0.0), size=5, mode="constant")
+    den = uniform_filter(good.astype(np.float64), size=5, mode="constant")
+    fallback = float(np.median(image[good])) if good.any() else 0.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        local = np.where(den > 1e-9, num / np.where(den > 1e-9, den, 1.0), fallback)
+    return np.where(fill, local, image)
+
+
+def _is_afw_like(obj):
+    """An object with the shape of an lsst.afw.image.Exposure."""
+    return all(hasattr(obj, a) for a in ("image", "mask", "getMetadata")) and \
+        hasattr(obj.image, "array") and hasattr(obj.mask, "getMaskPlaneDict")
+
+
+def _bunit(bunit, source):
+    """astropy unit of a BUNIT / LSST ISR UNITS string (missing: electrons)."""
+    if bunit in _ADU_UNITS:
+        return u.adu
+    if bunit in _ELECTRON_UNITS:
+        return u.electron
+    raise InputError(f"{source}: BUNIT = {bunit!r} is not a charge image; accepted: electron "
+                     "(e, e-, electrons) or ADU (adu, dn, count)")
 
 
 #: BUNIT spellings of a charge image in electrons (a missing BUNIT means electrons).
@@ -274,7 +360,8 @@ class BrighterFatterDriftTask(Task):
             FLAG_BLOCKED, FLAG_EDGE), ``iterations``, ``converged``.
         """
         cfg = self.config
-        data, mask, unc, meta, unit, gain, kind = unpack_exposure(exposure, cfg.gain)
+        data, mask, unc, meta, unit, gain, kind = unpack_exposure(
+            exposure, cfg.gain, blocking=tuple(cfg.blocking_mask_planes))
         finite = np.isfinite(data)
         all_finite = bool(finite.all())
         finite_data = data if all_finite else np.where(finite, data, 0.0)
@@ -284,9 +371,26 @@ class BrighterFatterDriftTask(Task):
         if cfg.saturation is not None:
             blocked |= finite_data >= cfg.saturation
         dtype = np.float32 if cfg.fft_precision == "float32" else np.float64
-        refuse_out_of_range(finite_data, self._operators(dtype).kernel_abs_sum,
-                     f"; the image was converted with gain {gain} e/ADU" if gain != 1.0
-                     else "; is the image in ADU without a gain?")
+        # pixels masked as blocking (a hot pixel, a saturated core) never stop a run
+        checked = finite_data if mask is None or not mask.any() else \
+            np.where(mask, 0.0, finite_data)
+        kabs = self._operators(dtype).kernel_abs_sum
+        refuse_out_of_range(checked, kabs,
+                            f"; the image was converted with gain {gain} e/ADU" if gain != 1.0
+                            else "; is the image in ADU without a gain?")
+        # masked pixels as aggressors: their recorded charge ('keep'), or the mean of
+        # their unmasked neighbours ('interpolate', as ip_isr does); one beyond the
+        # model's range is never charge the model can use, so it is always filled
+        fill = None
+        if mask is not None and mask.any():
+            fill = mask.copy() if cfg.masked_aggressors == "interpolate" else \
+                mask & (np.abs(finite_data) > MAX_SWEEP / kabs)
+            if fill.any():
+                recorded = data  # not modified: new arrays below
+                finite_data = _fill_masked(finite_data, fill, blocked)
+                data = np.where(fill, finite_data, data)
+            else:
+                fill = None
         # the maps first: their working arrays are freed before the solver's
         # outputs exist (peak memory, docs/benchmarks.rst)
         geom = dict(area=None, centroid_x=None, centroid_y=None, e1=None, e2=None)
@@ -300,6 +404,9 @@ class BrighterFatterDriftTask(Task):
                         e2=maps.e2)
         flux, iterations, converged, order, density, solver = _correct(
             data, self.template, blocked, cfg, dtype, self._operators(dtype))
+        if fill is not None:  # the recorded values come back
+            flux = np.where(fill, recorded, flux)
+            finite_data = np.where(fill, 0.0, finite_data)
         moved = flux - finite_data
         moved[blocked] = 0.0
         moved_err = None
@@ -329,21 +436,73 @@ class BrighterFatterDriftTask(Task):
         header["BFQTMPL"] = (self.template.charge, "template aggressor charge (e)")
         header["BFTMPL"] = (os.path.basename(str(cfg.template or "bundled default"))[-40:],
                             "BF template file")
+        header["BFVERS"] = (_version(), "lsst_bfdrift version")
+        header["BFNFILL"] = (0 if fill is None else int(fill.sum()),
+                             "masked pixels interpolated as aggressors")
+        header["BFTSUM"] = (template_digest(self.template), "BF template digest (sha1, 16)")
+        header["BFGAIN"] = (float(gain), "gain applied (e/ADU; 1: image in e)")
+        if cfg.saturation is not None:
+            header["BFSATUR"] = (float(cfg.saturation), "saturation level (e)")
+        header["HIERARCH LSST ISR BF APPLIED"] = True
+        header["HIERARCH LSST ISR BF CORR METHOD"] = _LSST_METHOD[cfg.method]
         out_data = flux if gain == 1.0 else flux / gain  # flux: a new array of the solver
+        if moved_err is not None:
+            header["BFUNCN"] = (cfg.uncertainty_draws, "template draws of flux_moved_err")
         if kind in ("ccddata", "nddata"):
             new_mask = blocked if mask is None else (mask | blocked)
             cls = CCDData if kind == "ccddata" else NDData
-            out = cls(out_data, unit=unit, mask=new_mask, uncertainty=unc, meta=header)
+            out = cls(out_data, unit=unit, mask=new_mask, uncertainty=unc, meta=header,
+                      wcs=exposure.wcs)
+        elif kind == "exposure":
+            out = self._exposure_out(exposure, out_data, flags, header, moved_err, gain)
+        elif kind == "afw":
+            out = self._afw_out(exposure, out_data, flags, header)
         elif kind == "path":
             out = CCDData(out_data, unit=unit, mask=blocked, meta=header)
         elif kind == "masked":
             out = np.ma.MaskedArray(out_data, mask=mask | blocked)
         else:
             out = out_data
-        if moved_err is not None:
-            header["BFUNCN"] = (cfg.uncertainty_draws, "template draws of flux_moved_err")
         return Struct(exposure=out, flux_moved=moved, flux_moved_err=moved_err, flags=flags,
                       iterations=iterations, converged=bool(converged), header=header, **geom)
+
+    def _exposure_out(self, exposure, out_data, flags, header, moved_err, gain):
+        """A copy of the MaskedExposure with the corrected image, the BF plane and the
+        correction's variance added (when ``flux_moved_err`` was computed)."""
+        out = exposure.copy()
+        out.image = out_data.astype(exposure.image.dtype, copy=False)
+        hdr = exposure.header.copy()
+        for card in header.cards:
+            key = card.keyword
+            if key not in hdr or key.startswith(("BF", "LSST ISR BF")):
+                name = f"HIERARCH {key}" if len(key) > 8 or " " in key else key
+                hdr[name] = (card.value, card.comment)
+        out.header = hdr
+        if out.mask is not None:
+            bit = add_mask_plane(out, self.config.bf_mask_plane)
+            out.mask = out.mask | np.where(flags != 0, np.int32(1 << bit), np.int32(0))
+        if out.variance is not None and moved_err is not None:
+            out.variance = out.variance + (moved_err / gain) ** 2
+        return out
+
+    def _afw_out(self, exposure, out_data, flags, header):
+        """A clone of an afw-like Exposure: image replaced, BF plane added, keys set."""
+        import copy
+
+        out = exposure.clone() if hasattr(exposure, "clone") else copy.deepcopy(exposure)
+        arr = out.image.array
+        arr[...] = out_data.astype(arr.dtype, copy=False)
+        bit = out.mask.addMaskPlane(self.config.bf_mask_plane)
+        m = out.mask.array
+        m |= np.where(flags != 0, 1 << int(bit), 0).astype(m.dtype)
+        md = out.getMetadata()
+        for key in ("LSST ISR BF APPLIED", "LSST ISR BF CORR METHOD"):
+            value = header[f"HIERARCH {key}"]
+            if hasattr(md, "set"):
+                md.set(key, value)
+            else:
+                md[key] = value
+        return out
 
     def _flux_moved_error(self, data, finite_data, blocked, moved, dtype):
         """Standard deviation of flux_moved over templates drawn from the

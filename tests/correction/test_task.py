@@ -234,7 +234,7 @@ def test_bad_image_values_and_types(star, method):
     k = task._operators(np.float32).kernel_abs_sum
     hot = image.copy()
     hot[3, 4] = 1.01 / k
-    with pytest.raises(ValueError, match=r"\|I\| <= .* e\); set such pixels to NaN"):
+    with pytest.raises(ValueError, match=r"\|I\| <= .* e\); mask them"):
         task.run(hot)
     with pytest.raises(ValueError, match="gain 2.0 e/ADU"):
         task.run(CCDData(hot / 2.0, unit=u.adu, meta={"GAIN": 2.0}))
@@ -407,3 +407,25 @@ def test_empty_image_is_refused(method, shape):
                                                              compute_geometry=False))
     with pytest.raises(InputError, match=r"empty \(shape"):
         task.run(np.zeros(shape))
+
+
+def test_masked_aggressors_keep_or_interpolate():
+    """A masked hot pixel keeps its recorded value in the output either way; with
+    'interpolate' it no longer pushes charge into its neighbours (as ip_isr does),
+    with 'keep' it does; flux is conserved in both (a conservation law)."""
+    rng = np.random.default_rng(12)
+    img = rng.poisson(800.0, (48, 48)).astype(float)
+    img[24, 24] = 4e5
+    mask = np.zeros(img.shape, bool)
+    mask[24, 24] = True
+    out = {}
+    for how in ("keep", "interpolate"):
+        cfg = BrighterFatterDriftConfig(compute_geometry=False, masked_aggressors=how,
+                                        fft_precision="float64")
+        res = BrighterFatterDriftTask(config=cfg).run(np.ma.MaskedArray(img, mask=mask))
+        assert res.exposure.data[24, 24] == img[24, 24]
+        assert abs(res.flux_moved.sum()) < 1e-9 * np.abs(res.flux_moved).sum() + 1e-9
+        assert res.header["BFNFILL"] == (1 if how == "interpolate" else 0)
+        out[how] = res.flux_moved
+    ring = np.s_[23:26, 23:26]
+    assert np.abs(out["keep"][ring]).max() > 20 * np.abs(out["interpolate"][ring]).max()

@@ -1,0 +1,228 @@
+"""Tests of lsst_bfdrift.utils.exposure and of exposure files through the Task and the CLI.
+
+Files are written with astropy in the LSST Exposure layout (as lsst.afw writes
+it: empty primary, IMAGE, MASK with MP_ cards, VARIANCE, archive HDUs), as
+CCDData.write writes them, and as plain images; they are read back and
+compared with what was written (round trips, and conservation of flux and of
+every HDU and header card: checks against the input itself, not against the
+package's model).
+"""
+
+import numpy as np
+import pytest
+from astropy import units as u
+from astropy.io import fits
+from astropy.nddata import CCDData
+from astropy.wcs import WCS
+from numpy.testing import assert_allclose, assert_array_equal
+
+from lsst_bfdrift.cli.main import main
+from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
+from lsst_bfdrift.utils.errors import InputError, InputFileError
+from lsst_bfdrift.utils.exposure import (MaskedExposure, add_mask_plane, plane_mask,
+                                         read_exposure, write_exposure)
+
+SHAPE = (60, 64)
+PLANES = {"BAD": 0, "SAT": 1, "INTRP": 2, "CR": 3, "EDGE": 4, "DETECTED": 5, "SUSPECT": 7,
+          "NO_DATA": 8}
+
+
+def _image(seed=1, peak=5e5):
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:SHAPE[0], :SHAPE[1]]
+    img = rng.poisson(600.0, SHAPE).astype(np.float32)
+    img += (peak * np.exp(-((yy - 30.2)**2 + (xx - 31.7)**2) / (2 * 1.5**2))).astype(np.float32)
+    return img
+
+
+def _lsst_file(path, img=None, *, mask=None, variance=True, bunit="electron", extra=True):
+    img = _image() if img is None else img
+    if mask is None:
+        mask = np.zeros(SHAPE, np.int32)
+        mask[7, :] |= 1 << PLANES["BAD"]
+        mask[img > 3000] |= 1 << PLANES["DETECTED"]
+    mh = fits.Header()
+    for name, bit in PLANES.items():
+        mh[f"MP_{name}" if len(name) <= 5 else f"HIERARCH MP_{name}"] = bit
+    ih = fits.Header({"EXTTYPE": "IMAGE", "INHERIT": True})
+    if bunit is not None:
+        ih["BUNIT"] = bunit
+    hdus = [fits.PrimaryHDU(header=fits.Header({"OBSID": "x1", "GAIN": 1.5})),
+            fits.ImageHDU(img, header=ih, name="IMAGE"),
+            fits.ImageHDU(mask.astype(np.int32), header=mh, name="MASK")]
+    if variance:
+        hdus.append(fits.ImageHDU((img + 20.0).astype(np.float32), name="VARIANCE"))
+    if extra:
+        hdus.append(fits.BinTableHDU.from_columns(
+            [fits.Column(name="id", format="J", array=[3, 4])], name="ARCHIVE_INDEX"))
+    fits.HDUList(hdus).writeto(path)
+    return str(path)
+
+
+def test_lsst_layout_round_trip(tmp_path):
+    path = _lsst_file(tmp_path / "in.fits")
+    exp = read_exposure(path)
+    assert exp.layout == "lsst" and exp.mask_planes == PLANES
+    assert exp.header["BUNIT"] == "electron" and exp.header_value("OBSID") == "x1"
+    write_exposure(tmp_path / "out.fits", exp)
+    with fits.open(path) as a, fits.open(tmp_path / "out.fits") as b:
+        assert [h.name for h in a] == [h.name for h in b]
+        for ha, hb in zip(a, b):
+            if ha.data is not None and ha.is_image:
+                assert_array_equal(ha.data, hb.data)
+                assert ha.data.dtype == hb.data.dtype
+            for key in ha.header:
+                assert key in hb.header and (key in ("CHECKSUM", "DATASUM") or
+                                             hb.header[key] == ha.header[key]), key
+        assert_array_equal(b["ARCHIVE_INDEX"].data["id"], [3, 4])
+
+
+def test_ccddata_file_round_trip(tmp_path):
+    img = _image().astype(np.float64)
+    mask = np.zeros(SHAPE, bool)
+    mask[3, 4] = True
+    from astropy.nddata import StdDevUncertainty
+    CCDData(img, unit="electron", mask=mask, uncertainty=StdDevUncertainty(np.sqrt(img)),
+            meta={"OBJECT": "star"}).write(tmp_path / "ccd.fits")
+    exp = read_exposure(tmp_path / "ccd.fits")
+    assert exp.layout == "ccddata" and exp.mask_planes == {"BAD": 0}
+    assert_allclose(exp.variance, img)  # the standard deviations, squared
+    write_exposure(tmp_path / "back.fits", exp)
+    back = CCDData.read(tmp_path / "back.fits")
+    assert_allclose(back.data, img)
+    assert_array_equal(back.mask, mask)
+    assert_allclose(back.uncertainty.array, np.sqrt(img))
+    assert back.meta["OBJECT"] == "star"
+
+
+def test_compressed_input_gives_compressed_output(tmp_path):
+    img = _image()
+    fits.HDUList([fits.PrimaryHDU(), fits.CompImageHDU(img, compression_type="RICE_1",
+                                                       quantize_level=0.0)]
+                 ).writeto(tmp_path / "in.fits.fz")
+    code = main(["correct", str(tmp_path / "in.fits.fz"), str(tmp_path / "out.fits.fz"),
+                 "--quiet"])
+    assert code == 0
+    fits.PrimaryHDU(img).writeto(tmp_path / "plain.fits")
+    assert main(["correct", str(tmp_path / "plain.fits"), str(tmp_path / "plain_out.fits"),
+                 "--quiet"]) == 0
+    with fits.open(tmp_path / "out.fits.fz") as h, fits.open(tmp_path / "in.fits.fz") as i, \
+            fits.open(tmp_path / "plain_out.fits") as ref:
+        assert isinstance(h[1], fits.CompImageHDU)
+        assert (h[1].compression_type, h[1].quantize_level) == \
+            (i[1].compression_type, i[1].quantize_level)
+        # the corrected image, within the (noise-scaled) quantisation of the compression
+        assert np.abs(h[1].data - ref[0].data).max() < 0.1 * np.sqrt(img.min())
+        assert "FLUX_MOVED" in h
+
+
+def test_refusals(tmp_path):
+    # a MASK of another shape
+    p = tmp_path / "shape.fits"
+    fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(_image(), name="IMAGE"),
+                  fits.ImageHDU(np.zeros((5, 5), np.int32), name="MASK")]).writeto(p)
+    with pytest.raises(InputError, match=r"shape.fits: MASK HDU shape \(5, 5\) does not match"):
+        read_exposure(p)
+    # a float MASK
+    p = tmp_path / "float.fits"
+    fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(_image(), name="IMAGE"),
+                  fits.ImageHDU(np.zeros(SHAPE, np.float32), name="MASK")]).writeto(p)
+    with pytest.raises(InputError, match="float32 values; a mask is integer bit planes"):
+        read_exposure(p)
+    # a raw file: one image HDU per amplifier
+    p = tmp_path / "raw.fits"
+    fits.HDUList([fits.PrimaryHDU()] + [fits.ImageHDU(np.full((20, 10), 15000.0),
+                                                      name=f"Segment{k:02d}")
+                                        for k in range(16)]).writeto(p)
+    with pytest.raises(InputError, match=r"raw.fits: 16 image HDUs .*SEGMENT00.*assemble"):
+        read_exposure(p)
+    code = main(["correct", str(p), str(tmp_path / "o.fits"), "--quiet"])
+    assert code == 1 and not (tmp_path / "o.fits").exists()  # the file failed, reported
+    # no image at all
+    p = tmp_path / "table.fits"
+    fits.HDUList([fits.PrimaryHDU(), fits.BinTableHDU.from_columns(
+        [fits.Column(name="a", format="J", array=[1])])]).writeto(p)
+    with pytest.raises(InputFileError, match="no 2-d image HDU"):
+        read_exposure(p)
+
+
+def test_plane_mask_uses_named_planes_only():
+    m = np.array([[0, 1 << 5, 1 << 1, (1 << 5) | (1 << 0)]], np.int32)
+    assert_array_equal(plane_mask(m, PLANES, ["SAT", "BAD", "UNKNOWN"]),
+                       [[False, False, True, True]])
+    assert_array_equal(plane_mask(m, PLANES, []), [[False] * 4])
+    exp = MaskedExposure(image=np.zeros((1, 4)), mask=m, mask_planes=dict(PLANES))
+    assert add_mask_plane(exp, "BF") == 6  # first free bit
+    assert add_mask_plane(exp, "BF") == 6 and exp.mask_planes["BF"] == 6
+
+
+def test_lsst_file_through_bfdrift_correct(tmp_path):
+    """Issue 16's case: IMAGE/MASK/VARIANCE through `bfdrift correct` comes back in the
+    same layout, masked pixels untouched, DETECTED not blocking, variance present and a BF
+    plane declared; flux is conserved."""
+    img = _image()
+    mask = np.zeros(SHAPE, np.int32)
+    mask[7, :] |= 1 << PLANES["BAD"]
+    mask[30, 31] |= 1 << PLANES["SAT"]
+    mask[img > 3000] |= 1 << PLANES["DETECTED"]
+    src = _lsst_file(tmp_path / "in.fits", img, mask=mask)
+    code = main(["correct", src, str(tmp_path / "out.fits"), "--quiet"])
+    assert code == 0
+    with fits.open(src) as a, fits.open(tmp_path / "out.fits") as b:
+        assert [h.name for h in b][:len(a)] == [h.name for h in a]
+        assert [h.name for h in b][len(a):] == ["FLUX_MOVED", "BFFLAGS"]
+        bits = {k[3:]: v for k, v in b["MASK"].header.items() if k.startswith("MP_")}
+        assert bits["BF"] == 6 and {k: bits[k] for k in PLANES} == PLANES
+        out_img, out_mask = b["IMAGE"].data, b["MASK"].data
+        assert_array_equal(out_mask & ~np.int32(1 << 6), mask)
+        blocked = (mask & 0b11) != 0
+        assert_array_equal(out_img[blocked], img[blocked])
+        det = ((mask >> 5) & 1).astype(bool) & ~blocked
+        assert np.abs(out_img[det] - img[det]).max() > 10.0  # DETECTED pixels corrected
+        assert b["IMAGE"].header["HIERARCH LSST ISR BF APPLIED"] is True
+        assert b["IMAGE"].header["BFTSUM"] and b["IMAGE"].header["BFGAIN"] == 1.0
+        assert_array_equal(b["VARIANCE"].data, a["VARIANCE"].data)
+        assert abs(float(out_img.astype(float).sum()) - float(img.astype(float).sum())) < 1.0
+        assert b["FLUX_MOVED"].header["BUNIT"] == "electron"
+        flagged = (out_mask >> 6) & 1
+        assert_array_equal(flagged.astype(bool), b["BFFLAGS"].data != 0)
+
+
+def test_masked_hot_pixel_does_not_stop_the_run(tmp_path):
+    """A pixel above the model's range, masked BAD, is excluded from the range check."""
+    img = _image()
+    img[40, 10] = 5e12
+    mask = np.zeros(SHAPE, np.int32)
+    mask[40, 10] = 1 << PLANES["BAD"]
+    exp = read_exposure(_lsst_file(tmp_path / "hot.fits", img, mask=mask))
+    res = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(
+        compute_geometry=False)).run(exp)
+    assert res.exposure.image[40, 10] == img[40, 10] and res.converged
+    with pytest.raises(InputError, match=r"pixel values up to 5e\+12 e.*mask them"):
+        BrighterFatterDriftTask(config=BrighterFatterDriftConfig(compute_geometry=False)).run(
+            img.astype(float))
+
+
+def test_missing_variance_and_missing_bunit(tmp_path):
+    """No VARIANCE: nothing is invented; no BUNIT: electrons (documented), ADU with GAIN
+    inherited from the primary header when BUNIT says so."""
+    exp = read_exposure(_lsst_file(tmp_path / "a.fits", variance=False, bunit=None))
+    assert exp.variance is None and exp.unit() == ""
+    res = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(
+        compute_geometry=False)).run(exp)
+    assert res.exposure.variance is None and res.header["BFGAIN"] == 1.0
+    exp = read_exposure(_lsst_file(tmp_path / "adu.fits", _image(peak=2e5), bunit="adu"))
+    res = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(
+        compute_geometry=False)).run(exp)
+    assert res.header["BFGAIN"] == 1.5  # GAIN from the primary header (INHERIT)
+
+
+def test_ccddata_wcs_and_meta_survive_the_task():
+    w = WCS(naxis=2)
+    w.wcs.ctype = ["RA---TAN", "DEC--TAN"]
+    w.wcs.crval = [150.0, 2.0]
+    ccd = CCDData(_image().astype(float), unit=u.electron, wcs=w, meta={"OBJECT": "f1"})
+    out = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(
+        compute_geometry=False)).run(ccd).exposure
+    assert out.wcs is not None and list(out.wcs.wcs.crval) == [150.0, 2.0]
+    assert out.meta["OBJECT"] == "f1" and out.unit == u.electron
