@@ -73,9 +73,10 @@ def load_electrons(exposure, *, gain=None, mask=None, saturation=None):
     exposure : ndarray, CCDData, NDData or path
         Image in electrons, or in ADU (BUNIT = ADU or a CCDData unit of adu)
         with ``gain`` or a GAIN header keyword. Never modified.
-    gain : float, optional
-        e/ADU; when given, the image is taken to be in ADU whatever its unit
-        says (plain arrays are taken to be in electrons otherwise).
+    gain : float or Quantity, optional
+        e/ADU; when given, the image is in ADU (an image whose unit says
+        electron is then an error; plain arrays are taken to be in electrons
+        without a gain).
     mask : array_like of bool, optional
         Extra bad pixels (True = bad).
     saturation : float, optional
@@ -93,24 +94,11 @@ def load_electrons(exposure, *, gain=None, mask=None, saturation=None):
     gain : float
         The gain applied (1 for images in electrons).
     """
-    from astropy.nddata import NDData
-
     from lsst_bfdrift.correction.task import unpack_exposure
 
-    if gain is not None:
-        gain = float(gain)
-        if not gain > 0:
-            raise InputError(f"gain must be positive, got {gain}")
-    if gain is not None and not isinstance(exposure, (str, bytes)) \
-            and not hasattr(exposure, "__fspath__"):
-        # force the ADU interpretation for arrays and NDData given with a gain
-        arr = exposure.data if isinstance(exposure, NDData) else exposure
-        m = exposure.mask if isinstance(exposure, NDData) else None
-        exposure = NDData(np.array(arr, dtype=np.float64), mask=m, unit=u.adu)
+    # the package's one gain rule (unpack_exposure): a given gain means ADU, and an
+    # image that states electrons with a gain is an error
     data, emask, _, meta, unit, g, _ = unpack_exposure(exposure, gain)
-    if gain is not None and g != gain:
-        # a file without BUNIT = ADU given with a gain: the gain wins (documented)
-        data, g = data / g * gain, gain
     bad = ~np.isfinite(data)
     if emask is not None:
         bad |= emask

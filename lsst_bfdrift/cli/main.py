@@ -158,11 +158,12 @@ def _cmd_maps(args):
     path = args.image or sample_image_path()
     _check_outputs(args, [path, _template_input(args.template)],
                    {"--out": args.out, "--plot": args.plot})
-    image, bad, header = read_image(path)
-    if args.gain is not None:
-        if not (np.isfinite(args.gain) and args.gain > 0):
-            raise InputError(f"--gain must be a positive finite number (e/ADU), got {args.gain}")
-        image = image * args.gain
+    if args.gain is not None and not (np.isfinite(args.gain) and args.gain > 0):
+        raise InputError(f"--gain must be a positive finite number (e/ADU), got {args.gain}")
+    # the package's one reading and gain rule (as bfdrift correct): --gain means ADU
+    from lsst_bfdrift.correction.task import unpack_exposure
+    image, mask, _, header, _, gain, _ = unpack_exposure(path, args.gain)
+    bad = ~np.isfinite(image) if mask is None else (mask | ~np.isfinite(image))
     tpl = _load_template(args.template)
     with ProgressBar(image.shape[0], "maps", enabled=not args.quiet) as bar:
         samples = None if args.samples is None else min(args.samples, tpl.edge_samples)
@@ -172,7 +173,7 @@ def _cmd_maps(args):
         "template": args.template or "default",
         "template_charge": tpl.charge,
         "edge_samples": tpl.edge_samples if samples is None else samples,
-        "masked_pixels": int(bad.sum()),
+        "masked_pixels": int(bad.sum()), "gain": gain,
         "max_charge": float(np.nanmax(np.where(bad, np.nan, image))),
         "area_min": float(maps.area.min()), "area_max": float(maps.area.max()),
         "area_sum_minus_npix": float(maps.area.sum() - maps.area.size),

@@ -28,7 +28,7 @@ from lsst_bfdrift.templates.template import DistortionTemplate, load_default_tem
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["BrighterFatterDriftConfig", "BrighterFatterDriftTask", "unpack_exposure",
-           "template_digest", "FLAG_BLOCKED",
+           "template_digest", "gain_value", "FLAG_BLOCKED",
            "FLAG_EDGE"]
 
 #: Flag bit: pixel masked, saturated or non-finite (no flux exchanged).
@@ -169,6 +169,8 @@ def unpack_exposure(exposure, gain_cfg, *, blocking=BLOCKING_PLANES):
     mask = unc = None
     meta = fits.Header()
     unit = u.electron
+    stated = False  # whether the input states its unit (BUNIT, a CCDData unit)
+    gain_cfg = gain_value(gain_cfg)
     if isinstance(exposure, (str, os.PathLike)):
         exposure = read_exposure(exposure)  # a truncated file is named as such
         kind = "path"
@@ -181,6 +183,7 @@ def unpack_exposure(exposure, gain_cfg, *, blocking=BLOCKING_PLANES):
             if key not in meta and exposure.header_value(key) is not None:
                 meta[key] = exposure.header_value(key)  # INHERIT from the primary
         unit = _bunit(exposure.unit(), exposure.path or "exposure")
+        stated = exposure.unit() != ""
     elif _is_afw_like(exposure):
         kind = "afw"
         data = _as_float64(exposure.image.array)
@@ -190,8 +193,9 @@ def unpack_exposure(exposure, gain_cfg, *, blocking=BLOCKING_PLANES):
         md = md.toDict() if hasattr(md, "toDict") else dict(md or {})
         meta = fits.Header({k: v for k, v in md.items() if isinstance(v, (int, float, str, bool))
                             and len(k) <= 8})
-        unit = _bunit(str(md.get("LSST ISR UNITS", md.get("BUNIT", ""))).strip().lower(),
-                      "exposure")
+        stated_unit = str(md.get("LSST ISR UNITS", md.get("BUNIT", ""))).strip().lower()
+        unit = _bunit(stated_unit, "exposure")
+        stated = stated_unit != ""
     elif isinstance(exposure, NDData):
         kind = "ccddata" if isinstance(exposure, CCDData) else "nddata"
         data = _as_float64(exposure.data)
@@ -199,6 +203,7 @@ def unpack_exposure(exposure, gain_cfg, *, blocking=BLOCKING_PLANES):
         unc = exposure.uncertainty
         meta = fits.Header(exposure.meta) if exposure.meta else fits.Header()
         unit = exposure.unit if exposure.unit is not None else u.electron
+        stated = exposure.unit is not None
     elif isinstance(exposure, np.ma.MaskedArray):
         kind = "masked"
         data = _as_float64(exposure.data)
@@ -213,7 +218,17 @@ def unpack_exposure(exposure, gain_cfg, *, blocking=BLOCKING_PLANES):
     if mask is not None and mask.shape != data.shape:
         raise InputError(f"mask shape {mask.shape} does not match image {data.shape}")
     gain = 1.0
-    if unit in (u.adu, u.count) or str(unit).lower() in ("adu", "dn"):
+    is_adu = unit in (u.adu, u.count) or str(unit).lower() in ("adu", "dn")
+    if gain_cfg is not None and not is_adu:
+        # one meaning of a given gain everywhere: the image is in ADU
+        if stated and unit in (u.electron,):
+            raise InputError(f"a gain of {gain_cfg} e/ADU was given (--gain, config.gain) but "
+                             "the image states it is in electrons (BUNIT or unit); drop the "
+                             "gain, or fix the unit if the image is in ADU")
+        if unit not in (u.electron, u.dimensionless_unscaled):
+            raise InputError(f"exposure unit must be electron or adu, got {unit}")
+        unit, is_adu = u.adu, True
+    if is_adu:
         gain = gain_cfg if gain_cfg is not None else meta.get("GAIN")
         if gain is None:
             raise InputError("image is in ADU: give a gain (--gain, config.gain) or a GAIN "
@@ -263,6 +278,21 @@ def _fill_masked(image, fill, blocked):
     with np.errstate(invalid="ignore", divide="ignore"):
         local = np.where(den > 1e-9, num / np.where(den > 1e-9, den, 1.0), fallback)
     return np.where(fill, local, image)
+
+
+def gain_value(gain):
+    """A gain as float e/ADU: a number or an astropy Quantity in electron/adu (None
+    stays None)."""
+    if gain is None:
+        return None
+    if isinstance(gain, u.Quantity):
+        try:
+            return float(gain.to_value(u.electron / u.adu))
+        except u.UnitConversionError:
+            raise InputError(f"gain {gain} is not in electron/adu") from None
+    if isinstance(gain, (bool, np.bool_)) or not isinstance(gain, (int, float, np.number)):
+        raise InputError(f"gain {gain!r} is not a number of e/ADU")
+    return float(gain)
 
 
 def _is_afw_like(obj):

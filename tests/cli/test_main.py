@@ -7,6 +7,7 @@ import pathlib
 import numpy as np
 import pytest
 from astropy.io import fits
+from numpy.testing import assert_allclose
 
 from lsst_bfdrift.cli.main import main
 from lsst_bfdrift.templates.template import DistortionTemplate, load_default_template
@@ -555,3 +556,47 @@ def test_version(capsys):
         main(["--version"])
     assert exc.value.code == 0
     assert capsys.readouterr().out.strip() == f"bfdrift {lsst_bfdrift.__version__}"
+
+
+def test_one_meaning_of_gain(capsys, tmp_path):
+    """Issue 19 rows 2-3: --gain means the image is in ADU in every command. An ADU
+    image without BUNIT is converted (not silently taken as electrons); an image whose
+    BUNIT says electron with a --gain is an error in correct, maps and validate-sky."""
+    from lsst_bfdrift.cli.main import sample_image_path
+    with fits.open(sample_image_path()) as h:
+        electrons = np.array(h[0].data, dtype=np.float64)
+    gain = 2.27
+    fits.PrimaryHDU(electrons / gain).writeto(tmp_path / "adu.fits")  # no BUNIT
+    fits.PrimaryHDU(electrons).writeto(tmp_path / "e.fits")
+    assert _run(capsys, "correct", str(tmp_path / "adu.fits"), str(tmp_path / "adu_out.fits"),
+                "--gain", str(gain), "--quiet")[0] == 0
+    assert _run(capsys, "correct", str(tmp_path / "e.fits"), str(tmp_path / "e_out.fits"),
+                "--quiet")[0] == 0
+    with fits.open(tmp_path / "adu_out.fits") as a, fits.open(tmp_path / "e_out.fits") as b:
+        assert a[0].header["BFGAIN"] == gain
+        # the same correction in electrons: moved flux equal, image = electrons / gain
+        assert_allclose(a["FLUX_MOVED"].data, b["FLUX_MOVED"].data, rtol=1e-4,
+                        atol=1e-3 * np.abs(b["FLUX_MOVED"].data).max())
+        assert np.abs(b["FLUX_MOVED"].data).max() > 10.0
+    code, out, _ = _run(capsys, "maps", str(tmp_path / "adu.fits"), "--gain", str(gain),
+                        "--json", "--quiet")
+    assert code == 0 and json.loads(out)["gain"] == gain
+    hdr = fits.Header({"BUNIT": "electron"})
+    fits.PrimaryHDU(electrons, header=hdr).writeto(tmp_path / "stated.fits")
+    for argv in (["correct", str(tmp_path / "stated.fits"), str(tmp_path / "x.fits")],
+                 ["maps", str(tmp_path / "stated.fits")],
+                 ["validate-sky", str(tmp_path / "stated.fits")]):
+        code, _, err = _run(capsys, *argv, "--gain", "2.0", "--quiet")
+        assert code in (1, 2) and "states it is in electrons" in err, (argv, err)
+
+
+def test_gain_as_quantity():
+    import astropy.units as u
+
+    from lsst_bfdrift.correction.task import gain_value
+    assert gain_value(2.0 * u.electron / u.adu) == 2.0
+    assert gain_value(None) is None
+    with pytest.raises(ValueError, match="not in electron/adu"):
+        gain_value(2.0 * u.m)
+    with pytest.raises(ValueError, match="not a number"):
+        gain_value("abc")
