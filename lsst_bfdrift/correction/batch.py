@@ -195,12 +195,15 @@ def correct_files(pairs, config=None, *, scheduler=None, overwrite=False, n_work
         else:
             client = Client(scheduler)
         try:
-            futures = {client.submit(_safe, src, dst, cfg, overwrite, pure=False): k
+            # absolute paths: workers may run in another directory (issue 19 row 8);
+            # results keep the paths as given
+            futures = {client.submit(_safe, os.path.abspath(src), os.path.abspath(dst), cfg,
+                                     overwrite, pure=False): k
                        for k, (src, dst) in enumerate(pairs)}
             for fut in as_completed(futures):
                 k = futures[fut]
                 try:
-                    results[k] = fut.result()
+                    results[k] = dict(fut.result(), input=pairs[k][0], output=pairs[k][1])
                 except Exception as exc:  # noqa: BLE001 - e.g. a worker died
                     src, dst = pairs[k]
                     results[k] = {"input": src, "output": dst, "iterations": None,

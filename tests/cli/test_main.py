@@ -306,10 +306,11 @@ def test_correct_many_files_on_dask_cluster(capsys, tmp_path):
 
 
 @pytest.mark.slow
-def test_correct_files_through_a_scheduler_address(capsys, tmp_path):
+def test_correct_files_through_a_scheduler_address(capsys, tmp_path, monkeypatch):
     """``--scheduler ADDRESS``: a dask scheduler with a worker in another
-    process, reached by its tcp address, gives the serial outputs bit for bit."""
-    from distributed import LocalCluster
+    process, reached by its tcp address, gives the serial outputs bit for bit;
+    relative paths work although the worker runs in another directory."""
+    from distributed import Client, LocalCluster
 
     from lsst_bfdrift.correction.batch import correct_files, output_pairs
     rng = np.random.default_rng(8)
@@ -325,11 +326,16 @@ def test_correct_files_through_a_scheduler_address(capsys, tmp_path):
                       dashboard_address=":0") as cluster:
         address = cluster.scheduler_address
         assert address.startswith("tcp://")
-        code, out, err = _run(capsys, "correct", *names, "--out-dir", str(tmp_path / "remote"),
+        with Client(address) as c:
+            c.run(os.chdir, "/")  # the worker's directory is not ours
+        monkeypatch.chdir(tmp_path)
+        rel = [os.path.basename(n) for n in names]
+        code, out, err = _run(capsys, "correct", *rel, "--out-dir", "remote",
                               "--scheduler", address, "--json", "--quiet")
     assert code == 0, err
     res = json.loads(out)
-    assert res["failed"] == 0 and [r["input"] for r in res["files"]] == names
+    assert res["failed"] == 0 and [r["input"] for r in res["files"]] == rel
+    res["files"] = [dict(r, output=str(tmp_path / r["output"])) for r in res["files"]]
     for r_serial, r_remote in zip(serial, res["files"]):
         with fits.open(r_serial["output"]) as a, fits.open(r_remote["output"]) as b:
             assert np.array_equal(a[0].data, b[0].data)
