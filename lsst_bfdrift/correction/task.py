@@ -28,7 +28,7 @@ from lsst_bfdrift.templates.template import DistortionTemplate, load_default_tem
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["BrighterFatterDriftConfig", "BrighterFatterDriftTask", "unpack_exposure",
-           "template_digest", "gain_value", "FLAG_BLOCKED",
+           "template_digest", "gain_value", "input_warnings", "FLAG_BLOCKED",
            "FLAG_EDGE"]
 
 #: Flag bit: pixel masked, saturated or non-finite (no flux exchanged).
@@ -280,6 +280,57 @@ def _fill_masked(image, fill, blocked):
     return np.where(fill, local, image)
 
 
+#: Fraction of the bright pixels' charge that, blocked, makes the Task warn.
+BLOCKED_BRIGHT_WARN = 0.5
+
+
+def input_warnings(image, blocked):
+    """What looks wrong with an input the Task was given (messages; empty if nothing).
+
+    * **Most of the bright charge blocked**: more than
+      :data:`BLOCKED_BRIGHT_WARN` of the charge in pixels 10 sigma above the
+      median sits in blocked pixels. A mask that covers the sources (e.g. a
+      DETECTED plane read as a boolean mask by ``CCDData.read(hdu_mask=...)``)
+      leaves them uncorrected although the solver converges.
+    * **A bias pedestal**: a median above 1000 e whose robust scatter is far
+      below its Poisson noise (variance < 10 % of the median) is an image in
+      ADU with its bias in, not post-ISR electrons.
+
+    Parameters
+    ----------
+    image : ndarray
+        The image in electrons (finite values).
+    blocked : ndarray of bool
+
+    Returns
+    -------
+    list of str
+    """
+    out = []
+    good = image[~blocked] if blocked.any() else image.ravel()
+    if good.size < 16:
+        return out
+    med = float(np.median(good))
+    mad = float(np.median(np.abs(good - med))) * 1.4826
+    thresh = med + 10.0 * max(mad, np.sqrt(max(med, 1.0)))
+    bright = image > thresh
+    total = float(np.sum(image[bright] - med)) if bright.any() else 0.0
+    if total > 0 and blocked.any():
+        frac = float(np.sum((image - med)[bright & blocked])) / total
+        if frac > BLOCKED_BRIGHT_WARN:
+            out.append(f"{100 * frac:.0f} % of the charge in bright pixels (> {thresh:.3g} e) "
+                       f"is blocked by the mask, so those sources are not corrected; is an "
+                       f"informational plane (DETECTED) part of the mask? Read LSST files with "
+                       f"lsst_bfdrift.utils.exposure.read_exposure (named planes) or set "
+                       f"blocking_mask_planes")
+    if med > 1000.0 and mad * mad < 0.1 * med:
+        out.append(f"median {med:.4g} e with a scatter of {mad:.3g} e, far below its Poisson "
+                   f"noise ({np.sqrt(med):.3g} e): a bias pedestal or an image in ADU? The "
+                   f"correction needs post-ISR images in electrons (bias subtracted, gain "
+                   f"applied)")
+    return out
+
+
 def gain_value(gain):
     """A gain as float e/ADU: a number or an astropy Quantity in electron/adu (None
     stays None)."""
@@ -387,7 +438,8 @@ class BrighterFatterDriftTask(Task):
             off), ``flux_moved`` (e; sums to zero), ``flux_moved_err`` (e; its
             standard deviation over templates drawn from the calibration
             uncertainty, None unless ``uncertainty_draws``), ``flags`` (uint8, bits
-            FLAG_BLOCKED, FLAG_EDGE), ``iterations``, ``converged``.
+            FLAG_BLOCKED, FLAG_EDGE), ``iterations``, ``converged``, ``warnings``
+            (what looks wrong with the input: :func:`input_warnings`; also logged).
         """
         cfg = self.config
         data, mask, unc, meta, unit, gain, kind = unpack_exposure(
@@ -449,8 +501,12 @@ class BrighterFatterDriftTask(Task):
         if not converged:
             self.log.warning("brighter-fatter correction did not converge in %d iterations",
                              iterations)
+        warnings = input_warnings(finite_data, blocked)
+        for w in warnings:
+            self.log.warning("%s", w)
         header = fits.Header(meta)
         header["BFDRIFT"] = (True, "BF correction applied (lsst_bfdrift)")
+        header["BFWARN"] = (len(warnings), "input warnings (see the task's log)")
         header["BFMETHOD"] = (cfg.method, "correction method")
         header["BFORDER"] = (order, "time-history series order")
         header["BFDENS"] = (density, "edge flux density estimate")
@@ -493,7 +549,7 @@ class BrighterFatterDriftTask(Task):
             out = np.ma.MaskedArray(out_data, mask=mask | blocked)
         else:
             out = out_data
-        return Struct(exposure=out, flux_moved=moved, flux_moved_err=moved_err, flags=flags,
+        return Struct(exposure=out, warnings=warnings, flux_moved=moved, flux_moved_err=moved_err, flags=flags,
                       iterations=iterations, converged=bool(converged), header=header, **geom)
 
     def _exposure_out(self, exposure, out_data, flags, header, moved_err, gain):

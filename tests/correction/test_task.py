@@ -429,3 +429,25 @@ def test_masked_aggressors_keep_or_interpolate():
         out[how] = res.flux_moved
     ring = np.s_[23:26, 23:26]
     assert np.abs(out["keep"][ring]).max() > 20 * np.abs(out["interpolate"][ring]).max()
+
+
+def test_input_warnings_for_a_mask_over_the_stars_and_a_bias_pedestal(caplog):
+    """Issue 19 rows 1 and 5: a boolean mask that covers the stars (a DETECTED plane
+    read by CCDData) and a bias pedestal are named, not silently 'converged'."""
+    from astropy.nddata import CCDData
+    rng = np.random.default_rng(4)
+    img = rng.poisson(900.0, (64, 64)).astype(float)
+    yy, xx = np.mgrid[:64, :64]
+    star = 2e5 * np.exp(-((yy - 32) ** 2 + (xx - 30) ** 2) / (2 * 1.5**2))
+    img += star
+    detected = star > 50.0
+    cfg = BrighterFatterDriftConfig(compute_geometry=False)
+    res = BrighterFatterDriftTask(config=cfg).run(CCDData(img, unit="electron", mask=detected))
+    assert len(res.warnings) == 1 and "DETECTED" in res.warnings[0]
+    assert res.header["BFWARN"] == 1 and "blocked by the mask" in caplog.text
+    clean = BrighterFatterDriftTask(config=cfg).run(CCDData(img, unit="electron"))
+    assert clean.warnings == [] and clean.header["BFWARN"] == 0
+    # an image with its 15000 e bias in and ADU-like scatter
+    biased = 15000.0 + rng.normal(0.0, 5.0, (64, 64))
+    res = BrighterFatterDriftTask(config=cfg).run(biased)
+    assert any("bias pedestal" in w for w in res.warnings)
