@@ -208,15 +208,14 @@ def template_area_coefficients(template, *, max_lag=3):
     L = int(max_lag)
     if not 0 <= L <= c:
         raise InputError(f"max_lag must be in [0, {c}] for this template, got {max_lag!r}")
+    from lsst_bfdrift.templates.refine import template_alpha
+
     q = template.charge
     full = template.moments(charge=q).area
-    half = template.moments(charge=0.5 * q).area
-    # A(f) = 1 + l f + s f^2 at f = 1 and 1/2: l = 4 (A(1/2) - 1) - (A(1) - 1)
-    lin = 4.0 * (half - 1.0) - (full - 1.0)
 
     def quad(arr):  # [dj + c, di + c] -> [di, dj]
         return np.ascontiguousarray(arr[c:c + L + 1, c:c + L + 1].T)
-    return {"alpha": quad(lin) / q, "linear": quad(full - 1.0) / q,
+    return {"alpha": quad(template_alpha(template)), "linear": quad(full - 1.0) / q,
             "log": quad(np.log(full)) / q, "charge": q}
 
 

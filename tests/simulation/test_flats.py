@@ -155,3 +155,33 @@ def test_galsim_engine_flats_carry_galsims_a00(tmp_path):
         simulate_flat_pairs("lsst_itl_50_8", [-1.0], engine="galsim")
     with pytest.raises(ValueError, match="engine"):
         simulate_flat_pairs(np.zeros((2, 2)), [1e4], engine="poisson_ccd")
+
+
+def test_template_lag_order_matches_the_measured_itl_table():
+    """Independent data: the bundled default was calibrated to the measured ITL a-matrix
+    (shared/data/measured, (i, j) = (serial, parallel), a01 > a10 by 6.5 sigma); its
+    a_ij in every indexing of the package ([di, dj] lag arrays; [dj + c, di + c] maps
+    of area_coefficients and template_alpha) put the larger coefficient on the same lag."""
+    import os
+
+    from numpy.testing import assert_allclose
+
+    from lsst_bfdrift.calibration.acoeff_fit import read_acoeff_table
+    from lsst_bfdrift.correction.solvers import area_coefficients
+    from lsst_bfdrift.simulation.flats import template_area_coefficients
+    from lsst_bfdrift.templates.refine import template_alpha
+    from lsst_bfdrift.templates.template import load_default_template
+    path = "/work/shared/data/measured/itl_covariances_21oct19.txt"
+    if not os.path.exists(path):
+        pytest.skip("shared measured data not present")
+    tab = read_acoeff_table(path)
+    t = load_default_template()
+    c = t.center
+    ac = template_area_coefficients(t, max_lag=3)
+    assert tab.a[0, 1] > 2 * tab.a[1, 0] and ac["alpha"][0, 1] > 2 * ac["alpha"][1, 0]
+    assert_allclose([ac["alpha"][1, 0], ac["alpha"][0, 1]], [tab.a[1, 0], tab.a[0, 1]],
+                    rtol=0.15)
+    al, lg = template_alpha(t), area_coefficients(t)
+    for i, j in ((1, 0), (0, 1), (2, 1), (1, 3)):
+        assert al[c + j, c + i] == ac["alpha"][i, j]
+        assert_allclose(lg[c + j, c + i], ac["log"][i, j], rtol=1e-12)
