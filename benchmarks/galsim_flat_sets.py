@@ -9,6 +9,13 @@ pairs per level and seed, drawn from a seeded generator, so that nothing is
 tuned to one configuration.
 
     python benchmarks/galsim_flat_sets.py --n-sets 50 --out /work/flatcache
+    python benchmarks/galsim_flat_sets.py --injections --out /work/flatcache
+
+``--injections`` draws the power sets instead: each effect of the library
+that GalSim's engine can carry (CTI on either axis, an echo, gain
+non-linearity, a static response pattern, diffusion) at two amplitudes
+(:data:`INJECTIONS`) on two sizes (160 and 240 px), named
+``inj_<effect>_<k>_<size>.npz``.
 
 Writes one ``set_NNN.npz`` per set (flats as float32 electrons, the levels,
 EXPTIME per flat, the configuration) and skips sets that exist, so it can be
@@ -29,6 +36,14 @@ sys.path.insert(0, os.path.join(HERE, ".."))
 from lsst_bfdrift.simulation.flats import simulate_flat_pairs  # noqa: E402
 
 SENSORS = ("lsst_itl_50_8", "lsst_e2v_50_8")
+
+#: Injected effects and amplitudes (the package's parameters, simulation.flats.INJECTABLE):
+#: CTI eps (fraction of a pixel's charge trailing into the next, per axis), echo (kappa,
+#: lag px), gain non-linearity (nu per ADU), static pattern (variance, correlation length
+#: px), diffusion (rms px). The lower ones are near what sensors show.
+INJECTIONS = {"cti_serial": [(3e-4,), (1e-3,)], "cti_parallel": [(3e-4,), (1e-3,)],
+              "echo": [(3e-4, 3), (1e-3, 3)], "gain_nonlinearity": [(2e-7,), (6e-7,)],
+              "static_area": [(1e-5, 3.0), (4e-5, 3.0)], "diffusion": [(0.1,), (0.25,)]}
 SIZES = (160, 200, 240)
 
 
@@ -48,9 +63,10 @@ def set_config(k, *, seed=2026):
 def draw_set(cfg):
     """Flats (n_pairs, 2, ny, nx) float32 in e, levels per pair, EXPTIME per pair."""
     levels = np.repeat(cfg["levels"], cfg["pairs_per_level"])
+    inject = {k: tuple(v) for k, v in cfg.get("inject", {}).items()}
     pairs = simulate_flat_pairs(cfg["sensor"], levels, engine="galsim",
                                 shape=(cfg["size"],) * 2, n_steps=cfg["n_steps"],
-                                seed=cfg["seed"])
+                                seed=cfg["seed"], inject=inject or None)
     flats = np.array([[p[0], p[1]] for p in pairs], dtype=np.float32)
     return flats, levels, levels * 1e-4  # EXPTIME (s): 1e4 e/s, no shutter error
 
@@ -60,22 +76,32 @@ def main(argv=None):
     ap.add_argument("--n-sets", type=int, default=50)
     ap.add_argument("--first", type=int, default=0)
     ap.add_argument("--out", default="/work/flatcache")
+    ap.add_argument("--injections", action="store_true", help="draw the power sets")
     args = ap.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
-    for k in range(args.first, args.first + args.n_sets):
-        path = os.path.join(args.out, f"set_{k:03d}.npz")
+    jobs = [(os.path.join(args.out, f"set_{k:03d}.npz"), set_config(k))
+            for k in range(args.first, args.first + args.n_sets)]
+    if args.injections:
+        jobs = []
+        for n, (name, amps) in enumerate(INJECTIONS.items()):
+            for a, amp in enumerate(amps):
+                for size in (160, 240):
+                    cfg = set_config(1000 + 10 * n + 2 * a + (size == 240))
+                    cfg.update(size=size, pairs_per_level=3, inject={name: list(amp)},
+                               sensor=SENSORS[(n + a) % 2])
+                    jobs.append((os.path.join(args.out, f"inj_{name}_{a}_{size}.npz"), cfg))
+    for path, cfg in jobs:
         if os.path.exists(path):
             continue
-        cfg = set_config(k)
         t0 = time.time()
         flats, levels, exptime = draw_set(cfg)
         tmp = path + ".tmp.npz"
         np.savez_compressed(tmp, flats=flats, levels=levels, exptime=exptime,
                             config=json.dumps(cfg))
         os.replace(tmp, path)
-        print(f"set {k:3d}: {cfg['sensor']} {cfg['size']}^2, {len(cfg['levels'])} levels x "
-              f"{cfg['pairs_per_level']} pairs, top {cfg['levels'][-1]:.0f} e: "
-              f"{time.time() - t0:.0f} s", flush=True)
+        print(f"{os.path.basename(path)}: {cfg.get('inject', '')} {cfg['sensor']} "
+              f"{cfg['size']}^2, {len(cfg['levels'])} levels x {cfg['pairs_per_level']} "
+              f"pairs, top {cfg['levels'][-1]:.0f} e: {time.time() - t0:.0f} s", flush=True)
 
 
 if __name__ == "__main__":
