@@ -5,6 +5,7 @@ for the flux redistribution and :func:`~lsst_bfdrift.geometry.superpose.moment_m
 for the final pixel geometry predicted from the recorded image.
 """
 
+import copy
 import math
 import os
 
@@ -28,7 +29,7 @@ from lsst_bfdrift.templates.template import DistortionTemplate, load_default_tem
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["BrighterFatterDriftConfig", "BrighterFatterDriftTask", "unpack_exposure",
-           "template_digest", "gain_value", "input_warnings", "FLAG_BLOCKED",
+           "template_digest", "gain_value", "input_warnings", "fits_header", "FLAG_BLOCKED",
            "FLAG_EDGE"]
 
 #: Flag bit: pixel masked, saturated or non-finite (no flux exchanged).
@@ -201,7 +202,7 @@ def unpack_exposure(exposure, gain_cfg, *, blocking=BLOCKING_PLANES):
         data = _as_float64(exposure.data)
         mask = None if exposure.mask is None else np.array(exposure.mask, bool)
         unc = exposure.uncertainty
-        meta = fits.Header(exposure.meta) if exposure.meta else fits.Header()
+        meta = fits_header(exposure.meta)
         unit = exposure.unit if exposure.unit is not None else u.electron
         stated = exposure.unit is not None
     elif isinstance(exposure, np.ma.MaskedArray):
@@ -329,6 +330,31 @@ def input_warnings(image, blocked):
                    f"correction needs post-ISR images in electrons (bias subtracted, gain "
                    f"applied)")
     return out
+
+
+def fits_header(meta):
+    """A FITS header of the values of ``meta`` that FITS can hold.
+
+    Values FITS cannot store (NaN or inf, lists, dicts, non-ASCII text) are
+    left out of the header (the Task's output keeps them in its meta); keys
+    longer than 8 characters become HIERARCH cards.
+    """
+    header = fits.Header()
+    if not meta:
+        return header
+    items = meta.cards if isinstance(meta, fits.Header) else \
+        [(k, v, None) for k, v in dict(meta).items()]
+    for item in items:
+        key, value = (item.keyword, item.value) if isinstance(item, fits.Card) else item[:2]
+        name = f"HIERARCH {key}" if len(str(key)) > 8 or " " in str(key) else str(key)
+        try:
+            card = fits.Card(name, value)
+            card.verify("exception")
+            str(card)  # formats the value: raises on what FITS cannot hold
+        except (ValueError, TypeError, fits.VerifyError):
+            continue
+        header.append(card)
+    return header
 
 
 def gain_value(gain):
@@ -537,7 +563,12 @@ class BrighterFatterDriftTask(Task):
         if kind in ("ccddata", "nddata"):
             new_mask = blocked if mask is None else (mask | blocked)
             cls = CCDData if kind == "ccddata" else NDData
-            out = cls(out_data, unit=unit, mask=new_mask, uncertainty=unc, meta=header,
+            # the input's meta as it was (values FITS cannot hold included) + BF keys
+            meta_out = copy.copy(exposure.meta) if exposure.meta else {}
+            for card in header.cards:
+                if card.keyword.startswith(("BF", "LSST ISR BF")):
+                    meta_out[card.keyword] = card.value
+            out = cls(out_data, unit=unit, mask=new_mask, uncertainty=unc, meta=meta_out,
                       wcs=exposure.wcs)
         elif kind == "exposure":
             out = self._exposure_out(exposure, out_data, flags, header, moved_err, gain)

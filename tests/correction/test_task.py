@@ -451,3 +451,20 @@ def test_input_warnings_for_a_mask_over_the_stars_and_a_bias_pedestal(caplog):
     biased = 15000.0 + rng.normal(0.0, 5.0, (64, 64))
     res = BrighterFatterDriftTask(config=cfg).run(biased)
     assert any("bias pedestal" in w for w in res.warnings)
+
+
+def test_ccddata_meta_fits_cannot_store_is_kept_not_refused():
+    """Issue 20: a CCDData whose meta holds NaN, a list or non-ASCII text runs; those
+    values stay in the output's meta, and the BF keys are added."""
+    from astropy.nddata import CCDData
+    img = np.full((32, 32), 500.0)
+    img[16, 16] = 1e5
+    meta = {"NANKEY": float("nan"), "LISTKEY": [1, 2], "TEXT": "caf\u00e9", "OK": 3,
+            "LONGKEYWORDNAME": 4}
+    res = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(
+        compute_geometry=False)).run(CCDData(img, unit="electron", meta=meta))
+    out = res.exposure.meta
+    assert out["LISTKEY"] == [1, 2] and out["TEXT"] == "caf\u00e9" and np.isnan(out["NANKEY"])
+    assert out["OK"] == 3 and out["BFDRIFT"] is True
+    assert res.header["OK"] == 3 and "LISTKEY" not in res.header
+    assert res.header["LONGKEYWORDNAME"] == 4
