@@ -272,7 +272,12 @@ def _cmd_correct(args):
         cfg.method = args.method
     if args.gain is not None:
         cfg.gain = args.gain
-    cfg.compute_geometry = bool(args.geometry)
+    if args.geometry is not None:
+        cfg.compute_geometry = bool(args.geometry)
+    if args.template is not None:
+        cfg.template = os.path.abspath(args.template)
+    if args.saturation is not None:
+        cfg.saturation = args.saturation
     cfg.validate()  # a bad --gain or --method is a usage error, not one failure per file
     files = list(args.inputs)
     if args.out_dir:
@@ -440,8 +445,16 @@ def build_parser():
                     "(config.method = 'astier23'), or a JSON/TOML table of field values")
     co.add_argument("--method", choices=("drift", "astier23", "coulton18"),
                     help="correction method (default: the config's, drift)")
-    co.add_argument("--gain", type=float, help="e/ADU for images in ADU")
-    co.add_argument("--geometry", action="store_true", help="also write the geometry maps")
+    co.add_argument("--gain", type=float, help="e/ADU: the images are in ADU (one rule "
+                    "everywhere; an image stating electrons is refused)")
+    co.add_argument("--template", help="template FITS file (default: the config's, else the "
+                    "bundled default)")
+    co.add_argument("--saturation", type=float, help="level at and above which pixels are "
+                    "blocked, in the image's units (default: the config's, else the SATURATE "
+                    "keyword)")
+    co.add_argument("--geometry", action=argparse.BooleanOptionalAction, default=None,
+                    help="write the geometry maps (default: the config's compute_geometry, "
+                    "True, as in the API)")
     co.add_argument("--overwrite", action="store_true")
     co.add_argument("--scheduler", help="dask: 'local' (LocalCluster) or a scheduler address "
                     "(tcp://host:8786); default: serial")

@@ -145,7 +145,7 @@ def _safe(src, dst, config_json, overwrite):
 
 
 def correct_files(pairs, config=None, *, scheduler=None, overwrite=False, n_workers=2,
-                  threads_per_worker=1, processes=True, progress=False):
+                  threads_per_worker=1, processes=False, progress=False):
     """Correct many files, serially or on a dask cluster.
 
     Parameters
@@ -162,7 +162,8 @@ def correct_files(pairs, config=None, *, scheduler=None, overwrite=False, n_work
     overwrite : bool, optional
         Replace existing outputs (otherwise each such file is an error).
     n_workers, threads_per_worker, processes
-        LocalCluster settings (ignored otherwise).
+        LocalCluster settings (ignored otherwise); threads by default, as
+        ``bfdrift correct`` (the compiled kernels release the GIL).
     progress : bool, optional
         Progress bar on stderr (files finished).
 

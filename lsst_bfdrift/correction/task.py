@@ -97,7 +97,9 @@ class BrighterFatterDriftConfig(pexConfig.Config):
         doc="e/ADU for images in ADU (None: read GAIN from the header)", dtype=float,
         default=None, optional=True, check=lambda v: math.isfinite(v) and v > 0)
     saturation = pexConfig.Field(
-        doc="level (e) at and above which pixels are blocked; None: no limit", dtype=float,
+        doc="level at and above which pixels are blocked, in the image's units (e, or ADU for "
+            "an image in ADU); None: the SATURATE keyword of the header if present, else no "
+            "limit", dtype=float,
         default=None, optional=True, check=lambda v: math.isfinite(v) and v > 0)
     compute_geometry = pexConfig.Field(
         doc="compute area, centroid and ellipticity maps", dtype=bool, default=True)
@@ -476,8 +478,15 @@ class BrighterFatterDriftTask(Task):
         blocked = np.logical_not(finite, out=finite)
         if mask is not None:
             blocked |= mask
-        if cfg.saturation is not None:
-            blocked |= finite_data >= cfg.saturation
+        sat = cfg.saturation if cfg.saturation is not None else meta.get("SATURATE")
+        sat_e = None
+        if sat is not None:
+            if isinstance(sat, (bool, np.bool_)) or not isinstance(sat, (int, float, np.number)) \
+                    or not float(sat) > 0:
+                raise InputError(f"saturation {sat!r} (SATURATE keyword or config.saturation) "
+                                 "is not a positive level")
+            sat_e = float(sat) * gain  # image units -> e
+            blocked |= finite_data >= sat_e
         dtype = np.float32 if cfg.fft_precision == "float32" else np.float64
         # pixels masked as blocking (a hot pixel, a saturated core) never stop a run
         checked = finite_data if mask is None or not mask.any() else \
@@ -553,8 +562,8 @@ class BrighterFatterDriftTask(Task):
                              "masked pixels interpolated as aggressors")
         header["BFTSUM"] = (template_digest(self.template), "BF template digest (sha1, 16)")
         header["BFGAIN"] = (float(gain), "gain applied (e/ADU; 1: image in e)")
-        if cfg.saturation is not None:
-            header["BFSATUR"] = (float(cfg.saturation), "saturation level (e)")
+        if sat_e is not None:
+            header["BFSATUR"] = (sat_e, "saturation level applied (e)")
         header["HIERARCH LSST ISR BF APPLIED"] = True
         header["HIERARCH LSST ISR BF CORR METHOD"] = _LSST_METHOD[cfg.method]
         out_data = flux if gain == 1.0 else flux / gain  # flux: a new array of the solver

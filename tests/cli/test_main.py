@@ -606,3 +606,31 @@ def test_gain_as_quantity():
         gain_value(2.0 * u.m)
     with pytest.raises(ValueError, match="not a number"):
         gain_value("abc")
+
+
+def test_correct_saturation_and_template_options(capsys, tmp_path):
+    """Issue 19 item 7: SATURATE (image units) blocks pixels, --saturation overrides it,
+    --template names the template used; flux is conserved either way."""
+    rng = np.random.default_rng(21)
+    yy, xx = np.mgrid[:48, :48]
+    img = rng.poisson(700.0, (48, 48)) + 3e5 * np.exp(-((yy - 24)**2 + (xx - 23)**2) / 4.5)
+    gain = 2.0
+    hdr = fits.Header({"BUNIT": "adu", "GAIN": gain, "SATURATE": 5e4})  # 1e5 e
+    fits.PrimaryHDU(img / gain, header=hdr).writeto(tmp_path / "in.fits")
+    tpl = tmp_path / "tpl.fits"
+    load_default_template().save(tpl)
+    counts = {}
+    for label, extra in (("header", []), ("option", ["--saturation", "1.4e5"])):
+        out = tmp_path / f"{label}.fits"
+        code, _, err = _run(capsys, "correct", str(tmp_path / "in.fits"), str(out),
+                            "--template", str(tpl), "--no-geometry", "--quiet", *extra)
+        assert code == 0, err
+        with fits.open(out) as h:
+            blocked = (h["BFFLAGS"].data & 1) != 0
+            counts[label] = int(blocked.sum())
+            sat_e = {"header": 1e5, "option": 2.8e5}[label]
+            assert h[0].header["BFSATUR"] == sat_e
+            assert_allclose(blocked, img >= sat_e)
+            assert h[0].header["BFTMPL"] == "tpl.fits" and "AREA" not in h
+            assert abs(float(h[0].data.sum()) - float((img / gain).sum())) < 1e-6 * img.sum()
+    assert counts["header"] > counts["option"] > 0

@@ -170,7 +170,9 @@ def test_lsst_file_through_bfdrift_correct(tmp_path):
     assert code == 0
     with fits.open(src) as a, fits.open(tmp_path / "out.fits") as b:
         assert [h.name for h in b][:len(a)] == [h.name for h in a]
-        assert [h.name for h in b][len(a):] == ["FLUX_MOVED", "BFFLAGS"]
+        assert [h.name for h in b][len(a):] == ["FLUX_MOVED", "BFFLAGS", "AREA", "CENTROID_X",
+                                                "CENTROID_Y", "E1", "E2"]  # geometry on
+        assert b["AREA"].header["BUNIT"] == "pixel2"
         bits = {k[3:]: v for k, v in b["MASK"].header.items() if k.startswith("MP_")}
         assert bits["BF"] == 6 and {k: bits[k] for k in PLANES} == PLANES
         out_img, out_mask = b["IMAGE"].data, b["MASK"].data
