@@ -12,7 +12,7 @@ __all__ = ["abs_dev_bins", "store_tile"]
 
 
 @numba.njit(parallel=True, cache=True)
-def abs_dev_bins(q, qbar, b, out):
+def abs_dev_bins(q, qbar, b, outside, out):
     """Sums of ``abs(q - qbar)`` over ``b`` x ``b`` bins of ``q``.
 
     Parameters
@@ -20,13 +20,13 @@ def abs_dev_bins(q, qbar, b, out):
     q : (ny, nx) float64, charge (e)
     qbar : float, reference level (e)
     b : int, bin side (px)
-    out : (ceil(ny / b), ceil(nx / b)) float64, written. Pixels of a partial
-        bin beyond the image count ``abs(qbar)`` each (a pixel outside the
-        image holds no charge: its deviation from ``qbar`` is ``-qbar``).
+    outside : float, the value counted for each pixel of a partial bin
+        beyond the image
+    out : (ceil(ny / b), ceil(nx / b)) float64, written
     """
     ny, nx = q.shape
     nby, nbx = out.shape
-    aq = abs(qbar)
+    aq = outside
     for by in numba.prange(nby):
         row = np.zeros(nbx)
         j0 = by * b

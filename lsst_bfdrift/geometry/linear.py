@@ -36,11 +36,11 @@ from scipy import fft as sp_fft
 from scipy import ndimage
 
 from lsst_bfdrift.geometry.superpose import (MomentMaps, check_charge_image, moment_maps,
-                                             resample_template)
+                                             resample_template, superpose_boundaries)
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["LINEAR_MAPS", "MEASURED_CONSTANTS", "LinearKernels", "linear_kernels",
-           "second_order_bounds", "displacement_bound", "linear_moment_maps"]
+           "second_order_bounds", "displacement_bound", "error_bounds", "linear_moment_maps"]
 
 #: Maps that :func:`linear_moment_maps` computes, in the order of
 #: :attr:`LinearKernels.kernels`.
@@ -212,6 +212,7 @@ def linear_kernels(template, *, samples=None):
     ns = template.edge_samples if samples is None else min(int(samples), template.edge_samples)
     if ns not in per:
         per[ns] = LinearKernels(template, resample_template(template, ns))
+        per[ns].samples = ns
     return per[ns]
 
 
@@ -295,7 +296,7 @@ def _bin_kernel(disp, b):
     return full[np.ix_(idx, idx)]
 
 
-def displacement_bound(lk, q, *, bin=2, workers=1, qbar=None):
+def displacement_bound(lk, q, *, bin=2, workers=1, qbar=None, outside=None):
     """Upper bound of every boundary displacement of each pixel (px), per bin.
 
     Parameters
@@ -309,6 +310,10 @@ def displacement_bound(lk, q, *, bin=2, workers=1, qbar=None):
         FFT threads.
     qbar : float, optional
         Reference level (e); default: a median of the image.
+    outside : float, optional
+        Value of ``g`` outside the image (e); default ``abs(qbar)``, which
+        bounds the whole displacement. 0 bounds the displacement of
+        ``q - qbar`` (inside the image, zero outside) alone.
 
     Returns
     -------
@@ -334,9 +339,10 @@ def displacement_bound(lk, q, *, bin=2, workers=1, qbar=None):
     qbar = _reference_level(q) if qbar is None else float(qbar)
     rb = lk.bin_kernel(b).shape[0] // 2
     nby, nbx = -(-ny // b), -(-nx // b)
-    g = np.full((nby + 2 * rb, nbx + 2 * rb), abs(qbar) * b * b)
+    out_level = abs(qbar) if outside is None else float(outside)
+    g = np.full((nby + 2 * rb, nbx + 2 * rb), out_level * b * b)
     inner = np.empty((nby, nbx))
-    abs_dev_bins(np.ascontiguousarray(q, dtype=np.float64), qbar, b, inner)
+    abs_dev_bins(np.ascontiguousarray(q, dtype=np.float64), qbar, b, out_level, inner)
     g[rb:rb + nby, rb:rb + nbx] = inner
     shape = (sp_fft.next_fast_len(g.shape[0] + 2 * rb), sp_fft.next_fast_len(g.shape[1] + 2 * rb))
     d = sp_fft.irfft2(sp_fft.rfft2(g.astype(np.float32), shape, workers=workers)
@@ -346,8 +352,127 @@ def displacement_bound(lk, q, *, bin=2, workers=1, qbar=None):
     # single-precision rounding (about 1e-7 of the largest value; margin 100x)
     d += 1e-5 * d.max()
     d *= 1.0 + 1e-5
-    d += abs(qbar) * lk.net
+    if outside is None:
+        d += abs(qbar) * lk.net
     return d
+
+
+def _uniform_response(template, lk, qbar, samples):
+    """Exact minus linear maps (5, n, n) and the largest boundary displacement
+    (n, n) of the pixels of a uniform image of level ``qbar`` (e), n = 2 reach + 1.
+
+    Pixel (j, i) of an image of at least n x n pixels responds to a uniform
+    level as pixel (rowmap(j), colmap(i)) of this one (:func:`_index_map`):
+    only its distances to the image borders, up to the reach, matter.
+    """
+    n = 2 * lk.reach + 1
+    qs = np.full((n, n), float(qbar))
+    ex = moment_maps(template, qs, samples=samples, maps=LINEAR_MAPS)
+    lin, _ = _linear_maps(lk, qs, LINEAR_MAPS, (n, n), np.float64, 1)
+    corr = np.stack([getattr(ex, k) - v for k, v in zip(LINEAR_MAPS, lin)])
+    t = resample_template(template, lk.samples)
+    g = superpose_boundaries(t, qs)
+    nom = g.nominal()
+    c = np.abs(g.corners - nom.corners).max(-1)
+    v = np.abs(g.vedge - nom.vedge).max(-1)
+    h = np.abs(g.hedge - nom.hedge).max(-1)
+    if g.vedge_t is not None:
+        v = np.maximum(v, np.abs(g.vedge_t).max(-1))
+        h = np.maximum(h, np.abs(g.hedge_t).max(-1))
+    eps = np.maximum.reduce([c[:-1, :-1], c[1:, :-1], c[:-1, 1:], c[1:, 1:],
+                             v[:, :-1], v[:, 1:], h[:-1], h[1:]])
+    return corr, eps
+
+
+def _index_map(size, n):
+    """Pixel index in the n-pixel uniform image (:func:`_uniform_response`) of
+    every pixel along an axis of ``size`` >= n pixels."""
+    r = n // 2
+    m = np.full(size, r)
+    m[:r] = np.arange(r)
+    m[size - r:] = np.arange(r + 1, n)
+    return m
+
+
+def _binned_eps(eps, rowmap, colmap, b, nby, nbx):
+    """Largest ``eps[rowmap[j], colmap[i]]`` over every b x b bin."""
+    def classes(m, nb):
+        keys, idx = {}, np.empty(nb, np.int64)
+        for k in range(nb):
+            key = tuple(np.unique(m[k * b:(k + 1) * b]))
+            idx[k] = keys.setdefault(key, len(keys))
+        return list(keys), idx
+
+    ky, iy = classes(rowmap, nby)
+    kx, ix = classes(colmap, nbx)
+    table = np.array([[eps[np.ix_(a, c)].max() for c in kx] for a in ky])
+    return table[iy[:, None], ix[None, :]]
+
+
+def error_bounds(template, q, *, samples=None, bin=2, bound="measured", workers=1,
+                 qbar=None):
+    """A-priori bound of abs(maps - exact maps) per bin, for :func:`linear_moment_maps`.
+
+    Parameters
+    ----------
+    template : DistortionTemplate
+    q : ndarray, shape (ny, nx), float64
+        Charge (e), finite.
+    samples : int, optional
+        Samples per edge of the exact maps.
+    bin : int, optional
+        Bin side (px).
+    bound : {'measured', 'analytic'}, optional
+        See :func:`linear_moment_maps`.
+    workers : int, optional
+        FFT threads.
+    qbar : float, optional
+        Reference level (e); default: a median of the image.
+
+    Returns
+    -------
+    dict
+        Per map of :data:`LINEAR_MAPS`, an array of shape
+        (ceil(ny / bin), ceil(nx / bin)) (map units).
+
+    Notes
+    -----
+    The displacement d of a pixel's boundary is that of the uniform level
+    ``qbar`` over the image, d_u (largest component eps_u, exact: computed
+    on a small uniform image, :func:`_uniform_response`; non-zero within the
+    reach of the image border), plus that of ``q - qbar``, whose components
+    are at most D (:func:`displacement_bound` with nothing outside). The
+    linear maps of :func:`linear_moment_maps` include the exact second-order
+    terms of d_u; what is left of the remainder R (quadratic to the order
+    that matters) is ``R(d_u + d_f) - R(d_u) = 2 B(d_u, d_f) + R(d_f)``, and
+    with abs(R(d)) <= C eps**2 the polarisation identity gives abs(2 B(x, y))
+    <= 4 C eps_x eps_y: the bound is ``C (4 eps_u D + D**2)`` with C the
+    :data:`MEASURED_CONSTANTS`. With ``bound='analytic'``: twice
+    :func:`second_order_bounds` of ``eps_u + D`` (the remainders at d and at
+    d_u, each bounded).
+    Images smaller than the uniform one (2 reach + 1 pixels) use ``eps_u``
+    = 0 and D with ``abs(qbar)`` outside the image (the whole displacement).
+    """
+    lk = linear_kernels(template, samples=samples)
+    b = int(bin)
+    qbar = _reference_level(q) if qbar is None else float(qbar)
+    ny, nx = q.shape
+    n = 2 * lk.reach + 1
+    nby, nbx = -(-ny // b), -(-nx // b)
+    if ny >= n and nx >= n:
+        d = displacement_bound(lk, q, bin=b, workers=workers, qbar=qbar, outside=0.0)
+        d += abs(qbar) * lk.net
+        _, eps_small = _uniform_response(template, lk, qbar, samples)
+        eps_u = _binned_eps(eps_small, _index_map(ny, n), _index_map(nx, n), b, nby, nbx)
+    else:
+        d = displacement_bound(lk, q, bin=b, workers=workers, qbar=qbar)
+        eps_u = np.zeros_like(d)
+    if bound == "measured":
+        x = d * (4.0 * eps_u + d)
+        return {k: np.where(eps_u + d <= 0.05, MEASURED_CONSTANTS[k] * x, np.inf)
+                for k in LINEAR_MAPS}
+    an = second_order_bounds(eps_u + d, lk.chi)
+    return {k: 2.0 * an[k] for k in LINEAR_MAPS}
 
 
 def _boxes(flag, b, shape, block=32):
@@ -401,7 +526,7 @@ def _exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtyp
     return canvas.size
 
 
-def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, exact=True,
+def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, fallback=True,
                        bound="measured", tile=(256, 1024), bin=2, max_fraction=0.5, workers=1,
                        dtype=np.float32, strip=256, maps=None, info=None):
     """Area, centroid-shift and ellipticity maps: linear, exact where needed.
@@ -426,7 +551,7 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
         Samples per edge of the exact fallback
         (:func:`~lsst_bfdrift.geometry.superpose.resample_template`); None:
         the template's own.
-    exact : bool, optional
+    fallback : bool, optional
         Compute the exact moments where the bound exceeds the tolerance
         (False: the linear maps everywhere, for tests and timing).
     bound : {'measured', 'analytic'}, optional
@@ -453,8 +578,7 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
         Maps to keep, of :data:`LINEAR_MAPS` (default: all five).
     info : dict, optional
         Filled with ``method`` ('linear', 'linear+exact' or 'exact'),
-        ``signal`` (S per map), ``tolerance`` (per map), ``eps_limit`` (px:
-        bins whose displacement bound exceeds it are exact), ``windows``,
+        ``signal`` (S per map), ``tolerance`` (per map), ``windows``,
         ``exact_fraction`` (flagged bins' share of the image) and
         ``canvas_fraction`` (pixels run through ``moment_maps``, margins
         included, over the image size).
@@ -467,14 +591,17 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
 
     Notes
     -----
-    Single-precision transforms round the linear maps to about 1e-6 of
-    their signal (measured; the test suite checks < 1e-4). The bound: per
-    bin, the displacement bound ``eps`` (:func:`displacement_bound`) and the
-    second-order bounds (:func:`second_order_bounds`) of each map;
-    where any exceeds ``0.9 rtol S`` the pixels are exact.
+    Single-precision transforms round the linear maps to about 2e-7 of
+    their signal (measured; the test suite checks < 1e-5). Within the
+    template's reach of the image border the maps include the exact
+    second-order terms of the image's uniform level (a median; computed on a
+    small uniform image). The bound (:func:`error_bounds`, per ``bin`` x
+    ``bin`` pixels) decides where the exact moments are needed: where it
+    exceeds ``0.9 rtol S`` for any map. The signal S is that of the
+    first-order maps before the border terms (within 1.2 % of the exact
+    maps' on a 1e5 e flat, whose signal is at its border; the factor 0.9
+    covers it).
     """
-    from lsst_bfdrift.geometry._linear_kernels import store_tile
-
     names = LINEAR_MAPS if maps is None else tuple(maps)
     unknown = sorted(set(names) - set(LINEAR_MAPS))
     if unknown:
@@ -496,38 +623,36 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
     ny, nx = q.shape
     lk = linear_kernels(template, samples=samples)
     r = lk.reach
-    th, tw = min(th, ny), min(tw, nx)
-    fshape = (sp_fft.next_fast_len(th + 2 * r), sp_fft.next_fast_len(tw + 2 * r))
-    spec = lk.spectra(fshape, dtype, workers)
     out = MomentMaps((0, 0), ())
-    store = np.empty((len(names), ny, nx))
-    slot = np.array([names.index(k) if k in names else -1 for k in LINEAR_MAPS], np.int64)
-    smax = np.zeros(len(LINEAR_MAPS))
-    pad = np.zeros(fshape, dtype)
-    for y0 in range(0, ny, th):
-        h = min(th, ny - y0)
-        for x0 in range(0, nx, tw):
-            w = min(tw, nx - x0)
-            a0, a1, b0, b1 = max(y0 - r, 0), min(y0 + h + r, ny), max(x0 - r, 0), min(x0 + w + r, nx)
-            pad[:] = 0.0
-            pad[a0 - (y0 - r):a1 - (y0 - r), b0 - (x0 - r):b1 - (x0 - r)] = q[a0:a1, b0:b1]
-            f = sp_fft.rfft2(pad, workers=workers)
-            res = sp_fft.irfft2(spec * f, fshape, axes=(-2, -1), workers=workers,
-                                overwrite_x=True)
-            store_tile(res, r, y0, x0, h, w, _NOMINAL, slot, store, smax)
-    outs = [store[k] for k in range(len(names))]
+    outs, smax = _linear_maps(lk, q, names, (th, tw), dtype, workers)
     for name, arr in zip(names, outs):
         setattr(out, name, arr)
     signal = dict(zip(LINEAR_MAPS, smax.tolist()))
     tol = {k: 0.9 * rtol * v for k, v in signal.items()}
-    info.update(method="linear", signal=signal, tolerance=tol, eps_limit=None, windows=0,
+    info.update(method="linear", signal=signal, tolerance=tol, windows=0,
                 exact_fraction=0.0, canvas_fraction=0.0)
-    if not exact:
+    qbar = _reference_level(q)
+    n = 2 * r + 1
+    if ny >= n and nx >= n:
+        # exact second-order terms of the uniform level near the image border
+        corr, _ = _uniform_response(template, lk, qbar, samples)
+        rm, cm = _index_map(ny, n), _index_map(nx, n)
+        for k, name in enumerate(LINEAR_MAPS):
+            if name not in names:
+                continue
+            o = outs[names.index(name)]
+            c = corr[k]
+            for rows in (slice(0, r), slice(ny - r, ny)):
+                o[rows] += c[rm[rows]][:, cm]
+            for cols in (slice(0, r), slice(nx - r, nx)):
+                o[r:ny - r, cols] += c[r, cm[cols]]
+    if not fallback:
         return out
-    limit = _eps_limit(tol, lk.chi, bound)
-    info["eps_limit"] = limit
-    eps = displacement_bound(lk, q, bin=bin, workers=workers)
-    flag = eps > limit
+    bounds = error_bounds(template, q, samples=samples, bin=bin, bound=bound,
+                          workers=workers, qbar=qbar)
+    flag = np.zeros(bounds["area"].shape, bool)
+    for k in LINEAR_MAPS:
+        flag |= bounds[k] > tol[k]
     if not flag.any():
         return out
     b = int(bin)
@@ -547,21 +672,29 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
     return out
 
 
-def _eps_limit(tol, chi, bound):
-    """Largest eps whose bounds (``bound``: 'measured' or 'analytic') are all
-    within ``tol`` (bisection on the increasing bounds)."""
-    def fits(e):
-        if bound == "measured":
-            if e > 0.05:
-                return False
-            return all(MEASURED_CONSTANTS[k] * e * e <= tol[k] for k in LINEAR_MAPS)
-        bd = second_order_bounds(e, chi)
-        return all(float(bd[k]) <= tol[k] for k in LINEAR_MAPS)
+def _linear_maps(lk, q, names, tile, dtype, workers):
+    """The first-order maps (float64, in ``names`` order) by tiled FFTs, and
+    max abs(map - nominal) of all five."""
+    from lsst_bfdrift.geometry._linear_kernels import store_tile
 
-    lo, hi = 0.0, 0.2
-    if fits(hi):
-        return hi
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if fits(mid) else (lo, mid)
-    return lo
+    ny, nx = q.shape
+    r = lk.reach
+    th, tw = min(tile[0], ny), min(tile[1], nx)
+    fshape = (sp_fft.next_fast_len(th + 2 * r), sp_fft.next_fast_len(tw + 2 * r))
+    spec = lk.spectra(fshape, dtype, workers)
+    store = np.empty((len(names), ny, nx))
+    slot = np.array([names.index(k) if k in names else -1 for k in LINEAR_MAPS], np.int64)
+    smax = np.zeros(len(LINEAR_MAPS))
+    pad = np.zeros(fshape, dtype)
+    for y0 in range(0, ny, th):
+        h = min(th, ny - y0)
+        for x0 in range(0, nx, tw):
+            w = min(tw, nx - x0)
+            a0, a1, b0, b1 = max(y0 - r, 0), min(y0 + h + r, ny), max(x0 - r, 0), min(x0 + w + r, nx)
+            pad[:] = 0.0
+            pad[a0 - (y0 - r):a1 - (y0 - r), b0 - (x0 - r):b1 - (x0 - r)] = q[a0:a1, b0:b1]
+            f = sp_fft.rfft2(pad, workers=workers)
+            res = sp_fft.irfft2(spec * f, fshape, axes=(-2, -1), workers=workers,
+                                overwrite_x=True)
+            store_tile(res, r, y0, x0, h, w, _NOMINAL, slot, store, smax)
+    return [store[k] for k in range(len(names))], smax
