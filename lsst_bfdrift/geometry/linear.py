@@ -16,8 +16,8 @@ the kernels exactly (:class:`LinearKernels`). With ``L_f`` that change for
 * ``e1 = 6 (L_xx - L_yy)`` and ``e2 = 12 L_xy``: the ellipticities
   linearised about the square pixel (moments 1/12, 1/12, 0), not ratios of
   linearised moments (forming the ratios from first-order moment maps is
-  less accurate: its quadratic errors do not cancel those of the moments,
-  ~15x larger for e1 and e2 on a 1.5e6 e star).
+  less accurate: its quadratic errors do not cancel those of the moments:
+  5 to 15 times larger for e1 and e2 on a 1.5e6 e star).
 
 Where the charge is high the neglected second-order terms matter, and the
 exact polygon moments are computed there instead, on windows chosen by an
@@ -475,55 +475,88 @@ def error_bounds(template, q, *, samples=None, bin=2, bound="measured", workers=
     return {k: 2.0 * an[k] for k in LINEAR_MAPS}
 
 
-def _boxes(flag, b, shape, block=32):
-    """Pixel boxes (y0, y1, x0, x1): the bounding box of the flagged bins in
-    every ``block`` x ``block`` block of bins that has any (disjoint; a
-    connected group's own box could be most of the image, e.g. a ring of
-    flagged bins along the image border)."""
+def _boxes(flag, b, shape, *, band, block=32):
+    """Pixel boxes (y0, y1, x0, x1) covering the flagged bins.
+
+    Flagged bins within ``band`` bins of the image border (where the
+    uniform level's displacements are) make one strip per side, as long as
+    the flagged part of that side and as deep as its deepest flagged bin;
+    the others, the bounding box of every connected group of flagged bins
+    within each ``block`` x ``block`` block of bins.
+    """
     ny, nx = shape
+    nby, nbx = flag.shape
+    flag = flag.copy()
     out = []
-    for by in range(0, flag.shape[0], block):
-        for bx in range(0, flag.shape[1], block):
-            f = flag[by:by + block, bx:bx + block]
+    band = min(band, nby // 2, nbx // 2)
+    if band > 0:
+        sides = ((flag[:band], False, False), (flag[nby - band:][::-1], False, True),
+                 (flag[:, :band].T, True, False), (flag[:, nbx - band:][:, ::-1].T, True, True))
+        for f, transposed, far in sides:
             if not f.any():
                 continue
-            rows = np.flatnonzero(f.any(axis=1))
+            depth = int(np.flatnonzero(f.any(axis=1))[-1]) + 1
             cols = np.flatnonzero(f.any(axis=0))
-            out.append(((by + rows[0]) * b, min((by + rows[-1] + 1) * b, ny),
-                        (bx + cols[0]) * b, min((bx + cols[-1] + 1) * b, nx)))
+            a, z = int(cols[0]) * b, (int(cols[-1]) + 1) * b
+            n_along, n_across = (ny, nx) if transposed else (nx, ny)
+            bins_across = nbx if transposed else nby
+            lo, hi = ((bins_across - depth) * b, n_across) if far else (0, min(depth * b, n_across))
+            z = min(z, n_along)
+            out.append((a, z, lo, hi) if transposed else (lo, hi, a, z))
+        flag[:band] = flag[nby - band:] = False
+        flag[:, :band] = flag[:, nbx - band:] = False
+    labels, _ = ndimage.label(flag, structure=np.ones((3, 3), int))
+    for sl in ndimage.find_objects(labels):
+        for by in range(sl[0].start, sl[0].stop, block):
+            for bx in range(sl[1].start, sl[1].stop, block):
+                f = flag[by:min(by + block, sl[0].stop), bx:min(bx + block, sl[1].stop)]
+                if not f.any():
+                    continue
+                rows = np.flatnonzero(f.any(axis=1))
+                cols = np.flatnonzero(f.any(axis=0))
+                out.append(((by + rows[0]) * b, min((by + rows[-1] + 1) * b, ny),
+                            (bx + cols[0]) * b, min((bx + cols[-1] + 1) * b, nx)))
     return out
 
 
 def _exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtype, strip):
-    """Exact moments of the pixels in ``boxes``: every box with ``r`` pixels of
-    its charge around it is placed on one canvas (shelves, each slot apart
-    from the others by its margins: no pixel of a box sees another slot's
-    charge) and :func:`moment_maps` runs once on the canvas. Returns the
-    canvas area (px)."""
-    slots = sorted(((y1 - y0 + 2 * r, x1 - x0 + 2 * r, (y0, y1, x0, x1)) for y0, y1, x0, x1 in boxes),
-                   reverse=True)
-    total = sum(h * w for h, w, _ in slots)
-    width = max(max(w for _, w, _ in slots), int(math.sqrt(total) * 1.1))
-    place, x, y, shelf = [], 0, 0, 0
-    for h, w, box in slots:
-        if x + w > width:
-            y, x, shelf = y + shelf, 0, 0
-        place.append((y, x, box))
-        x += w
-        shelf = max(shelf, h)
-    canvas = np.zeros((y + shelf, width))
-    ny, nx = q.shape
-    for cy, cx, (y0, y1, x0, x1) in place:
-        a0, a1, b0, b1 = max(y0 - r, 0), min(y1 + r, ny), max(x0 - r, 0), min(x1 + r, nx)
-        oy, ox = cy + a0 - (y0 - r), cx + b0 - (x0 - r)
-        canvas[oy:oy + a1 - a0, ox:ox + b1 - b0] = q[a0:a1, b0:b1]
-    mm = moment_maps(template, canvas, samples=samples, workers=workers, dtype=dtype,
-                     strip=strip, maps=names)
-    for cy, cx, (y0, y1, x0, x1) in place:
-        for k, name in enumerate(names):
-            outs[k][y0:y1, x0:x1] = getattr(mm, name)[cy + r:cy + r + y1 - y0,
-                                                       cx + r:cx + r + x1 - x0]
-    return canvas.size
+    """Exact moments of the pixels in ``boxes``. Every box with ``r`` pixels of
+    its charge around it is a slot on a canvas, apart from the other slots by
+    its margins (no pixel of a box sees another slot's charge), and
+    :func:`moment_maps` runs once per canvas: one for the slots taller than
+    wide (the strips along the left and right image borders), side by side,
+    one for the others, on shelves. Returns the canvases' area (px)."""
+    slots = [(y1 - y0 + 2 * r, x1 - x0 + 2 * r, (y0, y1, x0, x1)) for y0, y1, x0, x1 in boxes]
+    tall = [sl for sl in slots if sl[0] > 4 * sl[1]]
+    rest = sorted((sl for sl in slots if sl[0] <= 4 * sl[1]), reverse=True)
+    area = 0
+    for group, shelves in ((tall, False), (rest, True)):
+        if not group:
+            continue
+        total = sum(h * w for h, w, _ in group)
+        width = max(max(w for _, w, _ in group), int(math.sqrt(total) * 1.1)) if shelves \
+            else sum(w for _, w, _ in group)
+        place, x, y, shelf = [], 0, 0, 0
+        for h, w, box in group:
+            if x + w > width:
+                y, x, shelf = y + shelf, 0, 0
+            place.append((y, x, box))
+            x += w
+            shelf = max(shelf, h)
+        canvas = np.zeros((y + shelf, width))
+        ny, nx = q.shape
+        for cy, cx, (y0, y1, x0, x1) in place:
+            a0, a1, b0, b1 = max(y0 - r, 0), min(y1 + r, ny), max(x0 - r, 0), min(x1 + r, nx)
+            oy, ox = cy + a0 - (y0 - r), cx + b0 - (x0 - r)
+            canvas[oy:oy + a1 - a0, ox:ox + b1 - b0] = q[a0:a1, b0:b1]
+        mm = moment_maps(template, canvas, samples=samples, workers=workers, dtype=dtype,
+                         strip=strip, maps=names)
+        for cy, cx, (y0, y1, x0, x1) in place:
+            for k, name in enumerate(names):
+                outs[k][y0:y1, x0:x1] = getattr(mm, name)[cy + r:cy + r + y1 - y0,
+                                                           cx + r:cx + r + x1 - x0]
+        area += canvas.size
+    return area
 
 
 def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, fallback=True,
@@ -657,7 +690,7 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
         return out
     b = int(bin)
     info["exact_fraction"] = float(flag.sum()) * b * b / q.size
-    boxes = _boxes(flag, b, q.shape)
+    boxes = _boxes(flag, b, q.shape, band=-(-r // b))
     canvas = sum((y1 - y0 + 2 * r) * (x1 - x0 + 2 * r) for y0, y1, x0, x1 in boxes)
     if canvas > max_fraction * q.size:
         mm = moment_maps(template, q, samples=samples, workers=workers, dtype=dtype,
