@@ -24,8 +24,8 @@ kernel transforms included) made inside :mod:`lsst_bfdrift.templates.swept` and
 :mod:`lsst_bfdrift.correction.solvers` during ``task.run``. The Task keeps its
 operators (kernel transforms) between calls, for every method alike. Run from the repository
 root. ``warm`` is the median of seven more calls on the same image in the same
-process (operators and work arrays kept by the Task, memory pools warm; not
-for ``drift+geometry``), with their spread (min-max)::
+process (operators and work arrays kept by the Task, memory pools warm),
+with their spread (min-max); ``drift+geometry`` is the Task's default::
 
     python benchmarks/bench_task.py [--size 4096] [--repeat 5]
 
