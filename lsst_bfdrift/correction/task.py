@@ -1,8 +1,9 @@
 """BrighterFatterDriftTask: correct exposures with the template as Green's function.
 
 The Task only wires plain functions: :func:`~lsst_bfdrift.correction.solvers.correct_image`
-for the flux redistribution and :func:`~lsst_bfdrift.geometry.superpose.moment_maps`
-for the final pixel geometry predicted from the recorded image.
+for the flux redistribution and :func:`~lsst_bfdrift.geometry.linear.linear_moment_maps`
+(or :func:`~lsst_bfdrift.geometry.superpose.moment_maps`) for the final pixel geometry
+predicted from the recorded image.
 """
 
 import copy
@@ -22,6 +23,7 @@ from lsst_bfdrift.utils.exposure import (BLOCKING_PLANES, MaskedExposure, add_ma
 from lsst_bfdrift.correction.solvers import (MAX_SWEEP, area_coefficients, correct_coulton18,
                                              correct_half_shift, correct_image,
                                              coulton18_kernel, refuse_out_of_range)
+from lsst_bfdrift.geometry.linear import linear_moment_maps
 from lsst_bfdrift.geometry.superpose import moment_maps
 from lsst_bfdrift.templates.refine import draw_templates
 from lsst_bfdrift.templates.swept import OperatorCache
@@ -103,6 +105,16 @@ class BrighterFatterDriftConfig(pexConfig.Config):
         default=None, optional=True, check=lambda v: math.isfinite(v) and v > 0)
     compute_geometry = pexConfig.Field(
         doc="compute area, centroid and ellipticity maps", dtype=bool, default=True)
+    geometry_method = pexConfig.ChoiceField(
+        doc="how the geometry maps are computed", dtype=str, default="linear", optional=False,
+        allowed={"linear": "first order in the charge (FFT convolutions with the template's "
+                           "moment kernels), exact polygon moments where an a-priori bound "
+                           "exceeds geometry_tolerance (geometry.linear)",
+                 "exact": "exact polygon moments of every pixel (geometry.superpose)"})
+    geometry_tolerance = pexConfig.Field(
+        doc="geometry_method 'linear': largest error against the exact maps in any pixel, as a "
+            "fraction of each map's signal (its largest abs(map - nominal) over the image)",
+        dtype=float, default=1e-3, check=lambda v: 0 < v < 1)
     geometry_samples = pexConfig.Field(
         doc="samples per pixel edge for the geometry maps (template edges resampled keeping "
             "swept areas and moments to first order: ~1e-5 of the signal for area and "
@@ -513,10 +525,15 @@ class BrighterFatterDriftTask(Task):
         geom = dict(area=None, centroid_x=None, centroid_y=None, e1=None, e2=None)
         if cfg.compute_geometry:
             ns = cfg.geometry_samples
-            maps = moment_maps(self.template, finite_data,
-                               workers=cfg.workers, dtype=dtype,
-                               samples=None if ns is None else min(ns, self.template.edge_samples),
-                               maps=("area", "dx", "dy", "e1", "e2"))  # only those returned
+            samples = None if ns is None else min(ns, self.template.edge_samples)
+            names = ("area", "dx", "dy", "e1", "e2")  # only those returned
+            if cfg.geometry_method == "linear":
+                maps = linear_moment_maps(self.template, finite_data, rtol=cfg.geometry_tolerance,
+                                          samples=samples, workers=cfg.workers, dtype=dtype,
+                                          maps=names)
+            else:
+                maps = moment_maps(self.template, finite_data, workers=cfg.workers, dtype=dtype,
+                                   samples=samples, maps=names)
             geom = dict(area=maps.area, centroid_x=maps.dx, centroid_y=maps.dy, e1=maps.e1,
                         e2=maps.e2)
         flux, iterations, converged, order, density, solver = _correct(
@@ -554,6 +571,7 @@ class BrighterFatterDriftTask(Task):
             if cfg.geometry_samples is not None:
                 ns = min(cfg.geometry_samples, ns)
             header["BFGSAMP"] = (ns, "edge samples of the geometry maps")
+            header["BFGMETH"] = (cfg.geometry_method, "geometry maps: linear or exact")
         header["BFQTMPL"] = (self.template.charge, "template aggressor charge (e)")
         header["BFTMPL"] = (os.path.basename(str(cfg.template or "bundled default"))[-40:],
                             "BF template file")

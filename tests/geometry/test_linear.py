@@ -1,0 +1,241 @@
+"""Tests of lsst_bfdrift.geometry.linear: first-order maps, their bound, the exact fallback.
+
+These are consistency tests of the package against itself: the reference is
+the exact polygon moments of :func:`lsst_bfdrift.geometry.superpose.moment_maps`
+with the same template, not an outside truth.
+"""
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from lsst_bfdrift.geometry.linear import (LINEAR_MAPS, MEASURED_CONSTANTS, _linear_maps,
+                                          displacement_bound, error_bounds, linear_kernels,
+                                          linear_moment_maps, second_order_bounds)
+from lsst_bfdrift.geometry.superpose import moment_maps, resample_template, superpose_boundaries
+
+NOMINAL = dict(area=1.0, dx=0.0, dy=0.0, e1=0.0, e2=0.0)
+
+
+@pytest.fixture(scope="module")
+def default_template():
+    from lsst_bfdrift.templates.template import load_default_template
+    return load_default_template()
+
+
+def _star_field(n, peak_flux, rng, sky=1200.0):
+    """Poisson sky, one star of ``peak_flux`` e (sigma 1.5 px) and fainter ones."""
+    q = rng.poisson(sky, (n, n)).astype(float)
+    yy, xx = np.mgrid[0:n, 0:n]
+    for (x, y, f, s) in ((n / 2 + 0.3, n / 2 - 0.2, peak_flux, 1.5),
+                         (n / 5, 4 * n / 5, peak_flux / 30, 1.2),
+                         (4 * n / 5, n / 5 + 0.5, peak_flux / 8, 2.0)):
+        q += f * np.exp(-0.5 * ((xx - x)**2 + (yy - y)**2) / s**2) / (2 * np.pi * s**2)
+    return q
+
+
+def _signal(maps):
+    return {k: np.abs(getattr(maps, k) - NOMINAL[k]).max() for k in LINEAR_MAPS}
+
+
+def _true_eps(template, q):
+    """Largest abs displacement component of every pixel's boundary points (px)."""
+    g = superpose_boundaries(template, q)
+    nom = g.nominal()
+    c = np.abs(g.corners - nom.corners).max(-1)
+    v = np.abs(g.vedge - nom.vedge).max(-1)
+    h = np.abs(g.hedge - nom.hedge).max(-1)
+    return np.maximum.reduce([c[:-1, :-1], c[1:, :-1], c[:-1, 1:], c[1:, 1:],
+                              v[:, :-1], v[:, 1:], h[:-1], h[1:]])
+
+
+@pytest.mark.parametrize("which", ["small", "default"])
+def test_kernels_are_the_first_order_response(which, small_template, default_template):
+    """Central difference of the exact maps for one aggressor (+-q: the
+    second-order terms cancel) equals the kernels."""
+    t = small_template if which == "small" else default_template
+    r = t.center + 1
+    n = 2 * r + 5
+    q = np.zeros((n, n))
+    q[n // 2, n // 2] = 1e-3 * t.charge
+    plus, minus = moment_maps(t, q), moment_maps(t, -q)
+    k = linear_kernels(t).kernels
+    assert k.shape == (5, 2 * r + 1, 2 * r + 1)
+    sl = slice(n // 2 - r, n // 2 + r + 1)
+    for m, name in enumerate(LINEAR_MAPS):
+        diff = (getattr(plus, name) - getattr(minus, name)) / (2 * q.max())
+        assert_allclose(diff[sl, sl], k[m], rtol=0, atol=1e-6 * np.abs(k[m]).max())
+        # nothing beyond the kernel's reach
+        assert np.abs(diff).sum() == pytest.approx(np.abs(diff[sl, sl]).sum(), rel=1e-9)
+
+
+def test_kernels_do_not_depend_on_resampling(default_template):
+    t = default_template
+    full, eight = linear_kernels(t), linear_kernels(t, samples=8)
+    assert linear_kernels(t) is full  # cached per template
+    assert_allclose(eight.kernels, full.kernels, rtol=0, atol=1e-12 * np.abs(full.kernels).max())
+    # the bound of the resampled template's own displacements is its own
+    assert eight.disp.max() > 0 and eight.chi == 4.0
+
+
+def test_linear_maps_are_the_convolutions(small_template, rng):
+    """Tiled FFTs (tiles smaller than the image) against a direct sum."""
+    t = small_template
+    q = rng.uniform(0, 5e4, (37, 29))
+    k = linear_kernels(t).kernels
+    r = t.center + 1
+    qp = np.pad(q, r)
+    ref = np.zeros((5,) + q.shape)
+    for dj in range(-r, r + 1):
+        for di in range(-r, r + 1):
+            ref += k[:, dj + r, di + r, None, None] * qp[r - dj:r - dj + 37, r - di:r - di + 29]
+    lk = linear_kernels(t)
+    for dtype, tol in ((np.float64, 1e-12), (np.float32, 1e-5)):
+        maps, smax = _linear_maps(lk, q, LINEAR_MAPS, (10, 13), dtype, 1)
+        for i, name in enumerate(LINEAR_MAPS):
+            s = np.abs(ref[i]).max()
+            assert_allclose(maps[i] - NOMINAL[name], ref[i], rtol=0, atol=tol * s)
+            assert smax[i] == pytest.approx(s, rel=10 * tol)
+    # the maps returned add the uniform level's second-order terms within
+    # the reach of the border only
+    info = {}
+    m = linear_moment_maps(t, q, fallback=False, tile=(10, 13), dtype=np.float64, info=info)
+    assert m.ixx is None and info["method"] == "linear"
+    d = np.abs(m.area - 1.0 - ref[0])
+    assert d[r:-r, r:-r].max() < 1e-15 and d.max() > 1e-6
+
+
+@pytest.fixture(scope="module")
+def fields(default_template):
+    """Star field with a 1.5e6 e star and a 1e5 e flat: charge, exact maps,
+    first-order maps alone (raw), with the border terms (``fallback=False``),
+    true largest displacements."""
+    rng = np.random.default_rng(17)
+    out = {}
+    t8 = resample_template(default_template, 8)
+    lk = linear_kernels(default_template, samples=8)
+    for name, q in (("stars", _star_field(80, 1.5e6, rng)),
+                    ("flat", rng.poisson(1e5, (72, 72)).astype(float))):
+        exact = moment_maps(default_template, q, samples=8)
+        raw = dict(zip(LINEAR_MAPS, _linear_maps(lk, q, LINEAR_MAPS, (64, 64), np.float64, 1)[0]))
+        lin = linear_moment_maps(default_template, q, samples=8, fallback=False,
+                                 dtype=np.float64)
+        out[name] = (q, exact, raw, lin, _true_eps(t8, q))
+    return out
+
+
+def _pixels(binned, b, shape):
+    return np.repeat(np.repeat(binned, b, 0), b, 1)[:shape[0], :shape[1]]
+
+
+@pytest.mark.parametrize("name", ["stars", "flat"])
+def test_bound_holds(name, fields, default_template):
+    """displacement_bound >= the true displacements; the first-order error
+    is within MEASURED_CONSTANTS * eps**2 (true eps) and the analytic
+    second_order_bounds; the error of the maps with the border terms is
+    within error_bounds (measured and analytic constants)."""
+    q, exact, raw, lin, eps = fields[name]
+    lk = linear_kernels(default_template, samples=8)
+    d = _pixels(displacement_bound(lk, q, bin=2), 2, q.shape)
+    assert np.all(d >= eps)
+    analytic = second_order_bounds(d, lk.chi)
+    for k in LINEAR_MAPS:
+        err = np.abs(raw[k] - getattr(exact, k))
+        assert np.all(err <= MEASURED_CONSTANTS[k] * eps**2), (k, (err / eps**2).max())
+        assert np.all(err <= analytic[k]), k
+    for how in ("measured", "analytic"):
+        bd = error_bounds(default_template, q, samples=8, bound=how)
+        for k in LINEAR_MAPS:
+            err = np.abs(getattr(lin, k) - getattr(exact, k))
+            assert np.all(err <= _pixels(bd[k], 2, q.shape)), (how, k)
+
+
+@pytest.mark.parametrize("name", ["stars", "flat"])
+def test_maps_within_tolerance_of_exact(name, fields, default_template):
+    """Default maps: worst pixel within 1e-3 of each map's signal (its largest
+    abs(map - nominal) over the image, exact maps). The linear maps alone are
+    not: on both fields the exact fallback is needed (this test fails with
+    it disabled)."""
+    q, exact, _, lin, _ = fields[name]
+    s = _signal(exact)
+    info = {}
+    m = linear_moment_maps(default_template, q, samples=8, info=info)
+    errs = {k: np.abs(getattr(m, k) - getattr(exact, k)).max() / s[k] for k in LINEAR_MAPS}
+    assert max(errs.values()) <= 1e-3, errs
+    lin_err = {k: np.abs(getattr(lin, k) - getattr(exact, k)).max() / s[k] for k in LINEAR_MAPS}
+    assert max(lin_err.values()) > 1e-3, lin_err
+    assert info["method"] in ("linear+exact", "exact") and info["exact_fraction"] > 0
+
+
+def test_bright_star_windows_only(default_template, rng):
+    """On a larger sky the fallback is confined to windows around the bright
+    star and the image border; the rest is linear."""
+    q = _star_field(384, 1.5e6, rng)
+    info = {}
+    m = linear_moment_maps(default_template, q, samples=8, info=info)
+    assert info["method"] == "linear+exact"
+    assert 0 < info["exact_fraction"] < 0.1
+    exact = moment_maps(default_template, q, samples=8)
+    s = _signal(exact)
+    for k in LINEAR_MAPS:
+        assert np.abs(getattr(m, k) - getattr(exact, k)).max() <= 1e-3 * s[k], k
+
+
+def test_float32_rounding_is_small(fields, default_template):
+    q, exact, _, lin, _ = fields["stars"]
+    m32 = linear_moment_maps(default_template, q, samples=8, fallback=False)
+    s = _signal(lin)
+    for k in LINEAR_MAPS:
+        assert np.abs(getattr(m32, k) - getattr(lin, k)).max() < 1e-5 * s[k], k
+
+
+def test_zero_charge_and_mask(small_template):
+    m = linear_moment_maps(small_template, np.zeros((9, 8)))
+    assert_allclose(m.area, 1.0, rtol=0, atol=0)
+    assert_allclose(m.e2, 0.0, rtol=0, atol=0)
+    q = np.zeros((12, 12))
+    q[5, 5] = 3e4
+    q[2, 9] = np.nan
+    mask = np.isnan(q)
+    a = linear_moment_maps(small_template, q, mask=mask)
+    b = linear_moment_maps(small_template, np.where(mask, 0.0, q))
+    assert np.array_equal(a.area, b.area)
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"maps": ("area", "ixx")}, "unknown linear maps"),
+    ({"bound": "tight"}, "bound must be"),
+    ({"rtol": 0.0}, "rtol must be between"),
+    ({"dtype": np.float16}, "dtype must be float64 or float32"),
+    ({"tile": (0, 4)}, "tile and bin must be positive"),
+])
+def test_bad_options(small_template, kw, match):
+    with pytest.raises(ValueError, match=match):
+        linear_moment_maps(small_template, np.zeros((6, 6)), **kw)
+
+
+def test_task_geometry_methods(default_template, rng):
+    """The correction is bit-identical whatever the geometry method; the
+    linear maps are within the tolerance of the exact ones."""
+    from lsst_bfdrift.utils.config import FieldValidationError
+    from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
+    q = _star_field(96, 1.5e6, rng)
+    res = {}
+    for method in ("linear", "exact"):
+        cfg = BrighterFatterDriftConfig(geometry_method=method)
+        res[method] = BrighterFatterDriftTask(cfg, template=default_template).run(q)
+    none = BrighterFatterDriftTask(BrighterFatterDriftConfig(compute_geometry=False),
+                                   template=default_template).run(q)
+    assert BrighterFatterDriftConfig().geometry_method == "linear"
+    for r in res.values():
+        assert np.array_equal(r.exposure, none.exposure)
+        assert np.array_equal(r.flux_moved, none.flux_moved)
+    assert res["linear"].header["BFGMETH"] == "linear"
+    assert res["exact"].header["BFGMETH"] == "exact"
+    ex = res["exact"]
+    for name in ("area", "centroid_x", "centroid_y", "e1", "e2"):
+        nominal = 1.0 if name == "area" else 0.0
+        s = np.abs(getattr(ex, name) - nominal).max()
+        assert np.abs(getattr(res["linear"], name) - getattr(ex, name)).max() <= 1e-3 * s, name
+    with pytest.raises(FieldValidationError, match="geometry_tolerance"):
+        BrighterFatterDriftConfig(geometry_tolerance=0.0).validate()
