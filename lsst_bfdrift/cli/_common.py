@@ -76,3 +76,28 @@ def _save_plot(fig, path, summary=None):
     save_figure(fig, path)
     if summary is not None:
         summary["plot"] = os.path.abspath(path)
+
+
+def _check_output_dir(args, path, option, inputs=()):
+    """The overwrite rule for a directory output (``--report DIR``, ``reproduce --out``):
+    a directory holding files is replaced only with ``--overwrite``, and it may never be
+    an input (a directory of flats given as the input too).
+
+    Raises
+    ------
+    OutputExistsError
+    """
+    if path is None:
+        return
+    path = os.path.abspath(os.fspath(path))
+    for x in inputs:
+        if x is not None and os.path.abspath(os.fspath(x)) == path:
+            raise OutputExistsError(f"{option} {path}: is also an input; write the output "
+                                    "elsewhere")
+    if os.path.isdir(path) and os.listdir(path) and not getattr(args, "overwrite", False):
+        raise OutputExistsError(f"{option} {path}: the directory exists and holds files; "
+                                "use --overwrite to replace its outputs, or name another "
+                                "directory")
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise OutputExistsError(f"{option} {path}: exists and is not a directory")
+

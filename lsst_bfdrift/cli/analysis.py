@@ -4,7 +4,7 @@ validate-sky, validate-stars and reproduce (their options: :mod:`lsst_bfdrift.cl
 import json
 import os
 
-from lsst_bfdrift.cli._common import (_check_outputs, _emit, _load_template, _print_json,
+from lsst_bfdrift.cli._common import (_check_output_dir, _check_outputs, _emit, _load_template, _print_json,
                                       _save_plot, _template_input)
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
@@ -172,6 +172,7 @@ def _cmd_validate_stars(args):
 def _cmd_reproduce(args):
     from lsst_bfdrift.utils.progress import ProgressBar
     from lsst_bfdrift.validation.paper_figures import reproduce, write_figures
+    _check_output_dir(args, args.out, "--out")
     kw = dict(size=11, edge_samples=16, v_bss=(-65.0, -50.0), xi_ck=(4.0, 5.0),
               quick_features=True) if args.quick else {}
     n_scan = len(kw.get("v_bss", (0,) * 5)) * len(kw.get("xi_ck", (0,) * 5)) + 5
@@ -225,6 +226,7 @@ def _cmd_diagnose(args):
     from lsst_bfdrift.calibration.acoeff_fit import LinearBasis, load_default_basis
     from lsst_bfdrift.calibration.diagnosis import diagnose, load_input
 
+    _check_output_dir(args, args.report, "--report", inputs=[args.input])
     obs = load_input(args.input, max_lag=args.max_lag)
     if args.basis:
         with open(args.basis) as fh:

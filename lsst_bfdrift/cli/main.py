@@ -486,6 +486,7 @@ def build_parser():
     rp = sub.add_parser("reproduce", help="the paper's numbers with the calibrated model")
     rp.add_argument("--out", help="directory for figures, template and JSON")
     rp.add_argument("--quick", action="store_true", help="small template and scan (tests)")
+    rp.add_argument("--overwrite", action="store_true")
     rp.add_argument("--json", action="store_true")
     rp.add_argument("--quiet", action="store_true")
     rp.set_defaults(func=_cmd_reproduce)
@@ -514,6 +515,7 @@ def build_parser():
     dg.add_argument("input", help="a_ij table, PTC text file or directory of flat pairs")
     dg.add_argument("--json", action="store_true")
     dg.add_argument("--report", help="write report.md, diagnosis.json and figures here")
+    dg.add_argument("--overwrite", action="store_true")
     dg.add_argument("--basis", help="linearised electrostatic model (JSON; default: the "
                     "shipped fit to the ITL a_ij)")
     dg.add_argument("--max-lag", type=int, default=3, help="largest lag for flat pairs")

@@ -139,6 +139,14 @@ def test_cli_ptc_json_and_report(tmp_path, capsys):
     assert set(out["effects_added"]) <= set(out["vocabulary"])
     assert (tmp_path / "report.md").exists() and (tmp_path / "chi2_per_lag.png").exists()
     assert "Verdict" in (tmp_path / "report.md").read_text()
+    # the directory now holds a report: replaced only with --overwrite (issue 20)
+    before = (tmp_path / "report.md").stat().st_mtime_ns
+    rc = main(["diagnose", E2V, "--basis", BASIS, "--report", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert rc == 3 and "holds files; use --overwrite" in err
+    assert (tmp_path / "report.md").stat().st_mtime_ns == before
+    assert main(["diagnose", E2V, "--basis", BASIS, "--report", str(tmp_path),
+                 "--overwrite"]) == 0
 
 
 @pytest.mark.slow
