@@ -53,7 +53,8 @@ from scipy import fft as sp_fft
 
 from lsst_bfdrift.correction._edge_kernels import density_weight, fused_transfer
 from lsst_bfdrift.correction.series import apriori_ok, first_order_terms, sparse_series, tolerance
-from lsst_bfdrift.templates.swept import OperatorCache, SweptAreas, swept_area_kernels  # noqa: F401 (re-exported)
+from lsst_bfdrift.templates.swept import (MAX_SWEEP, OperatorCache, SweptAreas,  # noqa: F401
+                                         refuse_out_of_range, swept_area_kernels)
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["edge_flux_density", "edge_transfer",
@@ -294,43 +295,6 @@ def _limit(img_eff, noise_tol, rtol):
         return tolerance(img_eff, noise_tol)
     return rtol * max(np.abs(img_eff).max(), 1e-300)
 
-
-#: Largest K max|I| accepted (K: the template's largest sum of abs(swept-area
-#: kernel) over one edge, px^2 per electron): beyond it one pixel's charge
-#: would sweep more than a whole pixel's area across an edge, far outside any
-#: physical full well and outside the model (the solver's series needs
-#: K max|I| well below 1; the brightest star cores of the benchmarks reach
-#: about 0.25).
-MAX_SWEEP = 1.0
-
-
-def refuse_out_of_range(finite_data, kernel_abs_sum, unit_note=""):
-    """Refuse images whose values the brighter-fatter model cannot describe.
-
-    Parameters
-    ----------
-    finite_data : ndarray
-        The image's finite values (e).
-    kernel_abs_sum : float
-        The template's largest sum of abs(swept-area kernel) over one edge
-        (px^2 per e; :attr:`~lsst_bfdrift.templates.swept.OperatorCache.kernel_abs_sum`).
-    unit_note : str, optional
-        Appended to the message.
-
-    Raises
-    ------
-    InputError
-        When ``kernel_abs_sum * max|I|`` exceeds :data:`MAX_SWEEP`.
-    """
-    # max and -min: no full-size temporary for abs()
-    peak = max(float(finite_data.max()), -float(finite_data.min())) if finite_data.size else 0.0
-    if kernel_abs_sum * peak > MAX_SWEEP:
-        raise InputError(
-            f"pixel values up to {peak:.3g} e: the template would sweep "
-            f"{kernel_abs_sum * peak:.3g} px^2 across an edge (at most {MAX_SWEEP} is "
-            f"modelled, i.e. |I| <= {MAX_SWEEP / kernel_abs_sum:.3g} e); mask them (a "
-            f"blocking mask plane, or NaN): masked pixels beyond that are interpolated as "
-            f"aggressors{unit_note}")
 
 
 def _checked(image, blocked, strip):

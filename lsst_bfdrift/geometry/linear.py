@@ -35,6 +35,7 @@ import numpy as np
 from scipy import fft as sp_fft
 from scipy import ndimage
 
+from lsst_bfdrift.templates.swept import kernel_abs_sum, refuse_out_of_range
 from lsst_bfdrift.geometry.superpose import (MomentMaps, check_charge_image, moment_maps,
                                              resample_template, superpose_boundaries)
 from lsst_bfdrift.utils.errors import InputError
@@ -652,7 +653,9 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
     q = np.asarray(charge)
     if mask is not None or q.dtype != np.float64 or q.ndim != 2 or q.size == 0 \
             or not np.isfinite(q).all():
-        q = check_charge_image(charge, mask=mask)
+        q = check_charge_image(charge, mask=mask, template=template)
+    else:
+        refuse_out_of_range(q, kernel_abs_sum(template))  # the package's one range check
     ny, nx = q.shape
     lk = linear_kernels(template, samples=samples)
     r = lk.reach

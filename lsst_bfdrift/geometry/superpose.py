@@ -15,13 +15,18 @@ from scipy import fft as sp_fft
 
 from lsst_bfdrift.physics.boundaries import BoundaryGrid
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
+from lsst_bfdrift.templates.swept import kernel_abs_sum, refuse_out_of_range
 
 __all__ = ["MomentMaps", "check_charge_image", "superpose_boundaries", "moment_maps",
            "resample_template"]
 
 
-def check_charge_image(charge, *, mask=None, name="charge"):
+def check_charge_image(charge, *, mask=None, name="charge", template=None):
     """Validate a charge image (e per pixel) and return a float64 copy.
+
+    With ``template``, values beyond the model's range are refused too
+    (:func:`~lsst_bfdrift.templates.swept.refuse_out_of_range`, the range
+    check the Task and the solvers apply).
 
     Parameters
     ----------
@@ -54,6 +59,8 @@ def check_charge_image(charge, *, mask=None, name="charge"):
         j, i = np.argwhere(bad)[0]
         raise InputError(f"{name} image has {int(bad.sum())} non-finite pixel(s) "
                          f"(first at x={i}, y={j}); mask them")
+    if template is not None:
+        refuse_out_of_range(arr, kernel_abs_sum(template))
     return arr
 
 
@@ -301,7 +308,7 @@ def superpose_boundaries(template, charge, *, mask=None, workers=1):
         With ``vedge_t`` and ``hedge_t`` attributes (None if the template has
         no tangential displacements).
     """
-    q = check_charge_image(charge, mask=mask)
+    q = check_charge_image(charge, mask=mask, template=template)
     conv = _Convolver(template)
     cd, v, h, vt, ht = _block_displacements(conv, q, 0, q.shape[0], workers=workers)
     grid = BoundaryGrid(0, 0, cd, v, h, template.fractions)
@@ -390,7 +397,7 @@ def moment_maps(template, charge, *, mask=None, samples=None, strip=256, workers
         raise InputError(f"strip must be a positive integer, got {strip!r}")
     if samples is not None:
         template = resample_template(template, samples)
-    q = check_charge_image(charge, mask=mask)
+    q = check_charge_image(charge, mask=mask, template=template)
     ny, nx = q.shape
     strip = int(strip)
     conv = _Convolver(template, dtype=dtype)

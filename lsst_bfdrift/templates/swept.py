@@ -15,7 +15,8 @@ import numpy as np
 from scipy import fft as sp_fft
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["swept_area_kernels", "SweptAreas", "OperatorCache"]
+__all__ = ["swept_area_kernels", "SweptAreas", "OperatorCache", "kernel_abs_sum",
+           "refuse_out_of_range", "MAX_SWEEP"]
 
 
 class _ThreadArrays:
@@ -176,10 +177,9 @@ class OperatorCache:
         self._ops = {}
         self._scratch = _ThreadArrays()
         self._lock = threading.Lock()
-        kv, kh = swept_area_kernels(template)
         #: Largest sum of abs(kernel) over one edge (px^2 per electron): a bound
         #: on abs(swept area) per electron of the largest abs(charge) in reach.
-        self.kernel_abs_sum = float(max(np.abs(kv).sum(), np.abs(kh).sum()) / template.charge)
+        self.kernel_abs_sum = kernel_abs_sum(template)
 
     def __call__(self, shape):
         """The operator for images of ``shape`` (built on first use)."""
@@ -206,3 +206,47 @@ class OperatorCache:
         """True if this cache serves ``template`` with these settings."""
         return (template is self.template and workers == self.workers
                 and np.dtype(dtype) == self.dtype)
+
+
+#: Largest area (px^2) the model lets one edge sweep: beyond it boundaries would
+#: cross and the linear superposition of the template no longer describes them.
+MAX_SWEEP = 1.0
+
+
+def kernel_abs_sum(template):
+    """Largest sum of abs(swept-area kernel) over one edge, px^2 per electron."""
+    kv, kh = swept_area_kernels(template)
+    return float(max(np.abs(kv).sum(), np.abs(kh).sum()) / template.charge)
+
+
+def refuse_out_of_range(finite_data, kernel_abs_sum, unit_note=""):
+    """Refuse images whose values the brighter-fatter model cannot describe: the one
+    range check of every entry point that takes a charge image (the Task, the
+    solvers, the geometry maps).
+
+    Parameters
+    ----------
+    finite_data : ndarray
+        The image's finite values (e).
+    kernel_abs_sum : float
+        :func:`kernel_abs_sum` of the template (px^2 per e).
+    unit_note : str, optional
+        Appended to the message.
+
+    Raises
+    ------
+    InputError
+        When ``kernel_abs_sum * max|I|`` exceeds :data:`MAX_SWEEP`.
+    """
+    from lsst_bfdrift.utils.errors import InputError
+
+    # max and -min: no full-size temporary for abs()
+    peak = max(float(finite_data.max()), -float(finite_data.min())) if finite_data.size else 0.0
+    if kernel_abs_sum * peak > MAX_SWEEP:
+        raise InputError(
+            f"pixel values up to {peak:.3g} e: the template would sweep "
+            f"{kernel_abs_sum * peak:.3g} px^2 across an edge (at most {MAX_SWEEP} is "
+            f"modelled, i.e. |I| <= {MAX_SWEEP / kernel_abs_sum:.3g} e); mask them (a "
+            f"blocking mask plane, or NaN): masked pixels beyond that are interpolated as "
+            f"aggressors{unit_note}")
+

@@ -344,3 +344,17 @@ def test_kernel_works_in_double_precision_on_single_precision_channels(default_t
     stack_moments(st, 8, False, ro, t.center, fr, out32)
     stack_moments(st.astype(np.float64), 8, False, ro, t.center, fr, out64)
     assert_allclose(out32, out64, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("value", [1e6, -1e6, 1e300])
+def test_maps_share_the_range_check(default_template, value):
+    """Issue 20 F4: one pixel beyond the model's range (1e6 e gave areas of 0.12, 1e300
+    NaN maps) is refused by the exact and the linear maps as by the Task."""
+    from lsst_bfdrift.geometry.linear import linear_moment_maps
+    q = np.full((30, 30), 100.0)
+    q[15, 15] = value
+    for f in (moment_maps, linear_moment_maps):
+        with pytest.raises(ValueError, match=r"the template would sweep .* at most 1.0"):
+            f(default_template, q)
+    q[15, 15] = 5e5  # within range: computed
+    assert np.all(moment_maps(default_template, q).area > 0.3)
