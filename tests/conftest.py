@@ -1,7 +1,18 @@
 """Shared fixtures: small, fast templates built once per test session."""
 
+import os
+
 import numpy as np
 import pytest
+from hypothesis import settings
+
+# Property-based tests (tests/test_fuzz.py): seeded and derandomized, so every run
+# generates the same cases; BFDRIFT_HYPOTHESIS=extended runs ten times more.
+settings.register_profile("ci", max_examples=100, derandomize=True, deadline=None,
+                          database=None, print_blob=True)
+settings.register_profile("extended", max_examples=1000, derandomize=True, deadline=None,
+                          database=None, print_blob=True)
+settings.load_profile(os.environ.get("BFDRIFT_HYPOTHESIS", "ci"))
 
 from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.templates.template import TemplateSettings, build_template

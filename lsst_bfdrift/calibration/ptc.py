@@ -273,6 +273,13 @@ def pair_covariances(flat1, flat2, *, max_lag=8, mask=None, nsig=5.0, min_pixels
                           int((bad & ~edge).sum()) + n_edge_bad, static=stat)
 
 
+def _line(x, y):
+    """(slope, intercept) of the least-squares line (minimum-norm when degenerate,
+    without numpy's RankWarning: the callers only need a starting point)."""
+    a = np.stack([np.asarray(x, float), np.ones(len(x))], axis=1)
+    return np.linalg.lstsq(a, np.asarray(y, float), rcond=None)[0]
+
+
 #: Pixels left out at each image edge when flat pairs are measured (px).
 EDGE_BORDER = 10
 
@@ -429,7 +436,7 @@ def fit_ptc_exponential(mu, var, *, sigma=None, mu_max="auto", p0=None):
     if p0 is None:
         # straight line var = mu / g + n / g^2 through the lowest third
         k = max(3, len(m) // 3)
-        slope, icpt = np.polyfit(m[:k], v[:k], 1)
+        slope, icpt = _line(m[:k], v[:k])  # a start only: no rank warning on ties
         g_est = 1.0 / slope if slope > 0 else 1.0
         start = (g_est, -1e-6, max(icpt, 0.0) * g_est**2)
     else:
@@ -562,7 +569,7 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
             if i == j == 0:
                 a0[0, 0] = exp["a00"]
             else:
-                a0[i, j] = np.polyfit(x, y, 1)[0] if m.size > 2 else 0.0
+                a0[i, j] = _line(x, y)[0] if m.size > 2 else 0.0
     n0 = np.zeros((L + 1, L + 1))
     n0[0, 0] = exp["noise"] if fit_noise else 0.0
 
