@@ -4,39 +4,67 @@ import numpy as np
 
 from lsst_bfdrift.utils.plotting import plt  # Agg backend set there
 
-__all__ = ['plot_moment_maps']
+__all__ = ['plot_moment_maps', 'robust_limit']
 
 
-def plot_moment_maps(maps, *, image=None, title=None):
+def robust_limit(arr, *, percentile=99.5):
+    """Symmetric colour limit: the ``percentile`` of abs(arr) over finite pixels (a few
+    bright stars do not wash out a full CCD), at least 1e-12."""
+    a = np.abs(np.asarray(arr, float))
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return 1.0
+    return max(float(np.percentile(a, percentile)), 1e-12)
+
+
+def plot_moment_maps(maps, *, image=None, title=None, percentile=99.5):
     """Area, centroid-shift and ellipticity maps side by side.
+
+    Each panel has pixel axes (x serial, y parallel), a colour bar with its
+    unit, and a robust symmetric stretch (``percentile`` of the absolute
+    values, :func:`robust_limit`) so that a full CCD with a few bright stars
+    stays readable; the charge image uses an asinh stretch.
 
     Parameters
     ----------
     maps : MomentMaps
         From :func:`~lsst_bfdrift.geometry.superpose.moment_maps`.
     image : ndarray, optional
-        The charge image, drawn first.
+        The charge image (e), drawn first.
     title : str, optional
         Figure title.
+    percentile : float, optional
+        Percentile of abs(map) at the ends of the colour scale.
 
     Returns
     -------
     matplotlib.figure.Figure
     """
-    panels = [("area - 1", maps.area - 1.0), ("dx (px)", maps.dx), ("dy (px)", maps.dy),
-              ("e1", maps.e1), ("e2", maps.e2)]
+    from matplotlib.colors import AsinhNorm
+
+    panels = [("area - 1", "px$^2$", maps.area - 1.0), ("centroid shift x", "px", maps.dx),
+              ("centroid shift y", "px", maps.dy), ("e1", "dimensionless", maps.e1),
+              ("e2", "dimensionless", maps.e2)]
     if image is not None:
-        panels.insert(0, ("charge (e)", np.asarray(image)))
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.3 * len(panels), 3.4),
+        panels.insert(0, ("charge", "e", np.asarray(image, float)))
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.6),
                              constrained_layout=True)
-    for ax, (name, arr) in zip(np.atleast_1d(axes), panels):
-        if name.startswith("charge"):
-            im = ax.imshow(arr, origin="lower", cmap="viridis")
+    for ax, (name, unit, arr) in zip(np.atleast_1d(axes), panels):
+        if name == "charge":
+            finite = arr[np.isfinite(arr)]
+            med = float(np.median(finite)) if finite.size else 0.0
+            top = float(np.percentile(finite, 99.9)) if finite.size else 1.0
+            im = ax.imshow(arr, origin="lower", cmap="viridis",
+                           norm=AsinhNorm(linear_width=max(abs(med), 1.0), vmin=min(med, top),
+                                          vmax=max(top, med + 1.0)), interpolation="nearest")
         else:
-            lim = np.nanmax(np.abs(arr)) or 1.0
-            im = ax.imshow(arr, origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim)
+            lim = robust_limit(arr, percentile=percentile)
+            im = ax.imshow(arr, origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim,
+                           interpolation="nearest")
         ax.set_title(name)
-        fig.colorbar(im, ax=ax, shrink=0.75)
+        ax.set_xlabel("x (px)")
+        ax.set_ylabel("y (px)")
+        fig.colorbar(im, ax=ax, shrink=0.75, label=unit)
     if title:
         fig.suptitle(title)
     return fig

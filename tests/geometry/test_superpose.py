@@ -358,3 +358,24 @@ def test_maps_share_the_range_check(default_template, value):
             f(default_template, q)
     q[15, 15] = 5e5  # within range: computed
     assert np.all(moment_maps(default_template, q).area > 0.3)
+
+
+def test_maps_figure_has_units_axes_and_a_robust_stretch(default_template):
+    """Issue 19 item 8: panels with pixel axes, units on the colour bars, and a stretch
+    that one bright star does not set (robust_limit: 99.5th percentile of |map|)."""
+    import matplotlib.pyplot as plt
+
+    from lsst_bfdrift.geometry.plots import plot_moment_maps, robust_limit
+    q = np.full((60, 60), 1000.0)
+    q[30, 30] = 4e5
+    maps = moment_maps(default_template, q)
+    lim = robust_limit(maps.area - 1.0)
+    assert lim < 0.05 * np.abs(maps.area - 1.0).max()
+    assert lim == pytest.approx(np.percentile(np.abs(maps.area - 1.0), 99.5))
+    fig = plot_moment_maps(maps, image=q)
+    axes = [a for a in fig.axes if a.get_title()]
+    assert [a.get_title() for a in axes][:2] == ["charge", "area - 1"]
+    assert all(a.get_xlabel() == "x (px)" for a in axes)
+    bars = [a for a in fig.axes if not a.get_title()]
+    assert "px$^2$" in [b.get_ylabel() for b in bars]
+    plt.close(fig)
