@@ -29,13 +29,20 @@ class ProgressBar:
         if self.enabled:
             self._draw()
 
+    def _eta(self, frac, elapsed):
+        """' ETA 12s' while running (elapsed / done x left), '' at the ends."""
+        if not 0 < frac < 1:
+            return ""
+        return f" ETA {elapsed / frac * (1 - frac):5.0f}s"
+
     def _draw(self, final=False):
         frac = self.done / self.total
         elapsed = time.perf_counter() - self._start
+        eta = self._eta(frac, elapsed)
         if self._tty:
             fill = int(round(frac * self.width))
             bar = "#" * fill + "-" * (self.width - fill)
-            self.stream.write(f"\r{self.label} [{bar}] {100 * frac:5.1f}% {elapsed:6.1f}s")
+            self.stream.write(f"\r{self.label} [{bar}] {100 * frac:5.1f}% {elapsed:6.1f}s{eta}")
             if final:
                 self.stream.write("\n")
             self.stream.flush()
@@ -43,7 +50,7 @@ class ProgressBar:
             decile = int(frac * 10)
             if decile > self._last_decile:
                 self._last_decile = decile
-                self.stream.write(f"{self.label} {100 * frac:5.1f}% {elapsed:6.1f}s\n")
+                self.stream.write(f"{self.label} {100 * frac:5.1f}% {elapsed:6.1f}s{eta}\n")
                 self.stream.flush()
 
     def __enter__(self):

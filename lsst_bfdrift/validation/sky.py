@@ -18,6 +18,8 @@ any after-correction slope (size, e1 or e2) differs from zero by more than
 
 import numpy as np
 
+from lsst_bfdrift.utils.progress import ProgressBar
+
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.calibration.star_slopes import shape_flux_relations
 
@@ -117,7 +119,10 @@ def validate_sky(exposure, *, gain=None, mask=None, saturation=None, template=No
     frame = (0.5 * (nx - 1), 0.5 * (ny - 1), 0.5 * nx, 0.5 * ny)
     kw = dict(min_snr=min_snr, poly_order=poly_order, noise_term=noise_term, n_boot=n_boot,
               seed=seed, frame=frame)
+    steps = 1 + {"none": 0, "catalog": 2, "pixel": 3, "both": 5}.get(route, 0)
+    bar = ProgressBar(steps, "validate-sky fits", enabled=progress)
     fits = {"before": shape_flux_relations(cat, **kw)}
+    bar(1)
     corrected = {}
     if route != "none" and template is None:
         from lsst_bfdrift.templates.template import load_default_template
@@ -125,16 +130,23 @@ def validate_sky(exposure, *, gain=None, mask=None, saturation=None, template=No
     if route in ("catalog", "both"):
         corrected["catalog"] = correct_catalog(cat, data, template=template, mask=bad,
                                                history=history)
+        bar(1)
         fits["catalog"] = shape_flux_relations(corrected["catalog"], **kw)
+        bar(1)
     if route in ("pixel", "both"):
         from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
         cfg = BrighterFatterDriftConfig(method=method, compute_geometry=False,
                                         saturation=sat_e)
         res = BrighterFatterDriftTask(config=cfg, template=template).run(
             CCDData(data, unit=u.electron, mask=bad))
+        bar(1)
         corrected["pixel"] = measure_stars(np.asarray(res.exposure.data), mask=bad,
                                            saturation=sat_e, **ckw)
+        bar(1)
         fits["pixel"] = shape_flux_relations(corrected["pixel"], **kw)
+        bar(1)
+    if progress:
+        bar._draw(final=True)
     before = fits["before"]
     z_before = abs(before["size"]["z"])
     summary = {"image_shape": [int(ny), int(nx)], "gain": g, "route": route,
