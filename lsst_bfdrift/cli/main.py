@@ -289,9 +289,17 @@ def _cmd_correct(args):
         pairs = [(files[0], files[1])]
     for src, dst in pairs:  # an existing output is one file's failure; an input, a usage error
         check_output(dst, [s for s, _ in pairs], overwrite=True, what="output")
-    results = correct_files(pairs, cfg, scheduler=args.scheduler, overwrite=args.overwrite,
-                            n_workers=args.n_workers, processes=args.processes,
-                            progress=not args.quiet)
+    if args.skip_existing and args.overwrite:
+        raise InputError("--skip-existing and --overwrite contradict each other; give one")
+    skipped = [(s_, d) for s_, d in pairs if args.skip_existing and os.path.exists(d)]
+    todo = [p_ for p_ in pairs if p_ not in skipped]
+    done = correct_files(todo, cfg, scheduler=args.scheduler, overwrite=args.overwrite,
+                         n_workers=args.n_workers, processes=args.processes,
+                         progress=not args.quiet) if todo else []
+    by_pair = dict(zip(todo, done))
+    results = [by_pair.get(p_) or {"input": p_[0], "output": p_[1], "error": None,
+                                   "skipped": True, "iterations": None, "converged": None}
+               for p_ in pairs]
     failed = [r for r in results if r["error"]]
     if args.json:
         _print_json({"method": cfg.method, "files": results, "failed": len(failed)})
@@ -299,6 +307,8 @@ def _cmd_correct(args):
         for r in results:
             if r["error"]:
                 print(f"{r['input']}: FAILED: {r['error']}")
+            elif r.get("skipped"):
+                print(f"{r['input']} -> {r['output']}: skipped (the output exists)")
             else:
                 print(f"{r['input']} -> {r['output']}: {r['iterations']} iterations, "
                       f"converged={r['converged']}")
@@ -456,6 +466,8 @@ def build_parser():
                     help="write the geometry maps (default: the config's compute_geometry, "
                     "True, as in the API)")
     co.add_argument("--overwrite", action="store_true")
+    co.add_argument("--skip-existing", action="store_true",
+                    help="leave inputs whose output exists (resume an interrupted run)")
     co.add_argument("--scheduler", help="dask: 'local' (LocalCluster) or a scheduler address "
                     "(tcp://host:8786); default: serial")
     co.add_argument("--n-workers", type=int, default=2, help="LocalCluster workers")

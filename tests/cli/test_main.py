@@ -634,3 +634,25 @@ def test_correct_saturation_and_template_options(capsys, tmp_path):
             assert h[0].header["BFTMPL"] == "tpl.fits" and "AREA" not in h
             assert abs(float(h[0].data.sum()) - float((img / gain).sum())) < 1e-6 * img.sum()
     assert counts["header"] > counts["option"] > 0
+
+
+def test_correct_skip_existing_resumes(capsys, tmp_path):
+    """Issue 19 item 6: --skip-existing corrects only the inputs without an output."""
+    rng = np.random.default_rng(5)
+    names = []
+    for k in range(3):
+        path = tmp_path / f"in{k}.fits"
+        fits.PrimaryHDU(rng.poisson(600.0, (32, 32)).astype(np.float32)).writeto(path)
+        names.append(str(path))
+    out = tmp_path / "out"
+    assert _run(capsys, "correct", names[0], "--out-dir", str(out), "--quiet",
+                "--no-geometry")[0] == 0
+    first = (out / "in0.fits").stat().st_mtime_ns
+    code, text, _ = _run(capsys, "correct", *names, "--out-dir", str(out), "--quiet",
+                         "--no-geometry", "--skip-existing", "--json")
+    res = json.loads(text)
+    assert code == 0 and [bool(r.get("skipped")) for r in res["files"]] == [True, False, False]
+    assert (out / "in0.fits").stat().st_mtime_ns == first and (out / "in2.fits").exists()
+    code, _, err = _run(capsys, "correct", *names, "--out-dir", str(out), "--skip-existing",
+                        "--overwrite")
+    assert code == 2 and "contradict" in err
