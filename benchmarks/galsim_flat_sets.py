@@ -13,7 +13,9 @@ tuned to one configuration.
 
 ``--injections`` draws the power sets instead: each effect of the library
 that GalSim's engine can carry (CTI on either axis, an echo, gain
-non-linearity, a static response pattern, diffusion) at two amplitudes
+non-linearity, a static response pattern, diffusion) at three amplitudes (the
+first two near what sensors show, the third well above, to find the
+threshold)
 (:data:`INJECTIONS`) on two sizes (160 and 240 px), named
 ``inj_<effect>_<k>_<size>.npz``.
 
@@ -40,10 +42,14 @@ SENSORS = ("lsst_itl_50_8", "lsst_e2v_50_8")
 #: Injected effects and amplitudes (the package's parameters, simulation.flats.INJECTABLE):
 #: CTI eps (fraction of a pixel's charge trailing into the next, per axis), echo (kappa,
 #: lag px), gain non-linearity (nu per ADU), static pattern (variance, correlation length
-#: px), diffusion (rms px). The lower ones are near what sensors show.
-INJECTIONS = {"cti_serial": [(3e-4,), (1e-3,)], "cti_parallel": [(3e-4,), (1e-3,)],
-              "echo": [(3e-4, 3), (1e-3, 3)], "gain_nonlinearity": [(2e-7,), (6e-7,)],
-              "static_area": [(1e-5, 3.0), (4e-5, 3.0)], "diffusion": [(0.1,), (0.25,)]}
+#: px), diffusion (rms px). The first two are near what sensors show; the third is
+#: far above, to locate the detection threshold at these data sizes.
+INJECTIONS = {"cti_serial": [(3e-4,), (1e-3,), (1e-2,)],
+              "cti_parallel": [(3e-4,), (1e-3,), (1e-2,)],
+              "echo": [(3e-4, 3), (1e-3, 3), (1e-2, 3)],
+              "gain_nonlinearity": [(2e-7,), (6e-7,), (3e-6,)],
+              "static_area": [(1e-5, 3.0), (4e-5, 3.0), (4e-4, 3.0)],
+              "diffusion": [(0.1,), (0.25,), (0.5,)]}
 SIZES = (160, 200, 240)
 
 
