@@ -498,7 +498,7 @@ def covariance_model(mu, gain, a, b, noise):
 
 
 def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max=None,
-                         fit_b=True, gain=None, fit_noise=True):
+                         fit_b="auto", gain=None, fit_noise=True):
     """Fit gain, a_ij, b_ij and n_ij of the full model to measured covariances.
 
     Parameters
@@ -511,16 +511,23 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
         Errors of the covariances (ADU^2).
     npix : array_like, same shape as ``cov``, optional
         Pixel pairs behind each covariance (from :func:`measure_ptc`); used
-        when ``sigma`` is not given: sigma = C00 sqrt(2 / N) at lag 0 and
-        C00 sqrt(1 / N) elsewhere (errors of sample covariances). With
+        when ``sigma`` is not given: sigma = C00 sqrt(2 / N) at lag 0,
+        C00 sqrt(1 / N) on the axes and C00 sqrt(1 / (2 N)) off them (errors of
+        sample covariances; off-axis values average two independent products). With
         neither, all points of a signal level get the weight 1 / C00 and the
         parameter errors are scaled to the scatter (sqrt(chi2/dof)).
     max_lag : int, optional
         Fit lags up to this value only.
     mu_max : float, optional
         Exclude signals above (ADU).
-    fit_b : bool, optional
-        Fit b_ij (else fixed to 0).
+    fit_b : bool or 'auto', optional
+        Fit b_ij (True), fix them to 0 (False), or let the data decide
+        ('auto', the default): b_ij are kept only when they lower chi2 by more
+        than the 99th percentile of chi2 with as many degrees of freedom as
+        b_ij (a likelihood-ratio test). With a few signal levels b_ij are
+        degenerate with a_ij: freed without need they multiply the errors of
+        a_ij by 3-4 and bias them (GalSim flats, 12 levels: a01 4.2e-7 +- 7e-8
+        against the true 1.95e-7; 2.3e-7 +- 1.9e-8 with b = 0).
     gain : float, optional
         Known gain (e/ADU), held fixed (its error is then 0); default: fitted.
     fit_noise : bool, optional
@@ -530,8 +537,24 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
     -------
     dict
         ``gain``, ``a``, ``b``, ``noise`` (arrays [di, dj]) with ``*_err``,
-        ``chi2``, ``dof``, ``residuals`` (measured - model, ADU^2).
+        ``chi2``, ``dof``, ``residuals`` (measured - model, ADU^2), and
+        ``b_fitted`` (bool) with ``b_test`` (the 'auto' test: ``delta_chi2``,
+        ``dof``, ``p_value``; None otherwise).
     """
+    if fit_b == "auto":
+        from scipy import stats as _stats
+        kw = dict(sigma=sigma, npix=npix, max_lag=max_lag, mu_max=mu_max, gain=gain,
+                  fit_noise=fit_noise)
+        without = fit_covariance_model(mu, cov, fit_b=False, **kw)
+        with_b = fit_covariance_model(mu, cov, fit_b=True, **kw)
+        n_b = int(without["dof"] - with_b["dof"])
+        delta = float(without["chi2"] - with_b["chi2"])
+        p = float(_stats.chi2.sf(delta, max(n_b, 1)))
+        best = with_b if p < 0.01 else without
+        best["b_test"] = {"delta_chi2": delta, "dof": n_b, "p_value": p}
+        return best
+    if fit_b not in (True, False):
+        raise InputError(f"fit_b must be True, False or 'auto', got {fit_b!r}")
     mu = np.asarray(mu, dtype=float)
     cov = np.asarray(cov, dtype=float)
     if cov.ndim != 3 or cov.shape[0] != mu.size or cov.shape[1] != cov.shape[2]:
@@ -548,8 +571,13 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
     if sigma is not None:
         s = np.asarray(sigma, float)[good][:, :L + 1, :L + 1]
     elif npix is not None:
+        # errors of sample covariances of N pixel pairs (as the diagnosis): lag 0
+        # sqrt(2) V / sqrt(N), on the axes V / sqrt(N), off the axes V / sqrt(2 N)
+        # ((i, j) and (i, -j) are averaged: independent products)
         n = np.asarray(npix, float)[good][:, :L + 1, :L + 1]
-        s = c[:, 0, 0][:, None, None] * np.sqrt(1.0 / n)
+        s = c[:, 0, 0][:, None, None] * np.sqrt(0.5 / n)
+        s[:, 0, :] *= np.sqrt(2.0)
+        s[:, :, 0] *= np.sqrt(2.0)
         s[:, 0, 0] *= np.sqrt(2.0)
     else:
         s = np.broadcast_to(c[:, 0, 0][:, None, None], c.shape).copy()
@@ -601,7 +629,7 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
                       errs[-n1:].reshape(L + 1, L + 1))
     return {"gain": float(g), "gain_err": float(ge), "a": a, "a_err": ae, "b": b,
             "b_err": be, "noise": nz, "noise_err": ne, "chi2": stats["chi2"],
-            "dof": stats["dof"], "mu": m,
+            "dof": stats["dof"], "mu": m, "b_fitted": bool(fit_b), "b_test": None,
             "residuals": c - covariance_model(m, g, a, b, nz)}
 
 

@@ -123,8 +123,12 @@ def measured_acoeffs(data):
         fit = fit_covariance_model(np.asarray(data.mu, float), np.asarray(data.cov, float),
                                    sigma=sig, npix=npix,
                                    gain=1.0 if data.units == "electron" else None)
+        bt = fit["b_test"]
+        b_note = "" if bt is None else (
+            f"; b_ij {'fitted' if fit['b_fitted'] else 'fixed to 0'} (their chi2 gain "
+            f"{bt['delta_chi2']:.1f} for {bt['dof']} dof, p = {bt['p_value']:.2g})")
         return AcoeffTable(fit["a"], fit["a_err"], source=f"{src} (covariance model fit)",
-                           axis_note="flats: i along x (serial), j along y (parallel)")
+                           axis_note="flats: i along x (serial), j along y (parallel)" + b_note)
     if data.mu is not None and data.var is not None:
         e = fit_ptc_exponential(np.asarray(data.mu, float), np.asarray(data.var, float),
                                 mu_max=None)
