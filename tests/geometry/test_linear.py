@@ -7,6 +7,8 @@ with the same template, not an outside truth.
 
 import numpy as np
 import pytest
+
+from tests.geometry.conftest import star_field
 from numpy.testing import assert_allclose
 
 from lsst_bfdrift.geometry.linear import (LINEAR_MAPS, MEASURED_CONSTANTS, _linear_maps,
@@ -17,21 +19,9 @@ from lsst_bfdrift.geometry.superpose import moment_maps, resample_template, supe
 NOMINAL = dict(area=1.0, dx=0.0, dy=0.0, e1=0.0, e2=0.0)
 
 
-@pytest.fixture(scope="module")
-def default_template():
-    from lsst_bfdrift.templates.template import load_default_template
-    return load_default_template()
-
-
 def _star_field(n, peak_flux, rng, sky=1200.0):
     """Poisson sky, one star of ``peak_flux`` e (sigma 1.5 px) and fainter ones."""
-    q = rng.poisson(sky, (n, n)).astype(float)
-    yy, xx = np.mgrid[0:n, 0:n]
-    for (x, y, f, s) in ((n / 2 + 0.3, n / 2 - 0.2, peak_flux, 1.5),
-                         (n / 5, 4 * n / 5, peak_flux / 30, 1.2),
-                         (4 * n / 5, n / 5 + 0.5, peak_flux / 8, 2.0)):
-        q += f * np.exp(-0.5 * ((xx - x)**2 + (yy - y)**2) / s**2) / (2 * np.pi * s**2)
-    return q
+    return star_field(n, peak_flux, rng, sky=sky, faint=((0.2, 0.8, 30, 1.2), (0.8, 0.2, 8, 2.0)))
 
 
 def _signal(maps):

@@ -2,6 +2,8 @@
 
 import numpy as np
 import pytest
+
+from tests.geometry.conftest import star_field
 from numpy.testing import assert_allclose
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
@@ -144,21 +146,9 @@ def test_compiled_moments_with_tangential_displacements(rng):
 # Maps on a template resampled to fewer edge samples (moment_maps(samples=k))
 # ---------------------------------------------------------------------------
 
-@pytest.fixture(scope="module")
-def default_template():
-    from lsst_bfdrift.templates.template import load_default_template
-    return load_default_template()
-
-
 def _star_field(n, peak_flux, rng, sky=1000.0):
     """Sky plus one bright and a few faint Gaussian stars (e per pixel)."""
-    q = rng.poisson(sky, (n, n)).astype(float)
-    yy, xx = np.mgrid[0:n, 0:n]
-    for (x, y, f, s) in ((n / 2 + 0.3, n / 2 - 0.2, peak_flux, 1.5),
-                         (n / 4, 3 * n / 4, peak_flux / 20, 1.2),
-                         (3 * n / 4, n / 4 + 0.5, peak_flux / 5, 2.0)):
-        q += f * np.exp(-0.5 * ((xx - x)**2 + (yy - y)**2) / s**2) / (2 * np.pi * s**2)
-    return q
+    return star_field(n, peak_flux, rng, sky=sky)
 
 
 def _relative_errors(test, ref):
