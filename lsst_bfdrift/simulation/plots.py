@@ -30,7 +30,8 @@ def plot_flat_simulation(table, template=None):
         a = np.log(template.moments().area) / template.charge
     for (di, dj), col in (((0, 1), "C0"), ((1, 0), "C1"), ((1, 1), "C2")):
         ax1.plot(mu, paper[:, di, dj], "o", ms=3, color=col, label=f"C{di}{dj} all pairs")
-        ax1.errorbar(mu, pairs[:, di, dj], err[:, di, dj], fmt=".", ms=2, color=col, alpha=0.5)
+        ax1.errorbar(mu, pairs[:, di, dj], err[:, di, dj], fmt=".", ms=2, color=col, alpha=0.5,
+                     label=f"C{di}{dj} per pair (LSST)")
         if a is not None:
             ax1.plot(mu, a[c + dj, c + di] * mu**2, "--", color=col, lw=1,
                      label=f"a{di}{dj} mu$^2$ (template)")
@@ -44,11 +45,25 @@ def plot_star_history(history):
     """A star simulation against counts (like the paper's Fig. 7).
 
     Panels: central pixel counts, T = sigma_x^2 + sigma_y^2 with and without
-    BF, FWHM growth by BF (RSS difference), ellipticity and orientation.
+    BF, FWHM growth by BF (RSS difference), ellipticity and orientation, the
+    arrival rates, and (right column) BF minus square pixels: the size change
+    dT (px^2) and the ellipticity change de1, de2.
     """
     h = history
     n = np.asarray(h["counts"])
-    fig, ax = plt.subplots(2, 3, figsize=(13, 7), constrained_layout=True)
+    fig, ax = plt.subplots(2, 4, figsize=(17, 7), constrained_layout=True)
+    ax[0, 3].plot(n, np.asarray(h["T"]) - np.asarray(h["T_nominal"]), ".-", color="C3")
+    ax[0, 3].axhline(0.0, color="k", lw=0.8)
+    ax[0, 3].set_ylabel("BF minus square pixels: $\\Delta T$ (px$^2$)")
+    ax[0, 3].set_xlabel("counts (e)")
+    ax[1, 3].plot(h["central"], np.asarray(h["e1"]) - np.asarray(h["e1_nominal"]), ".-",
+                  label="$\\Delta e_1$")
+    ax[1, 3].plot(h["central"], np.asarray(h["e2"]) - np.asarray(h["e2_nominal"]), ".-",
+                  label="$\\Delta e_2$")
+    ax[1, 3].axhline(0.0, color="k", lw=0.8)
+    ax[1, 3].set_ylabel("BF minus square pixels: ellipticity")
+    ax[1, 3].set_xlabel("central pixel counts (e)")
+    ax[1, 3].legend()
     ax[0, 0].plot(n, h["central"], ".-")
     ax[0, 0].set_ylabel("central pixel counts (e)")
     ax[0, 1].plot(n, h["T"], ".-", label="with BF")
