@@ -278,6 +278,9 @@ def _cmd_correct(args):
         cfg.template = os.path.abspath(args.template)
     if args.saturation is not None:
         cfg.saturation = args.saturation
+    if args.blocking_planes is not None:
+        cfg.blocking_mask_planes = [p.strip() for p in args.blocking_planes.split(",")
+                                    if p.strip()]
     cfg.validate()  # a bad --gain or --method is a usage error, not one failure per file
     files = list(args.inputs)
     if args.out_dir:
@@ -310,8 +313,14 @@ def _cmd_correct(args):
             elif r.get("skipped"):
                 print(f"{r['input']} -> {r['output']}: skipped (the output exists)")
             else:
-                print(f"{r['input']} -> {r['output']}: {r['iterations']} iterations, "
-                      f"converged={r['converged']}")
+                # say what happened: the flux moved, and how the solver got there
+                how = ("the series solution was within tolerance (no iteration needed)"
+                       if r["iterations"] == 0 else f"{r['iterations']} iteration(s)")
+                print(f"{r['input']} -> {r['output']}: moved {r['flux_moved_abs_sum'] / 2:.4g} e "
+                      f"between pixels; {how}; "
+                      + ("converged" if r["converged"] else "NOT converged (see the log)")
+                      + (f"; {r['warnings']} input warning(s) (BFWARN)"
+                         if r.get("warnings") else ""))
     for r in failed:
         print(f"bfdrift correct: {r['input']}: {r['error']}", file=sys.stderr)
     return 1 if failed else 0
@@ -466,6 +475,9 @@ def build_parser():
                     help="write the geometry maps (default: the config's compute_geometry, "
                     "True, as in the API)")
     co.add_argument("--overwrite", action="store_true")
+    co.add_argument("--blocking-planes", help="comma-separated mask planes that block the "
+                    "flux exchange (default: the config's, SAT,BAD,NO_DATA,SUSPECT,"
+                    "UNMASKEDNAN); DETECTED and other planes never block unless named")
     co.add_argument("--skip-existing", action="store_true",
                     help="leave inputs whose output exists (resume an interrupted run)")
     co.add_argument("--scheduler", help="dask: 'local' (LocalCluster) or a scheduler address "

@@ -102,6 +102,7 @@ def correct_file(src, dst, config=None, *, overwrite=False):
     write_exposure(dst, res.exposure, extra_hdus=extra, overwrite=overwrite, inputs=[src])
     return {"input": src, "output": dst, "iterations": int(res.iterations),
             "converged": bool(res.converged), "layout": exposure.layout,
+            "warnings": len(res.warnings),
             "flux_moved_abs_sum": float(np.abs(res.flux_moved).sum()),
             "flux_moved_sum": float(res.flux_moved.sum())}
 

@@ -622,7 +622,9 @@ class BrighterFatterDriftTask(Task):
                 name = f"HIERARCH {key}" if len(key) > 8 or " " in key else key
                 hdr[name] = (card.value, card.comment)
         out.header = hdr
-        if out.mask is not None:
+        if out.mask is not None and out.layout != "ccddata":
+            # a CCDData file's mask is boolean for its readers: the flags stay in
+            # BFFLAGS rather than turn flagged (e.g. border) pixels into masked ones
             bit = add_mask_plane(out, self.config.bf_mask_plane)
             out.mask = out.mask | np.where(flags != 0, np.int32(1 << bit), np.int32(0))
         if out.variance is not None and moved_err is not None:

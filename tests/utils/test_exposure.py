@@ -228,3 +228,28 @@ def test_ccddata_wcs_and_meta_survive_the_task():
         compute_geometry=False)).run(ccd).exposure
     assert out.wcs is not None and list(out.wcs.wcs.crval) == [150.0, 2.0]
     assert out.meta["OBJECT"] == "f1" and out.unit == u.electron
+
+
+def test_ccddata_file_mask_stays_boolean_and_planes_from_the_cli(tmp_path, capsys):
+    """A CCDData file keeps a boolean-meaning MASK (the correction's flags go to BFFLAGS,
+    not into the mask its readers apply); --blocking-planes names the blocking planes."""
+    img = _image().astype(np.float64)
+    mask = np.zeros(SHAPE, bool)
+    mask[3, 4] = True
+    CCDData(img, unit="electron", mask=mask).write(tmp_path / "ccd.fits")
+    assert main(["correct", str(tmp_path / "ccd.fits"), str(tmp_path / "out.fits"),
+                 "--no-geometry"]) == 0
+    text = capsys.readouterr().out
+    assert "moved" in text and "e between pixels" in text and "converged" in text
+    back = CCDData.read(tmp_path / "out.fits")
+    assert_array_equal(back.mask, mask)
+    # DETECTED made blocking on purpose: the star is then left as recorded
+    img2 = _image()
+    m2 = np.zeros(SHAPE, np.int32)
+    m2[img2 > 3000] = 1 << PLANES["DETECTED"]
+    src = _lsst_file(tmp_path / "lsst.fits", img2, mask=m2)
+    assert main(["correct", src, str(tmp_path / "o2.fits"), "--no-geometry", "--quiet",
+                 "--blocking-planes", "DETECTED,BAD"]) == 0
+    with fits.open(tmp_path / "o2.fits") as h:
+        det = (m2 >> PLANES["DETECTED"]) & 1 == 1
+        assert_array_equal(h["IMAGE"].data[det], img2[det])
