@@ -19,7 +19,7 @@ import lsst.pex.config as pexConfig
 
 from lsst_bfdrift.utils.config import Struct, Task
 from lsst_bfdrift.utils.exposure import (BLOCKING_PLANES, MaskedExposure, add_mask_plane,
-                                         plane_mask, read_exposure)
+                                         plane_mask, read_exposure, undeclared_bits)
 from lsst_bfdrift.correction.solvers import (MAX_SWEEP, area_coefficients, correct_coulton18,
                                              correct_half_shift, correct_image,
                                              coulton18_kernel, refuse_out_of_range)
@@ -32,12 +32,15 @@ from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["BrighterFatterDriftConfig", "BrighterFatterDriftTask", "unpack_exposure",
            "template_digest", "gain_value", "input_warnings", "fits_header", "FLAG_BLOCKED",
-           "FLAG_EDGE"]
+           "FLAG_EDGE", "BF_PLANE_DOC"]
 
 #: Flag bit: pixel masked, saturated or non-finite (no flux exchanged).
 FLAG_BLOCKED = 1
 #: Flag bit: pixel within the template's reach of the image border (aggressors missing).
 FLAG_EDGE = 2
+#: Description of the BF mask plane (afw's ``MPD_BF`` card).
+BF_PLANE_DOC = ("BF correction incomplete: blocked (masked, saturated, non-finite) or within "
+                "the template's reach of the border")
 
 _METHODS = {
     "drift": "time-history series of the template's swept areas (order >= 3), inverted by "
@@ -225,6 +228,7 @@ def unpack_exposure(exposure, gain_cfg, *, blocking=BLOCKING_PLANES):
         mask = np.array(np.ma.getmaskarray(exposure), bool)
     else:
         data = _as_float64(exposure)
+    _refuse_corrected(exposure, meta)
     if data.ndim != 2:
         raise InputError(f"exposure must be a 2-d image, got shape {data.shape}")
     if 0 in data.shape:
@@ -257,6 +261,40 @@ def unpack_exposure(exposure, gain_cfg, *, blocking=BLOCKING_PLANES):
     elif unit not in (u.electron, u.dimensionless_unscaled):
         raise InputError(f"exposure unit must be electron or adu, got {unit}")
     return (data if gain == 1.0 else data * gain), mask, unc, meta, unit, gain, kind
+
+
+#: Keys that say an image was already corrected for the brighter-fatter effect
+#: (ip_isr's, then the package's own).
+_CORRECTED_KEYS = ("LSST ISR BF APPLIED", "BFDRIFT")
+
+
+def _refuse_corrected(exposure, meta):
+    """Refuse an image whose metadata says the BF correction was already applied
+    (``LSST ISR BF APPLIED = T`` from ip_isr, ``BFDRIFT = T`` from this package):
+    a second correction would double it, silently."""
+    if isinstance(exposure, MaskedExposure):
+        def get(key):
+            return exposure.header_value(key)
+        source = exposure.path or "exposure"
+    elif _is_afw_like(exposure):
+        md = exposure.getMetadata()
+        md = md.toDict() if hasattr(md, "toDict") else dict(md or {})
+        get, source = md.get, "exposure"
+    elif isinstance(exposure, NDData) and exposure.meta:
+        get, source = dict(exposure.meta).get, "exposure"
+    else:
+        def get(key):
+            return meta.get(key) if meta is not None else None
+        source = "exposure"
+    for key in _CORRECTED_KEYS:
+        value = get(key)
+        if value is True or (isinstance(value, str) and value.strip().upper() in ("T", "TRUE")):
+            how = get("LSST ISR BF CORR METHOD") or get("BFMETHOD")
+            raise InputError(
+                f"{source}: already corrected for the brighter-fatter effect ({key} = True"
+                + (f", method {how}" if how else "") + "); a second correction would double "
+                "it. Give the image from before the BF step (ip_isr: doBrighterFatter=False), "
+                f"or remove {key} if the header is wrong")
 
 
 #: ``LSST ISR BF CORR METHOD`` of each method (ip_isr's names where they apply).
@@ -344,6 +382,24 @@ def input_warnings(image, blocked):
                    f"correction needs post-ISR images in electrons (bias subtracted, gain "
                    f"applied)")
     return out
+
+
+def _mask_warnings(exposure, kind):
+    """A bit-plane mask with bits set that no plane declares: they never block (their
+    meaning is unknown), which the user should know."""
+    if kind == "exposure":
+        mask, planes = exposure.mask, exposure.mask_planes
+    elif kind == "afw":
+        mask, planes = np.asarray(exposure.mask.array), exposure.mask.getMaskPlaneDict()
+    else:
+        return []
+    bits = undeclared_bits(mask, planes)
+    if not bits:
+        return []
+    n = int(np.count_nonzero(mask & sum(1 << b for b in bits)))
+    return [f"mask bits {bits} are set in {n} pixels but no MP_<NAME> card declares them: "
+            f"those pixels are not blocked (declared planes: {sorted(planes) or 'none'}); "
+            f"declare the planes in the MASK header to use them"]
 
 
 def fits_header(meta):
@@ -553,7 +609,7 @@ class BrighterFatterDriftTask(Task):
         if not converged:
             self.log.warning("brighter-fatter correction did not converge in %d iterations",
                              iterations)
-        warnings = input_warnings(finite_data, blocked)
+        warnings = input_warnings(finite_data, blocked) + _mask_warnings(exposure, kind)
         for w in warnings:
             self.log.warning("%s", w)
         header = fits.Header(meta)
@@ -600,7 +656,7 @@ class BrighterFatterDriftTask(Task):
         elif kind == "exposure":
             out = self._exposure_out(exposure, out_data, flags, header, moved_err, gain)
         elif kind == "afw":
-            out = self._afw_out(exposure, out_data, flags, header)
+            out = self._afw_out(exposure, out_data, flags, header, moved_err, gain)
         elif kind == "path":
             out = CCDData(out_data, unit=unit, mask=blocked, meta=header)
         elif kind == "masked":
@@ -612,42 +668,55 @@ class BrighterFatterDriftTask(Task):
 
     def _exposure_out(self, exposure, out_data, flags, header, moved_err, gain):
         """A copy of the MaskedExposure with the corrected image, the BF plane and the
-        correction's variance added (when ``flux_moved_err`` was computed)."""
+        correction's variance added (when ``flux_moved_err`` was computed).
+
+        The BF and ``LSST ISR BF`` keys go where afw keeps the metadata
+        (:meth:`~lsst_bfdrift.utils.exposure.MaskedExposure.metadata`: the
+        primary header of an LSST file with ``INHERIT``); an integer image
+        becomes float32 (the corrected values are fractional)."""
         out = exposure.copy()
-        out.image = out_data.astype(exposure.image.dtype, copy=False)
-        hdr = exposure.header.copy()
+        dtype = exposure.image.dtype
+        out.image = out_data.astype(np.float32 if dtype.kind in "iub" else dtype, copy=False)
+        md = out.metadata()
         for card in header.cards:
             key = card.keyword
-            if key not in hdr or key.startswith(("BF", "LSST ISR BF")):
+            if key.startswith(("BF", "LSST ISR BF")):
                 name = f"HIERARCH {key}" if len(key) > 8 or " " in key else key
-                hdr[name] = (card.value, card.comment)
-        out.header = hdr
+                md[name] = (card.value, card.comment)
         if out.mask is not None and out.layout != "ccddata":
             # a CCDData file's mask is boolean for its readers: the flags stay in
             # BFFLAGS rather than turn flagged (e.g. border) pixels into masked ones
-            bit = add_mask_plane(out, self.config.bf_mask_plane)
+            bit = add_mask_plane(out, self.config.bf_mask_plane, doc=BF_PLANE_DOC)
             out.mask = out.mask | np.where(flags != 0, np.int32(1 << bit), np.int32(0))
         if out.variance is not None and moved_err is not None:
             out.variance = out.variance + (moved_err / gain) ** 2
         return out
 
-    def _afw_out(self, exposure, out_data, flags, header):
-        """A clone of an afw-like Exposure: image replaced, BF plane added, keys set."""
-        import copy
-
+    def _afw_out(self, exposure, out_data, flags, header, moved_err, gain):
+        """A clone of an afw-like Exposure: image replaced, BF plane added (with its
+        description where afw takes one), variance + flux_moved_err^2, keys set."""
         out = exposure.clone() if hasattr(exposure, "clone") else copy.deepcopy(exposure)
         arr = out.image.array
         arr[...] = out_data.astype(arr.dtype, copy=False)
-        bit = out.mask.addMaskPlane(self.config.bf_mask_plane)
+        name = self.config.bf_mask_plane
+        try:
+            bit = out.mask.addMaskPlane(name, BF_PLANE_DOC)  # afw with plane docs
+        except TypeError:
+            bit = out.mask.addMaskPlane(name)
         m = out.mask.array
         m |= np.where(flags != 0, 1 << int(bit), 0).astype(m.dtype)
+        var = getattr(out, "variance", None)
+        if moved_err is not None and var is not None and hasattr(var, "array"):
+            var.array[...] += ((moved_err / gain) ** 2).astype(var.array.dtype)
         md = out.getMetadata()
-        for key in ("LSST ISR BF APPLIED", "LSST ISR BF CORR METHOD"):
-            value = header[f"HIERARCH {key}"]
+        for card in header.cards:
+            key = card.keyword
+            if not key.startswith(("BF", "LSST ISR BF")):
+                continue
             if hasattr(md, "set"):
-                md.set(key, value)
+                md.set(key, card.value)
             else:
-                md[key] = value
+                md[key] = card.value
         return out
 
     def _flux_moved_error(self, data, finite_data, blocked, moved, dtype):

@@ -23,7 +23,15 @@ Layouts (checked against lsst.afw's Exposure FITS writer, see
 
 A file with several image HDUs in none of these layouts (a raw file with one
 HDU per amplifier) is refused: the package corrects assembled, post-ISR
-images.
+images. The extensions ``bfdrift correct`` appends (``FLUX_MOVED``,
+``BFFLAGS``, the geometry maps, see :data:`PRODUCT_HDUS`) are not counted as
+images, so an output file reads back in its layout.
+
+Mask planes are declared as afw declares them: ``MP_<NAME> = bit`` in the
+MASK header, and (newer afw) ``MPD_<NAME> = 'description'``; both are read
+and written back. Header metadata of an LSST layout lives in the primary
+header when the image HDU has ``INHERIT = T`` (afw's ExposureFitsReader reads
+it from there), else in the image header (:meth:`MaskedExposure.metadata`).
 """
 
 import copy
@@ -36,10 +44,14 @@ from lsst_bfdrift.utils.errors import InputError, InputFileError
 from lsst_bfdrift.utils.io import atomic_output, hdu_pixels, open_fits
 
 __all__ = ["MaskedExposure", "read_exposure", "write_exposure", "plane_mask", "add_mask_plane",
-           "header_value", "BLOCKING_PLANES"]
+           "header_value", "undeclared_bits", "BLOCKING_PLANES", "PRODUCT_HDUS"]
 
 #: Mask planes that block the flux exchange by default (LSST's ISR choice).
 BLOCKING_PLANES = ("SAT", "BAD", "NO_DATA", "SUSPECT", "UNMASKEDNAN")
+
+#: Extension names of the products ``bfdrift correct`` appends to its outputs
+#: (not counted as images of the exposure when a file is read).
+PRODUCT_HDUS = ("FLUX_MOVED", "BFFLAGS", "AREA", "CENTROID_X", "CENTROID_Y", "E1", "E2")
 
 
 @dataclasses.dataclass
@@ -55,6 +67,8 @@ class MaskedExposure:
     mask_planes : dict
         Plane name -> bit number (the ``MP_*`` cards; ``{'BAD': 0}`` for a
         CCDData boolean mask).
+    mask_plane_docs : dict
+        Plane name -> description (afw's ``MPD_*`` cards), where given.
     variance : ndarray or None
         Per-pixel variance (image units squared), or None. A CCDData ``UNCERT``
         extension of standard deviations is held here squared.
@@ -77,6 +91,7 @@ class MaskedExposure:
     image: np.ndarray
     mask: np.ndarray = None
     mask_planes: dict = dataclasses.field(default_factory=dict)
+    mask_plane_docs: dict = dataclasses.field(default_factory=dict)
     variance: np.ndarray = None
     header: object = None
     primary_header: object = None
@@ -95,6 +110,19 @@ class MaskedExposure:
         """BUNIT of the image (else ``LSST ISR UNITS``), lower case; '' when neither."""
         return str(self.header_value("BUNIT", self.header_value("LSST ISR UNITS", "")) or
                    "").strip().lower()
+
+    def metadata(self):
+        """The header that holds the exposure's metadata, as afw reads it.
+
+        The primary header when the image HDU says ``INHERIT = T`` (afw writes
+        everything but the WCS there; ExposureFitsReader reads it from there),
+        else the image header (CCDData and plain files, and old afw files).
+        Keys the Task writes (``LSST ISR BF APPLIED``, ``BF*``) go here.
+        """
+        if self.primary_header is not None and self.header is not None and \
+                self.header.get("INHERIT") is True and self.image_index != 0:
+            return self.primary_header
+        return self.header
 
     def copy(self):
         """A deep copy (arrays, headers and HDUs)."""
@@ -134,14 +162,62 @@ def plane_mask(mask, planes, names):
                                     good_mask_value=False)
 
 
-def add_mask_plane(exposure, name):
-    """Declare plane ``name`` in ``exposure`` (at the first free bit); its bit."""
+def undeclared_bits(mask, planes):
+    """Bits set in ``mask`` that no plane of ``planes`` declares.
+
+    Parameters
+    ----------
+    mask : ndarray of int or None
+    planes : dict
+        Plane name -> bit.
+
+    Returns
+    -------
+    list of int
+        Sorted bit numbers (empty without a mask).
+    """
+    if mask is None or mask.size == 0:
+        return []
+    used = int(np.bitwise_or.reduce(mask.astype(np.int64), axis=None))
+    declared = {int(b) for b in planes.values()}
+    return [b for b in range(63) if used >> b & 1 and b not in declared]
+
+
+def add_mask_plane(exposure, name, doc=None):
+    """Declare plane ``name`` in ``exposure``; its bit.
+
+    The plane takes the lowest bit that no plane declares and no pixel of the
+    mask sets (an undeclared bit that is set belongs to somebody: it is never
+    reused). A plane already declared keeps its bit.
+
+    Parameters
+    ----------
+    exposure : MaskedExposure
+    name : str
+    doc : str, optional
+        Description, written as the ``MPD_<name>`` card (afw's convention).
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    InputError
+        All 31 usable bits of the int32 mask are taken.
+    """
+    if doc:
+        exposure.mask_plane_docs[name] = doc
     if name in exposure.mask_planes:
         return int(exposure.mask_planes[name])
     used = set(int(b) for b in exposure.mask_planes.values())
-    bit = next(b for b in range(31) if b not in used)
-    exposure.mask_planes[name] = bit
-    return bit
+    used.update(undeclared_bits(exposure.mask, exposure.mask_planes))
+    free = [b for b in range(31) if b not in used]
+    if not free:
+        raise InputError(f"no free bit in the mask for plane {name!r}: bits 0-30 are all "
+                         f"declared or set ({sorted(exposure.mask_planes)})")
+    exposure.mask_planes[name] = free[0]
+    return free[0]
 
 
 def _is_image(hdu):
@@ -172,7 +248,7 @@ def read_exposure(path):
     path = os.fspath(path)
     with open_fits(path) as hdul:
         names = [h.name.upper() for h in hdul]
-        images = [k for k, h in enumerate(hdul) if _is_image(h)]
+        images = [k for k, h in enumerate(hdul) if _is_image(h) and names[k] not in PRODUCT_HDUS]
         if not images:
             raise InputFileError(f"{path}: no 2-d image HDU; accepted: a FITS file with a 2-d "
                                  "image", path)
@@ -199,7 +275,7 @@ def read_exposure(path):
                     "give an Exposure with IMAGE/MASK/VARIANCE extensions")
         image = hdu_pixels(hdul[ii], path, dtype=None)
         mask = variance = None
-        planes = {}
+        planes, docs = {}, {}
         if mi is not None:
             mh = hdul[mi]
             mdata = hdu_pixels(mh, path, dtype=None)
@@ -211,6 +287,7 @@ def read_exposure(path):
                                  "integer bit planes")
             mask = mdata.astype(np.int32)
             planes = {k[3:]: int(v) for k, v in mh.header.items() if k.startswith("MP_")}
+            docs = {k[4:]: str(v) for k, v in mh.header.items() if k.startswith("MPD_")}
             if layout == "ccddata" and not planes:
                 planes = {"BAD": 0}
                 mask = (mask != 0).astype(np.int32)
@@ -232,7 +309,8 @@ def read_exposure(path):
             raise InputFileError(f"{path}: truncated or corrupt FITS file: an HDU cannot be "
                                  f"read ({exc}); re-copy or re-write the file", path) from exc
         primary = hdul[0].header.copy()
-        return MaskedExposure(image=image, mask=mask, mask_planes=planes, variance=variance,
+        return MaskedExposure(image=image, mask=mask, mask_planes=planes, mask_plane_docs=docs,
+                              variance=variance,
                               header=hdul[ii].header.copy(), primary_header=primary,
                               layout=layout, hdus=hdus, image_index=ii, mask_index=mi,
                               variance_index=vi, path=path)
@@ -241,10 +319,17 @@ def read_exposure(path):
 def write_exposure(path, exposure, *, extra_hdus=(), overwrite=False, inputs=()):
     """Write ``exposure`` back in its layout, every HDU of its file kept (atomically).
 
-    The image, mask (with its ``MP_*`` cards from ``mask_planes``) and variance
-    replace those of the file read, in the same HDUs, dtypes and compression;
-    the image header is ``exposure.header``; ``extra_hdus`` are appended. An
-    exposure that was not read from a file is written in the LSST layout.
+    The image, mask (with its ``MP_*`` cards from ``mask_planes`` and
+    ``MPD_*`` cards from ``mask_plane_docs``) and variance replace those of
+    the file read, in the same HDUs, dtypes and compression; the image header
+    is ``exposure.header`` and an empty primary HDU's header is
+    ``exposure.primary_header``; ``extra_hdus`` are appended. An exposure that
+    was not read from a file is written in the LSST layout.
+
+    An integer image (e.g. int16 with ``BZERO``) is written as float32: a
+    corrected image holds fractions of an electron, and rounding them would
+    lose flux (``BZERO``/``BSCALE``/``BLANK`` are dropped from that HDU). Mask
+    and variance keep their dtypes.
 
     Parameters
     ----------
@@ -269,7 +354,11 @@ def write_exposure(path, exposure, *, extra_hdus=(), overwrite=False, inputs=())
         if exposure.variance is not None:
             hdus.append(fits.ImageHDU(exposure.variance.astype(np.float32), name="VARIANCE"))
             exposure.variance_index = len(hdus) - 1
-    _put(hdus, exposure.image_index, exposure.image, exposure.header)
+    _put(hdus, exposure.image_index, exposure.image, exposure.header, image=True)
+    if exposure.image_index != 0 and exposure.primary_header is not None and \
+            isinstance(hdus[0], fits.PrimaryHDU) and hdus[0].data is None:
+        # the metadata of an LSST layout (INHERIT) lives in the primary header
+        hdus[0] = fits.PrimaryHDU(header=exposure.primary_header.copy())
     if exposure.mask is not None:
         if exposure.mask_index is None:
             hdus.append(fits.ImageHDU(exposure.mask.astype(np.int32), name="MASK"))
@@ -279,6 +368,9 @@ def write_exposure(path, exposure, *, extra_hdus=(), overwrite=False, inputs=())
             del h.header[k]
         for name, bit in sorted(exposure.mask_planes.items(), key=lambda kv: kv[1]):
             h.header[f"MP_{name}" if len(name) <= 5 else f"HIERARCH MP_{name}"] = int(bit)
+        for name, doc in exposure.mask_plane_docs.items():
+            if name in exposure.mask_planes:
+                h.header[f"MPD_{name}" if len(name) <= 4 else f"HIERARCH MPD_{name}"] = doc
         _put(hdus, exposure.mask_index, exposure.mask, None)
     if exposure.variance is not None and exposure.variance_index is not None:
         var = exposure.variance
@@ -312,18 +404,28 @@ def _copy_hdu(hdu):
     return hdu.copy()
 
 
-def _put(hdus, index, array, header):
+def _put(hdus, index, array, header, *, image=False):
     """Replace HDU ``index``'s data by ``array`` in the HDU's own dtype (and header);
-    a compressed HDU stays compressed with the same settings."""
+    a compressed HDU stays compressed with the same settings. With ``image``, an
+    integer HDU becomes float32 (the corrected image has fractional values)."""
     from astropy.io import fits
 
     hdu = hdus[index]
     old = hdu.data
     dtype = old.dtype.newbyteorder("=") if old is not None else np.asarray(array).dtype
+    if image and dtype.kind in "iu":
+        dtype = np.dtype(np.float32)
     data = np.asarray(array).astype(dtype, copy=False)
     new_header = hdu.header.copy() if header is None else header.copy()
     if header is not None and "EXTNAME" in hdu.header:
         new_header["EXTNAME"] = hdu.header["EXTNAME"]
+    if dtype.kind == "f":
+        for key in ("BZERO", "BSCALE", "BLANK"):
+            new_header.remove(key, ignore_missing=True)
+    if image and not isinstance(hdu, fits.CompImageHDU):
+        cls = fits.PrimaryHDU if isinstance(hdu, fits.PrimaryHDU) else fits.ImageHDU
+        hdus[index] = cls(data=data, header=new_header)
+        return
     if isinstance(hdu, fits.CompImageHDU):
         hdus[index] = fits.CompImageHDU(
             data, header=new_header, name=hdu.name, compression_type=hdu.compression_type,
