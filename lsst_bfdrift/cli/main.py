@@ -77,7 +77,7 @@ from lsst_bfdrift.cli.analysis import (_cmd_calibrate, _cmd_diagnose, _cmd_ptc,
                                        _cmd_reproduce, _cmd_validate_sky, _cmd_validate_stars)
 from lsst_bfdrift.utils.errors import (BfdriftError, ComputationError, FieldValidationError,
                                        FitError, InputError,
-                                       InputFileError, InputKeyError)
+                                       InputFileError, InputKeyError, OutputExistsError)
 
 __all__ = ["main", "exit_code", "EXIT_OK", "EXIT_OTHER", "EXIT_INPUT", "EXIT_EXISTS",
            "EXIT_FIT", "read_config", "sample_image_path", "make_psf", "read_image"]
@@ -281,6 +281,8 @@ def _cmd_correct(args):
     if args.blocking_planes is not None:
         cfg.blocking_mask_planes = [p.strip() for p in args.blocking_planes.split(",")
                                     if p.strip()]
+    if args.strict:
+        cfg.on_input_warning = "raise"
     cfg.validate()  # a bad --gain or --method is a usage error, not one failure per file
     files = list(args.inputs)
     if args.out_dir:
@@ -288,10 +290,18 @@ def _cmd_correct(args):
         pairs = output_pairs(files, args.out_dir)
     else:
         if len(files) != 2:
-            raise InputError("give IN.fits OUT.fits, or several inputs with --out-dir")
+            raise InputError(f"{len(files)} paths without --out-dir: give IN.fits OUT.fits, or "
+                             "several inputs with --out-dir DIR")
         pairs = [(files[0], files[1])]
     for src, dst in pairs:  # an existing output is one file's failure; an input, a usage error
         check_output(dst, [s for s, _ in pairs], overwrite=True, what="output")
+    if not args.out_dir and args.overwrite and os.path.exists(files[1]) and \
+            not _written_by_bfdrift(files[1]):
+        # `correct a.fits b.fits --overwrite` meant as two inputs would replace b.fits
+        raise OutputExistsError(
+            f"refusing to overwrite {files[1]}: it exists and was not written by bfdrift "
+            "correct (no BFDRIFT card); was it meant as a second input? Use --out-dir DIR "
+            "for several inputs, or remove the file")
     if args.skip_existing and args.overwrite:
         raise InputError("--skip-existing and --overwrite contradict each other; give one")
     skipped = [(s_, d) for s_, d in pairs if args.skip_existing and os.path.exists(d)]
@@ -316,14 +326,29 @@ def _cmd_correct(args):
                 # say what happened: the flux moved, and how the solver got there
                 how = ("the series solution was within tolerance (no iteration needed)"
                        if r["iterations"] == 0 else f"{r['iterations']} iteration(s)")
+                nw = len(r.get("warnings") or [])
                 print(f"{r['input']} -> {r['output']}: moved {r['flux_moved_abs_sum'] / 2:.4g} e "
                       f"between pixels; {how}; "
                       + ("converged" if r["converged"] else "NOT converged (see the log)")
-                      + (f"; {r['warnings']} input warning(s) (BFWARN)"
-                         if r.get("warnings") else ""))
+                      + (f"; {nw} input warning(s) (BFWARN; printed below, --strict refuses "
+                         "such inputs)" if nw else ""))
+    for r in results:
+        for w in r.get("warnings") or []:
+            print(f"bfdrift correct: {r['input']}: warning: {w}", file=sys.stderr)
     for r in failed:
         print(f"bfdrift correct: {r['input']}: {r['error']}", file=sys.stderr)
     return 1 if failed else 0
+
+
+def _written_by_bfdrift(path):
+    """Whether a FITS file carries the BFDRIFT card that ``bfdrift correct`` writes."""
+    from astropy.io import fits
+
+    try:
+        with fits.open(path) as hdul:
+            return any(h.header.get("BFDRIFT") is True for h in hdul)
+    except (OSError, ValueError, TypeError):
+        return False
 
 
 def build_parser():
@@ -474,7 +499,11 @@ def build_parser():
     co.add_argument("--geometry", action=argparse.BooleanOptionalAction, default=None,
                     help="write the geometry maps (default: the config's compute_geometry, "
                     "True, as in the API)")
-    co.add_argument("--overwrite", action="store_true")
+    co.add_argument("--overwrite", action="store_true",
+                    help="replace existing outputs (with IN OUT, only a file bfdrift wrote)")
+    co.add_argument("--strict", action="store_true",
+                    help="refuse inputs that look wrong (bias pedestal, mask over the sources, "
+                    "undeclared mask bits) instead of warning (config on_input_warning)")
     co.add_argument("--blocking-planes", help="comma-separated mask planes that block the "
                     "flux exchange (default: the config's, SAT,BAD,NO_DATA,SUSPECT,"
                     "UNMASKEDNAN); DETECTED and other planes never block unless named")

@@ -75,7 +75,9 @@ def correct_file(src, dst, config=None, *, overwrite=False):
     Returns
     -------
     dict
-        ``input``, ``output``, ``iterations``, ``converged``,
+        ``input``, ``output``, ``iterations``, ``converged``, ``layout``,
+        ``warnings`` (what looked wrong with the input, see
+        :func:`~lsst_bfdrift.correction.task.input_warnings`),
         ``flux_moved_sum`` and ``flux_moved_abs_sum`` (e).
     """
     from astropy.io import fits
@@ -87,10 +89,9 @@ def correct_file(src, dst, config=None, *, overwrite=False):
     exposure = read_exposure(src)
     res = _task(_config_json(config)).run(exposure)
     extra = [_described(fits.ImageHDU(res.flux_moved.astype(np.float32), name="FLUX_MOVED"),
-                        "electron", "flux moved into each pixel by the correction"),
-             _described(fits.ImageHDU(res.flags.astype(np.int16), name="BFFLAGS"), "",
-                        "bit 1: blocked (masked, saturated, non-finite); bit 2: within the "
-                        "template's reach of the border")]
+                        "electron", "flux moved into each pixel by the correction (sums to "
+                        "zero)"),
+             _flags_hdu(res.flags)]
     if res.area is not None:
         for name, unit, what in (("area", "pixel2", "final pixel area (px^2)"),
                                  ("centroid_x", "pixel", "centroid shift along x (px)"),
@@ -102,16 +103,36 @@ def correct_file(src, dst, config=None, *, overwrite=False):
     write_exposure(dst, res.exposure, extra_hdus=extra, overwrite=overwrite, inputs=[src])
     return {"input": src, "output": dst, "iterations": int(res.iterations),
             "converged": bool(res.converged), "layout": exposure.layout,
-            "warnings": len(res.warnings),
+            "warnings": list(res.warnings),
             "flux_moved_abs_sum": float(np.abs(res.flux_moved).sum()),
             "flux_moved_sum": float(res.flux_moved.sum())}
 
 
 def _described(hdu, unit, what):
-    """``hdu`` with BUNIT and a one-line description (``BFDESC``)."""
+    """``hdu`` with BUNIT and its description (``BFDESC``, long strings continued)."""
     if unit:
         hdu.header["BUNIT"] = unit
-    hdu.header["BFDESC"] = what[:68]
+    hdu.header["BFDESC"] = what
+    return hdu
+
+
+def _flags_hdu(flags):
+    """The BFFLAGS extension: its bits declared as mask planes, afw's way (``MP_`` bit
+    number, ``MPD_`` description)."""
+    from astropy.io import fits
+
+    from lsst_bfdrift.correction.task import FLAG_BLOCKED, FLAG_EDGE
+
+    hdu = _described(fits.ImageHDU(flags.astype(np.int16), name="BFFLAGS"), "",
+                     f"bit planes of the correction: value {FLAG_BLOCKED} blocked (masked, "
+                     f"saturated or non-finite: no flux exchanged), value {FLAG_EDGE} within "
+                     "the template's reach of the image border (aggressors missing)")
+    for name, value, doc in (("BLOCKED", FLAG_BLOCKED, "masked, saturated or non-finite: no "
+                              "flux exchanged"),
+                             ("EDGE", FLAG_EDGE, "within the template's reach of the border")):
+        bit = int(value).bit_length() - 1
+        hdu.header[f"HIERARCH MP_{name}"] = bit
+        hdu.header[f"HIERARCH MPD_{name}"] = doc
     return hdu
 
 
@@ -142,7 +163,7 @@ def _safe(src, dst, config_json, overwrite):
         return out
     except Exception as exc:  # noqa: BLE001 - reported per file, the others go on
         return {"input": os.fspath(src), "output": os.fspath(dst), "iterations": None,
-                "converged": False, "error": f"{type(exc).__name__}: {exc}"}
+                "converged": False, "warnings": [], "error": f"{type(exc).__name__}: {exc}"}
 
 
 def correct_files(pairs, config=None, *, scheduler=None, overwrite=False, n_workers=2,
@@ -209,7 +230,8 @@ def correct_files(pairs, config=None, *, scheduler=None, overwrite=False, n_work
                 except Exception as exc:  # noqa: BLE001 - e.g. a worker died
                     src, dst = pairs[k]
                     results[k] = {"input": src, "output": dst, "iterations": None,
-                                  "converged": False, "error": f"{type(exc).__name__}: {exc}"}
+                                  "converged": False, "warnings": [],
+                                  "error": f"{type(exc).__name__}: {exc}"}
                 bar(1)
         finally:
             client.close()

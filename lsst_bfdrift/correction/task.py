@@ -144,6 +144,13 @@ class BrighterFatterDriftConfig(pexConfig.Config):
                  "interpolate": "the mean of the unmasked pixels in the 5 x 5 box around "
                                 "them, as ip_isr interpolates defects before BF; recorded "
                                 "values restored after"})
+    on_input_warning = pexConfig.ChoiceField(
+        doc="what an input that looks wrong (input_warnings: a bias pedestal, a mask over "
+            "the sources, undeclared mask bits) gives", dtype=str, default="warn",
+        optional=False,
+        allowed={"warn": "logged, counted in BFWARN and returned as Struct.warnings; the "
+                         "image is corrected (noiseless simulations look like a pedestal)",
+                 "raise": "an InputError naming the warnings; nothing is returned"})
     bf_mask_plane = pexConfig.Field(
         doc="mask plane added to exposures with bit-plane masks for the pixels the correction "
             "flags (flags != 0: blocked, or within the template's reach of the border)",
@@ -610,6 +617,8 @@ class BrighterFatterDriftTask(Task):
             self.log.warning("brighter-fatter correction did not converge in %d iterations",
                              iterations)
         warnings = input_warnings(finite_data, blocked) + _mask_warnings(exposure, kind)
+        if warnings and cfg.on_input_warning == "raise":
+            raise InputError("input refused (on_input_warning='raise'): " + "; ".join(warnings))
         for w in warnings:
             self.log.warning("%s", w)
         header = fits.Header(meta)
