@@ -98,7 +98,7 @@ def _exptime(path):
     return None
 
 
-def read_flat_pair(f1, f2, *, exptime_rtol=1e-3):
+def read_flat_pair(f1, f2, *, exptime_rtol=1e-3, with_exptime=False):
     """The two images of a flat pair, checked as a lab would.
 
     Parameters
@@ -107,10 +107,15 @@ def read_flat_pair(f1, f2, *, exptime_rtol=1e-3):
         FITS files (first 2-d image HDU) or arrays.
     exptime_rtol : float, optional
         Largest relative difference of the two ``EXPTIME`` keywords (files).
+    with_exptime : bool, optional
+        Also return the pair's exposure time (s): the mean of the two
+        ``EXPTIME`` keywords, None for arrays or files without the keyword.
 
     Returns
     -------
     img1, img2 : ndarray
+    exptime : float or None
+        Only with ``with_exptime``.
 
     Raises
     ------
@@ -139,6 +144,10 @@ def read_flat_pair(f1, f2, *, exptime_rtol=1e-3):
             raise InputError(f"flat pair {name[0]} and {name[1]}: EXPTIME {t1} and {t2} differ "
                              f"by more than {exptime_rtol:g} relative; accepted: the two flats "
                              "of a pair have the same exposure time")
+        if with_exptime and t1 is not None:
+            return imgs[0], imgs[1], 0.5 * (t1 + t2)
+    if with_exptime:
+        return imgs[0], imgs[1], None
     return imgs[0], imgs[1]
 
 
@@ -160,11 +169,17 @@ class PairCovariance:
         after scaling f2 to f1's mean, same lags, pixels and weights as
         ``cov``: zero for correlations created while the flats fill, mu^2
         times the autocovariance of a response pattern common to both flats.
+    mu1, mu2 : float or None
+        Mean of each flat over the pixels used (ADU), before the scaling.
+    nvalid : int or None
+        Number of pixels behind ``mu1`` and ``mu2`` (after masking, border and
+        clipping).
     """
 
-    def __init__(self, mu, cov, npix, nmasked, static=None):
+    def __init__(self, mu, cov, npix, nmasked, static=None, mu1=None, mu2=None, nvalid=None):
         self.mu, self.cov, self.npix, self.nmasked = float(mu), cov, npix, int(nmasked)
         self.static = static
+        self.mu1, self.mu2, self.nvalid = mu1, mu2, nvalid
 
 
 def _clip_mask(diff, mask, nsig, iters=3):
@@ -249,6 +264,7 @@ def pair_covariances(flat1, flat2, *, max_lag=8, mask=None, nsig=5.0, min_pixels
     for _ in range(2):
         mu1 = a[~bad].mean()
         mu2 = b[~bad].mean()
+        n_mean = int((~bad).sum())
         if not (mu1 > 0 and mu2 > 0):
             raise InputError(f"flat means must be positive, got {mu1:.4g} and {mu2:.4g} ADU")
         diff = np.where(bad, 0.0, a - b * (mu1 / mu2))
@@ -270,7 +286,8 @@ def pair_covariances(flat1, flat2, *, max_lag=8, mask=None, nsig=5.0, min_pixels
         stat = ((_lagged_products(tot, shape, L) / npairs - 2.0 * cov) / 4.0).T.copy()
     # arrays above are [dj, di]; return [di, dj]
     return PairCovariance(0.5 * (mu1 + mu2), cov.T.copy(), (npairs // 2).T.astype(int),
-                          int((bad & ~edge).sum()) + n_edge_bad, static=stat)
+                          int((bad & ~edge).sum()) + n_edge_bad, static=stat,
+                          mu1=float(mu1), mu2=float(mu2), nvalid=n_mean)
 
 
 def _line(x, y):
