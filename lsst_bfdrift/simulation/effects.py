@@ -23,18 +23,58 @@ Vocabulary (the names used in reports and JSON): ``charge_cloud``,
 Which input identifies which effect is stated by :meth:`Effect.identifiable`;
 the diagnosis only tries identifiable ones and reports the others with the
 reason.
+
+Observables
+-----------
+Each effect also states which observables of a flat set it moves (the
+class attribute ``observables``, names from :data:`OBSERVABLES`); the
+diagnosis (:mod:`lsst_bfdrift.calibration.observables`) uses it to say which
+effect could produce a finding, and never credits the base BF model with
+one it cannot produce:
+
+``covariances``
+    C_ij(mu) of difference images at every lag.
+``pair_sums``
+    S_ij(mu) of pair sums (static structure).
+``edges``
+    Signal of the pixel rings at the image edges against the interior.
+``linearity``
+    Mean signal against exposure time (EXPTIME).
+``sum_rule``
+    Sum of C_ij over all lags (multiplicity 4/2/1 off-axis/axis/zero) against
+    mu / gain: the a-matrix sums to zero because BF moves pixel boundaries
+    and conserves the total area.
+``halves``
+    Means and covariances of the two halves of the image (left/right,
+    bottom/top), standing in for amplifiers.
+``pair_ratio``
+    Mean of the second flat of a pair over the first's.
+``turnoff``
+    The level at which a pair's variance drops (saturation).
+
+The base BF model (electrostatic a_ij, gain, read noise) moves only
+``covariances``: it obeys the sum rule, is linear in exposure time, the same
+in both halves and in both flats of a pair, and has no turn-off.
 """
 
 import numpy as np
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["Effect", "ChargeCloud", "WellFilling", "Diffusion", "GainNonlinearity",
-           "StaticArea", "CTI", "EFFECT_NAMES", "effect_library", "full_lags", "quadrant",
-           "cti_filter_covariance"]
+           "StaticArea", "CTI", "EFFECT_NAMES", "OBSERVABLES", "BASE_OBSERVABLES",
+           "effect_library", "full_lags", "quadrant", "cti_filter_covariance"]
 
 #: The documented vocabulary, in library order.
 EFFECT_NAMES = ("charge_cloud", "well_filling", "diffusion", "gain_nonlinearity",
                 "static_area", "cti_serial", "cti_parallel")
+
+#: Observables of a flat set (module documentation), the vocabulary of
+#: :attr:`Effect.observables`.
+OBSERVABLES = ("covariances", "pair_sums", "edges", "linearity", "sum_rule", "halves",
+               "pair_ratio", "turnoff")
+
+#: The observables the base BF model moves.
+BASE_OBSERVABLES = ("covariances",)
 
 
 def full_lags(q):
@@ -69,9 +109,12 @@ class Effect:
     units : tuple of str
     signature : str
         The residual signature it explains (one sentence).
+    observables : tuple of str
+        The observables of a flat set it moves (names from :data:`OBSERVABLES`).
     """
 
     name = ""
+    observables = ()
     param_names = ()
     bounds = ()
     start = ()
@@ -129,6 +172,8 @@ class ChargeCloud(Effect):
     """
 
     name = "charge_cloud"
+    #: the area sum is unchanged: the sum rule holds
+    observables = ("covariances",)
     param_names = ("var_serial", "var_parallel")
     bounds = ((0.0, 0.5), (0.0, 0.5))
     start = (0.0, 0.0)
@@ -166,6 +211,8 @@ class WellFilling(Effect):
     """
 
     name = "well_filling"
+    #: sum of D_ij over all lags = d(sum of a_ij) / d ln d_ch = 0: the sum rule holds
+    observables = ("covariances",)
     param_names = ("beta",)
     bounds = ((-1e-4, 1e-4),)
     start = (0.0,)
@@ -200,6 +247,7 @@ class Diffusion(Effect):
     """
 
     name = "diffusion"
+    observables = ()
     param_names = ("sigma_d",)
     bounds = ((0.0, 1.0),)
     start = (0.0,)
@@ -224,6 +272,10 @@ class GainNonlinearity(Effect):
     """
 
     name = "gain_nonlinearity"
+    #: the mean bends against exposure time, and the covariances summed over
+    #: lags over the mean grow as (1 + 2 nu mu)^2 / (1 + nu mu) ~ 1 + 3 nu mu
+    #: (the sum rule breaks)
+    observables = ("covariances", "sum_rule", "linearity")
     param_names = ("nu",)
     bounds = ((-5e-6, 5e-6),)
     start = (0.0,)
@@ -259,6 +311,9 @@ class StaticArea(Effect):
     """
 
     name = "static_area"
+    #: the realised pattern averages to slightly different values over the two
+    #: halves and over the edge rings (constant relative offsets)
+    observables = ("pair_sums", "halves", "edges")
     signature = "S_ij = mu^2 v_ij in pair-sum statistics; cancels in differences"
     _identifiable = {
         "table": (False, "a_ij come from difference images, where static structure cancels"),
@@ -314,8 +369,17 @@ class CTI(Effect):
 
     Signature: a lag-1 covariance along one axis with C/mu constant in mu
     (no mu^2 growth), variance slightly reduced.
+
+    Observables: the covariances only. The filter moves charge to the next
+    pixel, so the sum over lags and the mean are kept, and one ``eps`` acts on
+    the whole image. A sensor's CTI from traps would also lose charge at low
+    signal (linearity) and grow with the number of transfers (halves); this
+    model has neither.
     """
 
+    #: the filter keeps the sum over lags ((1 - eps)^2 + eps^2 + 2 eps (1 - eps) = 1)
+    #: and the mean; uniform eps: the halves agree
+    observables = ("covariances",)
     param_names = ("eps",)
     bounds = ((0.0, 0.05),)
     start = (0.0,)
