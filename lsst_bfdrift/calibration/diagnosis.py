@@ -29,6 +29,14 @@ Inputs (:class:`Observations`):
     difference-image covariances C_ij(mu) and pair-sum statistics S_ij(mu)
     from flat pairs; base: Astier's full covariance model with the
     electrostatic a_ij, gain and read noise.
+
+Beside the fit, every other observable the input carries is checked
+(:mod:`lsst_bfdrift.calibration.observables`: linearity in exposure time,
+the sum rule, image halves, the two flats of each pair, the turn-off); a
+significant finding is named in the verdict with the effects that could
+produce it, and never credited to the base model. These checks do not
+change the fit or the choice of effects. Pairs above the turn-off are left
+out of the fit and listed.
 """
 
 import numpy as np
@@ -36,7 +44,9 @@ from scipy import stats
 
 from lsst_bfdrift.calibration.acoeff_fit import DEFAULT_FREE
 from lsst_bfdrift.calibration.fitting import fit_parameters
-from lsst_bfdrift.calibration.ptc import covariance_model, fit_ptc_exponential, pair_covariances, ptc_turnoff
+from lsst_bfdrift.calibration.observables import (assess_observables, credit_findings,
+                                                  pair_observables, turnoff_cut)
+from lsst_bfdrift.calibration.ptc import covariance_model, fit_ptc_exponential, pair_covariances
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.simulation.effects import effect_library, EFFECT_NAMES
 
@@ -58,10 +68,14 @@ def pair_statistics(flat1, flat2, *, max_lag=3, border=None):
     :data:`~lsst_bfdrift.calibration.ptc.EDGE_BORDER` of the image edges are
     left out (:func:`edge_profile` looks at them).
     """
-    f1 = np.asarray(flat1, dtype=float)
-    pc = pair_covariances(f1, flat2, max_lag=max_lag, min_pixels=min(1000, f1.size // 4),
-                          static=True, border=border)
+    pc = _pair_covariance(flat1, flat2, max_lag, border)
     return pc.mu, pc.cov, pc.static, pc.npix
+
+
+def _pair_covariance(flat1, flat2, max_lag, border):
+    f1 = np.asarray(flat1, dtype=float)
+    return pair_covariances(f1, flat2, max_lag=max_lag, min_pixels=min(1000, f1.size // 4),
+                            static=True, border=border)
 
 
 def edge_profile(flat1, flat2, *, border=None):
@@ -185,17 +199,26 @@ class Observations:
         if mu.shape != var.shape or mu.ndim != 1:
             raise InputError("PTC mean and variance must be 1-d arrays of equal length")
         good = np.isfinite(mu) & np.isfinite(var) & (mu > 0) & (var > 0)
-        good &= mu <= ptc_turnoff(mu[good], var[good])  # saturation cut
+        turnoff = None
+        if good.any():  # saturation cut (ptc_turnoff, 5 % drop), the points left out listed
+            keep, turnoff = turnoff_cut(mu[good], var[good])
+            good[np.flatnonzero(good)[~keep]] = False
         if good.sum() < 6:
             raise InputError(f"need at least 6 valid PTC points, got {good.sum()}")
         o = np.argsort(mu[good])
-        return cls("ptc", mu=mu[good][o], var=var[good][o], max_lag=0,
+        return cls("ptc", mu=mu[good][o], var=var[good][o], max_lag=0, turnoff=turnoff,
                    note=f"{good.sum()} points below the turn-off; errors unknown: "
                         "scaled so that the base fit has chi2/dof = 1")
 
     @classmethod
     def from_flats(cls, mu, cov, static, npix):
-        """From per-pair statistics (see :func:`observations_from_pairs`)."""
+        """From per-pair statistics (see :func:`observations_from_pairs`).
+
+        Pairs above the turn-off (:func:`~lsst_bfdrift.calibration.observables.turnoff_cut`:
+        the variance falls below its running maximum by more than 5 % and 5
+        sigma) are left out; ``turnoff`` lists them and ``kept`` marks the
+        pairs used, in input order.
+        """
         mu = np.asarray(mu, float)
         cov = np.asarray(cov, float)
         static = np.asarray(static, float)
@@ -207,8 +230,12 @@ class Observations:
             raise InputError(f"need at least 4 flat pairs, got {mu.size}")
         if not (np.all(np.isfinite(cov)) and np.all(np.isfinite(static))):
             raise InputError("non-finite covariances")
-        return cls("flats", mu=mu, cov=cov, static=static, npix=npix,
-                   max_lag=cov.shape[1] - 1, note="")
+        kept, turnoff = turnoff_cut(mu, cov[:, 0, 0], npix[:, 0, 0])
+        if kept.sum() < 4:
+            raise InputError(f"need at least 4 flat pairs, got {int(kept.sum())} below the "
+                             f"turn-off at {turnoff['break_level']:.4g} ADU ({mu.size} given)")
+        return cls("flats", mu=mu[kept], cov=cov[kept], static=static[kept], npix=npix[kept],
+                   max_lag=cov.shape[1] - 1, note="", kept=kept, turnoff=turnoff)
 
     def data(self):
         """(y, sigma, labels) of the points in chi2; labels are (block, level, i, j)."""
@@ -242,26 +269,63 @@ class Observations:
                 np.concatenate([sc.ravel(), ss.ravel()]), lab)
 
 
-def observations_from_pairs(pairs, *, max_lag=3, border=None):
+def observations_from_pairs(pairs, *, max_lag=3, border=None, exptimes=None):
     """:class:`Observations` of kind 'flats' from flat pairs (arrays or FITS paths).
 
-    ``border`` (px, default :data:`~lsst_bfdrift.calibration.ptc.EDGE_BORDER`)
-    is left out of the covariances; the rings inside it are measured by
-    :func:`edge_profile` and tested by :func:`diagnose`.
+    Parameters
+    ----------
+    pairs : sequence of (flat1, flat2)
+        Arrays (ADU) or FITS paths.
+    max_lag : int, optional
+        Largest lag.
+    border : int, optional
+        Pixels left out at the image edges (default
+        :data:`~lsst_bfdrift.calibration.ptc.EDGE_BORDER`); the rings inside
+        it are measured by :func:`edge_profile` and tested by :func:`diagnose`.
+    exptimes : sequence of float, optional
+        Exposure time of each pair (s), in the order of ``pairs``; default:
+        the files' ``EXPTIME``. Without either the linearity check is not
+        available.
+
+    Returns
+    -------
+    Observations
+        With, beside the fitted statistics, ``pairs`` (per pair the means of
+        each flat and the statistics of the image halves,
+        :func:`~lsst_bfdrift.calibration.observables.pair_observables`),
+        ``exptime`` (s, or None with ``exptime_note`` saying why) and
+        ``turnoff`` (the pairs above the turn-off, left out).
     """
     from lsst_bfdrift.calibration.ptc import read_flat_pair
 
+    pairs = list(pairs)
+    if exptimes is not None:
+        exptimes = np.asarray(exptimes, dtype=float)
+        if exptimes.shape != (len(pairs),) or not np.all(np.isfinite(exptimes) & (exptimes > 0)):
+            raise InputError(f"exptimes must hold one positive exposure time (s) per pair: "
+                             f"{len(pairs)} pairs, got {exptimes.tolist()!r}")
     rows = []
-    for f1, f2 in pairs:
-        f1, f2 = read_flat_pair(f1, f2)  # same shape and EXPTIME, or an error naming both
-        rows.append(pair_statistics(f1, f2, max_lag=max_lag, border=border)
-                    + edge_profile(f1, f2, border=border))
+    for k, (f1, f2) in enumerate(pairs):
+        # same shape and EXPTIME, or an error naming both
+        f1, f2, t = read_flat_pair(f1, f2, with_exptime=True)
+        pc = _pair_covariance(f1, f2, max_lag, border)
+        rows.append((pc.mu, pc.cov, pc.static, pc.npix) + edge_profile(f1, f2, border=border)
+                    + (t if exptimes is None else float(exptimes[k]),
+                       pair_observables(f1, f2, max_lag=max_lag, border=border, whole=pc)))
     rows.sort(key=lambda r: r[0])
     obs = Observations.from_flats([r[0] for r in rows], [r[1] for r in rows],
                                   [r[2] for r in rows], [r[3] for r in rows])
+    rows = [r for r, keep in zip(rows, obs.kept) if keep]
     if rows[0][4].size:  # no rings with border=0
         obs.edge_ratio = np.array([r[4] for r in rows])
         obs.edge_sigma = np.array([r[5] for r in rows])
+    obs.pairs = [r[7] for r in rows]
+    missing = [k for k, r in enumerate(rows) if r[6] is None]
+    obs.exptime = None if missing else np.array([r[6] for r in rows])
+    obs.exptime_note = "" if not missing else (
+        "no exposure times (arrays without exptimes=, or files without EXPTIME)"
+        if len(missing) == len(rows) else
+        f"EXPTIME missing for {len(missing)} of {len(rows)} pairs")
     return obs
 
 
@@ -492,7 +556,10 @@ def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1
         With ``effects_added``, ``chi2_dof_before``, ``chi2_dof_after``,
         ``steps`` (one summary per stage), ``candidates`` (scores per round),
         ``not_identifiable`` (effect -> reason), ``residuals_before``,
-        ``residuals_after`` (per lag), ``verdict`` and ``unexplained``.
+        ``residuals_after`` (per lag), ``verdict`` and ``unexplained``;
+        ``observables`` (check name -> finding,
+        :mod:`~lsst_bfdrift.calibration.observables`) and ``signatures`` (the
+        significant findings as named in the verdict).
     """
     library = effect_library(max_lag=max(obs.max_lag, 0)) if library is None \
         else list(library)
@@ -572,6 +639,10 @@ def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1
             # a finding about pixels outside the fit: named in the verdict, but the
             # fit's own residual decides `unexplained`
             verdict += "; " + edge["description"]
+    findings, signatures = _observable_checks(obs, problem, first, library, current,
+                                              p_threshold)
+    for sig in signatures:  # like the edge: named, outside the fit's own decision
+        verdict += "; " + sig
     for r in rounds:
         for s in r:
             s.pop("fit", None)
@@ -584,7 +655,22 @@ def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1
                      residuals_after=per_lag, verdict=verdict, worst_lag=worst_lag,
                      worst_lag_p=lag_p[worst_lag],
                      unexplained=bool(unexplained), n_points=int(n), note=obs.note,
-                     edge=edge)
+                     edge=edge, observables=findings, signatures=signatures)
+
+
+def _observable_checks(obs, problem, fit, library, added, p_threshold):
+    """Findings of every observable beside the fit (base fit ``fit``), credited."""
+    kw = {}
+    if obs.kind == "flats":
+        nc = obs.cov.size
+        x = dict(zip(problem.names, fit["x"]))
+        kw = dict(model=fit["model"][:nc].reshape(obs.cov.shape),
+                  sigma=problem.sigma[:nc].reshape(obs.cov.shape), gain=x["gain"],
+                  noise=x["noise"])
+    elif obs.kind == "table" and obs.mask.all():
+        kw = dict(model=fit["model"].reshape(obs.a.shape))
+    findings = assess_observables(obs, p_threshold=p_threshold, **kw)
+    return findings, credit_findings(findings, library, added)
 
 
 def load_input(path, *, max_lag=3):
