@@ -98,12 +98,46 @@ def diagnosis_markdown(result, figures=()):
         lines.append(f"{k + 1}. " + ", ".join(f"{c['name']} {c['delta_bic']:+.1f}" for c in r[:-1])
                      + f" (cross-validated chi2: before {cv['cv_chi2_before']:.1f}, best "
                      + ("-" if cv["cv_chi2_best"] is None else f"{cv['cv_chi2_best']:.1f}") + ")")
+    lines += _observables_markdown(result.get("observables"))
     lines += ["", "## Not identifiable from this input", ""]
     lines += [f"- {k}: {v}" for k, v in result["not_identifiable"].items()] or ["(none)"]
     lines += ["", "## Verdict", "", result["verdict"], ""]
     for f in figures:
         lines += [f"![{f}]({f})", ""]
     return "\n".join(lines)
+
+
+def _num(v, fmt=".3g"):
+    return "-" if v is None else format(v, fmt)
+
+
+def _observables_markdown(findings):
+    """Lines of the 'Observables beside the fit' section (empty without findings)."""
+    if not findings:
+        return []
+    lines = ["", "## Observables beside the fit", "",
+             "Checks the base BF model predicts exactly; they do not change the fit.", "",
+             "| observable | available | value | error | sign | chi2 / dof | p | finding | "
+             "moved by |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for name, f in findings.items():
+        if not f["available"]:
+            lines.append(f"| {name} | no | - | - | - | - | - | not available with these data "
+                         f"({f['reason']}) | {', '.join(f.get('moved_by', [])) or '-'} |")
+            continue
+        chi = "-" if f.get("chi2") is None else f"{f['chi2']:.1f} / {f['dof']}"
+        lines.append(f"| {name} | yes | {_num(f['value'])} {f.get('unit', '')} | "
+                     f"{_num(f['error'], '.2g')} | {f['sign'] or '-'} | {chi} | "
+                     f"{_num(f['p_value'], '.2g')} | "
+                     f"{'**detected**' if f['detected'] else 'none'} | "
+                     f"{', '.join(f.get('moved_by', [])) or '-'} |")
+    lines.append("")
+    for name, f in findings.items():
+        if f["available"]:
+            lev = ", ".join(f"{v:.4g}" for v in f.get("levels", [])[:8])
+            lines.append(f"- **{name}** ({f.get('quantity', '')}"
+                         + (f"; levels {lev} ADU" if lev and f["detected"] else "") + "): "
+                         + f["description"])
+    return lines
 
 
 def write_report(result, outdir, *, extra=None):
