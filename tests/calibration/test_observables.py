@@ -1,0 +1,227 @@
+"""The checks beside the covariance fit find what GalSim-made flats carry, and nothing else.
+
+One effect-free set of flat pairs is made with ``galsim.SiliconSensor``'s own
+pixel areas (100 x 100 px, 2 pairs at 5 levels to 80 ke, 10 steps a flat:
+about 10 s); each test changes a copy the way a lab's data would differ
+(a non-linear exposure, a brighter second flat, one half with another gain, a
+saturated level) and runs the diagnosis on it.
+"""
+
+import json
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable, load_default_basis
+from lsst_bfdrift.calibration.diagnosis import (Observations, diagnose, load_input,
+                                                observations_from_pairs)
+from lsst_bfdrift.calibration.observables import (CHECKS, assess_observables,
+                                                  lag_multiplicity, linearity_finding,
+                                                  turnoff_cut)
+from lsst_bfdrift.calibration.report import diagnosis_markdown
+from lsst_bfdrift.simulation.effects import (BASE_OBSERVABLES, OBSERVABLES, GainNonlinearity,
+                                             cti_filter_covariance, effect_library)
+from lsst_bfdrift.simulation.flats import simulate_flat_pairs, write_flat_pairs
+
+LEVELS = np.repeat(np.geomspace(5e3, 8e4, 5), 2)  # e (gain 1: ADU)
+EXPTIME_PER_E = 1e-4  # s
+
+
+@pytest.fixture(scope="module")
+def basis():
+    return load_default_basis()
+
+
+@pytest.fixture(scope="module")
+def galsim_pairs():
+    return simulate_flat_pairs("lsst_itl_50_8", LEVELS, engine="galsim", shape=(100, 100),
+                               n_steps=10, seed=21)
+
+
+def _copy(pairs):
+    return [(a.copy(), b.copy()) for a, b in pairs]
+
+
+def _diagnose(pairs, basis, exptimes=LEVELS * EXPTIME_PER_E):
+    return diagnose(observations_from_pairs(pairs, max_lag=3, exptimes=exptimes), basis)
+
+
+def _detected(d):
+    return [k for k, f in d.observables.items() if f["detected"]]
+
+
+def test_clean_galsim_set_has_no_finding(galsim_pairs, basis):
+    d = _diagnose(galsim_pairs, basis)
+    assert set(d.observables) == set(CHECKS)
+    assert all(d.observables[k]["available"] for k in CHECKS)
+    assert _detected(d) == [] and d.signatures == []
+    for k in ("linearity", "sum_rule", "halves", "pair_ratio"):
+        assert d.observables[k]["p_value"] > 1e-3, d.observables[k]["description"]
+    lin = d.observables["linearity"]
+    assert_allclose(lin["slope"], 1.0 / EXPTIME_PER_E, rtol=1e-3)  # ADU per s
+    assert abs(lin["offset"]) < 5 * lin["offset_err"]
+    assert d.observables["turnoff"]["excluded"] == []
+    # the checks leave the fit alone: the same statistics given as arrays fit the same
+    obs = observations_from_pairs(galsim_pairs, max_lag=3)
+    bare = diagnose(Observations.from_flats(obs.mu, obs.cov, obs.static, obs.npix), basis)
+    assert_allclose(bare.chi2_dof_before, d.chi2_dof_before, rtol=1e-12)
+    assert bare.effects_added == d.effects_added
+    json.dumps(d.as_dict()["observables"])  # plain JSON, no numpy objects
+
+
+def test_nonlinear_exposure_is_flagged_by_linearity(galsim_pairs, basis):
+    """One level's flats 2 % brighter than their EXPTIME says."""
+    pairs = _copy(galsim_pairs)
+    hit = np.flatnonzero(LEVELS == LEVELS[6])
+    for k in hit:
+        pairs[k] = (pairs[k][0] * 1.02, pairs[k][1] * 1.02)
+    d = _diagnose(pairs, basis)
+    lin = d.observables["linearity"]
+    assert lin["detected"] and lin["p_value"] < 1e-6
+    assert lin["sign"] == "+"
+    assert_allclose(lin["level"], 1.02 * LEVELS[6], rtol=2e-3)
+    assert 0.01 < lin["value"] < 0.02 and lin["error"] < 1e-3
+    assert lin["moved_by"] == ["gain_nonlinearity"] and not lin["base_model_moves"]
+    assert not d.observables["pair_ratio"]["detected"]
+    assert not d.observables["halves"]["detected"]
+    assert "linearity: the mean departs from a line" in d.verdict
+    assert "not produced by the base BF model" in d.verdict
+
+
+def test_brighter_second_flat_is_flagged_by_pair_ratio(galsim_pairs, basis):
+    pairs = _copy(galsim_pairs)
+    pairs[3] = (pairs[3][0], pairs[3][1] * 1.01)
+    d = _diagnose(pairs, basis)
+    pr = d.observables["pair_ratio"]
+    assert pr["detected"] and pr["sign"] == "+"
+    assert_allclose(pr["value"], 0.01, atol=5 * pr["error"])
+    assert_allclose(pr["levels"], [pr["level"]])  # only that pair beyond 3 sigma
+    assert_allclose(pr["level"], 1.005 * LEVELS[3], rtol=2e-3)
+    assert pr["moved_by"] == [] and "lamp or a shutter" in pr["description"]
+    assert not d.observables["halves"]["detected"]
+
+
+def test_right_half_with_another_gain_is_flagged_by_halves(galsim_pairs, basis):
+    pairs = _copy(galsim_pairs)
+    for a, b in pairs:
+        a[:, 50:] *= 1.03
+        b[:, 50:] *= 1.03
+    d = _diagnose(pairs, basis)
+    h = d.observables["halves"]
+    assert h["detected"] and h["split"] == "left_right" and h["test"] == "offset"
+    assert_allclose(h["value"], 0.03, atol=5 * h["error"])
+    assert h["sign"] == "+" and "right half is 3 % brighter" in h["description"]
+    # bottom/top unchanged
+    bt = h["splits"]["bottom_top"]
+    assert abs(bt["mean_ratio_mean"]) < 5 * bt["mean_ratio_err"]
+    assert "static_area" in h["moved_by"]
+    assert not d.observables["linearity"]["detected"]
+    assert not d.observables["pair_ratio"]["detected"]
+    assert "halves:" in d.verdict
+
+
+def test_saturated_level_gives_the_break_level(galsim_pairs, basis):
+    pairs = _copy(galsim_pairs)
+    top = np.flatnonzero(LEVELS == LEVELS.max())
+    for k in top:
+        pairs[k] = tuple(np.minimum(f, LEVELS.max()) for f in pairs[k])  # full well
+    obs = observations_from_pairs(pairs, max_lag=3, exptimes=LEVELS * EXPTIME_PER_E)
+    assert obs.mu.size == LEVELS.size - top.size  # left out of the fit
+    d = diagnose(obs, basis)
+    t = d.observables["turnoff"]
+    assert t["detected"] and t["significance"] > 5
+    below = max(np.mean(galsim_pairs[k]) for k in np.flatnonzero(LEVELS == LEVELS[7]))
+    assert_allclose(t["value"], below, rtol=2e-3)
+    assert len(t["excluded"]) == top.size and all(e["drop"] > 0.3 for e in t["excluded"])
+    assert_allclose(t["levels"], sorted(np.mean(pairs[k]) for k in top), rtol=1e-3)
+    assert not d.observables["linearity"]["detected"]  # the clipped means are left out too
+    assert "turn-off" in d.verdict and "left out of the fit" in d.verdict
+
+
+def test_fits_pairs_carry_exptime(galsim_pairs, basis, tmp_path):
+    write_flat_pairs(galsim_pairs[:8], LEVELS[:8], tmp_path, exptime_per_e=EXPTIME_PER_E)
+    obs = load_input(str(tmp_path))
+    assert_allclose(obs.exptime, np.sort(LEVELS[:8]) * EXPTIME_PER_E, rtol=1e-6)
+    f = diagnose(obs, basis).observables["linearity"]
+    assert f["available"] and not f["detected"]
+
+
+def test_not_available_says_so(galsim_pairs, basis):
+    # arrays without exposure times
+    d = _diagnose(galsim_pairs, basis, exptimes=None)
+    lin = d.observables["linearity"]
+    assert not lin["available"] and "no exposure times" in lin["reason"]
+    assert "not available with these data" in lin["description"]
+    # statistics given as arrays: no halves, no pairs
+    obs = observations_from_pairs(galsim_pairs, max_lag=3)
+    d = diagnose(Observations.from_flats(obs.mu, obs.cov, obs.static, obs.npix), basis)
+    assert not d.observables["halves"]["available"]
+    assert d.observables["sum_rule"]["available"]
+    # a table whose a00 was set by the sum rule, and one whose a00 was measured
+    sig = np.full((4, 4), 1e-8)
+    a = basis.a0[:4, :4] + np.random.default_rng(3).normal(0, 1e-8, (4, 4))
+    d = diagnose(Observations.from_table(AcoeffTable(a, sig, exclude_a00=True)), basis)
+    assert not d.observables["sum_rule"]["available"]
+    assert "set by the sum rule" in d.observables["sum_rule"]["reason"]
+    d = diagnose(Observations.from_table(AcoeffTable(a, sig)), basis)
+    assert d.observables["sum_rule"]["available"] and d.observables["sum_rule"]["unit"] == "1/e"
+    assert not d.observables["linearity"]["available"]
+    md = diagnosis_markdown(d.as_dict())
+    assert "## Observables beside the fit" in md
+    assert "| linearity | no |" in md and "not available with these data" in md
+
+
+def test_ptc_input_reports_its_turnoff(basis):
+    mu = np.geomspace(1e3, 9e4, 12)
+    var = mu * (1 - 1e-6 * mu)
+    var[-2:] = [0.3 * var[-3], 0.1 * var[-3]]  # saturated
+    obs = Observations.from_ptc(mu, var)
+    f = assess_observables(obs)
+    assert f["turnoff"]["detected"]
+    assert_allclose(f["turnoff"]["value"], mu[-3])
+    assert_allclose(f["turnoff"]["levels"], mu[-2:])
+    assert f["turnoff"]["significance"] is None  # pixel counts unknown
+    for k in ("linearity", "sum_rule", "halves", "pair_ratio"):
+        assert not f[k]["available"]
+
+
+def test_bad_exptimes(galsim_pairs):
+    with pytest.raises(ValueError, match="one positive exposure time"):
+        observations_from_pairs(galsim_pairs, exptimes=[1.0, 2.0])
+    with pytest.raises(ValueError, match="one positive exposure time"):
+        observations_from_pairs(galsim_pairs, exptimes=np.zeros(len(galsim_pairs)))
+    f = linearity_finding([1.0, 2.0, 2.0], [1.0, 2.0, 2.0], [0.1] * 3)
+    assert not f["available"] and "2 distinct exposure time(s)" in f["reason"]
+
+
+def test_turnoff_ignores_noise_of_small_images():
+    """A 6 % scatter of the variance is no turn-off when each has 3 % errors."""
+    rng = np.random.default_rng(4)
+    mu = np.repeat(np.geomspace(5e3, 8e4, 6), 2)
+    npix = np.full(mu.size, 2000.0)
+    c00 = mu * (1 + rng.normal(0, np.sqrt(2 / 2000), mu.size))
+    c00[3] = 0.94 * c00[2]
+    keep, info = turnoff_cut(mu, c00, npix)
+    assert keep.all() and info["break_level"] is None and info["drop"] > 0.2
+
+
+def test_effects_state_their_observables():
+    lib = effect_library()
+    for e in lib:
+        assert set(e.observables) <= set(OBSERVABLES), e.name
+    moves = {e.name: set(e.observables) for e in lib}
+    assert BASE_OBSERVABLES == ("covariances",)
+    assert moves["diffusion"] == set()
+    assert [n for n, m in moves.items() if "sum_rule" in m] == ["gain_nonlinearity"]
+    # CTI moves charge to the next pixel: the covariances summed over lags are kept
+    cov = np.zeros((1, 4, 4))
+    cov[0, 0, 0], cov[0, 1, 0], cov[0, 0, 1] = 1.0, 0.02, 0.03
+    m = lag_multiplicity(3)
+    for axis in (0, 1):
+        out = cti_filter_covariance(cov, 0.05, axis)
+        assert_allclose(np.sum(m * out), np.sum(m * cov), rtol=1e-12)
+    # a gain non-linearity scales them against the mean by ~ 1 + 3 nu mu
+    nu, mu = 1e-7, 5e4
+    lin, fac = GainNonlinearity().measured_signal(np.array([mu]), (nu,))
+    assert_allclose(fac[0] * lin[0] / mu, 1 + 3 * nu * lin[0], rtol=1e-4)
