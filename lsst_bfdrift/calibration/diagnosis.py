@@ -321,11 +321,13 @@ def observations_from_pairs(pairs, *, max_lag=3, border=None, exptimes=None):
         obs.edge_sigma = np.array([r[5] for r in rows])
     obs.pairs = [r[7] for r in rows]
     missing = [k for k, r in enumerate(rows) if r[6] is None]
-    obs.exptime = None if missing else np.array([r[6] for r in rows])
-    obs.exptime_note = "" if not missing else (
+    bad = [r[6] for r in rows if r[6] is not None and not (np.isfinite(r[6]) and r[6] > 0)]
+    obs.exptime = None if missing or bad else np.array([r[6] for r in rows])
+    obs.exptime_note = "" if obs.exptime is not None else (
         "no exposure times (arrays without exptimes=, or files without EXPTIME)"
         if len(missing) == len(rows) else
-        f"EXPTIME missing for {len(missing)} of {len(rows)} pairs")
+        f"EXPTIME missing for {len(missing)} of {len(rows)} pairs" if missing else
+        f"EXPTIME not positive in {len(bad)} pair(s) ({bad[0]!r} s)")
     return obs
 
 

@@ -230,6 +230,8 @@ def linearity_finding(mu, exptime, sigma, *, p_threshold=1e-3):
     """
     name = "linearity"
     mu, t, s = (np.asarray(v, float) for v in (mu, exptime, sigma))
+    if not np.all(np.isfinite(t) & (t > 0)):
+        return not_available(name, "exposure times must be positive (s)")
     distinct = np.unique(np.round(np.log(t), 3)).size
     if distinct < 3:
         return not_available(name, f"{distinct} distinct exposure time(s); a line with an "

@@ -145,6 +145,18 @@ def test_fits_pairs_carry_exptime(galsim_pairs, basis, tmp_path):
     assert_allclose(obs.exptime, np.sort(LEVELS[:8]) * EXPTIME_PER_E, rtol=1e-6)
     f = diagnose(obs, basis).observables["linearity"]
     assert f["available"] and not f["detected"]
+    # one pair without EXPTIME, then one with EXPTIME = 0: said, not guessed
+    from astropy.io import fits
+    for tag in ("a", "b"):
+        with fits.open(tmp_path / f"flat_002_{tag}.fits", mode="update") as h:
+            del h[0].header["EXPTIME"]
+    obs = load_input(str(tmp_path))
+    assert obs.exptime is None and obs.exptime_note == "EXPTIME missing for 1 of 8 pairs"
+    for tag in ("a", "b"):
+        with fits.open(tmp_path / f"flat_002_{tag}.fits", mode="update") as h:
+            h[0].header["EXPTIME"] = 0.0
+    f = diagnose(load_input(str(tmp_path)), basis).observables["linearity"]
+    assert not f["available"] and "EXPTIME not positive in 1 pair(s)" in f["reason"]
 
 
 def test_not_available_says_so(galsim_pairs, basis):
