@@ -55,7 +55,7 @@ __all__ = ["first_order_terms", "active_cells", "active_from_stats", "tolerance"
 
 
 def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=True,
-                      cell=None):
+                      cell=None, maps=None):
     """F1 = I - b/2 (b = B(I, I)) and the swept areas of I, by strips of rows.
 
     Parameters
@@ -82,6 +82,11 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=
         Also gather, per ``cell`` x ``cell`` cell, max abs(I), min I and
         max abs(b) (the statistics of :func:`active_cells`) while each block
         is in cache.
+    maps : FirstOrderPass, optional
+        First-order geometry maps of ``img``
+        (:class:`~lsst_bfdrift.geometry.linear.FirstOrderPass`), computed
+        block by block from the same transforms of the image as the swept
+        areas (the swept areas and ``first`` are the same, bit for bit).
 
     Returns
     -------
@@ -113,7 +118,13 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=
     for r0 in range(0, ny, strip):
         r1 = min(r0 + strip, ny)
         a, z = max(r0 - halo, 0), min(r1 + halo, ny)
-        bsv, bsh = ops((z - a, nx))(img[a:z])
+        op = ops((z - a, nx))
+        if maps is None:
+            bsv, bsh = op(img[a:z])
+        else:
+            bsv, bsh, more = op(img[a:z], extra=maps.spectra(op))
+            maps.add(bsv, bsh, more, a, r0, r1)
+            del more
         bb = fused_transfer(bsv, bsh, img[a:z], blocked[a:z], cubic=cubic)
         _finish_rows(img_c, bb, a, r0, r1, first, cs, *arrs, stats is not None)
         if keep_swept:
@@ -354,7 +365,7 @@ def _ring_ok(term, box, shape, lim, fraction):
 
 def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, density="mean2",
                   strip=512, cell=16, dilate=1, safety=20.0, ring_fraction=0.25,
-                  max_fraction=0.5, info=None):
+                  max_fraction=0.5, info=None, maps=None):
     """Third-order inverse series with windowed higher-order terms.
 
     Parameters
@@ -380,6 +391,9 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
     info : dict, optional
         Filled with ``windows`` (number), ``window_fraction`` (of the image
         area), ``dilate`` (cells used) and ``reason`` (why None was returned).
+    maps : FirstOrderPass, optional
+        Filled by the first-order pass (:func:`first_order_terms`);
+        incomplete when that pass stops early.
 
     Returns
     -------
@@ -419,7 +433,8 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         checked.append(rows)
         return active(tuple(x[:rows] for x in stats)).mean() > max_fraction
 
-    terms = first_order_terms(img, blocked, ops, strip=strip, cubic=cubic, stop=stop, cell=cell)
+    terms = first_order_terms(img, blocked, ops, strip=strip, cubic=cubic, stop=stop, cell=cell,
+                              maps=maps)
     if terms is None:
         info.update(windows=None, window_fraction=None, dilate=dilate,
                     reason=f"more than {max_fraction:.0%} of the cells need the higher orders")

@@ -161,7 +161,8 @@ def recorded_image(flux, swept, *, order=3, density="cubic4", blocked=None, dens
 
 def correct_image(image, template, *, order=3, density="cubic4", blocked=None, max_iter=10,
                   rtol=1e-7, noise_tol=None, start="image", workers=1, dtype=np.float64,
-                  strip=None, sparse=False, cache=None, info=None, check_range=True):
+                  strip=None, sparse=False, cache=None, info=None, check_range=True,
+                  maps=None):
     """Flux that square pixels would have collected, from a recorded image.
 
     Parameters
@@ -221,6 +222,12 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
     check_range : bool, optional
         Refuse images the model cannot describe
         (:func:`refuse_out_of_range`); the Task checks before it calls.
+    maps : FirstOrderPass, optional
+        First-order geometry maps of the image, computed from the sparse
+        series' first operator application
+        (:func:`lsst_bfdrift.correction.series.first_order_terms`); left
+        incomplete by the other solvers (the caller checks
+        ``maps.complete``).
 
     Returns
     -------
@@ -245,7 +252,7 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
         eff, full_blk = _finite(img, blk)
         flux = sparse_series(eff, full_blk, ops, noise_tol=noise_tol, rtol=rtol, order=order,
                              density=density, strip=None if strip is None else int(strip),
-                             info=info)
+                             info=info, maps=maps)
         if flux is not None:
             info["solver"] = "sparse"
             if full_blk.any():
@@ -483,7 +490,7 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
 
 
 def correct_half_shift(image, template, *, blocked=None, workers=1, dtype=np.float64,
-                       strip=None, cache=None, check_range=True):
+                       strip=None, cache=None, check_range=True, maps=None):
     """One flux-conserving pass with half the final shift (Astier & Regnault 2023).
 
     F = I - G(I; I) / 2: swept areas and edge flux densities (two-pixel mean)
@@ -491,7 +498,9 @@ def correct_half_shift(image, template, *, blocked=None, workers=1, dtype=np.flo
     as for :class:`~lsst_bfdrift.templates.swept.SweptAreas`. ``strip`` (rows per block, overlapping by
     ``(N + 1) // 2 + 2`` rows, which gives the whole-image result exactly)
     and ``cache`` as for :func:`correct_image`; ``check_range`` refuses
-    images the model cannot describe (:func:`refuse_out_of_range`).
+    images the model cannot describe (:func:`refuse_out_of_range`); ``maps``
+    (:class:`~lsst_bfdrift.geometry.linear.FirstOrderPass`) gets the
+    first-order geometry maps from the same transforms.
 
     Returns
     -------
@@ -504,7 +513,7 @@ def correct_half_shift(image, template, *, blocked=None, workers=1, dtype=np.flo
         refuse_out_of_range(img_eff, ops.kernel_abs_sum)
     # the first-order pass of the windowed series is exactly this pass
     flux = first_order_terms(img_eff, blk, ops, strip=strip, cubic="mean2",
-                             keep_swept=False)[0]
+                             keep_swept=False, maps=maps)[0]
     flux[blk] = img[blk]
     return flux, 1, True
 

@@ -23,7 +23,7 @@ from lsst_bfdrift.utils.exposure import (BLOCKING_PLANES, MaskedExposure, add_ma
 from lsst_bfdrift.correction.solvers import (MAX_SWEEP, area_coefficients, correct_coulton18,
                                              correct_half_shift, correct_image,
                                              coulton18_kernel, refuse_out_of_range)
-from lsst_bfdrift.geometry.linear import linear_moment_maps
+from lsst_bfdrift.geometry.linear import FirstOrderPass, linear_moment_maps
 from lsst_bfdrift.geometry.superpose import moment_maps
 from lsst_bfdrift.templates.refine import draw_templates
 from lsst_bfdrift.templates.swept import OperatorCache
@@ -157,16 +157,19 @@ class BrighterFatterDriftConfig(pexConfig.Config):
         dtype=str, default="BF")
 
 
-def _correct(data, template, blocked, cfg, dtype, cache):
+def _correct(data, template, blocked, cfg, dtype, cache, maps=None):
     """The configured correction of ``data`` with ``template``: (flux,
-    iterations, converged, order, density, solver info)."""
+    iterations, converged, order, density, solver info); ``maps``
+    (:class:`~lsst_bfdrift.geometry.linear.FirstOrderPass`) is filled by the
+    astier23 pass and by the drift series' first-order pass when it is the
+    sparse one."""
     order = 2 if cfg.method == "astier23" else cfg.order
     density = "mean2" if cfg.method == "astier23" else cfg.density
     solver = {}
     if cfg.method == "astier23":
         flux, iterations, converged = correct_half_shift(
             data, template, blocked=blocked, workers=cfg.workers, dtype=dtype,
-            strip=cfg.strip, cache=cache, check_range=False)
+            strip=cfg.strip, cache=cache, check_range=False, maps=maps)
     elif cfg.method == "coulton18":
         order = density = "n/a"
         kernel = coulton18_kernel(area_coefficients(template))
@@ -178,7 +181,7 @@ def _correct(data, template, blocked, cfg, dtype, cache):
             data, template, order=order, density=density, blocked=blocked,
             max_iter=cfg.max_iter, rtol=cfg.rtol, noise_tol=cfg.noise_tol, start=cfg.start,
             workers=cfg.workers, dtype=dtype, strip=cfg.strip, sparse=cfg.sparse,
-            cache=cache, info=solver, check_range=False)
+            cache=cache, info=solver, check_range=False, maps=maps)
     return flux, iterations, converged, order, density, solver
 
 
@@ -583,24 +586,37 @@ class BrighterFatterDriftTask(Task):
                 data = np.where(fill, finite_data, data)
             else:
                 fill = None
-        # the maps first: their working arrays are freed before the solver's
-        # outputs exist (peak memory, docs/benchmarks.rst)
+        # exact maps first: their working arrays are freed before the solver's
+        # outputs exist (peak memory, docs/benchmarks.rst); the linear maps'
+        # first order comes from the correction's first pass when it applies
+        # the swept-area operator to this very image, the rest after it
         geom = dict(area=None, centroid_x=None, centroid_y=None, e1=None, e2=None)
-        if cfg.compute_geometry:
-            ns = cfg.geometry_samples
-            samples = None if ns is None else min(ns, self.template.edge_samples)
-            names = ("area", "dx", "dy", "e1", "e2")  # only those returned
-            if cfg.geometry_method == "linear":
-                maps = linear_moment_maps(self.template, finite_data, rtol=cfg.geometry_tolerance,
-                                          samples=samples, workers=cfg.workers, dtype=dtype,
-                                          maps=names)
-            else:
-                maps = moment_maps(self.template, finite_data, workers=cfg.workers, dtype=dtype,
-                                   samples=samples, maps=names)
+        ns = cfg.geometry_samples
+        samples = None if ns is None else min(ns, self.template.edge_samples)
+        names = ("area", "dx", "dy", "e1", "e2")  # only those returned
+        linear = cfg.compute_geometry and cfg.geometry_method == "linear"
+        first = None
+        if linear and data is finite_data and (
+                cfg.method == "astier23"
+                or (cfg.method == "drift" and cfg.sparse and cfg.start == "series")):
+            first = FirstOrderPass(self.template, data.shape, maps=names, samples=samples)
+        if cfg.compute_geometry and not linear:
+            maps = moment_maps(self.template, finite_data, workers=cfg.workers, dtype=dtype,
+                               samples=samples, maps=names)
             geom = dict(area=maps.area, centroid_x=maps.dx, centroid_y=maps.dy, e1=maps.e1,
                         e2=maps.e2)
         flux, iterations, converged, order, density, solver = _correct(
-            data, self.template, blocked, cfg, dtype, self._operators(dtype))
+            data, self.template, blocked, cfg, dtype, self._operators(dtype), maps=first)
+        if linear:
+            maps = linear_moment_maps(
+                self.template, finite_data, rtol=cfg.geometry_tolerance, samples=samples,
+                workers=cfg.workers, dtype=dtype, maps=names,
+                strip=data.shape[0] if cfg.strip is None else cfg.strip,
+                first_order=first,
+                ops=self._operators(dtype))
+            del first
+            geom = dict(area=maps.area, centroid_x=maps.dx, centroid_y=maps.dy, e1=maps.e1,
+                        e2=maps.e2)
         if fill is not None:  # the recorded values come back
             flux = np.where(fill, recorded, flux)
             finite_data = np.where(fill, 0.0, finite_data)

@@ -35,13 +35,13 @@ import numpy as np
 from scipy import fft as sp_fft
 from scipy import ndimage
 
-from lsst_bfdrift.templates.swept import kernel_abs_sum, refuse_out_of_range
+from lsst_bfdrift.templates.swept import OperatorCache, kernel_abs_sum, refuse_out_of_range
 from lsst_bfdrift.geometry.superpose import (MomentMaps, check_charge_image, moment_maps,
                                              resample_template, superpose_boundaries)
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["LINEAR_MAPS", "MEASURED_CONSTANTS", "LinearKernels", "linear_kernels",
-           "second_order_bounds", "displacement_bound", "error_bounds", "linear_moment_maps"]
+           "FirstOrderPass", "second_order_bounds", "displacement_bound", "error_bounds", "linear_moment_maps"]
 
 #: Maps that :func:`linear_moment_maps` computes, in the order of
 #: :attr:`LinearKernels.kernels`.
@@ -141,6 +141,22 @@ class LinearKernels:
         lxx_yy = 0.25 * (uR[0] - uL[0]) + vT[2] - vB[2] - 0.25 * (vT[0] - vB[0]) - uR[2] + uL[2]
         lxy = 0.5 * (uR[1] + uL[1] + vT[1] + vB[1])
         self.kernels = np.stack([l1, lx, ly, 6.0 * lxx_yy, 12.0 * lxy]) / t.charge
+        # the same maps from edge fields (FirstOrderPass): the swept areas
+        # (moment 0) of the vertical and horizontal edges, laid out as the
+        # swept-area kernels, their first moments, and the second-moment
+        # part of e1 per pixel
+        mv = mom(t.corner_d[:-1, :, 0], t.vedge_d, t.corner_d[1:, :, 0])
+        mh = mom(t.corner_d[:, :-1, 1], t.hedge_d, t.corner_d[:, 1:, 1])
+        self.edge_kernels = (mv[1] / t.charge, mh[1] / t.charge,
+                             (vT[2] - vB[2] - uR[2] + uL[2]) / t.charge)
+        self._edge_spectra = {}
+        # the swept-area kernels leave out the edges beyond the template whose
+        # one end is a displaced corner of its outer boundary; where those
+        # are not zero the maps are convolved directly (five kernels)
+        from lsst_bfdrift.templates.swept import swept_area_kernels
+        kv, kh = (k / t.charge for k in swept_area_kernels(t))
+        self.decomposed = bool(np.abs(self._recombined(kv, kh) - self.kernels).max()
+                               <= 1e-12 * np.abs(self.kernels).max())
         # displacement bound of the exact template's boundary points
         ns = e.edge_samples
         ac = np.zeros((n + 3, n + 3))
@@ -183,6 +199,52 @@ class LinearKernels:
             entry[1], entry[2] = tuple(shape), sp_fft.rfft2(kpad, workers=workers)
         return entry[2]
 
+    def _recombined(self, sv, sh):
+        """The five map kernels from the swept-area kernels ``sv`` (N, N + 1),
+        ``sh`` (N + 1, N) and :attr:`edge_kernels`, as
+        :class:`FirstOrderPass` combines the fields (shape (5, N + 2, N + 2))."""
+        m1v, m1h, p3 = self.edge_kernels
+        m = p3.shape[0]
+
+        def pad(k, dy, dx):  # kernel on the pixel offsets' grid, edge index + d
+            out = np.zeros((m + 1, m + 1))
+            out[1 + dy:1 + dy + k.shape[0], 1 + dx:1 + dx + k.shape[1]] = k
+            return out[:m, :m]
+
+        svl, svr = pad(sv, 0, 0), pad(sv, 0, -1)
+        shb, sht = pad(sh, 0, 0), pad(sh, -1, 0)
+        vl, vr = pad(m1v, 0, 0), pad(m1v, 0, -1)
+        hb, ht = pad(m1h, 0, 0), pad(m1h, -1, 0)
+        dv, dh = svr - svl, sht - shb
+        return np.stack([dv + dh, 0.5 * (svl + svr) + ht - hb, 0.5 * (shb + sht) + vr - vl,
+                         6.0 * (0.25 * (dv - dh) + p3), 6.0 * (vl + vr + hb + ht)])
+
+    def edge_spectra(self, shape, dtype, workers=1):
+        """Transforms of the kernels of :class:`FirstOrderPass` padded to
+        ``shape`` in the frame of :class:`~lsst_bfdrift.templates.swept.SweptAreas`:
+        :attr:`edge_kernels` when :attr:`decomposed` (the vertical- and
+        horizontal-edge kernels at the origin as the swept-area kernels, the
+        pixel kernel at offset (-1, -1), wrapped), else the five
+        :attr:`kernels` (at offset (-1, -1)); shape (3 or 5, shape[0],
+        shape[1] // 2 + 1), kept for the last eight shapes."""
+        key = (tuple(shape), np.dtype(dtype))
+        if key not in self._edge_spectra:
+            if len(self._edge_spectra) >= 8:
+                self._edge_spectra.pop(next(iter(self._edge_spectra)))
+            idx = np.arange(2 * self.reach + 1) - 1
+            at = ((idx % shape[0])[:, None], (idx % shape[1])[None, :])
+            if self.decomposed:
+                kv, kh, kp = self.edge_kernels
+                pad = np.zeros((3,) + tuple(shape), dtype)
+                pad[0, :kv.shape[0], :kv.shape[1]] = kv
+                pad[1, :kh.shape[0], :kh.shape[1]] = kh
+                pad[2][at] = kp
+            else:
+                pad = np.zeros((5,) + tuple(shape), dtype)
+                pad[(slice(None),) + at] = self.kernels
+            self._edge_spectra[key] = sp_fft.rfft2(pad, axes=(-2, -1), workers=workers)
+        return self._edge_spectra[key]
+
     def spectra(self, shape, dtype, workers=1):
         """Transforms of the kernels zero-padded to ``shape``, centred on
         pixel (0, 0) (wrapped), shape (5, shape[0], shape[1] // 2 + 1); kept
@@ -215,6 +277,116 @@ def linear_kernels(template, *, samples=None):
         per[ns] = LinearKernels(template, resample_template(template, ns))
         per[ns].samples = ns
     return per[ns]
+
+
+class FirstOrderPass:
+    """The first-order maps of one charge image, filled block by block.
+
+    The swept-area operator (:class:`~lsst_bfdrift.templates.swept.SweptAreas`)
+    transforms each block of rows of the image once; three more kernels
+    (:meth:`LinearKernels.edge_spectra`: the first moments of the vertical
+    and of the horizontal edges' normal displacements, and the
+    second-moment part of e1) share that transform, and the five maps
+    follow per pixel from the swept areas and those three fields:
+
+    * area ``1 + sv_R - sv_L + sh_T - sh_B``;
+    * ``dx = (sv_L + sv_R) / 2 + m1h_T - m1h_B``,
+      ``dy = (sh_B + sh_T) / 2 + m1v_R - m1v_L``;
+    * ``e1 = 6 ((sv_R - sv_L - sh_T + sh_B) / 4 + p3)``,
+      ``e2 = 6 (m1v_L + m1v_R + m1h_B + m1h_T)``
+
+    (L, R, B, T: the pixel's left, right, bottom, top edges), the kernels of
+    :attr:`LinearKernels.kernels` rearranged. A correction that applies the
+    operator to the image (the drift series' first order, the astier23
+    pass) gives the maps at the cost of three inverse transforms per block.
+
+    Parameters
+    ----------
+    template : DistortionTemplate
+        The operator's template.
+    shape : (int, int)
+        The image's shape (ny, nx).
+    maps : sequence of str, optional
+        Maps to keep, of :data:`LINEAR_MAPS` (default: all five; every map's
+        signal is tracked).
+    samples : int, optional
+        As for :func:`linear_moment_maps` (the same kernels).
+
+    Attributes
+    ----------
+    outs : list of ndarray
+        The kept maps (float64), in ``maps`` order; rows not yet done are
+        undefined.
+    smax : ndarray, shape (5,)
+        max abs(map - nominal) over the rows done, per map of
+        :data:`LINEAR_MAPS`.
+    rows : int
+        Rows done (blocks come in order from row 0).
+    """
+
+    def __init__(self, template, shape, *, maps=None, samples=None):
+        self.lk = linear_kernels(template, samples=samples)
+        self.names = LINEAR_MAPS if maps is None else tuple(maps)
+        self.shape = (int(shape[0]), int(shape[1]))
+        self._store = np.empty((len(self.names),) + self.shape)
+        self.outs = [self._store[k] for k in range(len(self.names))]
+        self._slot = np.array([self.names.index(k) if k in self.names else -1
+                               for k in LINEAR_MAPS], np.int64)
+        self.smax = np.zeros(len(LINEAR_MAPS))
+        self.rows = 0
+
+    @property
+    def complete(self):
+        """True when every row is done."""
+        return self.rows >= self.shape[0]
+
+    def spectra(self, op):
+        """The three kernels' transforms for operator ``op``'s padded shape."""
+        return self.lk.edge_spectra(op.fshape, op.dtype, op.workers)
+
+    def add(self, sv, sh, more, a, r0, r1):
+        """Maps of image rows r0..r1-1 from a block that starts at image row ``a``.
+
+        Parameters
+        ----------
+        sv, sh : ndarray
+            The block's swept areas (the operator's outputs, px^2).
+        more : list of ndarray
+            The operator's convolutions with :meth:`spectra` (whole padded
+            arrays).
+        a, r0, r1 : int
+            Image rows: the block's first, and the rows to fill (within
+            the block, at least the template's reach from its cut sides).
+        """
+        from lsst_bfdrift.geometry._linear_kernels import combine_rows, store_tile
+
+        if r0 != self.rows:
+            raise InputError(f"blocks must come in order: expected row {self.rows}, got {r0}")
+        c = self.lk.reach - 1
+        nb, nx = sv.shape[0], self.shape[1]
+        if self.lk.decomposed:
+            combine_rows(sv, sh, more[0][c:c + nb, c:c + nx + 1],
+                         more[1][c:c + nb + 1, c:c + nx], more[2][c:c + nb, c:c + nx],
+                         r0 - a, r0, r1, self._slot, self._store, self.smax)
+        else:
+            store_tile(np.stack(more)[:, r0 - a:], c, r0, 0, r1 - r0, nx, _NOMINAL,
+                       self._slot, self._store, self.smax)
+        self.rows = r1
+
+    def run(self, q, ops, *, rows=512):
+        """Fill every row from ``q`` with the operators ``ops`` (an
+        :class:`~lsst_bfdrift.templates.swept.OperatorCache`), ``rows`` per
+        block (each with a halo of the template's reach)."""
+        ny, nx = self.shape
+        r = self.lk.reach
+        for r0 in range(self.rows, ny, rows):
+            r1 = min(r0 + rows, ny)
+            a, z = max(r0 - r, 0), min(r1 + r, ny)
+            op = ops((z - a, nx))
+            sv, sh, more = op(q[a:z], extra=self.spectra(op))
+            self.add(sv, sh, more, a, r0, r1)
+            del sv, sh, more
+        return self
 
 
 def second_order_bounds(eps, chi=4.0):
@@ -561,8 +733,9 @@ def _exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtyp
 
 
 def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, fallback=True,
-                       bound="measured", tile=(256, 1024), bin=2, max_fraction=0.5, workers=1,
-                       dtype=np.float32, strip=256, maps=None, info=None):
+                       bound="measured", bin=2, max_fraction=0.5, workers=1,
+                       dtype=np.float32, strip=512, maps=None, info=None, first_order=None,
+                       ops=None):
     """Area, centroid-shift and ellipticity maps: linear, exact where needed.
 
     Parameters
@@ -594,9 +767,6 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
         'analytic' (:func:`second_order_bounds`: a proof, but 2 to 60 times
         the measured worst case, so that a faint field's sky noise alone
         may exceed it and every pixel becomes exact).
-    tile : (int, int), optional
-        Rows and columns per FFT block of the linear maps (each with a
-        halo of the template's reach).
     bin : int, optional
         Side (px) of the bins of the a-priori bound (:func:`displacement_bound`).
     max_fraction : float, optional
@@ -607,7 +777,8 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
     dtype : {numpy.float32, numpy.float64}, optional
         Precision of the FFTs (linear maps and exact fallback).
     strip : int, optional
-        Rows per block of the exact fallback.
+        Rows per block of the first-order pass (each with a halo of the
+        template's reach) and of the exact fallback.
     maps : sequence of str, optional
         Maps to keep, of :data:`LINEAR_MAPS` (default: all five).
     info : dict, optional
@@ -616,6 +787,15 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
         ``exact_fraction`` (flagged bins' share of the image) and
         ``canvas_fraction`` (pixels run through ``moment_maps``, margins
         included, over the image size).
+    first_order : FirstOrderPass, optional
+        The first-order maps of ``charge`` (same ``maps`` and ``samples``)
+        from a correction's first pass
+        (:func:`~lsst_bfdrift.correction.series.first_order_terms`), its
+        rows not yet done computed here; its arrays become the maps
+        returned. None: all computed here.
+    ops : OperatorCache, optional
+        Swept-area operators of ``template`` in ``dtype`` (kept kernel
+        transforms) for the first-order pass; None: made for this call.
 
     Returns
     -------
@@ -646,9 +826,8 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
         raise InputError(f"bound must be 'measured' or 'analytic', got {bound!r}")
     if not 0.0 < float(rtol) < 1.0:
         raise InputError(f"rtol must be between 0 and 1, got {rtol!r}")
-    th, tw = (int(v) for v in tile)
-    if th < 1 or tw < 1 or int(bin) < 1:
-        raise InputError(f"tile and bin must be positive, got {tile!r}, {bin!r}")
+    if int(strip) < 1 or int(bin) < 1:
+        raise InputError(f"strip and bin must be positive, got {strip!r}, {bin!r}")
     info = {} if info is None else info
     q = np.asarray(charge)
     if mask is not None or q.dtype != np.float64 or q.ndim != 2 or q.size == 0 \
@@ -660,7 +839,17 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
     lk = linear_kernels(template, samples=samples)
     r = lk.reach
     out = MomentMaps((0, 0), ())
-    outs, smax = _linear_maps(lk, q, names, (th, tw), dtype, workers)
+    if first_order is None:
+        first_order = FirstOrderPass(template, q.shape, maps=names, samples=samples)
+    elif first_order.shape != q.shape or first_order.names != names:
+        raise InputError("first_order must be a FirstOrderPass of this image's shape and maps")
+    if not first_order.complete:
+        if ops is None:
+            ops = OperatorCache(template, workers=workers, dtype=dtype)
+        elif not ops.matches(template, ops.workers, dtype):
+            raise InputError("ops must be an OperatorCache made for this template and dtype")
+        first_order.run(q, ops, rows=int(strip))
+    outs, smax = first_order.outs, first_order.smax
     for name, arr in zip(names, outs):
         setattr(out, name, arr)
     signal = dict(zip(LINEAR_MAPS, smax.tolist()))

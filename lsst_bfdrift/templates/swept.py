@@ -106,10 +106,23 @@ class SweptAreas:
         # cost about a third of each application (docs/benchmarks.rst)
         self._arrays = _ThreadArrays()
 
-    def __call__(self, charge):
+    def __call__(self, charge, *, extra=None):
         """Swept areas (sv of shape (ny, nx + 1), sh of shape (ny + 1, nx)), px^2.
 
         Views into the padded transforms, in the operator's ``dtype``.
+
+        Parameters
+        ----------
+        charge : ndarray, shape (ny, nx)
+            Charge (e).
+        extra : ndarray, shape (m, fy, fx // 2 + 1), optional
+            Transforms of ``m`` more kernels padded to :attr:`fshape` (in the
+            operator's complex dtype): the charge's transform is shared with
+            them, and their convolutions with the charge (the whole padded
+            arrays of shape (fy, fx), a list; same frame as the swept areas:
+            the convolution with a kernel placed at the origin) are returned
+            as a third output. The swept areas are the same, bit for bit, with
+            or without.
         """
         c, ny, nx = self.c, self.ny, self.nx
         if np.shape(charge) != (ny, nx):
@@ -120,9 +133,17 @@ class SweptAreas:
         fq = sp_fft.rfft2(pad, workers=self.workers)
         np.multiply(fq, self.fkv, out=prod)
         sv = sp_fft.irfft2(prod, self.fshape, workers=self.workers, overwrite_x=True)
+        if extra is not None:
+            more = []
+            for k in range(len(extra)):
+                np.multiply(fq, extra[k], out=prod)
+                more.append(sp_fft.irfft2(prod, self.fshape, workers=self.workers,
+                                          overwrite_x=True))
         np.multiply(fq, self.fkh, out=fq)
         sh = sp_fft.irfft2(fq, self.fshape, workers=self.workers, overwrite_x=True)
         del fq
+        if extra is not None:
+            return sv[c:c + ny, c:c + nx + 1], sh[c:c + ny + 1, c:c + nx], more
         return sv[c:c + ny, c:c + nx + 1], sh[c:c + ny + 1, c:c + nx]
 
     def apply_stack(self, charges):

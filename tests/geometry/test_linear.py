@@ -11,8 +11,8 @@ import pytest
 from tests.geometry.conftest import star_field
 from numpy.testing import assert_allclose
 
-from lsst_bfdrift.geometry.linear import (LINEAR_MAPS, MEASURED_CONSTANTS, _linear_maps,
-                                          displacement_bound, error_bounds, linear_kernels,
+from lsst_bfdrift.geometry.linear import (LINEAR_MAPS, MEASURED_CONSTANTS, FirstOrderPass,
+                                          _linear_maps, displacement_bound, error_bounds, linear_kernels,
                                           linear_moment_maps, second_order_bounds)
 from lsst_bfdrift.geometry.superpose import moment_maps, resample_template, superpose_boundaries
 
@@ -89,7 +89,7 @@ def test_linear_maps_are_the_convolutions(small_template, rng):
     # the maps returned add the uniform level's second-order terms within
     # the reach of the border only
     info = {}
-    m = linear_moment_maps(t, q, fallback=False, tile=(10, 13), dtype=np.float64, info=info)
+    m = linear_moment_maps(t, q, fallback=False, strip=10, dtype=np.float64, info=info)
     assert m.ixx is None and info["method"] == "linear"
     d = np.abs(m.area - 1.0 - ref[0])
     assert d[r:-r, r:-r].max() < 1e-15 and d.max() > 1e-6
@@ -197,7 +197,7 @@ def test_zero_charge_and_mask(small_template):
     ({"bound": "tight"}, "bound must be"),
     ({"rtol": 0.0}, "rtol must be between"),
     ({"dtype": np.float16}, "dtype must be float64 or float32"),
-    ({"tile": (0, 4)}, "tile and bin must be positive"),
+    ({"strip": 0}, "strip and bin must be positive"),
 ])
 def test_bad_options(small_template, kw, match):
     with pytest.raises(ValueError, match=match):
@@ -229,3 +229,33 @@ def test_task_geometry_methods(default_template, rng):
         assert np.abs(getattr(res["linear"], name) - getattr(ex, name)).max() <= 1e-3 * s, name
     with pytest.raises(FieldValidationError, match="geometry_tolerance"):
         BrighterFatterDriftConfig(geometry_tolerance=0.0).validate()
+
+
+@pytest.mark.parametrize("which", ["small", "default"])
+def test_first_order_pass_from_the_swept_areas(which, small_template, default_template, rng):
+    """The maps combined from the swept areas and three edge fields (default
+    template) or convolved directly (small template: its outer corners move,
+    which the swept-area kernels leave out) are the five-kernel maps; sharing
+    the transforms leaves the correction's first-order pass bit for bit."""
+    from lsst_bfdrift.correction.series import first_order_terms
+    from lsst_bfdrift.templates.swept import OperatorCache
+    t = small_template if which == "small" else default_template
+    lk = linear_kernels(t)
+    assert lk.decomposed == (which == "default")
+    q = _star_field(70, 4e5, rng)
+    ref, smax = _linear_maps(lk, q, LINEAR_MAPS, (64, 64), np.float64, 1)
+    ops = OperatorCache(t, dtype=np.float64)
+    blocked = np.zeros(q.shape, bool)
+    fo = FirstOrderPass(t, q.shape, maps=("e2", "area"))
+    plain = first_order_terms(q, blocked, ops, strip=24, cubic="fv4")
+    plain = [None if x is None else np.array(x) for x in plain[:3]]
+    shared = first_order_terms(q, blocked, ops, strip=24, cubic="fv4", maps=fo)
+    for a, b in zip(plain, shared[:3]):
+        assert np.array_equal(a, b)
+    assert fo.complete
+    for k, name in enumerate(LINEAR_MAPS):
+        if name in fo.names:
+            assert_allclose(fo.outs[fo.names.index(name)], ref[k], rtol=0, atol=1e-12 * smax[k])
+    assert_allclose(fo.smax, smax, rtol=1e-12)
+    with pytest.raises(ValueError, match="in order"):
+        fo.add(None, None, None, 0, 5, 10)
