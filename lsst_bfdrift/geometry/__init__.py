@@ -11,3 +11,4 @@ charge with exact moments where the first order is not enough
 
 from lsst_bfdrift.geometry.superpose import *  # noqa: F401,F403
 from lsst_bfdrift.geometry.linear import *  # noqa: F401,F403
+from lsst_bfdrift.geometry.bounds import *  # noqa: F401,F403

@@ -21,7 +21,7 @@ the kernels exactly (:class:`LinearKernels`). With ``L_f`` that change for
 
 Where the charge is high the neglected second-order terms matter, and the
 exact polygon moments are computed there instead, on windows chosen by an
-a-priori bound (:func:`second_order_bounds`, :func:`displacement_bound`):
+a-priori bound (:mod:`~lsst_bfdrift.geometry.bounds`):
 the maps returned by :func:`linear_moment_maps` differ from the exact
 ``moment_maps`` (same ``samples``) by at most ``rtol`` times each map's
 signal in every pixel (signal: the largest abs(map - nominal) over the
@@ -36,12 +36,14 @@ from scipy import fft as sp_fft
 from scipy import ndimage
 
 from lsst_bfdrift.templates.swept import OperatorCache, kernel_abs_sum, refuse_out_of_range
+from lsst_bfdrift.geometry.bounds import (_bin_kernel, _binned_eps, _index_map, _reference_level,
+                                          displacement_bound, second_order_bounds)
 from lsst_bfdrift.geometry.superpose import (MomentMaps, check_charge_image, moment_maps,
                                              resample_template, superpose_boundaries)
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["LINEAR_MAPS", "MEASURED_CONSTANTS", "LinearKernels", "linear_kernels",
-           "FirstOrderPass", "second_order_bounds", "displacement_bound", "error_bounds", "linear_moment_maps"]
+           "FirstOrderPass", "error_bounds", "linear_moment_maps"]
 
 #: Maps that :func:`linear_moment_maps` computes, in the order of
 #: :attr:`LinearKernels.kernels`.
@@ -52,7 +54,7 @@ _NOMINAL = np.array([1.0, 0.0, 0.0, 0.0, 0.0])
 #: displacement component, px; eps <= 0.05): twice the largest ratio measured
 #: on star fields (up to a 1.5e6 e star) and 1e5 e flats with the bundled
 #: template (1.9, 0.75, 0.76, 1.9, 10.5; ``tests/geometry/test_linear.py``
-#: checks them), at most the analytic bounds of :func:`second_order_bounds`
+#: checks them), at most the analytic bounds of :func:`~.second_order_bounds`
 #: (4, 12.8, 12.8, 126, 228 for small eps). These make the default
 #: ``bound='measured'`` of :func:`linear_moment_maps`.
 MEASURED_CONSTANTS = dict(area=4.0, dx=1.6, dy=1.6, e1=4.0, e2=21.0)
@@ -180,7 +182,7 @@ class LinearKernels:
         self._bins = {}
 
     def bin_kernel(self, b):
-        """:attr:`disp` per ``b`` x ``b`` bins (:func:`displacement_bound`)."""
+        """:attr:`disp` per ``b`` x ``b`` bins (:func:`~.displacement_bound`)."""
         if b not in self._bins:
             self._bins.clear()
             self._bins[b] = [_bin_kernel(self.disp, b), None, None]
@@ -389,147 +391,6 @@ class FirstOrderPass:
         return self
 
 
-def second_order_bounds(eps, chi=4.0):
-    """Bounds of abs(exact - linear) per map for boundary displacements up to ``eps``.
-
-    Parameters
-    ----------
-    eps : float or ndarray
-        Largest abs displacement component (px) of any boundary point of
-        the pixel (its corners, edge samples and tangential displacements).
-    chi : float, optional
-        :attr:`LinearKernels.chi`.
-
-    Returns
-    -------
-    dict
-        ``area`` (px^2), ``dx``, ``dy`` (px), ``e1``, ``e2``; inf where the
-        bound does not apply (``eps`` so large that the area or the trace of
-        the second moments could change sign).
-
-    Notes
-    -----
-    Polygon P_t has vertices V + t d (t from 0 to 1). The transport theorem
-    over each segment of the boundary gives the exact change of
-    ``integral f dA`` as a sum over segments of ``integral f(V(s) + t d(s))
-    (L d(s).n + t (d_b x d_a)) ds dt`` (L the segment's length), whose first
-    term at ``t = 0`` is the linear change. The remainder is at most
-    ``(2 sqrt(2) G + chi F) eps**2`` with G the largest gradient and F the
-    largest abs(f) within ``rho = 1/2 + eps`` of the centre (for the total
-    perimeter 4 and abs(d) <= sqrt(2) eps; only the segments next to a
-    corner have a cross product, at most eps**2, unless there are
-    tangential displacements). The first-order changes are at most 4 max
-    abs(f) on the boundary times eps: 4 eps (area), 2 eps (x), eps
-    (x**2 - y**2, xy), 2 eps (x**2 + y**2). The centroid and e1, e2 are
-    ratios; with a = dA, T = trace of the second moments, their errors
-    follow from these by the triangle inequality (see the code). For small
-    eps and chi = 4: area 4 eps**2, dx and dy 12.8 eps**2, e1 126 eps**2,
-    e2 228 eps**2 (measured on star fields and flats: at most 1.9, 0.8, 1.9
-    and 11 times the squared largest displacement).
-    """
-    eps = np.asarray(eps, dtype=np.float64)
-    s2 = math.sqrt(2.0)
-    rho = 0.5 + eps
-    e2_ = eps * eps
-    r_a = chi * e2_
-    r_x = (2.0 * s2 + chi * rho) * e2_
-    r_d = (8.0 * rho + chi * rho**2) * e2_          # x**2 - y**2
-    r_t = (8.0 * rho + 2.0 * chi * rho**2) * e2_    # x**2 + y**2
-    r_xy = (4.0 * rho + chi * rho**2) * e2_         # xy
-    alpha = 4.0 * eps + r_a                         # abs(dA)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ok = alpha < 1.0
-        delta = np.where(ok, (2.0 * eps + r_x) / (1.0 - alpha), np.inf)   # abs(dx), abs(dy)
-        beta = 2.0 * eps + r_t + 2.0 * (1.0 + alpha) * delta**2          # abs(T - 1/6)
-        ok &= beta < 1.0 / 6.0
-        den = np.where(ok, 1.0 / 6.0 - beta, np.nan)
-        dxb = np.where(ok, (r_x + 2.0 * eps * alpha) / (1.0 - alpha), np.inf)
-        e1b = np.where(ok, (r_d + (1.0 + alpha) * delta**2 + 6.0 * eps * beta) / den, np.inf)
-        e2b = np.where(ok, (2.0 * (r_xy + (1.0 + alpha) * delta**2) + 12.0 * eps * beta) / den,
-                       np.inf)
-    ra = np.where(ok, r_a, np.inf)
-    return dict(area=ra, dx=dxb, dy=dxb.copy(), e1=e1b, e2=e2b)
-
-
-def _reference_level(q):
-    """A typical charge level: the median of at most ~65000 pixels on a grid."""
-    step = max(1, int(math.sqrt(q.size / 65536.0)))
-    return float(np.median(q[::step, ::step]))
-
-
-def _bin_kernel(disp, b):
-    """``Kb[D]`` = max of ``disp`` over the pixel offsets between bins D apart."""
-    r = disp.shape[0] // 2
-    rb = -(-(r + b - 1) // b)
-    pad = np.zeros((2 * (rb * b + b) + 1,) * 2)
-    o = rb * b + b
-    pad[o - r:o + r + 1, o - r:o + r + 1] = disp
-    full = ndimage.maximum_filter(pad, size=2 * b - 1, mode="constant")
-    idx = o + b * np.arange(-rb, rb + 1)
-    return full[np.ix_(idx, idx)]
-
-
-def displacement_bound(lk, q, *, bin=2, workers=1, qbar=None, outside=None):
-    """Upper bound of every boundary displacement of each pixel (px), per bin.
-
-    Parameters
-    ----------
-    lk : LinearKernels
-    q : ndarray, shape (ny, nx), float64
-        Charge (e), finite.
-    bin : int, optional
-        Bin side (px): the bound is one value per ``bin`` x ``bin`` pixels.
-    workers : int, optional
-        FFT threads.
-    qbar : float, optional
-        Reference level (e); default: a median of the image.
-    outside : float, optional
-        Value of ``g`` outside the image (e); default ``abs(qbar)``, which
-        bounds the whole displacement. 0 bounds the displacement of
-        ``q - qbar`` (inside the image, zero outside) alone.
-
-    Returns
-    -------
-    ndarray, shape (ceil(ny / bin), ceil(nx / bin))
-
-    Notes
-    -----
-    A boundary point's displacement is ``sum_a T(p - a) q(a)`` over the
-    image's pixels a, ``= qbar sum_a T + sum_a T (q - qbar)``; the first sum
-    differs from the sum over all offsets (at most :attr:`LinearKernels.net`
-    per e) by the offsets outside the image. Hence every displacement of
-    pixel p is at most ``sum_a disp(p - a) g(a) + abs(qbar) net`` with
-    ``g = abs(q - qbar)`` inside the image and ``abs(qbar)`` outside. Per bin
-    B: ``sum over bins B' of Kb(B - B') G(B')``, with ``G`` the sums of
-    ``g`` over the bins and ``Kb`` the largest ``disp`` between any pixels
-    of two bins that far apart (a single-precision FFT convolution, with a
-    margin of 1e-5 of the largest value for its rounding).
-    """
-    from lsst_bfdrift.geometry._linear_kernels import abs_dev_bins
-
-    b = int(bin)
-    ny, nx = q.shape
-    qbar = _reference_level(q) if qbar is None else float(qbar)
-    rb = lk.bin_kernel(b).shape[0] // 2
-    nby, nbx = -(-ny // b), -(-nx // b)
-    out_level = abs(qbar) if outside is None else float(outside)
-    g = np.full((nby + 2 * rb, nbx + 2 * rb), out_level * b * b)
-    inner = np.empty((nby, nbx))
-    abs_dev_bins(np.ascontiguousarray(q, dtype=np.float64), qbar, b, out_level, inner)
-    g[rb:rb + nby, rb:rb + nbx] = inner
-    shape = (sp_fft.next_fast_len(g.shape[0] + 2 * rb), sp_fft.next_fast_len(g.shape[1] + 2 * rb))
-    d = sp_fft.irfft2(sp_fft.rfft2(g.astype(np.float32), shape, workers=workers)
-                      * lk.bin_spectrum(b, shape, workers), shape, workers=workers)
-    # the pad is beyond every kernel's reach of the rows kept: no wrap-around
-    d = d[rb:rb + nby, rb:rb + nbx].astype(np.float64)
-    # single-precision rounding (about 1e-7 of the largest value; margin 100x)
-    d += 1e-5 * d.max()
-    d *= 1.0 + 1e-5
-    if outside is None:
-        d += abs(qbar) * lk.net
-    return d
-
-
 def _uniform_response(template, lk, qbar, samples):
     """Exact minus linear maps (5, n, n) and the largest boundary displacement
     (n, n) of the pixels of a uniform image of level ``qbar`` (e), n = 2 reach + 1.
@@ -555,31 +416,6 @@ def _uniform_response(template, lk, qbar, samples):
     eps = np.maximum.reduce([c[:-1, :-1], c[1:, :-1], c[:-1, 1:], c[1:, 1:],
                              v[:, :-1], v[:, 1:], h[:-1], h[1:]])
     return corr, eps
-
-
-def _index_map(size, n):
-    """Pixel index in the n-pixel uniform image (:func:`_uniform_response`) of
-    every pixel along an axis of ``size`` >= n pixels."""
-    r = n // 2
-    m = np.full(size, r)
-    m[:r] = np.arange(r)
-    m[size - r:] = np.arange(r + 1, n)
-    return m
-
-
-def _binned_eps(eps, rowmap, colmap, b, nby, nbx):
-    """Largest ``eps[rowmap[j], colmap[i]]`` over every b x b bin."""
-    def classes(m, nb):
-        keys, idx = {}, np.empty(nb, np.int64)
-        for k in range(nb):
-            key = tuple(np.unique(m[k * b:(k + 1) * b]))
-            idx[k] = keys.setdefault(key, len(keys))
-        return list(keys), idx
-
-    ky, iy = classes(rowmap, nby)
-    kx, ix = classes(colmap, nbx)
-    table = np.array([[eps[np.ix_(a, c)].max() for c in kx] for a in ky])
-    return table[iy[:, None], ix[None, :]]
 
 
 def error_bounds(template, q, *, samples=None, bin=2, bound="measured", workers=1,
@@ -614,14 +450,14 @@ def error_bounds(template, q, *, samples=None, bin=2, bound="measured", workers=
     ``qbar`` over the image, d_u (largest component eps_u, exact: computed
     on a small uniform image, :func:`_uniform_response`; non-zero within the
     reach of the image border), plus that of ``q - qbar``, whose components
-    are at most D (:func:`displacement_bound` with nothing outside). The
+    are at most D (:func:`~.displacement_bound` with nothing outside). The
     linear maps of :func:`linear_moment_maps` include the exact second-order
     terms of d_u; what is left of the remainder R (quadratic to the order
     that matters) is ``R(d_u + d_f) - R(d_u) = 2 B(d_u, d_f) + R(d_f)``, and
     with abs(R(d)) <= C eps**2 the polarisation identity gives abs(2 B(x, y))
     <= 4 C eps_x eps_y: the bound is ``C (4 eps_u D + D**2)`` with C the
     :data:`MEASURED_CONSTANTS`. With ``bound='analytic'``: twice
-    :func:`second_order_bounds` of ``eps_u + D`` (the remainders at d and at
+    :func:`~.second_order_bounds` of ``eps_u + D`` (the remainders at d and at
     d_u, each bounded).
     Images smaller than the uniform one (2 reach + 1 pixels) use ``eps_u``
     = 0 and D with ``abs(qbar)`` outside the image (the whole displacement).
@@ -764,11 +600,11 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
     bound : {'measured', 'analytic'}, optional
         Second-order bound per pixel, ``C eps**2`` with ``eps`` the
         displacement bound: 'measured' (:data:`MEASURED_CONSTANTS`) or
-        'analytic' (:func:`second_order_bounds`: a proof, but 2 to 60 times
+        'analytic' (:func:`~.second_order_bounds`: a proof, but 2 to 60 times
         the measured worst case, so that a faint field's sky noise alone
         may exceed it and every pixel becomes exact).
     bin : int, optional
-        Side (px) of the bins of the a-priori bound (:func:`displacement_bound`).
+        Side (px) of the bins of the a-priori bound (:func:`~.displacement_bound`).
     max_fraction : float, optional
         When the exact windows (with their margins) would cover more than
         this fraction of the image, ``moment_maps`` runs on the whole image.

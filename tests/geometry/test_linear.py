@@ -11,9 +11,10 @@ import pytest
 from tests.geometry.conftest import star_field
 from numpy.testing import assert_allclose
 
+from lsst_bfdrift.geometry.bounds import displacement_bound, second_order_bounds
 from lsst_bfdrift.geometry.linear import (LINEAR_MAPS, MEASURED_CONSTANTS, FirstOrderPass,
-                                          _linear_maps, displacement_bound, error_bounds, linear_kernels,
-                                          linear_moment_maps, second_order_bounds)
+                                          _linear_maps, error_bounds, linear_kernels,
+                                          linear_moment_maps)
 from lsst_bfdrift.geometry.superpose import moment_maps, resample_template, superpose_boundaries
 
 NOMINAL = dict(area=1.0, dx=0.0, dy=0.0, e1=0.0, e2=0.0)
