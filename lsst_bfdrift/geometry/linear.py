@@ -418,6 +418,24 @@ def _uniform_response(template, lk, qbar, samples):
     return corr, eps
 
 
+def _bound_terms(template, lk, q, *, bin, samples, workers, qbar):
+    """``D`` and ``eps_u`` per bin (px) of :func:`error_bounds`."""
+    b = int(bin)
+    qbar = _reference_level(q) if qbar is None else float(qbar)
+    ny, nx = q.shape
+    n = 2 * lk.reach + 1
+    nby, nbx = -(-ny // b), -(-nx // b)
+    if ny >= n and nx >= n:
+        d = displacement_bound(lk, q, bin=b, workers=workers, qbar=qbar, outside=0.0)
+        d += abs(qbar) * lk.net
+        _, eps_small = _uniform_response(template, lk, qbar, samples)
+        eps_u = _binned_eps(eps_small, _index_map(ny, n), _index_map(nx, n), b, nby, nbx)
+    else:
+        d = displacement_bound(lk, q, bin=b, workers=workers, qbar=qbar)
+        eps_u = np.zeros_like(d)
+    return d, eps_u
+
+
 def error_bounds(template, q, *, samples=None, bin=2, bound="measured", workers=1,
                  qbar=None):
     """A-priori bound of abs(maps - exact maps) per bin, for :func:`linear_moment_maps`.
@@ -463,19 +481,8 @@ def error_bounds(template, q, *, samples=None, bin=2, bound="measured", workers=
     = 0 and D with ``abs(qbar)`` outside the image (the whole displacement).
     """
     lk = linear_kernels(template, samples=samples)
-    b = int(bin)
-    qbar = _reference_level(q) if qbar is None else float(qbar)
-    ny, nx = q.shape
-    n = 2 * lk.reach + 1
-    nby, nbx = -(-ny // b), -(-nx // b)
-    if ny >= n and nx >= n:
-        d = displacement_bound(lk, q, bin=b, workers=workers, qbar=qbar, outside=0.0)
-        d += abs(qbar) * lk.net
-        _, eps_small = _uniform_response(template, lk, qbar, samples)
-        eps_u = _binned_eps(eps_small, _index_map(ny, n), _index_map(nx, n), b, nby, nbx)
-    else:
-        d = displacement_bound(lk, q, bin=b, workers=workers, qbar=qbar)
-        eps_u = np.zeros_like(d)
+    d, eps_u = _bound_terms(template, lk, q, bin=bin, samples=samples, workers=workers,
+                            qbar=qbar)
     if bound == "measured":
         x = d * (4.0 * eps_u + d)
         return {k: np.where(eps_u + d <= 0.05, MEASURED_CONSTANTS[k] * x, np.inf)
@@ -709,11 +716,23 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
                 o[r:ny - r, cols] += c[r, cm[cols]]
     if not fallback:
         return out
-    bounds = error_bounds(template, q, samples=samples, bin=bin, bound=bound,
-                          workers=workers, qbar=qbar)
-    flag = np.zeros(bounds["area"].shape, bool)
-    for k in LINEAR_MAPS:
-        flag |= bounds[k] > tol[k]
+    if bound == "measured":
+        # error_bounds' C_k x > tol_k for some map k, x = D (4 eps_u + D): one
+        # threshold on x; and everywhere eps_u + D > 0.05
+        d, eps_u = _bound_terms(template, lk, q, bin=bin, samples=samples, workers=workers,
+                                qbar=qbar)
+        flag = eps_u + d > 0.05
+        eps_u *= 4.0
+        eps_u += d
+        eps_u *= d
+        flag |= eps_u > min(tol[k] / MEASURED_CONSTANTS[k] for k in LINEAR_MAPS)
+        del d, eps_u
+    else:
+        bounds = error_bounds(template, q, samples=samples, bin=bin, bound=bound,
+                              workers=workers, qbar=qbar)
+        flag = np.zeros(bounds["area"].shape, bool)
+        for k in LINEAR_MAPS:
+            flag |= bounds[k] > tol[k]
     if not flag.any():
         return out
     b = int(bin)

@@ -166,6 +166,12 @@ def test_bright_star_windows_only(default_template, rng):
     m = linear_moment_maps(default_template, q, samples=8, info=info)
     assert info["method"] == "linear+exact"
     assert 0 < info["exact_fraction"] < 0.1
+    # the one-threshold flag is error_bounds' flag
+    bd = error_bounds(default_template, q, samples=8)
+    flag = np.zeros(bd["area"].shape, bool)
+    for k in LINEAR_MAPS:
+        flag |= bd[k] > info["tolerance"][k]
+    assert info["exact_fraction"] == pytest.approx(flag.sum() * 4 / q.size, rel=1e-12)
     exact = moment_maps(default_template, q, samples=8)
     s = _signal(exact)
     for k in LINEAR_MAPS:
