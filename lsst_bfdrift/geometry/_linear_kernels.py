@@ -8,7 +8,7 @@ five times the time on a 4k x 4k image).
 import numba
 import numpy as np
 
-__all__ = ["abs_dev_bins", "store_tile", "combine_rows"]
+__all__ = ["abs_dev_bins", "pixel_abs_dev_sums", "store_tile", "combine_rows"]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -45,6 +45,38 @@ def abs_dev_bins(q, qbar, b, outside, out):
                         s += aq
                 row[bx] += s
         out[by, :] = row
+
+
+@numba.njit(parallel=True, cache=True)
+def pixel_abs_dev_sums(q, qbar, disp, outside, rows, cols, out):
+    """``sum over offsets d of disp[d] g(p - d)`` at pixels p = (rows[k], cols[k]),
+    ``g = abs(q - qbar)`` inside the image and ``outside`` beyond it.
+
+    Parameters
+    ----------
+    q : (ny, nx) float64, charge (e)
+    qbar : float, reference level (e)
+    disp : (m, m) float64, kernel per offset (dj, di) = (j - m // 2, i - m // 2)
+        from the aggressor to the pixel (px per e)
+    outside : float (e)
+    rows, cols : (k,) int64
+    out : (k,) float64, written (px)
+    """
+    ny, nx = q.shape
+    r = disp.shape[0] // 2
+    for k in numba.prange(rows.size):
+        j = rows[k]
+        i = cols[k]
+        s = 0.0
+        for dj in range(-r, r + 1):
+            a = j - dj
+            for di in range(-r, r + 1):
+                c = i - di
+                if 0 <= a < ny and 0 <= c < nx:
+                    s += disp[dj + r, di + r] * abs(q[a, c] - qbar)
+                else:
+                    s += disp[dj + r, di + r] * outside
+        out[k] = s
 
 
 @numba.njit(cache=True)

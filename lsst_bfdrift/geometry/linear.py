@@ -37,7 +37,8 @@ from scipy import ndimage
 
 from lsst_bfdrift.templates.swept import OperatorCache, kernel_abs_sum, refuse_out_of_range
 from lsst_bfdrift.geometry.bounds import (_bin_kernel, _binned_eps, _index_map, _reference_level,
-                                          displacement_bound, second_order_bounds)
+                                          displacement_bound, pixel_displacement_bound,
+                                          second_order_bounds)
 from lsst_bfdrift.geometry.superpose import (MomentMaps, check_charge_image, moment_maps,
                                              resample_template, superpose_boundaries)
 from lsst_bfdrift.utils.errors import InputError
@@ -418,8 +419,9 @@ def _uniform_response(template, lk, qbar, samples):
     return corr, eps
 
 
-def _bound_terms(template, lk, q, *, bin, samples, workers, qbar):
-    """``D`` and ``eps_u`` per bin (px) of :func:`error_bounds`."""
+def _bound_terms(template, lk, q, *, bin, samples, workers, qbar, uniform=None):
+    """``D`` and ``eps_u`` per bin (px) of :func:`error_bounds` (``uniform``:
+    :func:`_uniform_response`'s result if already computed)."""
     b = int(bin)
     qbar = _reference_level(q) if qbar is None else float(qbar)
     ny, nx = q.shape
@@ -428,7 +430,8 @@ def _bound_terms(template, lk, q, *, bin, samples, workers, qbar):
     if ny >= n and nx >= n:
         d = displacement_bound(lk, q, bin=b, workers=workers, qbar=qbar, outside=0.0)
         d += abs(qbar) * lk.net
-        _, eps_small = _uniform_response(template, lk, qbar, samples)
+        _, eps_small = _uniform_response(template, lk, qbar, samples) if uniform is None \
+            else uniform
         eps_u = _binned_eps(eps_small, _index_map(ny, n), _index_map(nx, n), b, nby, nbx)
     else:
         d = displacement_bound(lk, q, bin=b, workers=workers, qbar=qbar)
@@ -489,6 +492,27 @@ def error_bounds(template, q, *, samples=None, bin=2, bound="measured", workers=
                 for k in LINEAR_MAPS}
     an = second_order_bounds(eps_u + d, lk.chi)
     return {k: 2.0 * an[k] for k in LINEAR_MAPS}
+
+
+def _refined_flag(lk, q, flag, b, qbar, eps_small, threshold):
+    """The flagged ``b`` x ``b`` bins whose pixels, with the bound of each pixel
+    (:func:`~.pixel_displacement_bound`, no bins), still exceed ``threshold``
+    (``D (4 eps_u + D)``) or the displacement 0.05 px."""
+    ny, nx = q.shape
+    n = eps_small.shape[0]
+    by, bx = np.nonzero(flag)
+    oy, ox = np.divmod(np.arange(b * b), b)
+    rows = (by[:, None] * b + oy[None, :]).ravel()
+    cols = (bx[:, None] * b + ox[None, :]).ravel()
+    keep = (rows < ny) & (cols < nx)
+    rows, cols = rows[keep], cols[keep]
+    d = pixel_displacement_bound(lk, q, rows, cols, qbar=qbar, outside=0.0)
+    d += abs(qbar) * lk.net
+    eu = eps_small[_index_map(ny, n)[rows], _index_map(nx, n)[cols]]
+    hit = (eu + d > 0.05) | (d * (4.0 * eu + d) > threshold)
+    out = np.zeros_like(flag)
+    out[rows[hit] // b, cols[hit] // b] = True
+    return out
 
 
 def _boxes(flag, b, shape, *, band, block=32):
@@ -578,7 +602,7 @@ def _exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtyp
 def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, fallback=True,
                        bound="measured", bin=2, max_fraction=0.5, workers=1,
                        dtype=np.float32, strip=512, maps=None, info=None, first_order=None,
-                       ops=None):
+                       ops=None, refine=True):
     """Area, centroid-shift and ellipticity maps: linear, exact where needed.
 
     Parameters
@@ -639,6 +663,12 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
     ops : OperatorCache, optional
         Swept-area operators of ``template`` in ``dtype`` (kept kernel
         transforms) for the first-order pass; None: made for this call.
+    refine : bool, optional
+        With ``bound='measured'``, bound the displacements of the pixels of
+        the flagged bins again pixel by pixel
+        (:func:`~.pixel_displacement_bound`) and keep only the bins where
+        that bound still exceeds the tolerance (images of at least 2 reach
+        + 1 pixels a side).
 
     Returns
     -------
@@ -701,9 +731,11 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
                 exact_fraction=0.0, canvas_fraction=0.0)
     qbar = _reference_level(q)
     n = 2 * r + 1
+    uniform = None
     if ny >= n and nx >= n:
         # exact second-order terms of the uniform level near the image border
-        corr, _ = _uniform_response(template, lk, qbar, samples)
+        uniform = _uniform_response(template, lk, qbar, samples)
+        corr = uniform[0]
         rm, cm = _index_map(ny, n), _index_map(nx, n)
         for k, name in enumerate(LINEAR_MAPS):
             if name not in names:
@@ -720,13 +752,16 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
         # error_bounds' C_k x > tol_k for some map k, x = D (4 eps_u + D): one
         # threshold on x; and everywhere eps_u + D > 0.05
         d, eps_u = _bound_terms(template, lk, q, bin=bin, samples=samples, workers=workers,
-                                qbar=qbar)
+                                qbar=qbar, uniform=uniform)
+        threshold = min(tol[k] / MEASURED_CONSTANTS[k] for k in LINEAR_MAPS)
         flag = eps_u + d > 0.05
         eps_u *= 4.0
         eps_u += d
         eps_u *= d
-        flag |= eps_u > min(tol[k] / MEASURED_CONSTANTS[k] for k in LINEAR_MAPS)
+        flag |= eps_u > threshold
         del d, eps_u
+        if refine and uniform is not None and flag.any():
+            flag = _refined_flag(lk, q, flag, int(bin), qbar, uniform[1], threshold)
     else:
         bounds = error_bounds(template, q, samples=samples, bin=bin, bound=bound,
                               workers=workers, qbar=qbar)

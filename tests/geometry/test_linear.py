@@ -11,7 +11,8 @@ import pytest
 from tests.geometry.conftest import star_field
 from numpy.testing import assert_allclose
 
-from lsst_bfdrift.geometry.bounds import displacement_bound, second_order_bounds
+from lsst_bfdrift.geometry.bounds import (displacement_bound, pixel_displacement_bound,
+                                          second_order_bounds)
 from lsst_bfdrift.geometry.linear import (LINEAR_MAPS, MEASURED_CONSTANTS, FirstOrderPass,
                                           _linear_maps, error_bounds, linear_kernels,
                                           linear_moment_maps)
@@ -129,6 +130,14 @@ def test_bound_holds(name, fields, default_template):
     lk = linear_kernels(default_template, samples=8)
     d = _pixels(displacement_bound(lk, q, bin=2), 2, q.shape)
     assert np.all(d >= eps)
+    # pixel by pixel: still a bound, and at most the binned one
+    rows, cols = np.indices(q.shape).reshape(2, -1)
+    qbar = float(np.median(q))
+    d1 = pixel_displacement_bound(lk, q, rows, cols, qbar=qbar, outside=abs(qbar))
+    d1 = d1.reshape(q.shape)
+    assert np.all(d1 >= eps) and np.all(d1 <= _pixels(displacement_bound(lk, q, bin=2, qbar=qbar),
+                                                       2, q.shape))
+    assert np.median(d1 / d) < 0.9
     analytic = second_order_bounds(d, lk.chi)
     for k in LINEAR_MAPS:
         err = np.abs(raw[k] - getattr(exact, k))
@@ -166,12 +175,16 @@ def test_bright_star_windows_only(default_template, rng):
     m = linear_moment_maps(default_template, q, samples=8, info=info)
     assert info["method"] == "linear+exact"
     assert 0 < info["exact_fraction"] < 0.1
-    # the one-threshold flag is error_bounds' flag
+    # the one-threshold flag is error_bounds' flag; refined pixel by pixel,
+    # fewer bins
     bd = error_bounds(default_template, q, samples=8)
     flag = np.zeros(bd["area"].shape, bool)
     for k in LINEAR_MAPS:
         flag |= bd[k] > info["tolerance"][k]
-    assert info["exact_fraction"] == pytest.approx(flag.sum() * 4 / q.size, rel=1e-12)
+    coarse = {}
+    linear_moment_maps(default_template, q, samples=8, info=coarse, refine=False)
+    assert coarse["exact_fraction"] == pytest.approx(flag.sum() * 4 / q.size, rel=1e-12)
+    assert 0 < info["exact_fraction"] < 0.8 * coarse["exact_fraction"]
     exact = moment_maps(default_template, q, samples=8)
     s = _signal(exact)
     for k in LINEAR_MAPS:
