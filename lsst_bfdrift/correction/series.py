@@ -124,16 +124,15 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=
         else:
             bsv, bsh, more = op(img[a:z], extra=maps.spectra(op))
             maps.add(bsv, bsh, more, a, r0, r1)
-            del more
         bb = fused_transfer(bsv, bsh, img[a:z], blocked[a:z], cubic=cubic)
         _finish_rows(img_c, bb, a, r0, r1, first, cs, *arrs, stats is not None)
         if keep_swept:
             sv[r0:r1] = bsv[r0 - a:r1 - a]
             top = r1 + 1 if r1 == ny else r1  # the last block also owns the top edge row
             sh[r0:top] = bsh[r0 - a:top - a]
-        # bsv, bsh, bb stay alive until the next block has allocated its own:
-        # freed first, their memory would go back to the system and be
-        # page-faulted in again (docs/benchmarks.rst)
+        # bsv, bsh, bb (and the maps' fields) stay alive until the next block
+        # has allocated its own: freed first, their memory would go back to
+        # the system and be page-faulted in again (docs/benchmarks.rst)
         if stop is not None and r1 < ny and stop(r1, stats):
             return None
     return first, sv, sh, stats

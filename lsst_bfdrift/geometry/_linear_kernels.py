@@ -115,73 +115,74 @@ def store_tile(res, r, y0, x0, h, w, nominal, slot, outs, smax):
         smax[k] = v
 
 
-@numba.njit(parallel=True, cache=True)
-def combine_rows(sv, sh, m1v, m1h, p3, off, r0, r1, slot, outs, smax):
-    """First-order maps of image rows r0..r1-1 from edge fields of a block.
+@numba.njit(cache=True)
+def combine_rows(sv, sh, m1v, m1h, p3, c, off, r0, r1, slot, outs, smax):
+    """First-order maps of image rows r0..r1-1 from the edge fields of a block.
 
-    Block row ``j - r0 + off`` holds image row j. Pixel (j, i) has left
-    and right edges ``[., i]`` and ``[., i + 1]`` of the vertical-edge fields,
-    bottom and top edges ``[j, .]`` and ``[j + 1, .]`` of the horizontal ones.
+    Serial: it runs between the FFTs' threads, and the arrays are read once
+    (a parallel loop took twice as long on a shared machine).
 
     Parameters
     ----------
-    sv, sh : (rows, nx + 1), (rows + 1, nx), swept areas of the edges (px^2)
-    m1v, m1h : same shapes, first moments (about the edge's middle) of the
-        edges' normal displacement (px^3)
-    p3 : (rows, nx), the second-moment part of e1 (px^4)
-    off, r0, r1 : int
+    sv, sh, m1v, m1h, p3 : (fy, fx) float32 or float64, C-contiguous
+        The whole padded convolutions of the block (the swept-area
+        operator's frame): swept areas of the vertical and horizontal edges
+        (px^2), first moments (about the edge's middle) of their normal
+        displacement (px^3), and the second-moment part of e1 (px^4).
+        Block row ``t`` and column ``i`` are at ``[t + c, i + c]``; pixel
+        (j, i) has left and right edges at columns i and i + 1 of the
+        vertical-edge fields, bottom and top edges at rows t and t + 1 of
+        the horizontal ones (t = j - r0 + off).
+    c : int, the operator's offset (the template's centre)
+    off, r0, r1 : int, block row of image row r0, and the rows to fill
     slot : (5,) int64, index in ``outs`` of area, dx, dy, e1, e2 (-1: not
         stored; every map is tracked in ``smax``)
     outs : (k, ny, nx) float64, written (area with its nominal 1)
     smax : (5,) float64, updated with max abs(map - nominal) over the rows
     """
     nx = outs.shape[2]
-    h = r1 - r0
-    part = np.zeros((h, 5))
-    for t in numba.prange(h):
-        j = r0 + t
-        jj = t + off
-        m0 = 0.0
-        m1 = 0.0
-        m2 = 0.0
-        m3 = 0.0
-        m4 = 0.0
+    s0, s1, s2, s3, s4 = slot[0], slot[1], slot[2], slot[3], slot[4]
+    m0 = smax[0]
+    m1 = smax[1]
+    m2 = smax[2]
+    m3 = smax[3]
+    m4 = smax[4]
+    for j in range(r0, r1):
+        a = j - r0 + off + c
         for i in range(nx):
-            svl = np.float64(sv[jj, i])
-            svr = np.float64(sv[jj, i + 1])
-            shb = np.float64(sh[jj, i])
-            sht = np.float64(sh[jj + 1, i])
-            vl = np.float64(m1v[jj, i])
-            vr = np.float64(m1v[jj, i + 1])
-            hb = np.float64(m1h[jj, i])
-            ht = np.float64(m1h[jj + 1, i])
+            b = i + c
+            svl = np.float64(sv[a, b])
+            svr = np.float64(sv[a, b + 1])
+            shb = np.float64(sh[a, b])
+            sht = np.float64(sh[a + 1, b])
+            vl = np.float64(m1v[a, b])
+            vr = np.float64(m1v[a, b + 1])
+            hb = np.float64(m1h[a, b])
+            ht = np.float64(m1h[a + 1, b])
             dv = svr - svl
             dh = sht - shb
             v0 = dv + dh
             v1 = 0.5 * (svl + svr) + ht - hb
             v2 = 0.5 * (shb + sht) + vr - vl
-            v3 = 6.0 * (0.25 * (dv - dh) + np.float64(p3[jj, i]))
+            v3 = 6.0 * (0.25 * (dv - dh) + np.float64(p3[a, b]))
             v4 = 6.0 * (vl + vr + hb + ht)
             m0 = max(m0, abs(v0))
             m1 = max(m1, abs(v1))
             m2 = max(m2, abs(v2))
             m3 = max(m3, abs(v3))
             m4 = max(m4, abs(v4))
-            if slot[0] >= 0:
-                outs[slot[0], j, i] = 1.0 + v0
-            if slot[1] >= 0:
-                outs[slot[1], j, i] = v1
-            if slot[2] >= 0:
-                outs[slot[2], j, i] = v2
-            if slot[3] >= 0:
-                outs[slot[3], j, i] = v3
-            if slot[4] >= 0:
-                outs[slot[4], j, i] = v4
-        part[t, 0] = m0
-        part[t, 1] = m1
-        part[t, 2] = m2
-        part[t, 3] = m3
-        part[t, 4] = m4
-    for t in range(h):
-        for k in range(5):
-            smax[k] = max(smax[k], part[t, k])
+            if s0 >= 0:
+                outs[s0, j, i] = 1.0 + v0
+            if s1 >= 0:
+                outs[s1, j, i] = v1
+            if s2 >= 0:
+                outs[s2, j, i] = v2
+            if s3 >= 0:
+                outs[s3, j, i] = v3
+            if s4 >= 0:
+                outs[s4, j, i] = v4
+    smax[0] = m0
+    smax[1] = m1
+    smax[2] = m2
+    smax[3] = m3
+    smax[4] = m4

@@ -7,10 +7,12 @@ seconds compiled. The numpy implementation in :mod:`lsst_bfdrift.physics.polygon
 remains the reference the tests compare against.
 """
 
+import types
+
 import numba
 import numpy as np
 
-__all__ = ["stack_moments"]
+__all__ = ["stack_moments", "stack_moments_serial"]
 
 
 _THIRD = 1.0 / 3.0
@@ -66,8 +68,7 @@ def _add_shifted(c, sgn, h, k, x0, y0, x1, y1, s):
     s[5] += sgn * 0.5 * Y2
 
 
-@numba.njit(parallel=True, cache=True)
-def _row_chains(st, ns, has_t, ro, co, fr, nr, nx, hc, he):
+def _row_chains_py(st, ns, has_t, ro, co, fr, nr, nx, hc, he):
     """Line integrals of every row boundary's chain (left corner -> samples -> right corner).
 
     Local coordinates: x from the centre of the pixel above/below, y from
@@ -98,8 +99,7 @@ def _row_chains(st, ns, has_t, ro, co, fr, nr, nx, hc, he):
             hc[r, I, :] = c
 
 
-@numba.njit(parallel=True, cache=True)
-def stack_moments(st, ns, has_t, ro, co, fr, out):
+def _stack_moments_py(st, ns, has_t, ro, co, fr, out):
     """Moments of every pixel of a block from its superposed boundary channels.
 
     Parameters
@@ -180,3 +180,24 @@ def stack_moments(st, ns, has_t, ro, co, fr, out):
                 out[7, J, P] = 2.0 * ixy / (ixx + iyy)
             cl[:] = cr
             lx0, ly0, lx1, ly1 = x0, y0, qx, qy
+
+
+def _named(fn, name, **globals_):
+    """A copy of ``fn`` under another name (numba's on-disk cache is keyed by
+    the qualified name), with some of its globals replaced."""
+    g = types.FunctionType(fn.__code__, {**fn.__globals__, **globals_}, name, fn.__defaults__,
+                           fn.__closure__)
+    g.__qualname__ = name
+    g.__doc__ = fn.__doc__
+    return g
+
+
+_row_chains = numba.njit(parallel=True, cache=True)(_named(_row_chains_py, "_row_chains"))
+_row_chains_serial = numba.njit(cache=True)(_named(_row_chains_py, "_row_chains_serial"))
+stack_moments = numba.njit(parallel=True, cache=True)(
+    _named(_stack_moments_py, "stack_moments", _row_chains=_row_chains))
+# One thread, for the small boxes of the linearised maps' exact fallback: a
+# parallel region needs the other thread awake, which on a busy machine can
+# take a scheduler time slice, far more than a small box's work.
+stack_moments_serial = numba.njit(cache=True)(
+    _named(_stack_moments_py, "stack_moments_serial", _row_chains=_row_chains_serial))

@@ -282,6 +282,21 @@ def linear_kernels(template, *, samples=None):
     return per[ns]
 
 
+def _framed(view, shape, c):
+    """The C-contiguous array of ``shape`` whose ``[c:, c:]`` is ``view`` (the
+    swept-area operator's padded output, no copy), else a copy of ``view``
+    placed there."""
+    base = view.base
+    if base is not None and base.shape == shape and base.flags.c_contiguous \
+            and base.dtype == view.dtype:
+        start = view.__array_interface__["data"][0] - base.__array_interface__["data"][0]
+        if start == (c * shape[1] + c) * base.itemsize and view.strides == base.strides:
+            return base
+    out = np.zeros(shape, view.dtype)
+    out[c:c + view.shape[0], c:c + view.shape[1]] = view
+    return out
+
+
 class FirstOrderPass:
     """The first-order maps of one charge image, filled block by block.
 
@@ -366,11 +381,13 @@ class FirstOrderPass:
         if r0 != self.rows:
             raise InputError(f"blocks must come in order: expected row {self.rows}, got {r0}")
         c = self.lk.reach - 1
-        nb, nx = sv.shape[0], self.shape[1]
+        nx = self.shape[1]
         if self.lk.decomposed:
-            combine_rows(sv, sh, more[0][c:c + nb, c:c + nx + 1],
-                         more[1][c:c + nb + 1, c:c + nx], more[2][c:c + nb, c:c + nx],
-                         r0 - a, r0, r1, self._slot, self._store, self.smax)
+            # the operator's whole padded outputs (contiguous): sv, sh are views
+            # starting at (c, c)
+            full = more[0].shape
+            combine_rows(_framed(sv, full, c), _framed(sh, full, c), more[0], more[1], more[2],
+                         c, r0 - a, r0, r1, self._slot, self._store, self.smax)
         else:
             store_tile(np.stack(more)[:, r0 - a:], c, r0, 0, r1 - r0, nx, _NOMINAL,
                        self._slot, self._store, self.smax)
@@ -386,9 +403,10 @@ class FirstOrderPass:
             r1 = min(r0 + rows, ny)
             a, z = max(r0 - r, 0), min(r1 + r, ny)
             op = ops((z - a, nx))
+            # the previous block's outputs are freed only once these exist (no
+            # page faults for memory given back and taken again)
             sv, sh, more = op(q[a:z], extra=self.spectra(op))
             self.add(sv, sh, more, a, r0, r1)
-            del sv, sh, more
         return self
 
 
@@ -560,43 +578,83 @@ def _boxes(flag, b, shape, *, band, block=32):
 
 
 def _exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtype, strip):
-    """Exact moments of the pixels in ``boxes``. Every box with ``r`` pixels of
-    its charge around it is a slot on a canvas, apart from the other slots by
-    its margins (no pixel of a box sees another slot's charge), and
-    :func:`moment_maps` runs once per canvas: one for the slots taller than
-    wide (the strips along the left and right image borders), side by side,
-    one for the others, on shelves. Returns the canvases' area (px)."""
-    slots = [(y1 - y0 + 2 * r, x1 - x0 + 2 * r, (y0, y1, x0, x1)) for y0, y1, x0, x1 in boxes]
-    tall = [sl for sl in slots if sl[0] > 4 * sl[1]]
-    rest = sorted((sl for sl in slots if sl[0] <= 4 * sl[1]), reverse=True)
+    """Exact moments of the pixels in ``boxes``; returns the area (px) whose
+    boundaries were convolved.
+
+    A box on the image border (the strips of :func:`_boxes`) is computed on
+    the image itself, with ``r`` rows or columns of charge on its inner sides
+    (beyond the image there is none: the transforms' zero padding). The
+    others, each with ``r`` pixels of its charge around it, are slots on one
+    canvas, on shelves, apart from each other by their margins (no pixel of
+    a box sees another slot's charge). Only the boxes' own pixels get their
+    polygons' moments (:func:`_box_moments`).
+    """
+    ny, nx = q.shape
     area = 0
-    for group, shelves in ((tall, False), (rest, True)):
-        if not group:
+    inner = []
+    for box in boxes:
+        y0, y1, x0, x1 = box
+        if y0 > 0 and x0 > 0 and y1 < ny and x1 < nx:
+            inner.append(box)
             continue
-        total = sum(h * w for h, w, _ in group)
-        width = max(max(w for _, w, _ in group), int(math.sqrt(total) * 1.1)) if shelves \
-            else sum(w for _, w, _ in group)
-        place, x, y, shelf = [], 0, 0, 0
-        for h, w, box in group:
-            if x + w > width:
-                y, x, shelf = y + shelf, 0, 0
-            place.append((y, x, box))
-            x += w
-            shelf = max(shelf, h)
-        canvas = np.zeros((y + shelf, width))
-        ny, nx = q.shape
+        a0, a1, b0, b1 = max(y0 - r, 0), min(y1 + r, ny), max(x0 - r, 0), min(x1 + r, nx)
+        block = q[a0:a1, b0:b1]
+        area += _box_moments(template, block, [(y0 - a0, x0 - b0, box)], outs, names,
+                             samples=samples, workers=workers, dtype=dtype, strip=strip)
+    if not inner:
+        return area
+    slots = sorted(((y1 - y0 + 2 * r, x1 - x0 + 2 * r, (y0, y1, x0, x1))
+                    for y0, y1, x0, x1 in inner), reverse=True)
+    total = sum(h * w for h, w, _ in slots)
+    width = max(max(w for _, w, _ in slots), int(math.sqrt(total) * 1.1))
+    place, x, y, shelf = [], 0, 0, 0
+    for h, w, box in slots:
+        if x + w > width:
+            y, x, shelf = y + shelf, 0, 0
+        place.append((y + r, x + r, box))
+        x += w
+        shelf = max(shelf, h)
+    canvas = np.zeros((y + shelf, width))
+    for cy, cx, (y0, y1, x0, x1) in place:
+        canvas[cy - r:cy + y1 - y0 + r, cx - r:cx + x1 - x0 + r] = q[y0 - r:y1 + r, x0 - r:x1 + r]
+    return area + _box_moments(template, canvas, place, outs, names, samples=samples,
+                               workers=workers, dtype=dtype, strip=strip)
+
+
+def _box_moments(template, canvas, place, outs, names, *, samples, workers, dtype, strip):
+    """Exact moments of boxes of ``canvas``: ``place`` lists (row, col, box)
+    with the box's first pixel at (row, col) of the canvas and ``box`` = (y0,
+    y1, x0, x1) where its maps go in ``outs``. The boundaries are convolved
+    over the whole canvas in blocks of about ``strip`` rows of equal height
+    (one kernel transform), the polygons' moments taken only in the boxes.
+    Returns the canvas's area (px)."""
+    from lsst_bfdrift.geometry._moment_kernels import stack_moments, stack_moments_serial
+    from lsst_bfdrift.geometry.superpose import _block_stack, _Convolver
+
+    t = template if samples is None else resample_template(template, samples)
+    conv = _Convolver(t, dtype=dtype)
+    fr = np.ascontiguousarray(t.fractions)
+    ns, has_t, c = t.edge_samples, t.vedge_t is not None, t.center
+    h = canvas.shape[0]
+    nblocks = -(-h // max(int(strip), 1))
+    rows = -(-h // nblocks)
+    if rows * nblocks > h:  # equal blocks: the last one padded with empty rows
+        canvas = np.concatenate([canvas, np.zeros((rows * nblocks - h, canvas.shape[1]))])
+    keep = [MomentMaps._names.index(name) for name in names]
+    for r0 in range(0, h, rows):
+        r1 = r0 + rows
+        st, ro = _block_stack(conv, canvas, r0, r1, workers)
         for cy, cx, (y0, y1, x0, x1) in place:
-            a0, a1, b0, b1 = max(y0 - r, 0), min(y1 + r, ny), max(x0 - r, 0), min(x1 + r, nx)
-            oy, ox = cy + a0 - (y0 - r), cx + b0 - (x0 - r)
-            canvas[oy:oy + a1 - a0, ox:ox + b1 - b0] = q[a0:a1, b0:b1]
-        mm = moment_maps(template, canvas, samples=samples, workers=workers, dtype=dtype,
-                         strip=strip, maps=names)
-        for cy, cx, (y0, y1, x0, x1) in place:
-            for k, name in enumerate(names):
-                outs[k][y0:y1, x0:x1] = getattr(mm, name)[cy + r:cy + r + y1 - y0,
-                                                           cx + r:cx + r + x1 - x0]
-        area += canvas.size
-    return area
+            j0, j1 = max(cy, r0), min(cy + y1 - y0, r1)
+            if j0 >= j1:
+                continue
+            part = np.empty((8, j1 - j0, x1 - x0))
+            kernel = stack_moments if part[0].size > 16384 else stack_moments_serial
+            kernel(st, ns, has_t, ro + j0 - r0, c + cx, fr, part)
+            for k, m in zip(range(len(names)), keep):
+                outs[k][y0 + j0 - cy:y0 + j1 - cy, x0:x1] = part[m]
+        del st
+    return canvas.shape[0] * canvas.shape[1]
 
 
 def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, fallback=True,
