@@ -56,9 +56,9 @@ from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask
 from lsst_bfdrift.correction import solvers as C
 count = dict(ops=0, ffts=0)
 _call = C.SweptAreas.__call__
-def _counted_call(self, q):
+def _counted_call(self, q, **kw):
     count["ops"] += 1
-    return _call(self, q)
+    return _call(self, q, **kw)
 C.SweptAreas.__call__ = _counted_call
 from lsst_bfdrift.templates import swept as SW
 _sp_fft = SW.sp_fft

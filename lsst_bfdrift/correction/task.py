@@ -594,6 +594,12 @@ class BrighterFatterDriftTask(Task):
         ns = cfg.geometry_samples
         samples = None if ns is None else min(ns, self.template.edge_samples)
         names = ("area", "dx", "dy", "e1", "e2")  # only those returned
+        # what looks wrong with the input (of the image the flux moved is
+        # taken from), before the maps and the correction allocate: its
+        # temporaries (two images) are gone by then (peak memory)
+        warnings = input_warnings(finite_data if fill is None else
+                                  np.where(fill, 0.0, finite_data), blocked)
+        warnings += _mask_warnings(exposure, kind)
         linear = cfg.compute_geometry and cfg.geometry_method == "linear"
         first = None
         if linear and data is finite_data and (
@@ -612,8 +618,7 @@ class BrighterFatterDriftTask(Task):
                 self.template, finite_data, rtol=cfg.geometry_tolerance, samples=samples,
                 workers=cfg.workers, dtype=dtype, maps=names,
                 strip=data.shape[0] if cfg.strip is None else cfg.strip,
-                first_order=first,
-                ops=self._operators(dtype))
+                first_order=first, ops=self._operators(dtype), check_range=False)
             del first
             geom = dict(area=maps.area, centroid_x=maps.dx, centroid_y=maps.dy, e1=maps.e1,
                         e2=maps.e2)
@@ -632,7 +637,6 @@ class BrighterFatterDriftTask(Task):
         if not converged:
             self.log.warning("brighter-fatter correction did not converge in %d iterations",
                              iterations)
-        warnings = input_warnings(finite_data, blocked) + _mask_warnings(exposure, kind)
         if warnings and cfg.on_input_warning == "raise":
             raise InputError("input refused (on_input_warning='raise'): " + "; ".join(warnings))
         for w in warnings:

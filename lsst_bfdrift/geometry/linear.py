@@ -660,7 +660,7 @@ def _box_moments(template, canvas, place, outs, names, *, samples, workers, dtyp
 def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, fallback=True,
                        bound="measured", bin=2, max_fraction=0.5, workers=1,
                        dtype=np.float32, strip=512, maps=None, info=None, first_order=None,
-                       ops=None, refine=True):
+                       ops=None, refine=True, check_range=True):
     """Area, centroid-shift and ellipticity maps: linear, exact where needed.
 
     Parameters
@@ -727,6 +727,11 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
         (:func:`~.pixel_displacement_bound`) and keep only the bins where
         that bound still exceeds the tolerance (images of at least 2 reach
         + 1 pixels a side).
+    check_range : bool, optional
+        Refuse a float64, finite, unmasked ``charge`` beyond the model's
+        range (:func:`~lsst_bfdrift.templates.swept.refuse_out_of_range`);
+        the Task has checked it before it calls. Other inputs are always
+        checked.
 
     Returns
     -------
@@ -764,7 +769,7 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
     if mask is not None or q.dtype != np.float64 or q.ndim != 2 or q.size == 0 \
             or not np.isfinite(q).all():
         q = check_charge_image(charge, mask=mask, template=template)
-    else:
+    elif check_range:
         refuse_out_of_range(q, kernel_abs_sum(template))  # the package's one range check
     ny, nx = q.shape
     lk = linear_kernels(template, samples=samples)
