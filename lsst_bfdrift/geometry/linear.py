@@ -28,17 +28,16 @@ signal in every pixel (signal: the largest abs(map - nominal) over the
 image).
 """
 
-import math
 import weakref
 
 import numpy as np
 from scipy import fft as sp_fft
-from scipy import ndimage
 
 from lsst_bfdrift.templates.swept import OperatorCache, kernel_abs_sum, refuse_out_of_range
 from lsst_bfdrift.geometry.bounds import (_bin_kernel, _binned_eps, _index_map, _reference_level,
                                           displacement_bound, pixel_displacement_bound,
                                           second_order_bounds)
+from lsst_bfdrift.geometry._exact import _boxes, _exact_windows
 from lsst_bfdrift.geometry.superpose import (MomentMaps, check_charge_image, moment_maps,
                                              resample_template, superpose_boundaries)
 from lsst_bfdrift.utils.errors import InputError
@@ -531,130 +530,6 @@ def _refined_flag(lk, q, flag, b, qbar, eps_small, threshold):
     out = np.zeros_like(flag)
     out[rows[hit] // b, cols[hit] // b] = True
     return out
-
-
-def _boxes(flag, b, shape, *, band, block=32):
-    """Pixel boxes (y0, y1, x0, x1) covering the flagged bins.
-
-    Flagged bins within ``band`` bins of the image border (where the
-    uniform level's displacements are) make one strip per side, as long as
-    the flagged part of that side and as deep as its deepest flagged bin;
-    the others, the bounding box of every connected group of flagged bins
-    within each ``block`` x ``block`` block of bins.
-    """
-    ny, nx = shape
-    nby, nbx = flag.shape
-    flag = flag.copy()
-    out = []
-    band = min(band, nby // 2, nbx // 2)
-    if band > 0:
-        sides = ((flag[:band], False, False), (flag[nby - band:][::-1], False, True),
-                 (flag[:, :band].T, True, False), (flag[:, nbx - band:][:, ::-1].T, True, True))
-        for f, transposed, far in sides:
-            if not f.any():
-                continue
-            depth = int(np.flatnonzero(f.any(axis=1))[-1]) + 1
-            cols = np.flatnonzero(f.any(axis=0))
-            a, z = int(cols[0]) * b, (int(cols[-1]) + 1) * b
-            n_along, n_across = (ny, nx) if transposed else (nx, ny)
-            bins_across = nbx if transposed else nby
-            lo, hi = ((bins_across - depth) * b, n_across) if far else (0, min(depth * b, n_across))
-            z = min(z, n_along)
-            out.append((a, z, lo, hi) if transposed else (lo, hi, a, z))
-        flag[:band] = flag[nby - band:] = False
-        flag[:, :band] = flag[:, nbx - band:] = False
-    labels, _ = ndimage.label(flag, structure=np.ones((3, 3), int))
-    for sl in ndimage.find_objects(labels):
-        for by in range(sl[0].start, sl[0].stop, block):
-            for bx in range(sl[1].start, sl[1].stop, block):
-                f = flag[by:min(by + block, sl[0].stop), bx:min(bx + block, sl[1].stop)]
-                if not f.any():
-                    continue
-                rows = np.flatnonzero(f.any(axis=1))
-                cols = np.flatnonzero(f.any(axis=0))
-                out.append(((by + rows[0]) * b, min((by + rows[-1] + 1) * b, ny),
-                            (bx + cols[0]) * b, min((bx + cols[-1] + 1) * b, nx)))
-    return out
-
-
-def _exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtype, strip):
-    """Exact moments of the pixels in ``boxes``; returns the area (px) whose
-    boundaries were convolved.
-
-    A box on the image border (the strips of :func:`_boxes`) is computed on
-    the image itself, with ``r`` rows or columns of charge on its inner sides
-    (beyond the image there is none: the transforms' zero padding). The
-    others, each with ``r`` pixels of its charge around it, are slots on one
-    canvas, on shelves, apart from each other by their margins (no pixel of
-    a box sees another slot's charge). Only the boxes' own pixels get their
-    polygons' moments (:func:`_box_moments`).
-    """
-    ny, nx = q.shape
-    area = 0
-    inner = []
-    for box in boxes:
-        y0, y1, x0, x1 = box
-        if y0 > 0 and x0 > 0 and y1 < ny and x1 < nx:
-            inner.append(box)
-            continue
-        a0, a1, b0, b1 = max(y0 - r, 0), min(y1 + r, ny), max(x0 - r, 0), min(x1 + r, nx)
-        block = q[a0:a1, b0:b1]
-        area += _box_moments(template, block, [(y0 - a0, x0 - b0, box)], outs, names,
-                             samples=samples, workers=workers, dtype=dtype, strip=strip)
-    if not inner:
-        return area
-    slots = sorted(((y1 - y0 + 2 * r, x1 - x0 + 2 * r, (y0, y1, x0, x1))
-                    for y0, y1, x0, x1 in inner), reverse=True)
-    total = sum(h * w for h, w, _ in slots)
-    width = max(max(w for _, w, _ in slots), int(math.sqrt(total) * 1.1))
-    place, x, y, shelf = [], 0, 0, 0
-    for h, w, box in slots:
-        if x + w > width:
-            y, x, shelf = y + shelf, 0, 0
-        place.append((y + r, x + r, box))
-        x += w
-        shelf = max(shelf, h)
-    canvas = np.zeros((y + shelf, width))
-    for cy, cx, (y0, y1, x0, x1) in place:
-        canvas[cy - r:cy + y1 - y0 + r, cx - r:cx + x1 - x0 + r] = q[y0 - r:y1 + r, x0 - r:x1 + r]
-    return area + _box_moments(template, canvas, place, outs, names, samples=samples,
-                               workers=workers, dtype=dtype, strip=strip)
-
-
-def _box_moments(template, canvas, place, outs, names, *, samples, workers, dtype, strip):
-    """Exact moments of boxes of ``canvas``: ``place`` lists (row, col, box)
-    with the box's first pixel at (row, col) of the canvas and ``box`` = (y0,
-    y1, x0, x1) where its maps go in ``outs``. The boundaries are convolved
-    over the whole canvas in blocks of about ``strip`` rows of equal height
-    (one kernel transform), the polygons' moments taken only in the boxes.
-    Returns the canvas's area (px)."""
-    from lsst_bfdrift.geometry._moment_kernels import stack_moments, stack_moments_serial
-    from lsst_bfdrift.geometry.superpose import _block_stack, _Convolver
-
-    t = template if samples is None else resample_template(template, samples)
-    conv = _Convolver(t, dtype=dtype)
-    fr = np.ascontiguousarray(t.fractions)
-    ns, has_t, c = t.edge_samples, t.vedge_t is not None, t.center
-    h = canvas.shape[0]
-    nblocks = -(-h // max(int(strip), 1))
-    rows = -(-h // nblocks)
-    if rows * nblocks > h:  # equal blocks: the last one padded with empty rows
-        canvas = np.concatenate([canvas, np.zeros((rows * nblocks - h, canvas.shape[1]))])
-    keep = [MomentMaps._names.index(name) for name in names]
-    for r0 in range(0, h, rows):
-        r1 = r0 + rows
-        st, ro = _block_stack(conv, canvas, r0, r1, workers)
-        for cy, cx, (y0, y1, x0, x1) in place:
-            j0, j1 = max(cy, r0), min(cy + y1 - y0, r1)
-            if j0 >= j1:
-                continue
-            part = np.empty((8, j1 - j0, x1 - x0))
-            kernel = stack_moments if part[0].size > 16384 else stack_moments_serial
-            kernel(st, ns, has_t, ro + j0 - r0, c + cx, fr, part)
-            for k, m in zip(range(len(names)), keep):
-                outs[k][y0 + j0 - cy:y0 + j1 - cy, x0:x1] = part[m]
-        del st
-    return canvas.shape[0] * canvas.shape[1]
 
 
 def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, fallback=True,
