@@ -717,3 +717,31 @@ def test_sigterm_removes_the_partial_output(tmp_path):
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=30) == 128 + signal.SIGTERM
     assert list(tmp_path.iterdir()) == []
+
+
+def test_correct_shows_progress_inside_a_file(capsys, tmp_path):
+    """Issue 19, item 8: one file's correction reports its stages (read, maps,
+    correct, write) on stderr unless --quiet (the CLI's one progress switch;
+    a log gets a line per 10 %); the corrected file is the same either way.
+    Several files logged to a file keep the one bar of files finished."""
+    from lsst_bfdrift.cli.main import sample_image_path
+    a, b = tmp_path / "a.fits", tmp_path / "b.fits"
+    code, _, err = _run(capsys, "correct", sample_image_path(), str(a), "--geometry")
+    assert code == 0, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("correct sample_star.fits: ")]
+    stages = [ln.split(": ")[1].split()[0] for ln in lines]
+    assert {"read", "maps", "write"} <= set(stages), err
+    assert stages == sorted(stages, key=["read", "maps", "correct", "write", "done"].index)
+    assert "100.0%" in lines[-1]
+    code, _, err = _run(capsys, "correct", sample_image_path(), str(b), "--geometry", "--quiet")
+    assert code == 0 and err == ""
+    with fits.open(a) as ha, fits.open(b) as hb:
+        assert [h.name for h in ha] == [h.name for h in hb]
+        for x, y in zip(ha, hb):
+            assert (x.data is None and y.data is None) or np.array_equal(x.data, y.data), x.name
+    other = tmp_path / "other.fits"
+    other.write_bytes(pathlib.Path(sample_image_path()).read_bytes())
+    code, _, err = _run(capsys, "correct", sample_image_path(), str(other), "--out-dir",
+                        str(tmp_path / "many"), "--no-geometry")
+    assert code == 0, err
+    assert "correct 100.0%" in err and ".fits: " not in err
