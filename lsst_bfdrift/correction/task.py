@@ -157,9 +157,10 @@ class BrighterFatterDriftConfig(pexConfig.Config):
         dtype=str, default="BF")
 
 
-def _correct(data, template, blocked, cfg, dtype, cache):
+def _correct(data, template, blocked, cfg, dtype, cache, progress=None):
     """The configured correction of ``data`` with ``template``: (flux,
-    iterations, converged, order, density, solver info)."""
+    iterations, converged, order, density, solver info); ``progress`` (a
+    fraction) as for :func:`~lsst_bfdrift.correction.solvers.correct_image`."""
     order = 2 if cfg.method == "astier23" else cfg.order
     density = "mean2" if cfg.method == "astier23" else cfg.density
     solver = {}
@@ -178,7 +179,7 @@ def _correct(data, template, blocked, cfg, dtype, cache):
             data, template, order=order, density=density, blocked=blocked,
             max_iter=cfg.max_iter, rtol=cfg.rtol, noise_tol=cfg.noise_tol, start=cfg.start,
             workers=cfg.workers, dtype=dtype, strip=cfg.strip, sparse=cfg.sparse,
-            cache=cache, info=solver, check_range=False)
+            cache=cache, info=solver, check_range=False, progress=progress)
     return flux, iterations, converged, order, density, solver
 
 
@@ -520,7 +521,7 @@ class BrighterFatterDriftTask(Task):
                                             dtype=dtype)
         return c
 
-    def run(self, exposure):
+    def run(self, exposure, *, progress=None):
         """Correct ``exposure``.
 
         Parameters
@@ -531,6 +532,12 @@ class BrighterFatterDriftTask(Task):
             receive charge and are flagged. A FITS file's BUNIT must say
             electron or ADU (other units, e.g. e/s or MJy/sr, are refused).
             Never modified.
+        progress : callable, optional
+            Called as ``progress(stage, fraction)`` while the run goes on:
+            stage ``'maps'`` (the geometry maps, with ``compute_geometry``)
+            then ``'correct'``, each with the fraction (0 to 1) of that stage
+            done, e.g. a :class:`~lsst_bfdrift.utils.progress.StageProgress`.
+            It does not change the result.
 
         Returns
         -------
@@ -545,6 +552,11 @@ class BrighterFatterDriftTask(Task):
             (what looks wrong with the input: :func:`input_warnings`; also logged).
         """
         cfg = self.config
+
+        def report(stage, fraction):
+            if progress is not None:
+                progress(stage, fraction)
+
         data, mask, unc, meta, unit, gain, kind = unpack_exposure(
             exposure, cfg.gain, blocking=tuple(cfg.blocking_mask_planes))
         finite = np.isfinite(data)
@@ -590,17 +602,28 @@ class BrighterFatterDriftTask(Task):
             ns = cfg.geometry_samples
             samples = None if ns is None else min(ns, self.template.edge_samples)
             names = ("area", "dx", "dy", "e1", "e2")  # only those returned
+            report("maps", 0.0)
             if cfg.geometry_method == "linear":
                 maps = linear_moment_maps(self.template, finite_data, rtol=cfg.geometry_tolerance,
                                           samples=samples, workers=cfg.workers, dtype=dtype,
-                                          maps=names)
+                                          maps=names, progress=lambda f: report("maps", f))
             else:
+                rows = [0]
+
+                def row_done(n):
+                    rows[0] += n
+                    report("maps", rows[0] / finite_data.shape[0])
+
                 maps = moment_maps(self.template, finite_data, workers=cfg.workers, dtype=dtype,
-                                   samples=samples, maps=names)
+                                   samples=samples, maps=names, progress=row_done)
             geom = dict(area=maps.area, centroid_x=maps.dx, centroid_y=maps.dy, e1=maps.e1,
                         e2=maps.e2)
+            report("maps", 1.0)
+        report("correct", 0.0)
         flux, iterations, converged, order, density, solver = _correct(
-            data, self.template, blocked, cfg, dtype, self._operators(dtype))
+            data, self.template, blocked, cfg, dtype, self._operators(dtype),
+            progress=lambda f: report("correct", f))
+        report("correct", 1.0)
         if fill is not None:  # the recorded values come back
             flux = np.where(fill, recorded, flux)
             finite_data = np.where(fill, 0.0, finite_data)

@@ -229,3 +229,37 @@ def test_task_geometry_methods(default_template, rng):
         assert np.abs(getattr(res["linear"], name) - getattr(ex, name)).max() <= 1e-3 * s, name
     with pytest.raises(FieldValidationError, match="geometry_tolerance"):
         BrighterFatterDriftConfig(geometry_tolerance=0.0).validate()
+
+
+def test_progress_is_reported_and_changes_nothing(default_template, rng):
+    """linear_moment_maps and the Task report progress (fractions never
+    decreasing, 1 at the end; the Task by stage: maps then correct); the
+    maps and the correction are bit-identical without it."""
+    from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
+    q = _star_field(96, 1.5e6, rng)
+    for kw, method in ((dict(max_fraction=10.0), "linear+exact"), (dict(fallback=False), "linear"),
+                       (dict(max_fraction=0.0), "exact")):
+        seen, info = [], {}
+        m = linear_moment_maps(default_template, q, samples=8, progress=seen.append,
+                               info=info, **kw)
+        ref = linear_moment_maps(default_template, q, samples=8, **kw)
+        for name in LINEAR_MAPS:
+            assert np.array_equal(getattr(m, name), getattr(ref, name)), name
+        assert info["method"] == method
+        assert seen == sorted(seen) and seen[-1] == 1.0 and len(seen) >= 2, (kw, seen)
+    for cfg in (BrighterFatterDriftConfig(), BrighterFatterDriftConfig(geometry_method="exact"),
+                BrighterFatterDriftConfig(compute_geometry=False)):
+        task = BrighterFatterDriftTask(cfg, template=default_template)
+        calls = []
+        res = task.run(q, progress=lambda stage, f: calls.append((stage, f)))
+        ref = task.run(q)
+        assert np.array_equal(res.exposure, ref.exposure)
+        if cfg.compute_geometry:
+            assert np.array_equal(res.area, ref.area) and np.array_equal(res.e2, ref.e2)
+        stages = [s for s, _ in calls]
+        expect = (["maps"] if cfg.compute_geometry else []) + ["correct"]
+        assert sorted(set(stages), key=stages.index) == expect
+        assert stages == sorted(stages, key=expect.index)  # one stage after the other
+        for stage in expect:
+            fr = [f for s, f in calls if s == stage]
+            assert fr[0] == 0.0 and fr[-1] == 1.0 and fr == sorted(fr), (stage, fr)
