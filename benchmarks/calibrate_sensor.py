@@ -3,8 +3,8 @@
 For each GalSim sensor model (default lsst_itl_50_8 and lsst_e2v_50_8):
 
 1. **a-matrix route**: GalSim's noise-free a-matrix of the sensor
-   (:func:`~lsst_bfdrift.simulation.galsim_twins.galsim_acoeffs`, lags <= 8,
-   a00 included) with 2 % errors (+1e-10 floor), calibrated with
+   (:func:`~lsst_bfdrift.simulation.galsim_twins.galsim_acoeffs`, every lag
+   the template holds, <= 9 for the 21 x 21 template, a00 included) with 2 % errors (+1e-10 floor), calibrated with
    :func:`~lsst_bfdrift.calibration.tuning.calibrate` (parameters chosen by
    the data, template refined to the a_ij).
 2. **flats route** (``--flats``): flat pairs made with GalSim's own
@@ -18,7 +18,9 @@ For each GalSim sensor model (default lsst_itl_50_8 and lsst_e2v_50_8):
    (:func:`~lsst_bfdrift.validation.stars.draw_star_pairs`; a seed of its
    own per sensor), corrected by drift and astier23 with each template: the
    calibrated ones, GalSim's true template (its file imported with
-   ``match='transfers'``) and the bundled default.
+   ``match='transfers'``), the bundled default, and the template that the
+   a-matrix alone gives (the minimum-norm, curl-free edge shifts with
+   GalSim's a_ij: no model of how the area change is shared between edges).
 
 Prints the size and e1 slopes left, as % of the uncorrected slopes, and
 writes ``benchmarks/calibrate_sensor_results.txt`` / ``.json``::
@@ -42,6 +44,7 @@ from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable  # noqa: E402
 from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
+from lsst_bfdrift.templates.refine import curl_free_template  # noqa: E402
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.validation.stars import (_slope, draw_star_pairs,  # noqa: E402
@@ -72,10 +75,19 @@ def flats_table(sensor, args):
     from lsst_bfdrift.calibration.ptc import fit_covariance_model, measure_ptc
     from lsst_bfdrift.simulation.flats import simulate_flat_pairs
 
+    path = (f"{args.pairs}_{sensor}_flats_{args.flat_size}_{args.pairs_per_level}.npz"
+            if args.pairs else None)
+    if path and os.path.isfile(path):
+        tab = dict(np.load(path))
+        fit = fit_covariance_model(tab["mu"], tab["cov"], npix=tab["npix"])
+        return AcoeffTable(fit["a"], fit["a_err"], source=f"GalSim {sensor} flats"), fit
     levels = np.repeat(np.linspace(1e4, 9e4, 9), args.pairs_per_level)
     pairs = simulate_flat_pairs(sensor, levels, engine="galsim", shape=(args.flat_size,) * 2,
                                 seed=zlib.crc32(sensor.encode()) % 1000)
     tab = measure_ptc(pairs, max_lag=5)  # GalSim kernels vanish beyond lag 4
+    if path:
+        np.savez(path, mu=np.asarray(tab["mu"]), cov=np.asarray(tab["cov"]),
+                 npix=np.asarray(tab["npix"]))
     fit = fit_covariance_model(np.asarray(tab["mu"]), np.asarray(tab["cov"]),
                                npix=np.asarray(tab["npix"]))
     return AcoeffTable(fit["a"], fit["a_err"], source=f"GalSim {sensor} flats"), fit
@@ -86,7 +98,10 @@ def main(argv=None):
     ap.add_argument("--sensors", nargs="+", default=["lsst_itl_50_8", "lsst_e2v_50_8"])
     ap.add_argument("--psf", nargs="+", default=["moffat", "kolmogorov"])
     ap.add_argument("--n-stars", type=int, default=200)
-    ap.add_argument("--pairs", help="cache prefix for the drawn stars")
+    ap.add_argument("--pairs", help="cache prefix for the drawn stars and flats' covariances")
+    ap.add_argument("--amatrix-lags", type=int, default=9,
+                    help="lags of GalSim's a-matrix given to calibrate (9: all the 21 x 21 "
+                         "template holds)")
     ap.add_argument("--flats", action="store_true", help="also calibrate from GalSim flats")
     ap.add_argument("--flat-size", type=int, default=400)
     ap.add_argument("--pairs-per-level", type=int, default=2)
@@ -101,7 +116,7 @@ def main(argv=None):
     default = load_default_template()
     for sensor in args.sensors:
         rec = out["sensors"][sensor] = {"calibrations": {}, "psfs": {}}
-        a = galsim_acoeffs(sensor, 8)
+        a = galsim_acoeffs(sensor, args.amatrix_lags)
         table = AcoeffTable(a, 0.02 * np.abs(a) + 1e-10, source=f"GalSim {sensor} a-matrix")
         templates = {}
         routes = [("a-matrix", lambda: (table, None))]
@@ -115,8 +130,12 @@ def main(argv=None):
             f = res.fit
             say(f"{sensor}, {route}: {', '.join(f'{n} = {f.values[n]:.4g}' for n in f.names)}; "
                 f"chi2 {f.chi2:.1f} / {f.dof} dof; a00 data {tab.a[0, 0]:.3e} model "
-                f"{f.model[0, 0]:.3e}; {time.time() - t0:.0f} s")
+                f"{f.model[0, 0]:.3e}; a00 error {tab.sigma[0, 0] / abs(tab.a[0, 0]):.1%}, "
+                f"a01 {tab.sigma[0, 1] / abs(tab.a[0, 1]):.1%}, a10 "
+                f"{tab.sigma[1, 0] / abs(tab.a[1, 0]):.1%}; {time.time() - t0:.0f} s")
             rec["calibrations"][route] = res.summary()
+            if route == "a-matrix":
+                templates["a-matrix alone, curl-free"] = curl_free_template(res.built_template, a)
         templates["true (GalSim file)"] = import_galsim_sensor(sensor, match="transfers")
         templates["bundled default"] = default
         for psf in args.psf:
@@ -140,7 +159,7 @@ def main(argv=None):
             # paired on the same stars: calibrated minus true template (drift)
             fl, true_rows = per_template["true (GalSim file)"]
             u = rec["psfs"][psf]["true (GalSim file)"]["uncorrected"]
-            for name in (k for k in templates if k.startswith("calibrated")):
+            for name in (k for k in templates if k.startswith(("calibrated", "a-matrix alone"))):
                 rows = per_template[name][1]
                 ok = np.isfinite(fl)
                 d = {}

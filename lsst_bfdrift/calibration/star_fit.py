@@ -21,7 +21,12 @@ parameter k moves by its step h_k (every candidate of
 :data:`~lsst_bfdrift.calibration.tuning.CANDIDATES`: the directions the
 physics allows, including those the a-matrix does not see), plus the
 direction ``scale``, T_a itself (an overall strength change, c the
-fractional change). Both data sets are linear in c:
+fractional change), and the direction ``curl``: the part of T_a's boundary
+shifts that the a-matrix cannot see, T_a minus the curl-free template with
+the same areas (:func:`~lsst_bfdrift.templates.refine.curl_free_template`).
+It moves how a pixel's area change divides between its serial and parallel
+edges, and with it the stars' e1 slope, and leaves every a_ij unchanged
+(c = -1 removes it, c = +1 doubles it). Both data sets are linear in c:
 
 * the a-matrix: the template's linear area response is linear in its
   displacements, so a(c) = a(T_a) + sum_k c_k alpha(Delta T_k) exactly;
@@ -63,7 +68,7 @@ from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.calibration.catalog import FLAG_NAMES, detect_stars, load_electrons, measure_stars
 from lsst_bfdrift.calibration.star_slopes import FLUX_UNIT, select_stars, shape_flux_relations
 from lsst_bfdrift.calibration.tuning import CalibrationError, _select
-from lsst_bfdrift.templates.refine import template_alpha
+from lsst_bfdrift.templates.refine import curl_free_template, template_alpha
 from lsst_bfdrift.templates.template import DistortionTemplate, build_template
 from lsst_bfdrift.utils.progress import ProgressBar
 
@@ -389,7 +394,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     def alpha_of(t):
         return template_alpha(t)[c:c + L + 1, c:c + L + 1].T[lag_mask]
 
-    n_steps = len(cands) + 2 + len(fit_fields) * (len(cands) + 2 + iterations) + len(hold_fields) * 3
+    n_steps = len(cands) + 3 + len(fit_fields) * (len(cands) + 3 + iterations) + len(hold_fields) * 3
     bar = ProgressBar(n_steps, "stars", enabled=progress)
     # 'scale': the flats template itself (its overall strength, c = fractional change)
     dirs, steps = ["scale"], {"scale": 1.0}
@@ -411,6 +416,11 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         dirs.append(n)
         deltas.append(_delta(tk, base_built))
         steps[n] = h
+    # 'curl': the part of T_a's boundary shifts that the a-matrix does not see
+    bar(1)
+    dirs.append("curl")
+    deltas.append(_delta(ta, curl_free_template(ta)))
+    steps["curl"] = 1.0
     t_dirs = time.perf_counter() - t0
     # a-matrix Jacobian (exact: linear area response is linear in displacements)
     a0 = alpha_of(ta)
@@ -456,8 +466,11 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     sig = np.concatenate([a_sig, sig_s, np.full(nd, PRIOR_STEPS)])
     J = np.vstack([Ja, Js, np.eye(nd)])
     n_data = n_a + r_s0.size  # ln N counts the data, not the prior rows
-    chosen, selection = _select(J[:n_data], r0[:n_data], sig[:n_data], np.ones(n_data, bool),
-                                dirs, max_params=max_directions, always_first=False)
+    # the prior rows take part in the choice: a direction that would need many
+    # steps (beyond its linear range) to lower chi2 pays for them
+    chosen, selection = _select(J, r0, sig, np.ones(J.shape[0], bool), dirs,
+                                max_params=max_directions, always_first=False,
+                                n_points=n_data)
     cols = [dirs.index(n) for n in chosen]
     rows = np.r_[np.arange(n_data), n_data + np.asarray(cols, int)]
     Jc, r0, sig = J[rows][:, cols], r0[rows], sig[rows]

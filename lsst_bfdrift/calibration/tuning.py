@@ -246,13 +246,15 @@ def _sum_rule(table):
                     "is zero within its error when the lags beyond the table are small"}
 
 
-def _select(J, r, sigma, mask, names, *, max_params, always_first=True):
+def _select(J, r, sigma, mask, names, *, max_params, always_first=True, n_points=None):
     """Greedy choice of columns of J (linearised model) by chi2 drop > ln N
-    (the first column without the test when ``always_first``)."""
+    (the first column without the test when ``always_first``). ``n_points``:
+    N of the ln N test when some rows are priors, not data (default all rows
+    in ``mask``)."""
     w = 1.0 / sigma[mask]
     A = J[mask] * w[:, None]
     b = -r[mask] * w
-    n_points = int(mask.sum())
+    n_points = int(mask.sum()) if n_points is None else int(n_points)
     chosen, steps = [], []
     chi2_now = float(b @ b)
     steps.append({"parameter": None, "chi2_linear": chi2_now})

@@ -1,10 +1,14 @@
 """Helpers shared by the ``bfdrift`` commands: templates in, JSON or text out, the overwrite rule."""
 
+import contextlib
 import json
 import os
+import signal
+import sys
+import threading
 
 from lsst_bfdrift.utils.errors import OutputExistsError
-from lsst_bfdrift.utils.io import check_output
+from lsst_bfdrift.utils.io import check_output, remove_stale_temporaries
 
 __all__ = []
 
@@ -101,3 +105,79 @@ def _check_output_dir(args, path, option, inputs=()):
     if os.path.exists(path) and not os.path.isdir(path):
         raise OutputExistsError(f"{option} {path}: exists and is not a directory")
 
+
+
+#: Options naming an output file or directory (the directories written into).
+_OUTPUT_OPTIONS = ("out", "out_dir", "plot", "catalog", "report", "prefix")
+
+
+def _output_dirs(args):
+    """The directories a command writes into (absolute, without repeats).
+
+    The directory of each output option's path, and the path itself when it is
+    a directory (``--out-dir``, ``--report``, ``reproduce --out``); for
+    ``correct IN OUT`` the directory of OUT.
+    """
+    paths = [getattr(args, name, None) for name in _OUTPUT_OPTIONS]
+    inputs = getattr(args, "inputs", None)
+    if hasattr(args, "out_dir") and not args.out_dir and inputs and len(inputs) == 2:
+        paths.append(inputs[1])  # correct IN OUT
+    dirs = []
+    for p in paths:
+        if not isinstance(p, (str, os.PathLike)):
+            continue
+        p = os.path.abspath(os.fspath(p))
+        for d in ((p, os.path.dirname(p)) if os.path.isdir(p) else (os.path.dirname(p),)):
+            if d not in dirs:
+                dirs.append(d)
+    return dirs
+
+
+def _remove_stale_outputs(args, stream=None):
+    """Remove the partial files of killed runs (``.tmp-*`` of
+    :func:`~lsst_bfdrift.utils.io.atomic_output` whose process is gone) from
+    the directories the command writes into, and say so on ``stream``
+    (stderr).
+
+    Returns
+    -------
+    list of str
+        The files removed.
+    """
+    removed = []
+    for d in _output_dirs(args):
+        try:
+            removed += remove_stale_temporaries(d)
+        except OSError as exc:  # e.g. a directory we may not list: not this run's concern
+            print(f"bfdrift: warning: could not check {d} for partial files: {exc}",
+                  file=sys.stderr if stream is None else stream)
+    if removed:
+        print(f"bfdrift: removed {len(removed)} stale partial file"
+              f"{'s' if len(removed) > 1 else ''} of killed runs: {', '.join(removed)}",
+              file=sys.stderr if stream is None else stream)
+    return removed
+
+
+class _Terminated(SystemExit):
+    """SIGTERM received: raised in the main thread so that ``finally`` blocks
+    (the removal of a partial output) run; exit status 128 + 15."""
+
+
+@contextlib.contextmanager
+def _sigterm_raises():
+    """Within the block, SIGTERM raises ``_Terminated`` (a SystemExit) instead
+    of ending the process at once, so that temporary files are removed. The
+    previous handler comes back after; outside the main thread nothing changes.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def _raise(signum, frame):
+        raise _Terminated(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, _raise)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

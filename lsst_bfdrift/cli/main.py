@@ -72,7 +72,8 @@ from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.utils.io import atomic_output, check_output, data_path, read_image
 from lsst_bfdrift.simulation.stars import make_psf
 from lsst_bfdrift.cli._common import (_check_outputs, _emit, _load_template, _print_json,
-                                      _save_and_report, _save_plot, _template_input)
+                                      _remove_stale_outputs, _save_and_report, _save_plot,
+                                      _sigterm_raises, _template_input)
 from lsst_bfdrift.cli.analysis import (_cmd_calibrate, _cmd_diagnose, _cmd_ptc,
                                        _cmd_reproduce, _cmd_validate_sky, _cmd_validate_stars)
 from lsst_bfdrift.utils.errors import (BfdriftError, ComputationError, FieldValidationError,
@@ -649,14 +650,22 @@ def main(argv=None):
     Only the package's errors (:class:`~lsst_bfdrift.utils.errors.BfdriftError`)
     and ``OSError`` are caught, each mapped to one status by :func:`exit_code`;
     anything else is a bug and keeps its traceback.
+
+    Before the command runs, partial files left by killed runs (``.tmp-*``
+    files whose process is gone) are removed from the directories it writes
+    into, and listed on stderr. SIGTERM ends the command through an exception
+    (exit status 143), so that its partial output is removed like on
+    Ctrl-C.
     """
     parser = build_parser()
     args = parser.parse_args(argv)
-    try:
-        return args.func(args)
-    except (BfdriftError, FieldValidationError, OSError) as exc:
-        print(f"bfdrift: error: {exc}", file=sys.stderr)
-        return exit_code(exc)
+    with _sigterm_raises():
+        try:
+            _remove_stale_outputs(args)
+            return args.func(args)
+        except (BfdriftError, FieldValidationError, OSError) as exc:
+            print(f"bfdrift: error: {exc}", file=sys.stderr)
+            return exit_code(exc)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -13,16 +13,17 @@ import contextlib
 import functools
 import json
 import os
+import sys
 import threading
 
 import numpy as np
 
 from lsst_bfdrift.utils.io import atomic_output, check_output
 from lsst_bfdrift.utils.config import config_from_dict
-from lsst_bfdrift.utils.progress import ProgressBar
+from lsst_bfdrift.utils.progress import ProgressBar, StageProgress
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["correct_file", "correct_files", "output_pairs"]
+__all__ = ["correct_file", "correct_files", "output_pairs", "stage_weights"]
 
 
 def output_pairs(inputs, out_dir):
@@ -34,6 +35,42 @@ def output_pairs(inputs, out_dir):
     if dup:
         raise InputError(f"several inputs would write the same output: {dup}")
     return pairs
+
+
+def stage_weights(config=None):
+    """Shares of one file's time in each stage of :func:`correct_file`.
+
+    Measured on a 4096 x 4096 field with 400 stars (``bfdrift correct``, 2
+    shared cores, 24 s): read 0.8 s, maps 19 s, correct 2.3 s, write 2.1 s;
+    the exact maps (``geometry_method='exact'``) take about twice the linear
+    ones. The stages come in the order they run
+    (:func:`~lsst_bfdrift.correction.task.stage_order`): the exact maps
+    before the correction, the linear ones after it (from its first pass).
+
+    Parameters
+    ----------
+    config : BrighterFatterDriftConfig or dict, optional
+
+    Returns
+    -------
+    dict of str to float
+        ``read``, then ``maps`` and ``correct`` in the Task's order (``maps``
+        0 without ``compute_geometry``), then ``write``: weights for a
+        :class:`~lsst_bfdrift.utils.progress.StageProgress` (which takes the
+        stages in the dict's order).
+    """
+    from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, stage_order
+    cfg = json.loads(_config_json(config))
+    defaults = BrighterFatterDriftConfig()
+    geometry = cfg.get("compute_geometry", defaults.compute_geometry)
+    exact = cfg.get("geometry_method", defaults.geometry_method) == "exact"
+    run = {"maps": (0.0 if not geometry else 38.0 if exact else 19.0), "correct": 2.3}
+    order = stage_order(cfg)
+    weights = {"read": 0.8}
+    weights.update((stage, run[stage]) for stage in order)
+    weights.update((stage, w) for stage, w in run.items() if stage not in order)
+    weights["write"] = 2.1
+    return weights
 
 
 @functools.lru_cache(maxsize=4)
@@ -54,7 +91,7 @@ def _config_json(config):
     return json.dumps(config, sort_keys=True)
 
 
-def correct_file(src, dst, config=None, *, overwrite=False):
+def correct_file(src, dst, config=None, *, overwrite=False, progress=None):
     """Correct one FITS file and write the result atomically, in the input's layout.
 
     Parameters
@@ -71,6 +108,12 @@ def correct_file(src, dst, config=None, *, overwrite=False):
         Task configuration (default: the defaults).
     overwrite : bool, optional
         Replace an existing ``dst``; otherwise an existing file is an error.
+    progress : callable, optional
+        Called as ``progress(stage, fraction)`` for the stages ``'read'``,
+        ``'maps'`` and ``'correct'`` (see
+        :meth:`~lsst_bfdrift.correction.task.BrighterFatterDriftTask.run`) and
+        ``'write'``, e.g. a :class:`~lsst_bfdrift.utils.progress.StageProgress`
+        with :func:`stage_weights`. It does not change the result.
 
     Returns
     -------
@@ -84,10 +127,16 @@ def correct_file(src, dst, config=None, *, overwrite=False):
 
     from lsst_bfdrift.utils.exposure import read_exposure, write_exposure
 
+    def report(stage, fraction):
+        if progress is not None:
+            progress(stage, fraction)
+
     src, dst = os.fspath(src), os.fspath(dst)
     check_output(dst, [src], overwrite=overwrite, hint="--overwrite")
+    report("read", 0.0)
     exposure = read_exposure(src)
-    res = _task(_config_json(config)).run(exposure)
+    report("read", 1.0)
+    res = _task(_config_json(config)).run(exposure, progress=progress)
     extra = [_described(fits.ImageHDU(res.flux_moved.astype(np.float32), name="FLUX_MOVED"),
                         "electron", "flux moved into each pixel by the correction (sums to "
                         "zero)"),
@@ -100,7 +149,9 @@ def correct_file(src, dst, config=None, *, overwrite=False):
                                  ("e2", "", "pixel ellipticity e2")):
             extra.append(_described(fits.ImageHDU(getattr(res, name).astype(np.float32),
                                                   name=name.upper()), unit, what))
+    report("write", 0.0)
     write_exposure(dst, res.exposure, extra_hdus=extra, overwrite=overwrite, inputs=[src])
+    report("write", 1.0)
     return {"input": src, "output": dst, "iterations": int(res.iterations),
             "converged": bool(res.converged), "layout": exposure.layout,
             "warnings": list(res.warnings),
@@ -154,11 +205,16 @@ def _numba_guard():
     return _NUMBA_LOCK if layer in ("workqueue", "unknown") else contextlib.nullcontext()
 
 
-def _safe(src, dst, config_json, overwrite):
+def _stderr_is_tty():
+    return bool(getattr(sys.stderr, "isatty", lambda: False)())
+
+
+def _safe(src, dst, config_json, overwrite, progress=None):
     """:func:`correct_file` with the error turned into a result entry."""
     try:
         with _numba_guard():
-            out = correct_file(src, dst, json.loads(config_json), overwrite=overwrite)
+            out = correct_file(src, dst, json.loads(config_json), overwrite=overwrite,
+                               progress=progress)
         out["error"] = None
         return out
     except Exception as exc:  # noqa: BLE001 - reported per file, the others go on
@@ -187,7 +243,11 @@ def correct_files(pairs, config=None, *, scheduler=None, overwrite=False, n_work
         LocalCluster settings (ignored otherwise); threads by default, as
         ``bfdrift correct`` (the compiled kernels release the GIL).
     progress : bool, optional
-        Progress bar on stderr (files finished).
+        Progress on stderr. Run in this process, one file, or any number
+        when stderr is a terminal: a bar per file through its stages (read,
+        correct and maps in the Task's order, write; :func:`stage_weights`),
+        labelled with the file (and ``k/n``); otherwise (a cluster, or
+        several files logged to a file) a bar of the files finished.
 
     Returns
     -------
@@ -198,6 +258,14 @@ def correct_files(pairs, config=None, *, scheduler=None, overwrite=False, n_work
     pairs = [(os.fspath(a), os.fspath(b)) for a, b in pairs]
     cfg = _config_json(config)
     results = [None] * len(pairs)
+    if scheduler is None and progress and (len(pairs) == 1 or _stderr_is_tty()):
+        weights = stage_weights(json.loads(cfg))
+        for k, (src, dst) in enumerate(pairs):
+            label = "correct " + (f"{k + 1}/{len(pairs)} " if len(pairs) > 1 else "") + \
+                os.path.basename(src)
+            with StageProgress(weights, label) as stages:
+                results[k] = _safe(src, dst, cfg, overwrite, progress=stages)
+        return results
     with ProgressBar(len(pairs), "correct", enabled=progress) as bar:
         if scheduler is None:
             for k, (src, dst) in enumerate(pairs):

@@ -162,7 +162,7 @@ def recorded_image(flux, swept, *, order=3, density="cubic4", blocked=None, dens
 def correct_image(image, template, *, order=3, density="cubic4", blocked=None, max_iter=10,
                   rtol=1e-7, noise_tol=None, start="image", workers=1, dtype=np.float64,
                   strip=None, sparse=False, cache=None, info=None, check_range=True,
-                  maps=None):
+                  maps=None, progress=None):
     """Flux that square pixels would have collected, from a recorded image.
 
     Parameters
@@ -228,6 +228,10 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
         (:func:`lsst_bfdrift.correction.series.first_order_terms`); left
         incomplete by the other solvers (the caller checks
         ``maps.complete``).
+    progress : callable, optional
+        Called with the fraction (0 to 1, never decreasing) of the solution
+        done: after each block of ``strip`` rows and each iteration (as a
+        share of ``max_iter``); 1 at the end. It does not change the result.
 
     Returns
     -------
@@ -248,6 +252,7 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
         refuse_out_of_range(_finite(img, blk)[0], ops.kernel_abs_sum)
     info = {} if info is None else info
     info["solver"] = "dense"
+    report = (lambda f: None) if progress is None else progress
     if sparse and start == "series":
         eff, full_blk = _finite(img, blk)
         flux = sparse_series(eff, full_blk, ops, noise_tol=noise_tol, rtol=rtol, order=order,
@@ -257,11 +262,17 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
             info["solver"] = "sparse"
             if full_blk.any():
                 flux[full_blk] = img[full_blk]
+            report(1.0)
             return flux, 0, True
     ny = img.shape[0]
+    budget = max(int(max_iter), 1)
     if strip is None or int(strip) >= ny:
-        return _solve_block(img, template, blk, swept=ops(img.shape), **kw)
+        out = _solve_block(img, template, blk, swept=ops(img.shape),
+                           on_iteration=lambda it: report(it / budget), **kw)
+        report(1.0)
+        return out
     strip = int(strip)
+    nblocks = -(-ny // strip)
     # One application of B reaches (N + 1) / 2 rows (swept areas) plus 2
     # (edge densities); the third-order series nests three, so a halo of
     # 3 ((N + 1) // 2 + 2) rows gives the whole-image result exactly. A block
@@ -271,18 +282,20 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
         halos = halos[1:]
     flux = np.empty_like(img)
     its, conv = 0, True
-    for r0 in range(0, ny, strip):
+    for b, r0 in enumerate(range(0, ny, strip)):
         r1 = min(r0 + strip, ny)
         for k, halo in enumerate(halos):
             a, z = max(r0 - halo, 0), min(r1 + halo, ny)
             last = k == len(halos) - 1
-            out, it, cv = _solve_block(img[a:z], template, blk[a:z],
-                                       swept=ops((z - a, img.shape[1])),
-                                       series_only=not last, **kw)
+            out, it, cv = _solve_block(
+                img[a:z], template, blk[a:z], swept=ops((z - a, img.shape[1])),
+                series_only=not last,
+                on_iteration=lambda i, b=b: report((b + i / budget) / nblocks), **kw)
             if out is not None:
                 break
         flux[r0:r1] = out[r0 - a:r1 - a]
         its, conv = max(its, it), conv and cv
+        report((b + 1) / nblocks)
     return flux, its, conv
 
 
@@ -328,11 +341,12 @@ def _finite(img, blocked):
 
 
 def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, noise_tol, start,
-                 workers, dtype, swept=None, series_only=False):
+                 workers, dtype, swept=None, series_only=False, on_iteration=None):
     """Iterative solution of I = R(F) on one block (see :func:`correct_image`).
 
     With ``series_only``, returns (None, 0, False) when the series alone is
-    not accurate enough instead of iterating.
+    not accurate enough instead of iterating. ``on_iteration`` is called with the
+    number of each iteration done.
     """
     img_eff, blk = _finite(img, blocked)
     if swept is None:
@@ -368,6 +382,8 @@ def _solve_block(img, template, blocked, *, order, density, max_iter, rtol, nois
         step += resid
         flux += step
         del step, resid
+        if on_iteration is not None:
+            on_iteration(it)
     flux[blk] = img[blk]
     return flux, it, converged
 

@@ -32,7 +32,7 @@ from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["BrighterFatterDriftConfig", "BrighterFatterDriftTask", "unpack_exposure",
            "template_digest", "gain_value", "input_warnings", "fits_header", "FLAG_BLOCKED",
-           "FLAG_EDGE", "BF_PLANE_DOC"]
+           "FLAG_EDGE", "BF_PLANE_DOC", "stage_order"]
 
 #: Flag bit: pixel masked, saturated or non-finite (no flux exchanged).
 FLAG_BLOCKED = 1
@@ -157,12 +157,38 @@ class BrighterFatterDriftConfig(pexConfig.Config):
         dtype=str, default="BF")
 
 
-def _correct(data, template, blocked, cfg, dtype, cache, maps=None):
+def stage_order(config=None):
+    """The stages :meth:`BrighterFatterDriftTask.run` reports, in their order.
+
+    ``('correct',)`` without ``compute_geometry``; ``('maps', 'correct')``
+    with the exact maps (computed before the correction: their working
+    arrays are freed before the solver's outputs exist); ``('correct',
+    'maps')`` with the linear ones (computed after it, from its first pass).
+
+    Parameters
+    ----------
+    config : BrighterFatterDriftConfig or dict, optional
+        Default: the defaults.
+    """
+    defaults = BrighterFatterDriftConfig()
+    if config is None:
+        config = defaults
+    get = config.get if isinstance(config, dict) else \
+        (lambda key, default: getattr(config, key))
+    if not get("compute_geometry", defaults.compute_geometry):
+        return ("correct",)
+    if get("geometry_method", defaults.geometry_method) == "linear":
+        return ("correct", "maps")
+    return ("maps", "correct")
+
+
+def _correct(data, template, blocked, cfg, dtype, cache, maps=None, progress=None):
     """The configured correction of ``data`` with ``template``: (flux,
     iterations, converged, order, density, solver info); ``maps``
     (:class:`~lsst_bfdrift.geometry.linear.FirstOrderPass`) is filled by the
     astier23 pass and by the drift series' first-order pass when it is the
-    sparse one."""
+    sparse one; ``progress`` (a fraction) as for
+    :func:`~lsst_bfdrift.correction.solvers.correct_image`."""
     order = 2 if cfg.method == "astier23" else cfg.order
     density = "mean2" if cfg.method == "astier23" else cfg.density
     solver = {}
@@ -181,7 +207,7 @@ def _correct(data, template, blocked, cfg, dtype, cache, maps=None):
             data, template, order=order, density=density, blocked=blocked,
             max_iter=cfg.max_iter, rtol=cfg.rtol, noise_tol=cfg.noise_tol, start=cfg.start,
             workers=cfg.workers, dtype=dtype, strip=cfg.strip, sparse=cfg.sparse,
-            cache=cache, info=solver, check_range=False, maps=maps)
+            cache=cache, info=solver, check_range=False, maps=maps, progress=progress)
     return flux, iterations, converged, order, density, solver
 
 
@@ -523,7 +549,7 @@ class BrighterFatterDriftTask(Task):
                                             dtype=dtype)
         return c
 
-    def run(self, exposure):
+    def run(self, exposure, *, progress=None):
         """Correct ``exposure``.
 
         Parameters
@@ -534,6 +560,15 @@ class BrighterFatterDriftTask(Task):
             receive charge and are flagged. A FITS file's BUNIT must say
             electron or ADU (other units, e.g. e/s or MJy/sr, are refused).
             Never modified.
+        progress : callable, optional
+            Called as ``progress(stage, fraction)`` while the run goes on:
+            stages ``'correct'`` and, with ``compute_geometry``, ``'maps'``
+            (the geometry maps), in the order they run (:func:`stage_order`:
+            the exact maps before the correction, the linear ones after it,
+            from its first pass), each with the fraction (0 to 1) of that
+            stage done, never decreasing, from 0 to 1, e.g. a
+            :class:`~lsst_bfdrift.utils.progress.StageProgress`. It does not
+            change the result.
 
         Returns
         -------
@@ -548,6 +583,11 @@ class BrighterFatterDriftTask(Task):
             (what looks wrong with the input: :func:`input_warnings`; also logged).
         """
         cfg = self.config
+
+        def report(stage, fraction):
+            if progress is not None:
+                progress(stage, fraction)
+
         data, mask, unc, meta, unit, gain, kind = unpack_exposure(
             exposure, cfg.gain, blocking=tuple(cfg.blocking_mask_planes))
         finite = np.isfinite(data)
@@ -607,21 +647,37 @@ class BrighterFatterDriftTask(Task):
                 or (cfg.method == "drift" and cfg.sparse and cfg.start == "series")):
             first = FirstOrderPass(self.template, data.shape, maps=names, samples=samples)
         if cfg.compute_geometry and not linear:
+            # stage 'maps' before 'correct' (exact maps)
+            report("maps", 0.0)
+            rows = [0]
+
+            def row_done(n):
+                rows[0] += n
+                report("maps", rows[0] / finite_data.shape[0])
+
             maps = moment_maps(self.template, finite_data, workers=cfg.workers, dtype=dtype,
-                               samples=samples, maps=names)
+                               samples=samples, maps=names, progress=row_done)
             geom = dict(area=maps.area, centroid_x=maps.dx, centroid_y=maps.dy, e1=maps.e1,
                         e2=maps.e2)
+            report("maps", 1.0)
+        report("correct", 0.0)
         flux, iterations, converged, order, density, solver = _correct(
-            data, self.template, blocked, cfg, dtype, self._operators(dtype), maps=first)
+            data, self.template, blocked, cfg, dtype, self._operators(dtype), maps=first,
+            progress=lambda f: report("correct", f))
+        report("correct", 1.0)
         if linear:
+            # stage 'maps' after 'correct' (linear maps, from its first pass)
+            report("maps", 0.0)
             maps = linear_moment_maps(
                 self.template, finite_data, rtol=cfg.geometry_tolerance, samples=samples,
                 workers=cfg.workers, dtype=dtype, maps=names,
                 strip=data.shape[0] if cfg.strip is None else cfg.strip,
-                first_order=first, ops=self._operators(dtype), check_range=False)
+                first_order=first, ops=self._operators(dtype), check_range=False,
+                progress=lambda f: report("maps", f))
             del first
             geom = dict(area=maps.area, centroid_x=maps.dx, centroid_y=maps.dy, e1=maps.e1,
                         e2=maps.e2)
+            report("maps", 1.0)
         if fill is not None:  # the recorded values come back
             flux = np.where(fill, recorded, flux)
             finite_data = np.where(fill, 0.0, finite_data)

@@ -61,9 +61,11 @@ def _boxes(flag, b, shape, *, band, block=32):
     return out
 
 
-def _exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtype, strip):
+def _exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtype, strip,
+                   progress=None):
     """Exact moments of the pixels in ``boxes``; returns the area (px) whose
-    boundaries were convolved.
+    boundaries were convolved. ``progress`` is called with the fraction of
+    that area done (by blocks of rows).
 
     A box on the image border (the strips of :func:`_boxes`) is computed on
     the image itself, with ``r`` rows or columns of charge on its inner sides
@@ -75,16 +77,30 @@ def _exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtyp
     """
     ny, nx = q.shape
     area = 0
-    inner = []
+    inner, border = [], []
     for box in boxes:
         y0, y1, x0, x1 = box
         if y0 > 0 and x0 > 0 and y1 < ny and x1 < nx:
             inner.append(box)
-            continue
-        a0, a1, b0, b1 = max(y0 - r, 0), min(y1 + r, ny), max(x0 - r, 0), min(x1 + r, nx)
+        else:
+            border.append((box, (max(y0 - r, 0), min(y1 + r, ny), max(x0 - r, 0),
+                                 min(x1 + r, nx))))
+    tick = None
+    if progress is not None:
+        # the canvas's area (before its last block's padding) counted in advance
+        total = sum((a1 - a0) * (b1 - b0) for _, (a0, a1, b0, b1) in border)
+        total += _canvas_area(inner, r)
+        done = [0]
+
+        def tick(n):
+            done[0] += n
+            progress(min(done[0] / max(total, 1), 1.0))
+    for box, (a0, a1, b0, b1) in border:
+        y0, y1, x0, x1 = box
         block = q[a0:a1, b0:b1]
         area += _box_moments(template, block, [(y0 - a0, x0 - b0, box)], outs, names,
-                             samples=samples, workers=workers, dtype=dtype, strip=strip)
+                             samples=samples, workers=workers, dtype=dtype, strip=strip,
+                             progress=tick)
     if not inner:
         return area
     slots = sorted(((y1 - y0 + 2 * r, x1 - x0 + 2 * r, (y0, y1, x0, x1))
@@ -102,15 +118,35 @@ def _exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtyp
     for cy, cx, (y0, y1, x0, x1) in place:
         canvas[cy - r:cy + y1 - y0 + r, cx - r:cx + x1 - x0 + r] = q[y0 - r:y1 + r, x0 - r:x1 + r]
     return area + _box_moments(template, canvas, place, outs, names, samples=samples,
-                               workers=workers, dtype=dtype, strip=strip)
+                               workers=workers, dtype=dtype, strip=strip, progress=tick)
 
 
-def _box_moments(template, canvas, place, outs, names, *, samples, workers, dtype, strip):
+def _canvas_area(inner, r):
+    """Area (px) of the shelf-packed canvas :func:`_exact_windows` makes for
+    the ``inner`` boxes (0 for none)."""
+    if not inner:
+        return 0
+    slots = sorted(((y1 - y0 + 2 * r, x1 - x0 + 2 * r) for y0, y1, x0, x1 in inner),
+                   reverse=True)
+    total = sum(h * w for h, w in slots)
+    width = max(max(w for _, w in slots), int(math.sqrt(total) * 1.1))
+    x, y, shelf = 0, 0, 0
+    for h, w in slots:
+        if x + w > width:
+            y, x, shelf = y + shelf, 0, 0
+        x += w
+        shelf = max(shelf, h)
+    return (y + shelf) * width
+
+
+def _box_moments(template, canvas, place, outs, names, *, samples, workers, dtype, strip,
+                 progress=None):
     """Exact moments of boxes of ``canvas``: ``place`` lists (row, col, box)
     with the box's first pixel at (row, col) of the canvas and ``box`` = (y0,
     y1, x0, x1) where its maps go in ``outs``. The boundaries are convolved
     over the whole canvas in blocks of about ``strip`` rows of equal height
     (one kernel transform), the polygons' moments taken only in the boxes.
+    ``progress`` is called with the pixels (rows x width) of each block done.
     Returns the canvas's area (px)."""
     from lsst_bfdrift.geometry._moment_kernels import stack_moments, stack_moments_serial
     from lsst_bfdrift.geometry.superpose import _block_stack, _Convolver
@@ -138,4 +174,6 @@ def _box_moments(template, canvas, place, outs, names, *, samples, workers, dtyp
             for k, m in zip(range(len(names)), keep):
                 outs[k][y0 + j0 - cy:y0 + j1 - cy, x0:x1] = part[m]
         del st
+        if progress is not None:
+            progress((min(r1, h) - r0) * canvas.shape[1])
     return canvas.shape[0] * canvas.shape[1]

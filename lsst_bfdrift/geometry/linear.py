@@ -392,10 +392,11 @@ class FirstOrderPass:
                        self._slot, self._store, self.smax)
         self.rows = r1
 
-    def run(self, q, ops, *, rows=512):
+    def run(self, q, ops, *, rows=512, progress=None):
         """Fill every row from ``q`` with the operators ``ops`` (an
         :class:`~lsst_bfdrift.templates.swept.OperatorCache`), ``rows`` per
-        block (each with a halo of the template's reach)."""
+        block (each with a halo of the template's reach); ``progress`` is
+        called with the fraction of the image's rows done after each block."""
         ny, nx = self.shape
         r = self.lk.reach
         for r0 in range(self.rows, ny, rows):
@@ -406,6 +407,8 @@ class FirstOrderPass:
             # page faults for memory given back and taken again)
             sv, sh, more = op(q[a:z], extra=self.spectra(op))
             self.add(sv, sh, more, a, r0, r1)
+            if progress is not None:
+                progress(self.rows / ny)
         return self
 
 
@@ -535,7 +538,7 @@ def _refined_flag(lk, q, flag, b, qbar, eps_small, threshold):
 def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, fallback=True,
                        bound="measured", bin=2, max_fraction=0.5, workers=1,
                        dtype=np.float32, strip=512, maps=None, info=None, first_order=None,
-                       ops=None, refine=True, check_range=True):
+                       ops=None, refine=True, check_range=True, progress=None):
     """Area, centroid-shift and ellipticity maps: linear, exact where needed.
 
     Parameters
@@ -607,6 +610,11 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
         range (:func:`~lsst_bfdrift.templates.swept.refuse_out_of_range`);
         the Task has checked it before it calls. Other inputs are always
         checked.
+    progress : callable, optional
+        Called with the fraction (0 to 1, never decreasing) of the work done:
+        the first-order maps by blocks of rows (unless ``first_order`` is
+        complete), the bound, then the exact moments by rows of the image or
+        of their boxes; 1 at the end. It does not change the maps.
 
     Returns
     -------
@@ -654,12 +662,24 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
         first_order = FirstOrderPass(template, q.shape, maps=names, samples=samples)
     elif first_order.shape != q.shape or first_order.names != names:
         raise InputError("first_order must be a FirstOrderPass of this image's shape and maps")
+
+    def report(fraction):
+        if progress is not None:
+            progress(fraction)
+
+    # rough shares of the time: the first-order pass (when it runs here), the
+    # bound, then the exact moments
+    first_share = 0.0 if first_order.complete else 0.4 if fallback else 1.0
+    bound_share = first_share + 0.3 * (1.0 - first_share)
+    report(0.0)
     if not first_order.complete:
         if ops is None:
             ops = OperatorCache(template, workers=workers, dtype=dtype)
         elif not ops.matches(template, ops.workers, dtype):
             raise InputError("ops must be an OperatorCache made for this template and dtype")
-        first_order.run(q, ops, rows=int(strip))
+        done = first_order.rows / ny
+        first_order.run(q, ops, rows=int(strip),
+                        progress=lambda f: report(first_share * (f - done) / (1.0 - done)))
     outs, smax = first_order.outs, first_order.smax
     for name, arr in zip(names, outs):
         setattr(out, name, arr)
@@ -685,6 +705,7 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
             for cols in (slice(0, r), slice(nx - r, nx)):
                 o[r:ny - r, cols] += c[r, cm[cols]]
     if not fallback:
+        report(1.0)
         return out
     if bound == "measured":
         # error_bounds' C_k x > tol_k for some map k, x = D (4 eps_u + D): one
@@ -706,28 +727,45 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
         flag = np.zeros(bounds["area"].shape, bool)
         for k in LINEAR_MAPS:
             flag |= bounds[k] > tol[k]
+    report(bound_share)
     if not flag.any():
+        report(1.0)
         return out
+
+    def exact(fraction):
+        report(bound_share + (1.0 - bound_share) * min(fraction, 1.0))
+
     b = int(bin)
     info["exact_fraction"] = float(flag.sum()) * b * b / q.size
     boxes = _boxes(flag, b, q.shape, band=-(-r // b))
     canvas = sum((y1 - y0 + 2 * r) * (x1 - x0 + 2 * r) for y0, y1, x0, x1 in boxes)
     if canvas > max_fraction * q.size:
+        rows = [0]
+
+        def row_progress(n):
+            rows[0] += n
+            exact(rows[0] / ny)
+
         mm = moment_maps(template, q, samples=samples, workers=workers, dtype=dtype,
-                         strip=strip, maps=names)
+                         strip=strip, maps=names,
+                         progress=None if progress is None else row_progress)
         for k, name in enumerate(names):
             outs[k][:] = getattr(mm, name)
         info.update(method="exact", windows=1, canvas_fraction=1.0)
+        report(1.0)
         return out
     area = _exact_windows(template, q, boxes, r, outs, names, samples=samples,
-                          workers=workers, dtype=dtype, strip=strip)
+                          workers=workers, dtype=dtype, strip=strip,
+                          progress=None if progress is None else exact)
     info.update(method="linear+exact", windows=len(boxes), canvas_fraction=area / q.size)
+    report(1.0)
     return out
 
 
-def _linear_maps(lk, q, names, tile, dtype, workers):
+def _linear_maps(lk, q, names, tile, dtype, workers, progress=None):
     """The first-order maps (float64, in ``names`` order) by tiled FFTs, and
-    max abs(map - nominal) of all five."""
+    max abs(map - nominal) of all five; ``progress`` is called with the
+    fraction of the rows done after each row of tiles."""
     from lsst_bfdrift.geometry._linear_kernels import store_tile
 
     ny, nx = q.shape
@@ -750,4 +788,6 @@ def _linear_maps(lk, q, names, tile, dtype, workers):
             res = sp_fft.irfft2(spec * f, fshape, axes=(-2, -1), workers=workers,
                                 overwrite_x=True)
             store_tile(res, r, y0, x0, h, w, _NOMINAL, slot, store, smax)
+        if progress is not None:
+            progress((y0 + h) / ny)
     return [store[k] for k in range(len(names))], smax

@@ -18,7 +18,7 @@ import numpy as np
 from lsst_bfdrift.templates.template import DistortionTemplate
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
-__all__ = ["template_alpha", "match_area_coefficients", "draw_templates"]
+__all__ = ["template_alpha", "match_area_coefficients", "curl_free_template", "draw_templates"]
 
 
 def template_alpha(template):
@@ -155,6 +155,49 @@ def match_area_coefficients(template, a, *, max_lag=None, iterations=3, free_wei
     meta = dict(template.meta)
     meta["area_refined"] = {"max_lag": int(L), "largest_shift_px": total}
     return _with_edges(template, vd, hd, meta)
+
+
+def curl_free_template(template, a=None, *, iterations=4):
+    """The curl-free template with a given area response: what the a-matrix alone says.
+
+    Flats measure a pixel's area change, the divergence of the boundary
+    shifts; they do not see how that change divides between its serial and
+    parallel edges (a divergence-free, 'curl', part of the shifts). This
+    template has no such part: its edge shifts are the minimum-norm
+    (gradient) field with the area response ``a``, starting from straight,
+    unmoved boundaries (corners fixed, each edge's samples moved by one
+    amount). ``template - curl_free_template(template)`` is the part of the
+    template's boundary field that flats cannot see; the star calibration
+    uses it as a direction (:func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars`).
+
+    Parameters
+    ----------
+    template : DistortionTemplate
+        Gives the grid (size, edge samples, charge) and, when ``a`` is None,
+        the area response.
+    a : array_like, shape (L + 1, L + 1), optional
+        a_ij (1/e), [i serial, j parallel]; default the template's own linear
+        area response at every lag it holds (``L = center - 1``).
+    iterations : int, optional
+        Newton iterations on the exact polygon areas.
+
+    Returns
+    -------
+    DistortionTemplate
+        Same grid; ``meta['area_refined']`` as in :func:`match_area_coefficients`.
+    """
+    if not isinstance(template, DistortionTemplate):
+        raise InputTypeError("template must be a DistortionTemplate, "
+                             f"got {type(template).__name__}")
+    c = template.center
+    if a is None:
+        a = template_alpha(template)[c:2 * c, c:2 * c].T
+    a = np.asarray(a, dtype=float)
+    zero = DistortionTemplate(np.zeros_like(template.corner_d), np.zeros_like(template.vedge_d),
+                              np.zeros_like(template.hedge_d), template.fractions,
+                              template.charge, meta=dict(template.meta))
+    return match_area_coefficients(zero, a, max_lag=min(a.shape[0] - 1, c - 1),
+                                   iterations=iterations)
 
 
 def draw_templates(template, n, *, seed=0):

@@ -2,19 +2,38 @@
 
 import contextlib
 import os
+import re
+import socket
 import tempfile
+import time
 
 import numpy as np
 
 from lsst_bfdrift.utils.errors import (InputFileError, InputNotFoundError,
                                        OutputExistsError)
 
-__all__ = ["TMP_PREFIX", "is_temporary", "data_files", "check_output", "atomic_output",
+__all__ = ["TMP_PREFIX", "STALE_AGE", "is_temporary", "temporary_owner", "is_stale_temporary",
+           "remove_stale_temporaries", "data_files", "check_output", "atomic_output",
            "write_text", "write_json", "open_fits", "hdu_pixels", "read_image", "data_path"]
 
 #: Prefix of the temporary files of :func:`atomic_output`; directory readers
 #: ignore files whose name starts with it (:func:`is_temporary`).
 TMP_PREFIX = ".tmp-"
+
+
+#: Age (s) after which a temporary file whose owner cannot be checked (written on
+#: another host, or named without a PID) is taken as a leftover.
+STALE_AGE = 3600.0
+
+# .tmp-<pid>-<host>-<8 random characters of mkstemp><suffix>
+_TMP_NAME = re.compile(r"^\.tmp-(?P<pid>\d+)-(?P<host>[A-Za-z0-9.]*)-[a-z0-9_]{8}")
+# before the PID was in the name: .tmp-<8 random characters><suffix>
+_OLD_TMP_NAME = re.compile(r"^\.tmp-[a-z0-9_]{8}\.[^.]*$")
+
+
+def _host_tag():
+    """This machine's name as it appears in temporary names (letters, digits, dots)."""
+    return re.sub(r"[^A-Za-z0-9.]", "", socket.gethostname())[:40]
 
 
 def is_temporary(path):
@@ -31,6 +50,114 @@ def is_temporary(path):
         partial file left by a killed run).
     """
     return os.path.basename(os.fspath(path)).startswith(TMP_PREFIX)
+
+
+def temporary_owner(path):
+    """The process that wrote the temporary file ``path``, from its name.
+
+    :func:`atomic_output` names its temporary files
+    ``.tmp-<pid>-<host>-<random><suffix>``.
+
+    Parameters
+    ----------
+    path : str or path-like
+
+    Returns
+    -------
+    (int, str) or None
+        The PID and host name (letters, digits and dots only), or None when
+        the name does not follow that scheme.
+    """
+    m = _TMP_NAME.match(os.path.basename(os.fspath(path)))
+    return None if m is None else (int(m["pid"]), m["host"])
+
+
+def _pid_running(pid):
+    """Whether a process ``pid`` exists on this machine."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    except OSError:
+        return False
+    return True
+
+
+def is_stale_temporary(path, *, max_age=STALE_AGE, now=None):
+    """Whether ``path`` is a temporary file of :func:`atomic_output` left by a dead run.
+
+    A file named by this machine's process ``pid`` (:func:`temporary_owner`)
+    is stale exactly when that process no longer runs, whatever its age: a
+    running writer's file is never taken. A file whose owner cannot be
+    checked (written on another host sharing the directory, or named
+    ``.tmp-<random><suffix>`` by an earlier version, without a PID) is stale
+    when it was last modified more than ``max_age`` seconds ago. Other files,
+    ``.tmp-*`` files of other programs included, are never stale.
+
+    Parameters
+    ----------
+    path : str or path-like
+    max_age : float, optional
+        Seconds (default one hour).
+    now : float, optional
+        The current time (``time.time()``; for tests).
+
+    Returns
+    -------
+    bool
+    """
+    path = os.fspath(path)
+    if not is_temporary(path) or not os.path.isfile(path) or os.path.islink(path):
+        return False
+    owner = temporary_owner(path)
+    if owner is not None and owner[1] == _host_tag():
+        return not _pid_running(owner[0])
+    if owner is None and not _OLD_TMP_NAME.match(os.path.basename(path)):
+        return False  # not a name atomic_output gives
+    try:
+        age = (time.time() if now is None else now) - os.path.getmtime(path)
+    except OSError:
+        return False
+    return age > max_age
+
+
+def remove_stale_temporaries(directory, *, max_age=STALE_AGE):
+    """Remove the temporary files of killed runs from ``directory``.
+
+    Only files named by :func:`atomic_output` (``.tmp-*``) that
+    :func:`is_stale_temporary` finds stale are removed; sub-directories are
+    not visited. A directory that does not exist holds nothing to remove.
+
+    Parameters
+    ----------
+    directory : str or path-like
+    max_age : float, optional
+        See :func:`is_stale_temporary`.
+
+    Returns
+    -------
+    list of str
+        The files removed (full paths, sorted).
+    """
+    directory = os.fspath(directory)
+    try:
+        names = sorted(os.listdir(directory))
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    removed = []
+    for name in names:
+        path = os.path.join(directory, name)
+        if is_stale_temporary(path, max_age=max_age):
+            try:
+                os.remove(path)
+            except FileNotFoundError:  # another run removed it first
+                continue
+            removed.append(path)
+    return removed
 
 
 def data_files(directory, suffixes):
@@ -122,8 +249,10 @@ def atomic_output(path, *, overwrite=True, inputs=()):
     """Yield a temporary path next to ``path``; rename it to ``path`` on success.
 
     The file appears complete or not at all. The temporary file (named
-    ``.tmp-*``, which directory readers ignore) is removed on any exception,
-    KeyboardInterrupt included, and ``path`` is then untouched. Permissions
+    ``.tmp-<pid>-<host>-*``, which directory readers ignore) is removed on any
+    exception, KeyboardInterrupt included, and ``path`` is then untouched
+    (``bfdrift`` turns SIGTERM into such an exception); one left by a killed
+    process is removed by :func:`remove_stale_temporaries`. Permissions
     follow the umask (like a plain ``open``), not mkstemp's 0600.
 
     Parameters
@@ -147,7 +276,8 @@ def atomic_output(path, *, overwrite=True, inputs=()):
     try:
         os.makedirs(directory, exist_ok=True)
         suffix = os.path.splitext(path)[1] or ".tmp"
-        fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, suffix=suffix, dir=directory)
+        fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{os.getpid()}-{_host_tag()}-",
+                                   suffix=suffix, dir=directory)
         os.close(fd)
         yield tmp
         umask = os.umask(0)

@@ -205,6 +205,7 @@ def test_directory_reader_ignores_temporary_files(tmp_path, monkeypatch):
     for k in range(8):
         fits.writeto(tmp_path / f"flat_{k}.fits", np.ones((8, 8), np.float32))
     (tmp_path / ".tmp-k1x2.fits").write_bytes(b"")  # killed run
+    (tmp_path / f".tmp-{os.getpid()}-host-abcd1234.fits").write_bytes(b"")  # a live writer
     monkeypatch.setattr(diagnosis, "observations_from_pairs", lambda pairs, max_lag: pairs)
     pairs = load_input(str(tmp_path))
     assert [os.path.basename(p) for pair in pairs for p in pair] == \

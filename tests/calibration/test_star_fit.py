@@ -20,12 +20,14 @@ from numpy.testing import assert_allclose
 from tests.validation._galsim_fields import STRENGTHS, paired_fields
 from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable
 from lsst_bfdrift.calibration.catalog import detect_stars, measure_stars
-from lsst_bfdrift.calibration.star_fit import _delta, calibrate_with_stars, combine_templates
+from lsst_bfdrift.calibration.star_fit import (StarField, _delta, calibrate_with_stars,
+                                              combine_templates)
 from lsst_bfdrift.calibration.tuning import CANDIDATES, CalibrationError, CalibrationResult
 from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 from lsst_bfdrift.simulation.skysim import scale_template
-from lsst_bfdrift.templates.refine import match_area_coefficients, template_alpha
+from lsst_bfdrift.templates.refine import (curl_free_template, match_area_coefficients,
+                                          template_alpha)
 from lsst_bfdrift.templates.template import TemplateSettings, build_template
 
 STRENGTH = STRENGTHS[2]
@@ -120,6 +122,31 @@ def test_bad_star_inputs_get_clear_errors():
     nores = type(res)(**{**res.__dict__, "template": None})
     with pytest.raises(CalibrationError, match="template built"):
         calibrate_with_stars(nores, [img])
+
+
+def test_curl_direction_moves_e1_and_not_the_a_matrix():
+    """The 'curl' direction (the template minus the curl-free template with
+    its areas) leaves every a_ij unchanged (exact polygon areas) and, on a
+    galsim.SiliconSensor star field, moves the corrected stars' e1 slope (the
+    serial/parallel partition of the boundary shifts), not e2 (the model is
+    symmetric about both axes) nor, to 1 % of the BF slope, their size."""
+    res = _calibration()
+    ta = res.template
+    c = ta.center
+    d = _delta(ta, curl_free_template(ta))
+    field = StarField(paired_fields()["images"][2])
+    a0 = template_alpha(ta)[c:c + 4, c:c + 4]
+    s = {}
+    for k in (-1.0, 1.0):
+        t = combine_templates(ta, [d], [k])
+        assert_allclose(template_alpha(t)[c:c + 4, c:c + 4], a0, rtol=0,
+                        atol=1e-5 * abs(a0[0, 0]))
+        s[k] = field.slopes(t, field.usable)
+    before = field.slopes(None, field.usable)
+    de1, de2, dsize = (s[1.0][n][0] - s[-1.0][n][0] for n in ("e1", "e2", "size"))
+    assert abs(de1) > 20 * abs(de2)
+    assert abs(dsize) < 0.01 * before["size"][0]
+    assert abs(de1) > 1e-3 * before["size"][0]
 
 
 def test_a_right_template_is_left_alone():

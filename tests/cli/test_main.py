@@ -190,6 +190,7 @@ def test_ptc_on_fits_pairs(capsys, tmp_path, rng):
     code, text, err = _run(capsys, "ptc", *files, "--max-lag", "1")
     assert code == 0 and "6 pair(s) at 6 level(s)" in text and "flat_2_2.fits (odd file" in text
     (tmp_path / ".tmp-killed.fits").write_bytes(b"")  # a leftover is never a flat
+    (tmp_path / f".tmp-{os.getpid()}-host-abcd1234.fits").write_bytes(b"")  # nor a live one
     code, out2, err = _run(capsys, "ptc", str(tmp_path), "--json", "--max-lag", "1")
     assert code == 0, err
     assert json.loads(out2)["gain"] == s["gain"]
@@ -656,3 +657,92 @@ def test_correct_skip_existing_resumes(capsys, tmp_path):
     code, _, err = _run(capsys, "correct", *names, "--out-dir", str(out), "--skip-existing",
                         "--overwrite")
     assert code == 2 and "contradict" in err
+
+
+def test_correct_removes_stale_partial_files_and_says_so(capsys, tmp_path):
+    """Issue 20, leftovers: a partial .tmp-* file of a killed run (its PID is
+    gone) next to the output is removed when the next command starts and
+    listed on stderr; one of a running process is kept."""
+    import subprocess
+    import sys
+
+    from lsst_bfdrift.cli.main import sample_image_path
+    from lsst_bfdrift.utils.io import _host_tag
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    stale = [out_dir / f".tmp-{proc.pid}-{_host_tag()}-abcd{k}xyz.fits" for k in range(2)]
+    live = out_dir / f".tmp-{os.getpid()}-{_host_tag()}-abcd9xyz.fits"
+    for path in stale + [live]:
+        path.write_bytes(b"partial")
+    code, _, err = _run(capsys, "correct", sample_image_path(), str(out_dir / "c.fits"),
+                        "--quiet", "--no-geometry")
+    assert code == 0, err
+    assert "removed 2 stale partial files" in err
+    assert all(str(p) in err for p in stale) and str(live) not in err
+    assert sorted(os.listdir(out_dir)) == sorted(["c.fits", live.name])
+    # the same for any command writing into a directory (here: --out-dir, maps --out)
+    stale[0].write_bytes(b"partial")
+    code, _, err = _run(capsys, "maps", "--out", str(out_dir / "m.fits"), "--samples", "2",
+                        "--quiet", "--json")
+    assert code == 0 and "removed 1 stale partial file of killed runs" in err
+    code, _, err = _run(capsys, "correct", sample_image_path(), "--out-dir", str(out_dir),
+                        "--quiet", "--no-geometry", "--overwrite")
+    assert "stale" not in err
+    assert live.exists()
+
+
+def test_sigterm_removes_the_partial_output(tmp_path):
+    """SIGTERM during a write (a killed `bfdrift correct`) ends the command
+    through an exception: the partial file is removed, the output never
+    appears and the exit status is 143."""
+    import signal
+    import subprocess
+    import sys
+    script = (
+        "import sys, time\n"
+        "from lsst_bfdrift.cli._common import _sigterm_raises\n"
+        "from lsst_bfdrift.utils.io import atomic_output\n"
+        "with _sigterm_raises():\n"
+        f"    with atomic_output({str(tmp_path / 'out.fits')!r}) as tmp:\n"
+        "        open(tmp, 'w').write('partial')\n"
+        "        print('writing', flush=True)\n"
+        "        time.sleep(60)\n")
+    env = dict(os.environ, PYTHONPATH=str(pathlib.Path(__file__).resolve().parents[2]))
+    with subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, env=env,
+                          text=True) as proc:
+        assert proc.stdout.readline().strip() == "writing"
+        assert [p.name for p in tmp_path.iterdir()][0].startswith(".tmp-")
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 128 + signal.SIGTERM
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_correct_shows_progress_inside_a_file(capsys, tmp_path):
+    """Issue 19, item 8: one file's correction reports its stages (read,
+    correct, maps, write) on stderr unless --quiet (the CLI's one progress switch;
+    a log gets a line per 10 %); the corrected file is the same either way.
+    Several files logged to a file keep the one bar of files finished."""
+    from lsst_bfdrift.cli.main import sample_image_path
+    a, b = tmp_path / "a.fits", tmp_path / "b.fits"
+    code, _, err = _run(capsys, "correct", sample_image_path(), str(a), "--geometry")
+    assert code == 0, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("correct sample_star.fits: ")]
+    stages = [ln.split(": ")[1].split()[0] for ln in lines]
+    assert {"read", "maps", "write"} <= set(stages), err
+    # the linear maps (the default) come from the correction's first pass, after it
+    assert stages == sorted(stages, key=["read", "correct", "maps", "write", "done"].index)
+    assert "100.0%" in lines[-1]
+    code, _, err = _run(capsys, "correct", sample_image_path(), str(b), "--geometry", "--quiet")
+    assert code == 0 and err == ""
+    with fits.open(a) as ha, fits.open(b) as hb:
+        assert [h.name for h in ha] == [h.name for h in hb]
+        for x, y in zip(ha, hb):
+            assert (x.data is None and y.data is None) or np.array_equal(x.data, y.data), x.name
+    other = tmp_path / "other.fits"
+    other.write_bytes(pathlib.Path(sample_image_path()).read_bytes())
+    code, _, err = _run(capsys, "correct", sample_image_path(), str(other), "--out-dir",
+                        str(tmp_path / "many"), "--no-geometry")
+    assert code == 0, err
+    assert "correct 100.0%" in err and ".fits: " not in err

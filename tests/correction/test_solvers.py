@@ -35,3 +35,23 @@ def test_out_of_range_images_are_refused(limit, solver):
     flux = solver(img, tpl)[0]
     assert_allclose(flux.sum(), img.sum(), rtol=1e-12)
     assert not np.allclose(flux, img)
+
+
+@pytest.mark.parametrize("kw", [dict(start="image", strip=None),
+                                dict(start="image", strip=16),
+                                dict(start="series", strip=16, sparse=True)])
+def test_progress_is_reported_and_changes_nothing(limit, kw):
+    """correct_image reports the fraction done (never decreasing, 1 at the
+    end: blocks and iterations) and returns the same flux without it."""
+    tpl, _ = limit
+    rng = np.random.default_rng(11)
+    img = rng.poisson(1000.0, (48, 40)).astype(float)
+    img[20:23, 18:21] += 2e5
+    seen = []
+    with_p = correct_image(img, tpl, noise_tol=0.05, progress=seen.append, **kw)
+    plain = correct_image(img, tpl, noise_tol=0.05, **kw)
+    assert np.array_equal(with_p[0], plain[0]) and with_p[1:] == plain[1:]
+    assert seen[-1] == 1.0 and all(0 <= f <= 1 for f in seen)
+    assert seen == sorted(seen)
+    if kw["start"] == "image":  # the iteration ran and was reported
+        assert plain[1] >= 1 and len(seen) >= 2 + (kw["strip"] is not None)

@@ -279,3 +279,52 @@ def test_first_order_pass_from_the_swept_areas(which, small_template, default_te
     assert_allclose(fo.smax, smax, rtol=1e-12)
     with pytest.raises(ValueError, match="in order"):
         fo.add(None, None, None, 0, 5, 10)
+
+
+def test_progress_is_reported_and_changes_nothing(default_template, rng):
+    """linear_moment_maps and the Task report progress (fractions never
+    decreasing, 1 at the end; the Task by stage, in the order they run: the
+    exact maps then the correction, the correction then the linear maps from
+    its first pass); the maps and the correction are bit-identical without it."""
+    from lsst_bfdrift.correction.task import (BrighterFatterDriftConfig, BrighterFatterDriftTask,
+                                              stage_order)
+    from lsst_bfdrift.templates.swept import OperatorCache
+    q = _star_field(96, 1.5e6, rng)
+    for kw, method in ((dict(max_fraction=10.0), "linear+exact"), (dict(fallback=False), "linear"),
+                       (dict(max_fraction=0.0), "exact")):
+        seen, info = [], {}
+        m = linear_moment_maps(default_template, q, samples=8, progress=seen.append,
+                               info=info, **kw)
+        ref = linear_moment_maps(default_template, q, samples=8, **kw)
+        for name in LINEAR_MAPS:
+            assert np.array_equal(getattr(m, name), getattr(ref, name)), name
+        assert info["method"] == method
+        assert seen == sorted(seen) and seen[-1] == 1.0 and len(seen) >= 2, (kw, seen)
+    # the first-order maps already done (the Task's case): the rest reported
+    ops = OperatorCache(default_template, dtype=np.float32)
+    first = FirstOrderPass(default_template, q.shape, samples=8).run(q, ops)
+    seen = []
+    m = linear_moment_maps(default_template, q, samples=8, first_order=first, ops=ops,
+                           progress=seen.append)
+    ref = linear_moment_maps(default_template, q, samples=8)
+    for name in LINEAR_MAPS:
+        assert np.array_equal(getattr(m, name), getattr(ref, name)), name
+    assert seen == sorted(seen) and seen[0] == 0.0 and seen[-1] == 1.0, seen
+    for cfg, expect in ((BrighterFatterDriftConfig(), ["correct", "maps"]),
+                        (BrighterFatterDriftConfig(method="astier23"), ["correct", "maps"]),
+                        (BrighterFatterDriftConfig(geometry_method="exact"), ["maps", "correct"]),
+                        (BrighterFatterDriftConfig(compute_geometry=False), ["correct"])):
+        assert list(stage_order(cfg)) == expect
+        task = BrighterFatterDriftTask(cfg, template=default_template)
+        calls = []
+        res = task.run(q, progress=lambda stage, f: calls.append((stage, f)))
+        ref = task.run(q)
+        assert np.array_equal(res.exposure, ref.exposure)
+        if cfg.compute_geometry:
+            assert np.array_equal(res.area, ref.area) and np.array_equal(res.e2, ref.e2)
+        stages = [s for s, _ in calls]
+        assert sorted(set(stages), key=stages.index) == expect
+        assert stages == sorted(stages, key=expect.index)  # one stage after the other
+        for stage in expect:
+            fr = [f for s, f in calls if s == stage]
+            assert fr[0] == 0.0 and fr[-1] == 1.0 and fr == sorted(fr), (stage, fr)

@@ -5,7 +5,8 @@ import pytest
 from numpy.testing import assert_allclose
 
 from lsst_bfdrift.physics.sensor import SensorParameters
-from lsst_bfdrift.templates.refine import match_area_coefficients, template_alpha
+from lsst_bfdrift.templates.refine import (curl_free_template, match_area_coefficients,
+                                          template_alpha)
 from lsst_bfdrift.templates.template import TemplateSettings, build_template
 
 
@@ -49,6 +50,43 @@ def test_matches_another_templates_areas(pair):
     circ = uv[1:, 1:-1] - uv[:-1, 1:-1] - (uh[1:-1, 1:] - uh[1:-1, :-1])
     assert np.abs(circ).max() < 1e-3 * np.abs(uv).max()
     assert r.meta["area_refined"]["max_lag"] == 3
+
+
+def test_curl_free_template_keeps_the_areas_and_drops_the_curl(pair):
+    """curl_free_template: the same linear area response as the model
+    template at every lag it holds (exact polygon areas), no circulation
+    round any interior corner (a gradient field), corners unmoved; the model
+    template itself does have a divergence-free part, which is what the
+    difference carries."""
+    t = pair[1]
+    c = t.center
+    cf = curl_free_template(t)
+    want = template_alpha(t)[c:2 * c, c:2 * c]
+    # to 2e-5 of a00: the outer ring, which cannot move, keeps zero area change
+    # and the matched lags share what the model's outer ring carried
+    assert_allclose(template_alpha(cf)[c:2 * c, c:2 * c], want, rtol=0,
+                    atol=2e-5 * np.abs(want).max())
+    assert_allclose(cf.corner_d, 0, atol=0)
+
+    def circulation(tpl):
+        # effective shift of each edge: trapezoid over corners and samples
+        f = np.concatenate([[0.0], tpl.fractions, [1.0]])
+        uv = np.trapezoid(np.concatenate([tpl.corner_d[:-1, :, :1], tpl.vedge_d,
+                                          tpl.corner_d[1:, :, :1]], axis=-1), f, axis=-1)
+        uh = np.trapezoid(np.concatenate([tpl.corner_d[:, :-1, 1:], tpl.hedge_d,
+                                          tpl.corner_d[:, 1:, 1:]], axis=-1), f, axis=-1)
+        circ = uv[1:, 1:-1] - uv[:-1, 1:-1] - (uh[1:-1, 1:] - uh[1:-1, :-1])
+        return np.abs(circ).max() / np.abs(uv).max()
+
+    assert circulation(cf) < 1e-3
+    assert circulation(t) > 0.05
+    # given a_ij instead of the template's own
+    a = 0.5 * template_alpha(t)[c:c + 3, c:c + 3].T
+    half = curl_free_template(t, a)
+    assert_allclose(template_alpha(half)[c:c + 3, c:c + 3].T, a, rtol=0,
+                    atol=2e-5 * np.abs(a).max())
+    with pytest.raises(TypeError, match="DistortionTemplate"):
+        curl_free_template("template.fits")
 
 
 def test_nan_lags_are_not_matched(pair):

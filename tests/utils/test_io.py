@@ -116,3 +116,82 @@ def test_truncated_fits_is_named(tmp_path):
         read_image(tmp_path / "empty.fits")
     with pytest.raises(FileNotFoundError, match="nope.fits"):
         read_image(tmp_path / "nope.fits")
+
+
+def _dead_pid():
+    """The PID of a process that has ended (a child waited for)."""
+    import subprocess
+    import sys
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_temporary_names_carry_pid_and_host(tmp_path):
+    from lsst_bfdrift.utils.io import _host_tag, temporary_owner
+    with atomic_output(tmp_path / "a.fits") as tmp:
+        assert temporary_owner(tmp) == (os.getpid(), _host_tag())
+        assert tmp.endswith(".fits")
+    assert temporary_owner(tmp_path / "a.fits") is None
+    assert temporary_owner(".tmp-killed.fits") is None
+
+
+def test_stale_temporaries_are_removed_live_ones_kept(tmp_path):
+    """A temporary file of a dead process is stale whatever its age; one of a
+    running process (this one) is kept whatever its age; files whose owner
+    cannot be checked (another host, the old name without a PID) go after
+    max_age; other .tmp-* files and data are never touched."""
+    import time
+
+    from lsst_bfdrift.utils.io import _host_tag, is_stale_temporary, remove_stale_temporaries
+    host = _host_tag()
+    old = time.time() - 7200.0
+    names = {
+        f".tmp-{_dead_pid()}-{host}-abc_1234.fits": True,     # killed run
+        f".tmp-{os.getpid()}-{host}-abc_1235.fits": False,    # a live writer
+        f".tmp-{os.getpid()}-{host}-abc_1236.fits.old": False,  # live, and old
+        ".tmp-12-otherhost-abc_1237.fits": False,             # another host, fresh
+        ".tmp-13-otherhost-abc_1238.fits.old": True,          # another host, old
+        ".tmp-abcd1234.fits": False,                          # old scheme, fresh
+        ".tmp-abcd1235.fits.old": True,                       # old scheme, old
+        ".tmp-killed.fits.old": False,                        # not our name
+        "flat_1.fits.old": False,                             # data
+    }
+    for name in names:
+        path = tmp_path / name.removesuffix(".old")
+        path.write_bytes(b"partial")
+        if name.endswith(".old"):
+            os.utime(path, (old, old))
+    (tmp_path / ".tmp-1-x-abcdefgh.d").mkdir()  # a directory is never removed
+    expect = sorted(str(tmp_path / n.removesuffix(".old")) for n, gone in names.items() if gone)
+    for name, gone in names.items():
+        assert is_stale_temporary(tmp_path / name.removesuffix(".old")) is gone, name
+    assert remove_stale_temporaries(tmp_path) == expect
+    left = sorted(os.listdir(tmp_path))
+    assert left == sorted([n.removesuffix(".old") for n, gone in names.items() if not gone]
+                          + [".tmp-1-x-abcdefgh.d"])
+    assert remove_stale_temporaries(tmp_path) == []
+    assert remove_stale_temporaries(tmp_path / "missing") == []
+
+
+def test_failing_fits_write_leaves_no_temporary(tmp_path, monkeypatch):
+    """A FITS write that fails half-way (disk full) leaves no .tmp-* file and
+    no output; the error names the output, not the temporary file."""
+    import numpy as np
+    from astropy.io import fits
+
+    from lsst_bfdrift.correction.batch import correct_file
+    src = tmp_path / "in.fits"
+    hdu = fits.PrimaryHDU(np.random.default_rng(5).normal(1000.0, 30.0, (32, 32)))
+    hdu.header["BUNIT"] = "electron"
+    hdu.writeto(src)
+
+    def full_disk(self, name, *args, **kwargs):
+        with open(name, "wb") as fh:
+            fh.write(b"SIMPLE  =                    T")  # a partial file
+        raise OSError(28, "No space left on device", name)
+
+    monkeypatch.setattr(fits.HDUList, "writeto", full_disk)
+    with pytest.raises(OSError, match="cannot write .*out.fits: No space left"):
+        correct_file(src, tmp_path / "out.fits")
+    assert sorted(os.listdir(tmp_path)) == ["in.fits"]

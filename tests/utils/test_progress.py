@@ -22,3 +22,57 @@ def test_disabled_is_silent():
     with ProgressBar(5, "quiet", stream=out, enabled=False) as bar:
         bar(5)
     assert out.getvalue() == ""
+
+
+def test_stages_share_one_bar_by_weight():
+    """StageProgress: the bar stands at the stages done plus the fraction of
+    the current one, labelled with it; it never goes back, and stages that
+    are not weighted are ignored."""
+    from lsst_bfdrift.utils.progress import StageProgress
+    out = io.StringIO()
+    with StageProgress({"read": 1, "maps": 8, "skipped": 0, "write": 1}, "a.fits",
+                       stream=out) as progress:
+        progress("read", 1.0)
+        assert progress.bar.done == 100
+        progress("maps", 0.5)
+        assert progress.bar.done == 500 and progress.bar.label == "a.fits: maps"
+        progress("maps", 0.25)  # never back
+        progress("skipped", 1.0)
+        progress("unknown", 1.0)
+        assert progress.bar.done == 500 and progress.bar.label == "a.fits: maps"
+        progress("write", 0.0)
+        assert progress.bar.done == 900
+    lines = out.getvalue().splitlines()
+    assert lines[0].startswith("a.fits: read  10.0%")
+    assert lines[1].startswith("a.fits: maps  50.0%")
+    assert lines[2].startswith("a.fits: write  90.0%")
+    assert lines[-1].startswith("a.fits: done 100.0%")
+    quiet = io.StringIO()
+    with StageProgress({"read": 1}, "b", stream=quiet, enabled=False) as progress:
+        progress("read", 1.0)
+    assert quiet.getvalue() == ""
+
+
+def test_terminal_redraw_blanks_a_longer_previous_line():
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    out = Tty()
+    with ProgressBar(2, "a much longer label", stream=out) as bar:
+        bar(1)
+        bar.label = "short"
+    first, last = out.getvalue().split("\r")[1:3]
+    assert len(last.rstrip("\n")) >= len(first) and last.startswith("short [")
+
+
+def test_stage_weights_follow_the_tasks_order():
+    """bfdrift correct's stages are weighted in the order the Task reports
+    them: the linear maps (from the correction's first pass) after the
+    correction, the exact maps before it."""
+    from lsst_bfdrift.correction.batch import stage_weights
+    assert list(stage_weights()) == ["read", "correct", "maps", "write"]
+    assert list(stage_weights({"geometry_method": "exact"})) == ["read", "maps", "correct",
+                                                                  "write"]
+    w = stage_weights({"compute_geometry": False})
+    assert w["maps"] == 0.0 and w["correct"] > 0
