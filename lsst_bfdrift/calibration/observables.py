@@ -344,7 +344,7 @@ def table_sum_rule_finding(a, sigma, model, mask, *, p_threshold=1e-3):
     -------
     dict
         The finding; ``value`` and ``error`` in 1/e, ``table_sum`` and
-        ``model_sum`` the two sums, ``relative`` the value over |a00|.
+        ``model_sum`` the two sums, ``relative`` the value over abs(a00).
     """
     name = "sum_rule"
     if not np.asarray(mask, bool)[0, 0]:
