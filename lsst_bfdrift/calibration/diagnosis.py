@@ -45,7 +45,8 @@ from scipy import stats
 from lsst_bfdrift.calibration.acoeff_fit import DEFAULT_FREE
 from lsst_bfdrift.calibration.fitting import fit_parameters
 from lsst_bfdrift.calibration.observables import (assess_observables, credit_findings,
-                                                  pair_observables, turnoff_cut)
+                                                  lag_error_factors, pair_observables,
+                                                  turnoff_cut)
 from lsst_bfdrift.calibration.ptc import covariance_model, fit_ptc_exponential, pair_covariances
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.simulation.effects import effect_library, EFFECT_NAMES
@@ -252,10 +253,7 @@ class Observations:
         # the axes V / sqrt(N), off the axes V / sqrt(2 N) ((i, j) and (i, -j) are
         # independent products), V the variance of the image.
         L1 = self.max_lag + 1
-        f = np.full((L1, L1), np.sqrt(0.5))
-        f[0, :] = 1.0
-        f[:, 0] = 1.0
-        f[0, 0] = np.sqrt(2.0)
+        f = lag_error_factors(self.max_lag)
         c00 = self.cov[:, 0, 0][:, None, None]
         sc = c00 * f / np.sqrt(self.npix)
         # pair sums: noise variance vn = 2 C00 and static variance vp = 4 S00

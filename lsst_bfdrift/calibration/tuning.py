@@ -44,6 +44,7 @@ import numpy as np
 
 from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable, electrostatic_acoeffs
 from lsst_bfdrift.calibration.fitting import FitError, fit_parameters
+from lsst_bfdrift.calibration.observables import lag_multiplicity
 from lsst_bfdrift.calibration.ptc import fit_covariance_model, fit_ptc_exponential
 from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.templates.refine import match_area_coefficients, template_alpha
@@ -236,9 +237,7 @@ class CalibrationResult:
 def _sum_rule(table):
     a, s = table.a, table.sigma
     L = a.shape[0] - 1
-    mult = np.ones_like(a)
-    mult[1:, :] *= 2
-    mult[:, 1:] *= 2
+    mult = lag_multiplicity(L)
     m = table.mask()
     return {"sum": float((a * mult)[m].sum()), "error": float(np.sqrt(((s * mult)[m] ** 2).sum())),
             "max_lag": int(L),
