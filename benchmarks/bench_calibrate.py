@@ -56,7 +56,8 @@ def main(argv=None):
             res = calibrate(table, allow_poor_fit=True)
             runs[name].append({"seconds": res.seconds, "n_evaluations": res.fit.n_evaluations,
                                "names": res.fit.names, "chi2": res.fit.chi2,
-                               "dof": res.fit.dof})
+                               "dof": res.fit.dof, "jacobian_source": res.jacobian_source,
+                               "load_average": os.getloadavg()[0]})
             print(f"run {r + 1} {name}: {res.seconds['total']:.1f} s "
                   f"({res.fit.n_evaluations} model evaluations)", flush=True)
     lines = [f"calibrate() wall time, {machine}; {args.repeat} runs per input, alternated, "
@@ -69,8 +70,12 @@ def main(argv=None):
         lines.append(f"  {name:13s} total {med['total']:5.1f} s (Jacobian {med['jacobian']:.1f}, "
                      f"fit {med['fit']:.1f}, build {med['build']:.1f}, refine "
                      f"{med['refine']:.1f}); {nev:.0f} model evaluations; free "
-                     f"{', '.join(rs[0]['names'])}; chi2 {rs[0]['chi2']:.1f} / {rs[0]['dof']} dof")
+                     f"{', '.join(rs[0]['names'])}; chi2 {rs[0]['chi2']:.1f} / {rs[0]['dof']} dof; "
+                     f"start Jacobian: {rs[0]['jacobian_source']}")
         out["inputs"][name] = {"median_seconds": med, "median_evaluations": nev, "runs": rs}
+    loads = [r["load_average"] for rs in runs.values() for r in rs]
+    lines.append(f"  load average (1 min) after the runs: {min(loads):.1f}-{max(loads):.1f} "
+                 "(2 = both cores busy)")
     text = "\n".join(lines)
     print(text)
     write_text(args.out + ".txt", text + "\n")

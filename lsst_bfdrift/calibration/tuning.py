@@ -37,6 +37,7 @@ The steps:
 """
 
 import datetime
+import json
 import math
 import time
 
@@ -52,9 +53,11 @@ from lsst_bfdrift.templates.template import (TemplateSettings, build_template,
                                              load_default_template)
 from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.utils.errors import InputTypeError
+from lsst_bfdrift.utils.io import data_path, write_text
 
 __all__ = ["CANDIDATES", "CalibrationError", "CalibrationResult", "calibrate",
-           "default_start", "model_acoeffs", "measured_acoeffs", "refinement_target"]
+           "default_start", "model_acoeffs", "measured_acoeffs", "refinement_target",
+           "start_jacobian", "write_start_jacobian"]
 
 #: Candidate free parameters and their bounds: the dipole unit xi0 (e), the
 #: buried-channel depth (um, sets the charge dipole), the collection height
@@ -89,6 +92,126 @@ def model_acoeffs(params, max_lag, *, near_samples=16, far_samples=6, tol=2e-6):
     return electrostatic_acoeffs(params, max_lag=max(L, 1), charge=CHARGE, tol=tol,
                                  near_samples=near_samples, far_samples=far_samples,
                                  definition="alpha")[:L + 1, :L + 1]
+
+
+#: Package data: the model's a_ij and their derivatives at :func:`default_start`
+#: for every candidate (:func:`write_start_jacobian`).
+START_JACOBIAN_FILE = "start_jacobian.json"
+
+#: Largest lag stored in :data:`START_JACOBIAN_FILE` (the 21 x 21 template's).
+START_JACOBIAN_MAX_LAG = 10
+
+#: Settings of :func:`model_acoeffs` that the stored values depend on.
+_MODEL_SETTINGS = {"near_samples": 16, "far_samples": 6, "tol": 2e-6, "charge": CHARGE}
+
+
+def _step(x, lo, hi):
+    """Forward-difference step of a parameter at ``x`` within (lo, hi)."""
+    h = 0.02 * max(abs(x), 1e-3 * (hi - lo))
+    if x in (lo, hi):  # on a bound (e.g. a point charge): a secant inwards
+        h = 0.1 * (hi - lo)
+    if x + h >= hi:
+        h = -h
+    return h
+
+
+def _compute_jacobian(model, x0, candidates):
+    m0 = model(x0)
+    if not np.all(np.isfinite(m0)):
+        raise CalibrationError("the model has no finite a_ij at the start parameters")
+    J = np.empty(m0.shape + (len(candidates),))
+    for k, (n, (lo, hi)) in enumerate(candidates.items()):
+        h = _step(x0[n], lo, hi)
+        J[..., k] = np.nan_to_num((model({**x0, n: x0[n] + h}) - m0) / h)
+    return m0, J
+
+
+def _shipped(start, candidates, max_lag):
+    """(m0, J) sliced from the package data, or None when they do not apply."""
+    try:
+        with open(data_path(START_JACOBIAN_FILE)) as fh:
+            d = json.load(fh)
+    except (OSError, ValueError):
+        return None
+    if (d.get("start") != json.loads(start.to_json()) or d.get("model") != _MODEL_SETTINGS
+            or int(max_lag) > int(d.get("max_lag", -1))):
+        return None
+    stored = d.get("candidates", {})
+    if any(n not in stored or list(stored[n]) != [float(v) for v in b]
+           for n, b in candidates.items()):
+        return None
+    k = int(max_lag) + 1
+    m0 = np.asarray(d["a0"], float)[:k, :k]
+    J = np.stack([np.asarray(d["jacobian"][n], float)[:k, :k] for n in candidates], axis=-1)
+    return m0, J
+
+
+def start_jacobian(start, candidates, max_lag, *, model=None):
+    """The model's a_ij at ``start`` and their forward-difference derivatives.
+
+    With the default start (:func:`default_start`) and candidates whose
+    bounds are those of :data:`CANDIDATES`, the values come from the package
+    data (:data:`START_JACOBIAN_FILE`, lags up to
+    :data:`START_JACOBIAN_MAX_LAG`; written by :func:`write_start_jacobian`
+    with the same model settings, so they equal a fresh computation);
+    otherwise they are computed: one model evaluation per candidate plus
+    one (about 1 s each at lag 9).
+
+    Parameters
+    ----------
+    start : SensorParameters
+        Where to differentiate.
+    candidates : dict
+        {name: (lo, hi)} of the parameters.
+    max_lag : int
+        Largest lag L.
+    model : callable, optional
+        ``model(values) -> a_ij`` for {name: value}; default
+        :func:`model_acoeffs` of ``start`` with those values replaced.
+
+    Returns
+    -------
+    m0 : ndarray, shape (L + 1, L + 1)
+        a_ij (1/e) at the start, [i serial, j parallel].
+    J : ndarray, shape (L + 1, L + 1, n)
+        d a_ij / d parameter, columns in the order of ``candidates``.
+    source : str
+        ``'package data'`` or ``'computed'``.
+    """
+    shipped = _shipped(start, candidates, max_lag)
+    if shipped is not None:
+        return shipped + ("package data",)
+    if model is None:
+        def model(values):
+            return model_acoeffs(start.replace(**values), max_lag)
+    x0 = {n: float(getattr(start, n)) for n in candidates}
+    return _compute_jacobian(model, x0, candidates) + ("computed",)
+
+
+def write_start_jacobian(path, *, max_lag=START_JACOBIAN_MAX_LAG):
+    """Compute the start Jacobian at :func:`default_start` for every candidate
+    and write it as the package data file (JSON, atomically).
+
+    Rerun (``python scripts/make_start_jacobian.py``) whenever the bundled
+    template's parameters, :data:`CANDIDATES` or the model's a_ij change;
+    until then :func:`start_jacobian` ignores the stale file and computes.
+    """
+    start = default_start()
+    x0 = {n: float(getattr(start, n)) for n in CANDIDATES}
+
+    def model(values):
+        return model_acoeffs(start.replace(**values), max_lag)
+
+    m0, J = _compute_jacobian(model, x0, CANDIDATES)
+    d = {"note": "lsst_bfdrift.calibration.tuning.write_start_jacobian: model a_ij (1/e, "
+                 "[i serial, j parallel]) at default_start() and their forward differences",
+         "start": json.loads(start.to_json()), "model": dict(_MODEL_SETTINGS),
+         "max_lag": int(max_lag),
+         "candidates": {n: [float(v) for v in b] for n, b in CANDIDATES.items()},
+         "steps": {n: _step(x0[n], *CANDIDATES[n]) for n in CANDIDATES},
+         "a0": m0.tolist(), "jacobian": {n: J[..., k].tolist() for k, n in enumerate(CANDIDATES)}}
+    write_text(path, json.dumps(d, indent=1) + "\n")
+    return d
 
 
 def measured_acoeffs(data):
@@ -193,6 +316,9 @@ class CalibrationResult:
         Sum of the measured a_ij over all lags (both signs) and its error.
     seconds : dict
         Wall time of the steps.
+    jacobian_source : str
+        Where the start Jacobian came from: ``'package data'`` (the default
+        start and candidates, :func:`start_jacobian`) or ``'computed'``.
     """
 
     def __init__(self, **kw):
@@ -361,21 +487,13 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
             # far outside the data): a rejected step for the fit engine
             return np.full((L + 1, L + 1), np.nan)
 
-    # 1. Jacobian of every candidate at the start (forward differences)
+    # 1. Jacobian of every candidate at the start (forward differences), from
+    # the package data when the start and the candidates are the defaults
     x0 = {n: float(getattr(start, n)) for n in names}
-    m0 = model(x0)
-    if not np.all(np.isfinite(m0)):
-        raise CalibrationError("the model has no finite a_ij at the start parameters")
-    J = np.empty(m0.shape + (len(names),))
-    for k, n in enumerate(names):
-        lo, hi = candidates[n]
-        h = 0.02 * max(abs(x0[n]), 1e-3 * (hi - lo))
-        if x0[n] in (lo, hi):  # on a bound (e.g. a point charge): a secant inwards
-            h = 0.1 * (hi - lo)
-        if x0[n] + h >= hi:
-            h = -h
-        J[..., k] = np.nan_to_num((model({**x0, n: x0[n] + h}) - m0) / h)
+    m0, J, jacobian_source = start_jacobian(start, candidates, L, model=model)
     seconds["jacobian"] = time.perf_counter() - t0
+    if jacobian_source == "package data":
+        bar(len(names) + 1)
     # 2. which parameters the data need
     if free is None:
         chosen, selection = _select(J, m0 - table.a, table.sigma, mask, names,
@@ -433,7 +551,8 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
                                template_acoeffs=tpl_a, template=template, selection=selection,
                                sum_rule=_sum_rule(table), seconds=seconds, poor_fit=poor,
                                refined=bool(refine and build), built_template=built,
-                               settings=settings, candidates=candidates, start=start)
+                               settings=settings, candidates=candidates, start=start,
+                               jacobian_source=jacobian_source)
     if template is not None:
         template.meta["params"] = params.to_dict()
         template.meta["calibration"] = {

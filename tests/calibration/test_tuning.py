@@ -132,3 +132,53 @@ def test_refinement_target_keeps_the_model_within_errors():
     assert np.isnan(target[0, 0])
     assert_allclose(target[1, 1], own[1, 1], rtol=0, atol=1e-15)
     assert_allclose(target[0, 1], data[0, 1], rtol=0, atol=0.011 * 10 * sigma[0, 1])
+
+
+def test_shipped_start_jacobian_equals_a_fresh_computation():
+    """Consistency (package against itself): the package-data start Jacobian
+    equals a fresh forward difference at the default start (lags <= 2, two
+    candidates), and is used only where it applies."""
+    import inspect
+
+    from lsst_bfdrift.calibration import tuning
+
+    # the stored values were computed with model_acoeffs' own defaults
+    sig = inspect.signature(tuning.model_acoeffs).parameters
+    assert {k: sig[k].default for k in ("near_samples", "far_samples", "tol")} == {
+        k: tuning._MODEL_SETTINGS[k] for k in ("near_samples", "far_samples", "tol")}
+    start = tuning.default_start()
+    cands = {n: tuning.CANDIDATES[n] for n in ("xi0", "channel_depth")}
+    m0, J, src = tuning.start_jacobian(start, cands, 2)
+    assert src == "package data" and m0.shape == (3, 3) and J.shape == (3, 3, 2)
+    calls = []
+
+    def model(values):
+        calls.append(values)
+        return tuning.model_acoeffs(start.replace(**values), 2)
+
+    fresh = tuning._compute_jacobian(model, {n: float(getattr(start, n)) for n in cands}, cands)
+    assert len(calls) == 3
+    assert_allclose(m0, fresh[0], rtol=1e-12, atol=0)
+    assert_allclose(J, fresh[1], rtol=1e-12, atol=1e-25)
+    # another start, other bounds, or lags beyond the file: computed
+    assert tuning._shipped(start.replace(xi0=start.xi0 * 1.01), cands, 2) is None
+    assert tuning._shipped(start, {"xi0": (1.0, 2e4)}, 2) is None
+    assert tuning._shipped(start, cands, tuning.START_JACOBIAN_MAX_LAG + 1) is None
+
+
+def test_calibrate_uses_the_shipped_jacobian(itl):
+    """The default start reads the package data (no model evaluation for the
+    Jacobian); an explicit other start computes it. Both fit GalSim's a00
+    (3 % error) with xi0 alone to the same value and reproduce it."""
+    from lsst_bfdrift.calibration import tuning
+
+    a00 = AcoeffTable(itl.a[:1, :1], 0.03 * np.abs(itl.a[:1, :1]))
+    res = calibrate(a00, free=["xi0"], build=False)
+    assert res.jacobian_source == "package data" and res.seconds["jacobian"] < 1.0
+    start = tuning.default_start()
+    res2 = calibrate(a00, free=["xi0"], start=start.replace(xi0=start.xi0 * 1.05), build=False)
+    assert res2.jacobian_source == "computed"
+    # the same optimum within a small fraction of the fit's own error
+    assert abs(res.fit.values["xi0"] - res2.fit.values["xi0"]) < 0.2 * res.fit.errors["xi0"]
+    for r in (res, res2):
+        assert abs(r.fit.model[0, 0] - itl.a[0, 0]) < 0.2 * a00.sigma[0, 0]
