@@ -50,8 +50,8 @@ from lsst_bfdrift.simulation.effects import BASE_OBSERVABLES
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["CHECKS", "SPLITS", "lag_multiplicity", "lag_error_factors", "pair_observables",
-           "turnoff_cut", "not_available", "linearity_finding", "sum_rule_finding",
-           "table_sum_rule_finding", "halves_finding", "pair_ratio_finding",
+           "turnoff_cut", "not_available", "exposure_scatter", "linearity_finding",
+           "sum_rule_finding", "table_sum_rule_finding", "halves_finding", "pair_ratio_finding",
            "turnoff_finding", "assess_observables", "credit_findings"]
 
 #: The checks made beside the covariance fit, in report order.
@@ -205,7 +205,42 @@ def _pixel_variance(mu, gain, noise):
     return np.asarray(mu, float) / gain + max(float(noise), 0.0) / gain**2
 
 
-def linearity_finding(mu, exptime, sigma, *, p_threshold=1e-3):
+def exposure_scatter(mu, mu1, mu2, nvalid, gain, noise):
+    """Relative scatter of one flat's exposure (lamp, shutter) beyond shot noise.
+
+    From the two flats of each pair: r = mu2 / mu1 - 1 scatters by
+    sqrt(2) x the per-flat exposure scatter on top of its shot noise, so
+    sigma_f^2 = max(0, (var(r) - mean(s_r^2)) / 2), with var(r) about the
+    weighted mean of r (a steady offset between the two flats is the pair
+    ratio's finding, not scatter).
+
+    Parameters
+    ----------
+    mu, mu1, mu2 : array_like, shape (n,)
+        Pair means and the means of each flat (ADU).
+    nvalid : array_like, shape (n,)
+        Pixels behind the means.
+    gain, noise : float
+        e/ADU and read noise (e^2).
+
+    Returns
+    -------
+    float
+        sigma_f, relative (0 when the pairs agree within shot noise or there
+        are fewer than 3 pairs).
+    """
+    mu, mu1, mu2, n = (np.asarray(v, float) for v in (mu, mu1, mu2, nvalid))
+    if mu.size < 3:
+        return 0.0
+    r = mu2 / mu1 - 1.0
+    s = np.sqrt(2.0 * _pixel_variance(mu, gain, noise) / n) / mu
+    mean, _ = _wmean(r, s)
+    excess = (np.sum((r - mean) ** 2) / (mu.size - 1) - np.mean(s**2)) / 2.0
+    return float(np.sqrt(max(excess, 0.0)))
+
+
+def linearity_finding(mu, exptime, sigma, *, exposure_scatter=0.0, scatter_dof=None,
+                      p_threshold=1e-3):
     """Mean signal against exposure time: fit mu = k t + c and its residuals.
 
     Parameters
@@ -215,9 +250,20 @@ def linearity_finding(mu, exptime, sigma, *, p_threshold=1e-3):
     exptime : array_like, shape (n,)
         Exposure times (s).
     sigma : array_like, shape (n,)
-        Errors of ``mu`` (ADU).
+        Shot-noise errors of ``mu`` (ADU).
+    exposure_scatter : float, optional
+        Relative scatter of one flat's exposure beyond shot noise (lamp,
+        shutter; :func:`exposure_scatter` measures it from the pairs). Each
+        pair mean gets ``exposure_scatter * mu / sqrt(2)`` added to its
+        error in quadrature, so that random exposure noise is not taken for
+        a non-linearity.
+    scatter_dof : int, optional
+        Degrees of freedom of an ``exposure_scatter`` that was estimated
+        (pairs - 1). The residual is then tested with an F test, chi2 / dof
+        against F(dof, scatter_dof), which accounts for the estimate's own
+        noise; without it (a known scatter, or none) with chi2.
     p_threshold : float, optional
-        chi2 p-value below which the residual is a finding.
+        p-value below which the residual is a finding.
 
     Returns
     -------
@@ -230,6 +276,10 @@ def linearity_finding(mu, exptime, sigma, *, p_threshold=1e-3):
     """
     name = "linearity"
     mu, t, s = (np.asarray(v, float) for v in (mu, exptime, sigma))
+    scatter = float(exposure_scatter)
+    if not np.isfinite(scatter) or scatter < 0:
+        raise InputError(f"exposure_scatter must be >= 0, got {exposure_scatter}")
+    s = np.sqrt(s**2 + (scatter * mu) ** 2 / 2.0)
     if not np.all(np.isfinite(t) & (t > 0)):
         return not_available(name, "exposure times must be positive (s)")
     distinct = np.unique(np.round(np.log(t), 3)).size
@@ -244,7 +294,9 @@ def linearity_finding(mu, exptime, sigma, *, p_threshold=1e-3):
     pull = res / s
     chi2 = float(np.sum(pull**2))
     dof = mu.size - 2
-    p = float(stats.chi2.sf(chi2, dof))
+    use_f = scatter > 0 and scatter_dof is not None and int(scatter_dof) > 0
+    p = float(stats.f.sf(chi2 / dof, dof, int(scatter_dof)) if use_f
+              else stats.chi2.sf(chi2, dof))
     dev, dev_err = res / model, s / model
     k = int(np.argmax(np.abs(pull)))
     detected = p < p_threshold
@@ -256,7 +308,9 @@ def linearity_finding(mu, exptime, sigma, *, p_threshold=1e-3):
             f"(+- {dev_err[k] * 100:.2g} %, pull {pull[k]:+.1f}); a non-linear signal chain "
             "or exposure (shutter, lamp) - BF moves no charge and cannot make it"
             ) if detected else (
-        f"linearity: mean linear in exposure time within shot noise (chi2 {chi2:.1f} for "
+        f"linearity: mean linear in exposure time within "
+        f"{'shot noise' if scatter == 0 else f'shot noise and {scatter * 100:.2g} % exposure scatter'}"
+        f" (chi2 {chi2:.1f} for "
         f"{dof} dof, p = {p:.2f}; largest deviation {dev[k] * 100:+.2g} +- "
         f"{dev_err[k] * 100:.2g} % at {mu[k]:.4g} ADU)")
     return _finding(name, detected=bool(detected), value=float(dev[k]),
@@ -266,7 +320,8 @@ def linearity_finding(mu, exptime, sigma, *, p_threshold=1e-3):
                     slope=float(coef[0]), slope_err=float(np.sqrt(cov[0, 0])),
                     offset=float(coef[1]), offset_err=float(np.sqrt(cov[1, 1])),
                     offset_time=float(coef[1] / coef[0]), deviation=dev.tolist(),
-                    pull=pull.tolist(), exptime=t.tolist(), description=desc)
+                    pull=pull.tolist(), exptime=t.tolist(), exposure_scatter=scatter,
+                    test="F" if use_f else "chi2", description=desc)
 
 
 def sum_rule_finding(mu, cov, model, sigma, gain, *, p_threshold=1e-3):
@@ -659,7 +714,12 @@ def assess_observables(obs, *, model=None, sigma=None, gain=None, noise=0.0,
     if t is not None and extra is not None and gain:
         sig_mu = np.sqrt(_pixel_variance(obs.mu, gain, noise)
                          / (2.0 * np.array([e["nvalid"] for e in extra])))
-        out["linearity"] = linearity_finding(obs.mu, t, sig_mu, p_threshold=p_threshold)
+        scatter = exposure_scatter(obs.mu, [e["mu1"] for e in extra],
+                                   [e["mu2"] for e in extra],
+                                   [e["nvalid"] for e in extra], gain, noise)
+        out["linearity"] = linearity_finding(obs.mu, t, sig_mu, exposure_scatter=scatter,
+                                             scatter_dof=len(extra) - 1,
+                                             p_threshold=p_threshold)
     else:
         out["linearity"] = not_available("linearity", getattr(obs, "exptime_note", None)
                                          or "no exposure times")

@@ -17,12 +17,13 @@ from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable, load_default_basis
 from lsst_bfdrift.calibration.diagnosis import (Observations, diagnose, load_input,
                                                 observations_from_pairs)
 from lsst_bfdrift.calibration.observables import (CHECKS, assess_observables,
-                                                  lag_multiplicity, linearity_finding,
-                                                  turnoff_cut)
+                                                  exposure_scatter, lag_multiplicity,
+                                                  linearity_finding, turnoff_cut)
 from lsst_bfdrift.calibration.report import diagnosis_markdown
 from lsst_bfdrift.simulation.effects import (BASE_OBSERVABLES, OBSERVABLES, GainNonlinearity,
                                              cti_filter_covariance, effect_library)
 from lsst_bfdrift.simulation.flats import simulate_flat_pairs, write_flat_pairs
+from lsst_bfdrift.utils.errors import InputError
 
 LEVELS = np.repeat(np.geomspace(5e3, 8e4, 5), 2)  # e (gain 1: ADU)
 EXPTIME_PER_E = 1e-4  # s
@@ -87,6 +88,45 @@ def test_nonlinear_exposure_is_flagged_by_linearity(galsim_pairs, basis):
     assert not d.observables["halves"]["detected"]
     assert "linearity: the mean departs from a line" in d.verdict
     assert "not produced by the base BF model" in d.verdict
+
+
+def test_lamp_noise_is_not_taken_for_a_nonlinearity(galsim_pairs, basis):
+    """Every flat's exposure off by a random 0.5 % (a lamp): the pair ratios
+    measure that scatter, and the linearity check, with it in its errors,
+    finds no non-linearity; with shot noise alone it would call one."""
+    rng = np.random.default_rng(7)
+    pairs = [(a * (1 + 0.005 * rng.standard_normal()), b * (1 + 0.005 * rng.standard_normal()))
+             for a, b in galsim_pairs]
+    d = _diagnose(pairs, basis)
+    lin = d.observables["linearity"]
+    assert d.observables["pair_ratio"]["detected"]  # the lamp is named where it shows
+    assert 0.002 < lin["exposure_scatter"] < 0.01 and lin["test"] == "F"
+    assert not lin["detected"] and lin["p_value"] > 1e-3
+    assert "exposure scatter" in lin["description"]
+    mu = np.array([0.5 * (a.mean() + b.mean()) for a, b in pairs])
+    shot = np.sqrt(mu / (2 * pairs[0][0].size))
+    bare = linearity_finding(mu, LEVELS * EXPTIME_PER_E, shot)
+    assert bare["detected"] and bare["p_value"] < 1e-6
+    # the same non-linear level as below is still found through the lamp noise
+    hit = np.flatnonzero(LEVELS == LEVELS[6])
+    for k in hit:
+        pairs[k] = (pairs[k][0] * 1.04, pairs[k][1] * 1.04)
+    assert _diagnose(pairs, basis).observables["linearity"]["detected"]
+
+
+def test_exposure_scatter_of_clean_pairs_is_small():
+    """Pairs that agree within shot noise: no scatter (seeded normal ratios)."""
+    rng = np.random.default_rng(3)
+    mu = np.full(20, 1e4)
+    n = np.full(20, 1e4)
+    s = np.sqrt(2 * mu / n) / mu
+    mu1 = mu * (1 - 0.5 * s * rng.standard_normal(20))
+    mu2 = mu1 * (1 + s * rng.standard_normal(20))
+    assert exposure_scatter(mu, mu1, mu2, n, 1.0, 0.0) < 0.5 * s[0]
+    assert_allclose(exposure_scatter(mu, mu1, mu2 * (1 + 0.01 * rng.standard_normal(20)), n,
+                                     1.0, 0.0), 0.01 / np.sqrt(2), rtol=0.5)
+    with pytest.raises(InputError, match="exposure_scatter must be >= 0"):
+        linearity_finding(mu, np.arange(1, 21.0), s * mu, exposure_scatter=-1)
 
 
 def test_brighter_second_flat_is_flagged_by_pair_ratio(galsim_pairs, basis):
