@@ -10,9 +10,12 @@ Kolmogorov-Smirnov test of the p-values against uniform: calibrated errors
 give uniform p-values) and how often the edge signature is named.
 
     python benchmarks/galsim_flat_sets.py --n-sets 50   # first (about 1 h on 2 cores)
-    python benchmarks/diagnose_false_alarms.py [--cache /work/flatcache]
+    python benchmarks/diagnose_false_alarms.py [--cache /work/flatcache] [--append]
 
-Writes ``benchmarks/diagnose_false_alarms_results.txt`` and ``.json``.
+``--append`` keeps the rows of the existing results file and diagnoses only
+the sets it does not hold (for adding sets without redrawing the old ones;
+rows whose set is also in the cache are checked against a fresh run of the
+first ``--check`` of them, so a changed diagnosis shows). Writes ``benchmarks/diagnose_false_alarms_results.txt`` and ``.json``.
 """
 
 import argparse
@@ -57,21 +60,50 @@ def run_set(path, basis):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cache", default="/work/flatcache")
+    ap.add_argument("--append", action="store_true",
+                    help="keep the existing file's rows; diagnose only the sets it lacks")
+    ap.add_argument("--check", type=int, default=2,
+                    help="with --append: rediagnose this many kept sets found in the cache")
     args = ap.parse_args(argv)
     paths = sorted(glob.glob(os.path.join(args.cache, "set_*.npz")))
     if not paths:
         raise SystemExit(f"no sets in {args.cache}: run benchmarks/galsim_flat_sets.py first")
     basis = load_default_basis()
+    kept = {}
+    if args.append and os.path.isfile(OUT + ".json"):
+        with open(OUT + ".json") as fh:
+            kept = {r["set"]: dict(r, kept=True) for r in json.load(fh)["sets"]}
+    index = {p: int(os.path.basename(p)[4:7]) for p in paths}
+    checks = []
+    for p in [p for p in paths if index[p] in kept][:args.check]:
+        r, old = run_set(p, basis), kept[index[p]]
+        checks.append({"set": index[p], "chi2_dof_kept": old["chi2_dof"],
+                       "chi2_dof_now": r["chi2_dof"], "p_kept": old["p_value"],
+                       "p_now": r["p_value"], "same_decision":
+                       r["false_alarm"] == old["false_alarm"]})
+    paths = [p for p in paths if index[p] not in kept]
     out = io.StringIO()
 
     def say(s=""):
         print(s, flush=True)
         out.write(s + "\n")
 
-    say(f"Diagnosis false alarms on {len(paths)} effect-free GalSim flat sets "
-        f"({platform.machine()}, {os.cpu_count()} cores)")
+    say(f"Diagnosis false alarms on {len(paths) + len(kept)} effect-free GalSim flat sets "
+        f"({platform.machine()}, {os.cpu_count()} cores)"
+        + (f"; {len(kept)} rows kept from the previous results file (marked *), "
+           f"{len(paths)} sets diagnosed in this run" if kept else ""))
+    for c in checks:
+        say(f"  check: set {c['set']} rediagnosed now: chi2/dof {c['chi2_dof_now']:.3f} "
+            f"(kept row {c['chi2_dof_kept']:.3f}), p {c['p_now']:.3f} ({c['p_kept']:.3f}), "
+            f"same decision: {c['same_decision']}")
     say("set  sensor         size pairs lv  top(ke) chi2/dof    p     added / unexplained  edge")
     rows = []
+    for r in sorted(kept.values(), key=lambda r: r["set"]):
+        rows.append(r)
+        say(f"{r['set']:3d}* {r['sensor']:14s} {r['size']:4d} {r['pairs']:5d} {r['levels']:2d} "
+            f"{r['top'] / 1e3:7.1f} {r['chi2_dof']:8.3f} {r['p_value']:6.3f}  "
+            f"{','.join(r['effects_added']) or '-':>12s} / {str(r['unexplained']):5s}  "
+            f"{'named' if r['edge_named'] else '-'}")
     for p in paths:
         r = run_set(p, basis)
         rows.append(r)
@@ -103,7 +135,7 @@ def main(argv=None):
     with atomic_output(OUT + ".txt") as tmp, open(tmp, "w") as fh:
         fh.write(out.getvalue())
     with atomic_output(OUT + ".json") as tmp, open(tmp, "w") as fh:
-        json.dump({"summary": summary, "sets": rows}, fh, indent=1)
+        json.dump({"summary": summary, "checks": checks, "sets": rows}, fh, indent=1)
 
 
 if __name__ == "__main__":
