@@ -10,8 +10,10 @@ For each GalSim sensor model (default lsst_itl_50_8 and lsst_e2v_50_8):
 2. **flats route** (``--flats``): flat pairs made with GalSim's own
    pixel-area response and Poisson noise
    (:func:`~lsst_bfdrift.simulation.flats.simulate_flat_pairs`, engine
-   'galsim'), their covariances, the Astier et al. (2019) fit for a_ij with
-   errors, and the same calibration.
+   'galsim', 9 levels of 1e4-9e4 e, ``--pairs-per-level`` pairs of
+   ``--flat-size`` pixels, 40 fill steps), their covariances, the Astier et
+   al. (2019) fit for a_ij with errors, divided by 1 - 1/40 for the discrete
+   filling (:data:`STEP_FACTOR`), and the same calibration.
 3. **stars**: Moffat and Kolmogorov stars (FWHM 0.6-0.9", fluxes 1e4-1.5e6
    e, sky 1000 e through the sensor) drawn by galsim.SiliconSensor with a
    paired no-BF twin
@@ -70,8 +72,17 @@ def star_pairs(sensor, psf, args):
     return pairs, seed, cost
 
 
+#: Fill steps of each simulated flat. Discrete filling gives C_ij = a_ij mu^2
+#: (1 - 1/n) to first order (the charge of a step sees only the earlier
+#: steps' boundaries; ``benchmarks/flat_closure.py`` checks it), so the fitted
+#: a_ij are divided by STEP_FACTOR to be those of a continuous exposure.
+FLAT_STEPS = 40
+STEP_FACTOR = 1.0 - 1.0 / FLAT_STEPS
+
+
 def flats_table(sensor, args):
-    """a_ij with errors from GalSim-made flat pairs (Astier et al. 2019 fit)."""
+    """a_ij with errors from GalSim-made flat pairs (Astier et al. 2019 fit),
+    corrected for the simulation's discrete filling (:data:`STEP_FACTOR`)."""
     from lsst_bfdrift.calibration.ptc import fit_covariance_model, measure_ptc
     from lsst_bfdrift.simulation.flats import simulate_flat_pairs
 
@@ -79,18 +90,18 @@ def flats_table(sensor, args):
             if args.pairs else None)
     if path and os.path.isfile(path):
         tab = dict(np.load(path))
-        fit = fit_covariance_model(tab["mu"], tab["cov"], npix=tab["npix"])
-        return AcoeffTable(fit["a"], fit["a_err"], source=f"GalSim {sensor} flats"), fit
-    levels = np.repeat(np.linspace(1e4, 9e4, 9), args.pairs_per_level)
-    pairs = simulate_flat_pairs(sensor, levels, engine="galsim", shape=(args.flat_size,) * 2,
-                                seed=zlib.crc32(sensor.encode()) % 1000)
-    tab = measure_ptc(pairs, max_lag=5)  # GalSim kernels vanish beyond lag 4
-    if path:
-        np.savez(path, mu=np.asarray(tab["mu"]), cov=np.asarray(tab["cov"]),
-                 npix=np.asarray(tab["npix"]))
-    fit = fit_covariance_model(np.asarray(tab["mu"]), np.asarray(tab["cov"]),
-                               npix=np.asarray(tab["npix"]))
-    return AcoeffTable(fit["a"], fit["a_err"], source=f"GalSim {sensor} flats"), fit
+    else:
+        levels = np.repeat(np.linspace(1e4, 9e4, 9), args.pairs_per_level)
+        pairs = simulate_flat_pairs(sensor, levels, engine="galsim",
+                                    shape=(args.flat_size,) * 2, n_steps=FLAT_STEPS,
+                                    seed=zlib.crc32(sensor.encode()) % 1000)
+        tab = measure_ptc(pairs, max_lag=5)  # GalSim kernels vanish beyond lag 4
+        tab = {k: np.asarray(tab[k]) for k in ("mu", "cov", "npix")}
+        if path:
+            np.savez(path, **tab)
+    fit = fit_covariance_model(tab["mu"], tab["cov"], npix=tab["npix"])
+    return AcoeffTable(fit["a"] / STEP_FACTOR, fit["a_err"] / STEP_FACTOR,
+                       source=f"GalSim {sensor} flats"), fit
 
 
 def main(argv=None):

@@ -436,6 +436,12 @@ def simulate_flat_pairs(model, levels, *, engine="linear", shape=(256, 256), n_s
       400 x 400 pixels on 2 cores). ``charge_cloud`` and ``well_filling``
       act on the a_ij kernel and are not injectable with it.
 
+    Discrete filling gives covariances C_ij = a_ij mu^2 (1 - 1/n_steps) to
+    first order (the charge of a step sees only the boundaries of the
+    earlier steps); divide a_ij fitted to these flats by ``1 - 1/n_steps``
+    to compare with a continuous exposure (as :func:`simulate_ptc_levels`'
+    ``step_factor``).
+
     Parameters
     ----------
     model : array_like or str
