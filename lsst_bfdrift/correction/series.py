@@ -48,6 +48,8 @@ import numpy as np
 from scipy import ndimage
 
 from lsst_bfdrift.correction._edge_kernels import _fused_serial, density_weight, fused_transfer
+from lsst_bfdrift.correction.tiles import (bound_constants, halo_windows, higher_order_bound,
+                                           local_stats, window_truncation)
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["first_order_terms", "active_cells", "active_from_stats", "tolerance", "window_boxes",
@@ -72,9 +74,10 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=
     cubic : bool or str
         Edge flux density (see :func:`lsst_bfdrift.correction._edge_kernels.fused_transfer`).
     stop : callable, optional
-        Called as ``stop(r1, stats)`` after each block (rows ``0..r1-1``
-        done; ``stats`` as returned, None without ``cell``); when it returns
-        True the work is abandoned and None returned.
+        Called as ``stop(r1, stats, (first, sv, sh))`` after each block (rows
+        ``0..r1-1`` of ``first`` and ``sv`` done, of ``sh`` rows ``0..r1-1``;
+        ``stats`` as returned, None without ``cell``); when it returns True
+        the work is abandoned and None returned.
     keep_swept : bool, optional
         Keep the swept areas (False: ``sv`` and ``sh`` are returned as None;
         the astier23 pass needs only ``first``).
@@ -133,7 +136,7 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=
         # bsv, bsh, bb (and the maps' fields) stay alive until the next block
         # has allocated its own: freed first, their memory would go back to
         # the system and be page-faulted in again (docs/benchmarks.rst)
-        if stop is not None and r1 < ny and stop(r1, stats):
+        if stop is not None and r1 < ny and stop(r1, stats, (first, sv, sh)):
             return None
     return first, sv, sh, stats
 
@@ -364,7 +367,8 @@ def _ring_ok(term, box, shape, lim, fraction):
 
 def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, density="mean2",
                   strip=512, cell=16, dilate=1, safety=20.0, ring_fraction=0.25,
-                  max_fraction=0.5, info=None, maps=None):
+                  max_fraction=0.5, second_tier=True, fraction=0.5, group=6, info=None,
+                  maps=None):
     """Third-order inverse series with windowed higher-order terms.
 
     Parameters
@@ -387,9 +391,20 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         Rows per block of the first operator application.
     cell, dilate, safety, ring_fraction, max_fraction
         See the module docstring.
+    second_tier : bool, optional
+        Where the windows would cover more than ``max_fraction`` of the
+        image, bound the higher orders cell by cell with the tighter bound of
+        :mod:`lsst_bfdrift.correction.tiles` and compute them in windows with
+        a halo around the cells where that bound exceeds ``fraction`` x the
+        tolerance (``group``: cells per tile side), before giving up for the
+        dense solver. Images whose first-tier windows pass are not affected.
+    fraction, group
+        See :mod:`lsst_bfdrift.correction.tiles`.
     info : dict, optional
         Filled with ``windows`` (number), ``window_fraction`` (of the image
-        area), ``dilate`` (cells used) and ``reason`` (why None was returned).
+        area), ``dilate`` (cells used), ``tier`` (1 or 2; 2: the second tier,
+        with ``active_fraction``, the fraction of the cells it computes) and
+        ``reason`` (why None was returned).
     maps : FirstOrderPass, optional
         Filled by the first-order pass (:func:`first_order_terms`);
         incomplete when that pass stops early.
@@ -406,6 +421,10 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
     reach = (ops.template.size + 1) // 2 + 3
     if cell < reach:
         raise InputError(f"cell must be at least {reach} px for this template, got {cell}")
+    if not 0.0 < fraction <= 1.0:
+        raise InputError(f"fraction must be in (0, 1] (of the tolerance), got {fraction}")
+    if int(group) < 1:
+        raise InputError(f"group must be at least 1 cell, got {group}")
     scalar = None if noise_tol is not None else rtol * max(np.abs(img).max(), 1e-300)
 
     def window_limit(y0, y1, x0, x1):
@@ -419,9 +438,22 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         return active_from_stats(*stats, ops.kernel_abs_sum, noise_tol=noise_tol, limit=scalar,
                                  safety=safety)
 
+    consts = bound_constants(ops.template, density) if second_tier else None
+    # reach of the swept-area kernels: the transfer at a pixel depends on
+    # the charge within R px
+    r_k = ops.template.size // 2 + 1
+    margins = (4, r_k, 2 * r_k)
+
+    def _tier2_active(stats, local, blk):
+        bound, p_coef = higher_order_bound(stats, local, blk, consts, cell=cell, order=order)
+        lmin = (tolerance(stats[1], noise_tol) if scalar is None
+                else np.full(stats[1].shape, scalar))
+        lmin = ndimage.minimum_filter(lmin, size=3, mode="nearest")
+        return bound > fraction * lmin, p_coef, lmin
+
     checked = []
 
-    def stop(r1, stats):
+    def stop(r1, stats, arrays):
         # the windows cover at least the active cells: when the first quarter
         # of the rows shows more than max_fraction of them active (a flat, a
         # crowded field), the dense solver will be needed; stop early (one
@@ -430,12 +462,32 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         if checked or rows * cell < ny // 4:
             return False
         checked.append(rows)
-        return active(tuple(x[:rows] for x in stats)).mean() > max_fraction
+        part = tuple(x[:rows] for x in stats)
+        if active(part).mean() <= max_fraction:
+            return False
+        if not second_tier:
+            return True
+        # the second tier on the cell rows done but the last (the swept
+        # areas of its top edges are not all there yet); its windows counted
+        # on those rows but the last two (which the bound takes for the
+        # image border)
+        rows -= 1
+        if rows < 4:
+            return True
+        k = rows * cell
+        first_, sv_, sh_ = arrays
+        part = tuple(x[:rows] for x in stats)
+        local = local_stats(img[:k], first_[:k], sv_[:k], sh_[:k + 1], cell=cell,
+                            margins=margins)
+        act = _tier2_active(part, local, blocked[:k])[0][:rows - 2]
+        wins = halo_windows(act, (k - 2 * cell, img.shape[1]), cell=cell, group=group, halo=1)
+        area = sum((y1 - y0) * (x1 - x0) for (y0, y1, x0, x1), _ in wins)
+        return area > max_fraction * (k - 2 * cell) * img.shape[1]
 
     terms = first_order_terms(img, blocked, ops, strip=strip, cubic=cubic, stop=stop, cell=cell,
                               maps=maps)
     if terms is None:
-        info.update(windows=None, window_fraction=None, dilate=dilate,
+        info.update(windows=None, window_fraction=None, dilate=dilate, tier=1,
                     reason=f"more than {max_fraction:.0%} of the cells need the higher orders")
         return None
     out, sv, sh, stats = terms
@@ -443,9 +495,15 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
     for grow in range(3):
         boxes = window_boxes(act, img.shape, cell=cell, dilate=dilate + grow)
         frac = sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in boxes) / img.size
-        info.update(windows=len(boxes), window_fraction=frac, dilate=dilate + grow)
+        info.update(windows=len(boxes), window_fraction=frac, dilate=dilate + grow, tier=1)
         if frac > max_fraction:
             info["reason"] = f"windows cover {frac:.0%} of the image"
+            if second_tier:
+                return _second_tier(img, blocked, ops, out, sv, sh, stats, _tier2_active,
+                                    window_limit, cell=cell, margins=margins, group=group,
+                                    order=order,
+                                    cubic=cubic, a3=a3, a4=a4, fraction=fraction,
+                                    max_fraction=max_fraction, info=info)
             return None
         extra, x2s, x3s = _window_terms(ops, boxes, img, blocked, out, sv, sh, a3, a4, cubic)
         lims = [window_limit(*bx) for bx in boxes]
@@ -460,5 +518,47 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
             info["reason"] = "fourth-order estimate above the tolerance"
             return None
         out[y0:y1, x0:x1] += e
+    info["reason"] = None
+    return out
+
+
+def _second_tier(img, blocked, ops, out, sv, sh, stats, tier2_active, window_limit, *, cell,
+                 margins, group, order, cubic, a3, a4, fraction, max_fraction, info):
+    """The higher orders in windows with a halo around the cells where the
+    bound of :mod:`lsst_bfdrift.correction.tiles` exceeds ``fraction`` x the
+    tolerance; ``out`` (the first-order image) completed in place, or None
+    (``info['reason']``) when the windows would cover more than
+    ``max_fraction`` of the image or the fourth-order estimate fails."""
+    local = local_stats(img, out, sv, sh, cell=cell, margins=margins)
+    act, p_coef, lmin = tier2_active(stats, local, blocked)
+    wins = halo_windows(act, img.shape, cell=cell, group=group, halo=1)
+    wide = halo_windows(act, img.shape, cell=cell, group=group, halo=2) if wins else []
+    chosen = []
+    for (box, keep), w2 in zip(wins, wide):
+        cy0, cy1, cx0, cx1 = box[0] // cell, -(-box[1] // cell), box[2] // cell, -(-box[3] // cell)
+        lim = fraction * lmin[cy0:cy1, cx0:cx1].min()
+        ok = window_truncation(box, keep, stats[2], p_coef, cell=cell, order=order) <= lim
+        chosen.append((box, keep) if ok else w2)
+    boxes = [box for box, _ in chosen]
+    frac = sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in boxes) / img.size
+    info.update(tier=2, windows=len(boxes), window_fraction=frac,
+                active_fraction=float(act.mean()))
+    if frac > max_fraction:
+        info["reason"] = (f"first-tier windows cover more than {max_fraction:.0%} of the "
+                          f"image, second-tier windows {frac:.0%}")
+        return None
+    if not boxes:
+        info["reason"] = None
+        return out
+    extra, x2s, x3s = _window_terms(ops, boxes, img, blocked, out, sv, sh, a3, a4, cubic)
+    for k, (y0, y1, x0, x1) in enumerate(boxes):
+        if not apriori_ok(x2s[k], x3s[k], window_limit(y0, y1, x0, x1)):
+            info["reason"] = "fourth-order estimate above the tolerance"
+            return None
+    del x2s, x3s
+    for (box, keep), e in zip(chosen, extra):
+        y0, y1, x0, x1 = box
+        view = out[y0:y1, x0:x1]
+        view[keep] += e[keep]
     info["reason"] = None
     return out

@@ -1,0 +1,357 @@
+"""Second tier of the windowed series: a per-cell bound on the higher orders
+and windows with a halo, for images where the first tier's windows would
+cover most of the image (bright flats, crowded fields).
+
+The first tier (:func:`lsst_bfdrift.correction.series.sparse_series`) flags a
+cell when ``2 K max abs(I) max abs(b)`` exceeds a tenth of the tolerance and
+merges the windows around the flagged cells into non-overlapping boxes. On a
+bright flat that bound is loose (a uniform level moves no charge: the
+swept areas of a constant image vanish and the transfer of a constant
+density is the divergence of the swept areas), so every cell is flagged; on
+a crowded field the boxes merge until they cover the image. Either way the
+dense series was used, three operator applications over the whole image.
+
+Bound. With the notation of :mod:`lsst_bfdrift.correction.series`
+(B(f, Q)(p) = sum over the four edges e of p of +-w_e(f) S_e(Q), w_e the
+edge density with stencil weights of absolute sum W = 1 + 4 abs(w_o),
+S_e the swept area), for any pixel p of a cell and any constant m:
+
+* abs(S_e(g)) <= K max abs(g) (K: the largest sum of abs(kernel) of one edge);
+* sum_e +-S_e(g)(p) = (D * g)(p), D the divergence of the swept-area kernels
+  (the area kernel), so abs(sum_e +-S_e(g)) <= A max abs(g), A = sum abs(D);
+* w_e(I) = m + w_e(I - m) on edges whose stencil holds no blocked pixel and
+  that are not on the image border, hence
+  abs(B(I, g)(p)) <= P max abs(g), P = abs(m) A + 4 W K max abs(I - m);
+  elsewhere (cells near blocked pixels or the border) P = 4 W K max abs(I);
+* abs(B(g, I)(p)) <= 4 W S max abs(g), S the largest abs(S_e(I)) at the
+  edges of the pixels concerned (computed by the first-order pass).
+
+With b the first-order transfer, x2 = c/4 + (1/4 - a3) d, c = B(b, I),
+d = B(I, b), y = k1 c + k2 d (k1 = a3/2 - 1/8, k2 = a3 - a4 - 1/8) and
+x3 = -B(x2, I)/2 + k1 B(b, b) + B(I, y):
+
+    abs(x2) <= X2 = (W S + abs(1/4 - a3) P) beta1,
+    abs(y) <= Y = (4 W abs(k1) S + abs(k2) P) beta2,
+    abs(x3) <= 2 W S X2 + 4 W K abs(k1) beta1^2 + P Y,
+
+beta1 (beta2) the largest abs(b) over the 3 x 3 (5 x 5) cells around the cell
+(the terms reach one swept-area kernel plus a stencil: x2 within 13 px, y
+within 13 px of that: 26 px, within two cells of at least 14 px), S and P
+(m and max abs(I - m) from the largest and smallest I) over the 3 x 3 cells.
+The sum T = X2 + abs(x3)-bound, times 1.05 for the rounding of the
+single-precision transforms, bounds the higher-order terms in every pixel
+of the cell. On a 1e5 e flat T is 2 to 3 times the largest term actually
+found (tests/correction/test_tiles.py); the first tier's bound is 25 to 40
+times it.
+
+A cell is *active* when T > ``fraction`` x the smallest tolerance over its
+3 x 3 cells (``fraction`` = 0.5: the terms left out are at most half the
+tolerance of the series, ``noise_tol`` x sqrt(I), in every pixel). The
+active cells are grouped by tiles of ``group`` x ``group`` cells; per tile
+the terms are computed on the bounding box of its active cells grown by a
+halo of one cell (zero-padded windows, batched, as in the first tier) and
+kept on the active cells only. At least 16 px inside a window, x2 and the
+first two parts of x3 see all their sources and are exact; y, 5 to 13 px
+inside, misses the sources 0 to 8 px outside, so the kept terms differ from
+the dense series' by at most abs(k2) P^2 beta_o (beta_o: the largest abs(b) in
+the cells around the window). When that exceeds ``fraction`` x the
+tolerance the window gets a halo of two cells (32 px >= 26 px: exact).
+Windows overlap, and each pixel takes the terms of at most one window.
+
+What this gives up: flux conservation of the higher orders. The first
+tier's windows are closed (their terms sum to zero); here the terms are
+kept on active cells only, so the image's total changes by the terms left
+out in the inactive cells, each below ``fraction`` x the tolerance and of
+both signs (on the 4096 x 4096 flat of ``benchmarks/bench_task.py``:
+see ``docs/benchmarks.rst``). The first-order transfer, which carries
+almost all of the correction, conserves flux exactly as before.
+"""
+
+import numba
+import numpy as np
+from scipy import ndimage
+
+from lsst_bfdrift.correction._edge_kernels import density_weight
+from lsst_bfdrift.templates.swept import swept_area_kernels
+from lsst_bfdrift.utils.errors import InputError
+
+__all__ = ["bound_constants", "local_stats", "higher_order_bound", "halo_windows",
+           "window_truncation", "ROUNDING_MARGIN"]
+
+#: Factor on the bound for the rounding of the single-precision transforms
+#: (relative accuracy ~1e-6 of the swept areas) and of the float64 sums.
+ROUNDING_MARGIN = 1.05
+
+
+def bound_constants(template, density):
+    """K, A and W of the bound (module docstring).
+
+    Parameters
+    ----------
+    template : DistortionTemplate
+        Green's function.
+    density : {'mean2', 'cubic4', 'fv4'}
+        Edge flux density.
+
+    Returns
+    -------
+    dict
+        ``K`` (largest sum of abs(swept-area kernel) over one edge, px^2 per
+        e), ``A`` (sum of abs of the area kernel, the divergence of the
+        swept-area kernels, px^2 per e) and ``W`` (absolute sum of the
+        density stencil's weights).
+    """
+    kv, kh = swept_area_kernels(template)
+    q = 1.0 / template.charge
+    kv, kh = kv * q, kh * q
+    # sum over the edges of one pixel of +-S_e: right minus left vertical
+    # edges, top minus bottom horizontal edges (the charge at a fixed
+    # offset contributes kv[., u + 1] - kv[., u] and kh[v + 1, .] - kh[v, .],
+    # the kernels being zero beyond their ends)
+    n = kh.shape[1]
+    dv = np.diff(np.pad(kv, ((0, 0), (1, 1))), axis=1)   # (n, n + 2)
+    dh = np.diff(np.pad(kh, ((1, 1), (0, 0))), axis=0)   # (n + 2, n)
+    area = np.zeros((n + 2, n + 2))
+    area[1:-1, :] += dv
+    area[:, 1:-1] += dh
+    return dict(K=float(max(np.abs(kv).sum(), np.abs(kh).sum())),
+                A=float(np.abs(area).sum()), W=1.0 + 4.0 * abs(density_weight(density)))
+
+
+@numba.njit(parallel=True, cache=True)
+def _local_max(img, first, sv, sh, cell, m0, m1, m2, hi, lo, sm, b0, b1, b2):
+    ny, nx = img.shape
+    my, mx = hi.shape
+    for cy in numba.prange(my):
+        top, bot = cy * cell, min((cy + 1) * cell, ny)
+        # column maxima over the cell's rows grown by each margin, then
+        # maxima over each cell's columns grown by the same margin
+        chi = np.full(nx, -np.inf)
+        clo = np.full(nx, np.inf)
+        csm = np.zeros(nx)
+        cb0 = np.zeros(nx)
+        cb1 = np.zeros(nx)
+        cb2 = np.zeros(nx)
+        for j in range(max(top - m2, 0), min(bot + m2, ny)):
+            d = max(top - j, j - bot + 1, 0)  # rows from the cell
+            for i in range(nx):
+                bv = 2.0 * abs(img[j, i] - first[j, i])
+                cb2[i] = max(cb2[i], bv)
+                if d <= m1:
+                    cb1[i] = max(cb1[i], bv)
+                if d <= m0:
+                    v = img[j, i]
+                    chi[i] = max(chi[i], abs(v))
+                    clo[i] = min(clo[i], v)
+                    cb0[i] = max(cb0[i], bv)
+                    csm[i] = max(csm[i], abs(sv[j, i]), abs(sv[j, i + 1]), abs(sh[j, i]),
+                                 abs(sh[j + 1, i]))
+        for cx in range(mx):
+            left, right = cx * cell, min((cx + 1) * cell, nx)
+            h, w, t, x0, x1, x2 = -np.inf, np.inf, 0.0, 0.0, 0.0, 0.0
+            for i in range(max(left - m2, 0), min(right + m2, nx)):
+                d = max(left - i, i - right + 1, 0)
+                x2 = max(x2, cb2[i])
+                if d <= m1:
+                    x1 = max(x1, cb1[i])
+                if d <= m0:
+                    h = max(h, chi[i])
+                    w = min(w, clo[i])
+                    t = max(t, csm[i])
+                    x0 = max(x0, cb0[i])
+            hi[cy, cx], lo[cy, cx], sm[cy, cx] = h, w, t
+            b0[cy, cx], b1[cy, cx], b2[cy, cx] = x0, x1, x2
+
+
+def local_stats(img, first, sv, sh, *, cell, margins=(4, 11, 22)):
+    """Statistics of each cell grown by a few pixels on every side (clipped to
+    the image).
+
+    Parameters
+    ----------
+    img, first : ndarray, shape (ny, nx), float64
+        Image and first-order corrected image (e).
+    sv : ndarray, shape (ny, nx + 1)
+    sh : ndarray, shape (ny + 1, nx)
+        Swept areas of the image (px^2).
+    cell : int
+        Cell size (px).
+    margins : tuple of int, optional
+        m0 <= m1 <= m2 (px).
+
+    Returns
+    -------
+    dict of ndarray
+        Each of shape (ceil(ny / cell), ceil(nx / cell)): ``imax`` (max
+        abs(I)), ``imin`` (min I), ``smax`` (largest abs(swept area of I)
+        over the edges of the pixels) and ``b0`` (max abs(b), b = 2 (I -
+        first)) within m0 px of the cell, ``b1`` and ``b2``: max abs(b) within
+        m1 and m2 px.
+    """
+    m0, m1, m2 = (int(m) for m in margins)
+    if not 0 <= m0 <= m1 <= m2:
+        raise InputError(f"margins must be increasing and non-negative, got {margins}")
+    ny, nx = img.shape
+    shape = (-(-ny // cell), -(-nx // cell))
+    names = ("imax", "imin", "smax", "b0", "b1", "b2")
+    out = {k: np.empty(shape) for k in names}
+    _local_max(np.ascontiguousarray(img, dtype=np.float64),
+               np.ascontiguousarray(first, dtype=np.float64), sv, sh, int(cell), m0, m1, m2,
+               *(out[k] for k in names))
+    return out
+
+
+def _exposed_cells(blocked, cell):
+    """Cells where the edge densities of a constant are not all that constant:
+    with an edge on the image border, or within 8 px of a blocked pixel (the
+    pixels within 4 px of the cell and their stencils)."""
+    ny, nx = blocked.shape
+    my, mx = -(-ny // cell), -(-nx // cell)
+    pad = np.zeros((my * cell, mx * cell), bool)
+    pad[:ny, :nx] = blocked
+    near = ndimage.binary_dilation(pad.reshape(my, cell, mx, cell).any(axis=(1, 3)),
+                                   structure=np.ones((3, 3), bool))
+    near[0], near[-1], near[:, 0], near[:, -1] = True, True, True, True
+    return near
+
+
+def higher_order_bound(stats, local, blocked, consts, *, cell, order=3):
+    """Bound on abs(x2 + x3) in every pixel of each cell (module docstring), e.
+
+    Parameters
+    ----------
+    stats : tuple of ndarray
+        Per cell: max abs(I), min I, max abs(b) (as gathered by
+        :func:`~lsst_bfdrift.correction.series.first_order_terms`).
+    local : dict of ndarray
+        :func:`local_stats` with margins (4, R, 2 R), R the reach of the
+        swept-area kernels (11 px for the default template).
+    blocked : ndarray of bool, shape (ny, nx)
+        Pixels that neither give nor receive flux.
+    consts : dict
+        :func:`bound_constants`.
+    cell : int
+        Cell size (px), at least R + 2.
+    order : int, optional
+        Terms of the forward series.
+
+    Returns
+    -------
+    bound : ndarray
+        Per cell (e).
+    p_wide : ndarray
+        P per cell over its 3 x 3 cells (the factor of the bound on
+        abs(B(I, g)) per max abs(g), :func:`window_truncation`).
+    """
+    K, A, W = consts["K"], consts["A"], consts["W"]
+    a3 = 1.0 / 6.0 if order >= 3 else 0.0
+    a4 = 1.0 / 24.0 if order >= 4 else 0.0
+    k1, k2 = 0.5 * a3 - 0.125, a3 - a4 - 0.125
+    imax, imin, bmax = stats
+    near = dict(size=3, mode="nearest")
+    exposed = _exposed_cells(blocked, cell)
+
+    def p_of(hi, lo, exposed):
+        # I lies in [lo, hi] (hi is max abs(I) >= max I): m = midrange
+        p = np.abs(0.5 * (hi + lo)) * A + 4.0 * W * K * 0.5 * (hi - lo)
+        p[exposed] = (4.0 * W * K * hi)[exposed]
+        return p
+
+    # within 4 px of the cell (the pixels within 2 px and their stencils)
+    pn = p_of(local["imax"], local["imin"], exposed)
+    sn, b0 = local["smax"], local["b0"]
+    # within a cell of it (pixels within the kernels' reach and their stencils)
+    p3 = p_of(ndimage.maximum_filter(imax, **near), ndimage.minimum_filter(imin, **near),
+              ndimage.binary_dilation(exposed, structure=np.ones((3, 3), bool)))
+    s3 = ndimage.maximum_filter(sn, **near)
+    beta3 = ndimage.maximum_filter(bmax, **near)
+    # x2 in the cell: c from b within 2 px, d from b within the reach R
+    x2 = W * sn * b0 + abs(0.25 - a3) * pn * local["b1"]
+    # x2 within 2 px of the cell (for B(x2, I)): b within R + 2
+    x2_near = W * sn * b0 + abs(0.25 - a3) * pn * beta3
+    # y within R of the cell: c from b within R + 2, d from b within 2 R
+    y = 4.0 * W * abs(k1) * s3 * beta3 + abs(k2) * p3 * local["b2"]
+    x3 = 2.0 * W * sn * x2_near + 4.0 * W * K * abs(k1) * b0 * local["b1"] + pn * y
+    return ROUNDING_MARGIN * (x2 + x3), p3
+
+
+def halo_windows(active, shape, *, cell, group=6, halo=1):
+    """Windows for the active cells: per tile of ``group`` x ``group`` cells,
+    the bounding box of its active cells grown by ``halo`` cells.
+
+    Parameters
+    ----------
+    active : ndarray of bool
+        Per cell.
+    shape : tuple of int
+        Image shape (ny, nx).
+    cell, group, halo : int
+        Cell size (px), tile size (cells), halo (cells).
+
+    Returns
+    -------
+    list of tuple
+        ``(box, keep)`` with ``box`` = (y0, y1, x0, x1) in pixels (clipped
+        to the image) and ``keep`` the boolean mask of the window's pixels
+        that take its terms (the tile's active cells). Every active cell is
+        kept by exactly one window.
+    """
+    ny, nx = shape
+    my, mx = active.shape
+    out = []
+    for ty in range(0, my, group):
+        for tx in range(0, mx, group):
+            sub = active[ty:ty + group, tx:tx + group]
+            if not sub.any():
+                continue
+            rows, cols = np.flatnonzero(sub.any(axis=1)), np.flatnonzero(sub.any(axis=0))
+            cy0, cy1 = ty + rows[0], ty + rows[-1] + 1
+            cx0, cx1 = tx + cols[0], tx + cols[-1] + 1
+            wy0, wy1 = max(cy0 - halo, 0), min(cy1 + halo, my)
+            wx0, wx1 = max(cx0 - halo, 0), min(cx1 + halo, mx)
+            keep_cells = np.zeros((wy1 - wy0, wx1 - wx0), bool)
+            keep_cells[cy0 - wy0:cy1 - wy0, cx0 - wx0:cx1 - wx0] = \
+                active[cy0:cy1, cx0:cx1]
+            box = (wy0 * cell, min(wy1 * cell, ny), wx0 * cell, min(wx1 * cell, nx))
+            keep = np.kron(keep_cells, np.ones((cell, cell), bool))
+            out.append((box, keep[:box[1] - box[0], :box[3] - box[2]]))
+    return out
+
+
+def window_truncation(box, keep, bmax, p_coef, *, cell, order=3):
+    """Bound on the difference between the kept terms of a window with a
+    halo of one cell and the dense series' (module docstring), e.
+
+    Parameters
+    ----------
+    box : tuple of int
+        (y0, y1, x0, x1), pixels, on cell boundaries (or the image border).
+    keep : ndarray of bool
+        Kept pixels of the window (at least one cell inside its border,
+        where that border is not the image's).
+    bmax, p_coef : ndarray
+        Per cell: max abs(b) and P (:func:`higher_order_bound`).
+    cell : int
+        Cell size (px).
+    order : int, optional
+        Terms of the forward series.
+
+    Returns
+    -------
+    float
+        abs(k2) P^2 beta_o with P the largest over the cells around the kept
+        ones and beta_o the largest abs(b) in the ring of cells just outside
+        the window.
+    """
+    a3 = 1.0 / 6.0 if order >= 3 else 0.0
+    a4 = 1.0 / 24.0 if order >= 4 else 0.0
+    y0, y1, x0, x1 = box
+    my, mx = bmax.shape
+    cy0, cx0 = y0 // cell, x0 // cell
+    cy1, cx1 = -(-y1 // cell), -(-x1 // cell)
+    ring = np.zeros((my, mx), bool)
+    ring[max(cy0 - 1, 0):cy1 + 1, max(cx0 - 1, 0):cx1 + 1] = True
+    ring[cy0:cy1, cx0:cx1] = False
+    beta_o = float(bmax[ring].max()) if ring.any() else 0.0
+    p = float(p_coef[cy0:cy1, cx0:cx1].max())
+    return ROUNDING_MARGIN * abs(a3 - a4 - 0.125) * p * p * beta_o
