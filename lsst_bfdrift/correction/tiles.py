@@ -28,21 +28,22 @@ S_e the swept area), for any pixel p of a cell and any constant m:
 
 With b the first-order transfer, x2 = c/4 + (1/4 - a3) d, c = B(b, I),
 d = B(I, b), y = k1 c + k2 d (k1 = a3/2 - 1/8, k2 = a3 - a4 - 1/8) and
-x3 = -B(x2, I)/2 + k1 B(b, b) + B(I, y):
+x3 = -B(x2, I)/2 + k1 B(b, b) + B(I, y). The transfer at a pixel takes
+densities within 2 px and swept areas of charge within R px (R = N // 2 + 1,
+11 px for the default template of N = 21), so with the maxima taken within
+4, R and 2 R px of the cell (:func:`local_stats`; subscripts 4, R, 2R) or
+over its 3 x 3 cells (subscript 3; cells of at least R + 2 px):
 
-    abs(x2) <= X2 = (W S + abs(1/4 - a3) P) beta1,
-    abs(y) <= Y = (4 W abs(k1) S + abs(k2) P) beta2,
-    abs(x3) <= 2 W S X2 + 4 W K abs(k1) beta1^2 + P Y,
+    abs(x2) <= (W S_4 beta_4 + abs(1/4 - a3) P_4 beta_R)            in the cell,
+    abs(x2) <= X2' = W S_4 beta_4 + abs(1/4 - a3) P_4 beta_3       within 2 px,
+    abs(y) <= Y = 4 W abs(k1) S_3 beta_3 + abs(k2) P_3 beta_2R      within R px,
+    abs(x3) <= 2 W S_4 X2' + 4 W K abs(k1) beta_4 beta_R + P_4 Y     in the cell,
 
-beta1 (beta2) the largest abs(b) over the 3 x 3 (5 x 5) cells around the cell
-(the terms reach one swept-area kernel plus a stencil: x2 within 13 px, y
-within 13 px of that: 26 px, within two cells of at least 14 px), S and P
-(m and max abs(I - m) from the largest and smallest I) over the 3 x 3 cells.
-The sum T = X2 + abs(x3)-bound, times 1.05 for the rounding of the
-single-precision transforms, bounds the higher-order terms in every pixel
-of the cell. On a 1e5 e flat T is 2 to 3 times the largest term actually
-found (tests/correction/test_tiles.py); the first tier's bound is 25 to 40
-times it.
+beta the largest abs(b). The sum of the two bounds in the cell, times 1.05
+for the rounding of the single-precision transforms, is the cell's bound
+T. On a 1e5 e flat T is 2 to 3 times the largest term actually found
+(tests/correction/test_tiles.py); the first tier's bound is 25 to 40 times
+it.
 
 A cell is *active* when T > ``fraction`` x the smallest tolerance over its
 3 x 3 cells (``fraction`` = 0.5: the terms left out are at most half the
@@ -50,21 +51,23 @@ tolerance of the series, ``noise_tol`` x sqrt(I), in every pixel). The
 active cells are grouped by tiles of ``group`` x ``group`` cells; per tile
 the terms are computed on the bounding box of its active cells grown by a
 halo of one cell (zero-padded windows, batched, as in the first tier) and
-kept on the active cells only. At least 16 px inside a window, x2 and the
-first two parts of x3 see all their sources and are exact; y, 5 to 13 px
-inside, misses the sources 0 to 8 px outside, so the kept terms differ from
-the dense series' by at most abs(k2) P^2 beta_o (beta_o: the largest abs(b) in
-the cells around the window). When that exceeds ``fraction`` x the
-tolerance the window gets a halo of two cells (32 px >= 26 px: exact).
+kept on the active cells only. At least a cell (>= R + 2 px) inside a
+window, x2 and the first two parts of x3 see all their sources and are
+exact; y, needed within R px of a kept pixel, misses the sources up to R
+px beyond the window, so the kept terms differ from the dense series' by
+at most abs(k2) P_3^2 beta_o (beta_o: the largest abs(b) in the cells
+around the window, :func:`window_truncation`). When that exceeds
+``fraction`` x the tolerance the window gets a halo of two cells (>= 2 R +
+2 px: exact).
 Windows overlap, and each pixel takes the terms of at most one window.
 
 What this gives up: flux conservation of the higher orders. The first
 tier's windows are closed (their terms sum to zero); here the terms are
 kept on active cells only, so the image's total changes by the terms left
 out in the inactive cells, each below ``fraction`` x the tolerance and of
-both signs (on the 4096 x 4096 flat of ``benchmarks/bench_task.py``:
-see ``docs/benchmarks.rst``). The first-order transfer, which carries
-almost all of the correction, conserves flux exactly as before.
+both signs (a few e on a 512 x 512 flat of 1e5 e, 1e-10 of its flux). The
+first-order transfer, which carries almost all of the correction,
+conserves flux exactly as before.
 """
 
 import numba

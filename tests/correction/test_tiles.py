@@ -63,30 +63,32 @@ def test_constants_are_those_of_the_operator(template):
     assert T.bound_constants(template, "mean2")["W"] == 1.0
 
 
-def _bound_and_terms(img, blocked, template):
+def _bound_and_terms(img, blocked, template, density="fv4", order=3):
     ops = OperatorCache(template)  # float64: the reference terms
     eff, blk = np.where(np.isfinite(img), img, 0.0), blocked | ~np.isfinite(img)
-    _, (x2, x3) = C._series_block(eff, blk, ops(img.shape), 3, "fv4", terms=3)
-    first, sv, sh, stats = S.first_order_terms(eff, blk, ops, strip=None, cubic="fv4",
+    _, (x2, x3) = C._series_block(eff, blk, ops(img.shape), order, density, terms=3)
+    first, sv, sh, stats = S.first_order_terms(eff, blk, ops, strip=None, cubic=density,
                                                cell=CELL)
     local = T.local_stats(eff, first, sv, sh, cell=CELL, margins=MARGINS)
-    bound, _ = T.higher_order_bound(stats, local, blk, T.bound_constants(template, "fv4"),
-                                    cell=CELL)
+    bound, _ = T.higher_order_bound(stats, local, blk, T.bound_constants(template, density),
+                                    cell=CELL, order=order)
     true = _cells(np.abs(x2 + x3)).max(axis=(1, 3))
     return bound, true, stats
 
 
-@pytest.mark.parametrize("field", ["flat", "crowded", "masked"])
-def test_bound_holds_in_every_cell(field, template):
+@pytest.mark.parametrize("field, density, order", [
+    ("flat", "fv4", 3), ("crowded", "fv4", 3), ("masked", "fv4", 3), ("flat", "mean2", 4),
+    ("crowded", "cubic4", 2)])
+def test_bound_holds_in_every_cell(field, density, order, template):
     """The bound is above the largest higher-order term of the dense series
-    in every cell, blocked pixels and the image border included; on a flat
-    it is within a few times that term."""
+    in every cell, blocked pixels and the image border included, for every
+    density and order; on a flat it is within a few times that term."""
     img = flat(512) if field == "flat" else crowded(512)
     blocked = np.zeros(img.shape, bool)
     if field == "masked":
         blocked[200:260, 300] = True
         img[100, 100] = np.nan
-    bound, true, stats = _bound_and_terms(img, blocked, template)
+    bound, true, stats = _bound_and_terms(img, blocked, template, density, order)
     assert np.all(true <= bound)
     if field == "flat":
         inner = (slice(3, -3),) * 2
