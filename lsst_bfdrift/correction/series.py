@@ -48,8 +48,8 @@ import numpy as np
 from scipy import ndimage
 
 from lsst_bfdrift.correction._edge_kernels import _fused_serial, density_weight, fused_transfer
-from lsst_bfdrift.correction.tiles import (bound_constants, halo_windows, higher_order_bound,
-                                           local_stats, window_truncation)
+from lsst_bfdrift.correction.tiles import (bound_constants, cell_bound, halo_windows,
+                                           window_truncation)
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["first_order_terms", "active_cells", "active_from_stats", "tolerance", "window_boxes",
@@ -444,11 +444,17 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
     r_k = ops.template.size // 2 + 1
     margins = (4, r_k, 2 * r_k)
 
-    def _tier2_active(stats, local, blk):
-        bound, p_coef = higher_order_bound(stats, local, blk, consts, cell=cell, order=order)
+    def _tier2_active(stats, arrays, blk):
+        # cells whose higher orders may exceed fraction x the tolerance (rows
+        # of blk: those of the statistics)
+        k = blk.shape[0]
+        first_, sv_, sh_ = arrays
         lmin = (tolerance(stats[1], noise_tol) if scalar is None
                 else np.full(stats[1].shape, scalar))
         lmin = ndimage.minimum_filter(lmin, size=3, mode="nearest")
+        bound, p_coef = cell_bound(img[:k], first_[:k], sv_[:k], sh_[:k + 1], stats, blk,
+                                   consts, cell=cell, margins=margins, order=order,
+                                   threshold=fraction * lmin)
         return bound > fraction * lmin, p_coef, lmin
 
     checked = []
@@ -475,11 +481,8 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         if rows < 4:
             return True
         k = rows * cell
-        first_, sv_, sh_ = arrays
         part = tuple(x[:rows] for x in stats)
-        local = local_stats(img[:k], first_[:k], sv_[:k], sh_[:k + 1], cell=cell,
-                            margins=margins)
-        act = _tier2_active(part, local, blocked[:k])[0][:rows - 2]
+        act = _tier2_active(part, arrays, blocked[:k])[0][:rows - 2]
         wins = halo_windows(act, (k - 2 * cell, img.shape[1]), cell=cell, group=group, halo=1)
         area = sum((y1 - y0) * (x1 - x0) for (y0, y1, x0, x1), _ in wins)
         return area > max_fraction * (k - 2 * cell) * img.shape[1]
@@ -500,8 +503,7 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
             info["reason"] = f"windows cover {frac:.0%} of the image"
             if second_tier:
                 return _second_tier(img, blocked, ops, out, sv, sh, stats, _tier2_active,
-                                    window_limit, cell=cell, margins=margins, group=group,
-                                    order=order,
+                                    window_limit, cell=cell, group=group, order=order,
                                     cubic=cubic, a3=a3, a4=a4, fraction=fraction,
                                     max_fraction=max_fraction, info=info)
             return None
@@ -523,14 +525,13 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
 
 
 def _second_tier(img, blocked, ops, out, sv, sh, stats, tier2_active, window_limit, *, cell,
-                 margins, group, order, cubic, a3, a4, fraction, max_fraction, info):
+                 group, order, cubic, a3, a4, fraction, max_fraction, info):
     """The higher orders in windows with a halo around the cells where the
     bound of :mod:`lsst_bfdrift.correction.tiles` exceeds ``fraction`` x the
     tolerance; ``out`` (the first-order image) completed in place, or None
     (``info['reason']``) when the windows would cover more than
     ``max_fraction`` of the image or the fourth-order estimate fails."""
-    local = local_stats(img, out, sv, sh, cell=cell, margins=margins)
-    act, p_coef, lmin = tier2_active(stats, local, blocked)
+    act, p_coef, lmin = tier2_active(stats, (out, sv, sh), blocked)
     wins = halo_windows(act, img.shape, cell=cell, group=group, halo=1)
     wide = halo_windows(act, img.shape, cell=cell, group=group, halo=2) if wins else []
     chosen = []

@@ -78,7 +78,8 @@ from lsst_bfdrift.correction._edge_kernels import density_weight
 from lsst_bfdrift.templates.swept import swept_area_kernels
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["bound_constants", "local_stats", "higher_order_bound", "halo_windows",
+__all__ = ["bound_constants", "edge_cell_max", "local_stats", "coarse_stats", "LOCAL_STATS",
+           "higher_order_bound", "cell_bound", "halo_windows",
            "window_truncation", "ROUNDING_MARGIN"]
 
 #: Factor on the bound for the rounding of the single-precision transforms
@@ -122,51 +123,70 @@ def bound_constants(template, density):
 
 
 @numba.njit(parallel=True, cache=True)
-def _local_max(img, first, sv, sh, cell, m0, m1, m2, hi, lo, sm, b0, b1, b2):
+def _edge_cell_max(sv, sh, cell, out):
+    ny, nx = sv.shape[0], sh.shape[1]
+    for cy in numba.prange(out.shape[0]):
+        for j in range(cy * cell, min((cy + 1) * cell, ny)):
+            for cx in range(out.shape[1]):
+                m = out[cy, cx]
+                for i in range(cx * cell, min((cx + 1) * cell, nx)):
+                    m = max(m, abs(sv[j, i]), abs(sv[j, i + 1]), abs(sh[j, i]),
+                            abs(sh[j + 1, i]))
+                out[cy, cx] = m
+
+
+def edge_cell_max(sv, sh, cell):
+    """Largest abs(swept area) over the edges of the pixels of each cell.
+
+    Parameters
+    ----------
+    sv : ndarray, shape (ny, nx + 1)
+    sh : ndarray, shape (ny + 1, nx)
+        Swept areas of the image (px^2).
+    cell : int
+        Cell size (px).
+
+    Returns
+    -------
+    ndarray, shape (ceil(ny / cell), ceil(nx / cell))
+    """
+    ny, nx = sv.shape[0], sh.shape[1]
+    out = np.zeros((-(-ny // cell), -(-nx // cell)))
+    _edge_cell_max(sv, sh, int(cell), out)
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _local_cells(img, first, sv, sh, cell, m0, m1, m2, cy, cx, out):
     ny, nx = img.shape
-    my, mx = hi.shape
-    for cy in numba.prange(my):
-        top, bot = cy * cell, min((cy + 1) * cell, ny)
-        # column maxima over the cell's rows grown by each margin, then
-        # maxima over each cell's columns grown by the same margin
-        chi = np.full(nx, -np.inf)
-        clo = np.full(nx, np.inf)
-        csm = np.zeros(nx)
-        cb0 = np.zeros(nx)
-        cb1 = np.zeros(nx)
-        cb2 = np.zeros(nx)
+    for n in numba.prange(cy.size):
+        top, left = cy[n] * cell, cx[n] * cell
+        bot, right = min(top + cell, ny), min(left + cell, nx)
+        h, w, t, x0, x1, x2 = -np.inf, np.inf, 0.0, 0.0, 0.0, 0.0
         for j in range(max(top - m2, 0), min(bot + m2, ny)):
-            d = max(top - j, j - bot + 1, 0)  # rows from the cell
-            for i in range(nx):
+            dj = max(top - j, j - bot + 1, 0)
+            for i in range(max(left - m2, 0), min(right + m2, nx)):
+                d = max(dj, left - i, i - right + 1)
                 bv = 2.0 * abs(img[j, i] - first[j, i])
-                cb2[i] = max(cb2[i], bv)
+                x2 = max(x2, bv)
                 if d <= m1:
-                    cb1[i] = max(cb1[i], bv)
+                    x1 = max(x1, bv)
                 if d <= m0:
                     v = img[j, i]
-                    chi[i] = max(chi[i], abs(v))
-                    clo[i] = min(clo[i], v)
-                    cb0[i] = max(cb0[i], bv)
-                    csm[i] = max(csm[i], abs(sv[j, i]), abs(sv[j, i + 1]), abs(sh[j, i]),
-                                 abs(sh[j + 1, i]))
-        for cx in range(mx):
-            left, right = cx * cell, min((cx + 1) * cell, nx)
-            h, w, t, x0, x1, x2 = -np.inf, np.inf, 0.0, 0.0, 0.0, 0.0
-            for i in range(max(left - m2, 0), min(right + m2, nx)):
-                d = max(left - i, i - right + 1, 0)
-                x2 = max(x2, cb2[i])
-                if d <= m1:
-                    x1 = max(x1, cb1[i])
-                if d <= m0:
-                    h = max(h, chi[i])
-                    w = min(w, clo[i])
-                    t = max(t, csm[i])
-                    x0 = max(x0, cb0[i])
-            hi[cy, cx], lo[cy, cx], sm[cy, cx] = h, w, t
-            b0[cy, cx], b1[cy, cx], b2[cy, cx] = x0, x1, x2
+                    h = max(h, abs(v))
+                    w = min(w, v)
+                    x0 = max(x0, bv)
+                    t = max(t, abs(sv[j, i]), abs(sv[j, i + 1]), abs(sh[j, i]),
+                            abs(sh[j + 1, i]))
+        out[0, n], out[1, n], out[2, n] = h, w, t
+        out[3, n], out[4, n], out[5, n] = x0, x1, x2
 
 
-def local_stats(img, first, sv, sh, *, cell, margins=(4, 11, 22)):
+#: Names of the statistics of :func:`local_stats`, in the order of its arrays.
+LOCAL_STATS = ("imax", "imin", "smax", "b0", "b1", "b2")
+
+
+def local_stats(img, first, sv, sh, *, cell, margins=(4, 11, 22), cells=None):
     """Statistics of each cell grown by a few pixels on every side (clipped to
     the image).
 
@@ -181,6 +201,8 @@ def local_stats(img, first, sv, sh, *, cell, margins=(4, 11, 22)):
         Cell size (px).
     margins : tuple of int, optional
         m0 <= m1 <= m2 (px).
+    cells : ndarray of bool, optional
+        Only these cells (the others are NaN); default all.
 
     Returns
     -------
@@ -191,17 +213,48 @@ def local_stats(img, first, sv, sh, *, cell, margins=(4, 11, 22)):
         first)) within m0 px of the cell, ``b1`` and ``b2``: max abs(b) within
         m1 and m2 px.
     """
-    m0, m1, m2 = (int(m) for m in margins)
+    m0, m1, m2 = (int(v) for v in margins)
     if not 0 <= m0 <= m1 <= m2:
         raise InputError(f"margins must be increasing and non-negative, got {margins}")
     ny, nx = img.shape
     shape = (-(-ny // cell), -(-nx // cell))
-    names = ("imax", "imin", "smax", "b0", "b1", "b2")
-    out = {k: np.empty(shape) for k in names}
-    _local_max(np.ascontiguousarray(img, dtype=np.float64),
-               np.ascontiguousarray(first, dtype=np.float64), sv, sh, int(cell), m0, m1, m2,
-               *(out[k] for k in names))
+    if cells is None:
+        cells = np.ones(shape, bool)
+    cy, cx = np.nonzero(cells)
+    vals = np.empty((len(LOCAL_STATS), cy.size))
+    _local_cells(np.ascontiguousarray(img, dtype=np.float64),
+                 np.ascontiguousarray(first, dtype=np.float64), sv, sh, int(cell), m0, m1, m2,
+                 cy, cx, vals)
+    out = {}
+    for k, name in enumerate(LOCAL_STATS):
+        out[name] = np.full(shape, np.nan)
+        out[name][cy, cx] = vals[k]
     return out
+
+
+def coarse_stats(stats, smax):
+    """The statistics of :func:`local_stats` with margins of at most one cell
+    (two for ``b2``) from the cell statistics: each at least the local one,
+    so that :func:`higher_order_bound` of these bounds that of the local ones.
+
+    Parameters
+    ----------
+    stats : tuple of ndarray
+        Per cell: max abs(I), min I, max abs(b).
+    smax : ndarray
+        Per cell: :func:`edge_cell_max`.
+
+    Returns
+    -------
+    dict of ndarray
+    """
+    imax, imin, bmax = stats
+    near = dict(size=3, mode="nearest")
+    b3 = ndimage.maximum_filter(bmax, **near)
+    return dict(imax=ndimage.maximum_filter(imax, **near),
+                imin=ndimage.minimum_filter(imin, **near),
+                smax=ndimage.maximum_filter(smax, **near), b0=b3, b1=b3,
+                b2=ndimage.maximum_filter(bmax, size=5, mode="nearest"))
 
 
 def _exposed_cells(blocked, cell):
@@ -276,6 +329,56 @@ def higher_order_bound(stats, local, blocked, consts, *, cell, order=3):
     y = 4.0 * W * abs(k1) * s3 * beta3 + abs(k2) * p3 * local["b2"]
     x3 = 2.0 * W * sn * x2_near + 4.0 * W * K * abs(k1) * b0 * local["b1"] + pn * y
     return ROUNDING_MARGIN * (x2 + x3), p3
+
+
+def cell_bound(img, first, sv, sh, stats, blocked, consts, *, cell, margins, threshold,
+               order=3):
+    """:func:`higher_order_bound` from the cell statistics, refined with
+    :func:`local_stats` in the cells where it exceeds ``threshold``.
+
+    Parameters
+    ----------
+    img, first, sv, sh
+        As for :func:`local_stats`.
+    stats : tuple of ndarray
+        Per cell: max abs(I), min I, max abs(b).
+    blocked : ndarray of bool
+        Pixels that neither give nor receive flux.
+    consts : dict
+        :func:`bound_constants`.
+    cell : int
+        Cell size (px).
+    margins : tuple of int
+        (4, R, 2 R), R the reach of the swept-area kernels (px).
+    threshold : ndarray
+        Per cell (e).
+    order : int, optional
+        Terms of the forward series.
+
+    Returns
+    -------
+    bound, p_wide : ndarray
+        As for :func:`higher_order_bound`.
+
+    Notes
+    -----
+    Each coarse statistic (:func:`coarse_stats`) is at least the local one and
+    the bound grows with each, so the coarse bound bounds the refined one:
+    only the cells it flags need the local statistics (the border of a flat,
+    the surroundings of bright stars), which read the image around them
+    again.
+    """
+    smax = edge_cell_max(sv, sh, cell)
+    coarse = coarse_stats(stats, smax)
+    bound, p_wide = higher_order_bound(stats, coarse, blocked, consts, cell=cell, order=order)
+    flagged = bound > threshold
+    if flagged.any():
+        local = local_stats(img, first, sv, sh, cell=cell, margins=margins, cells=flagged)
+        for name in LOCAL_STATS:
+            local[name] = np.where(flagged, local[name], coarse[name])
+        fine = higher_order_bound(stats, local, blocked, consts, cell=cell, order=order)[0]
+        bound = np.where(flagged, np.minimum(fine, bound), bound)
+    return bound, p_wide
 
 
 def halo_windows(active, shape, *, cell, group=6, halo=1):

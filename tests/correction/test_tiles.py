@@ -100,6 +100,48 @@ def test_bound_holds_in_every_cell(field, density, order, template):
         assert np.any(true[:, 0] > 0.5 * lmin[:, 0])
 
 
+@pytest.mark.parametrize("field", ["flat", "crowded"])
+def test_refined_bound_lies_between_the_terms_and_the_coarse_bound(field, template):
+    """The coarse statistics are at least the local ones, so the bound from
+    them is at least the local bound; cell_bound refines the flagged cells
+    only, and stays above the true terms."""
+    img = flat(512) if field == "flat" else crowded(512)
+    blk = np.zeros(img.shape, bool)
+    ops = OperatorCache(template)
+    _, (x2, x3) = C._series_block(img, blk, ops(img.shape), 3, "fv4", terms=3)
+    first, sv, sh, stats = S.first_order_terms(img, blk, ops, strip=None, cubic="fv4",
+                                               cell=CELL)
+    consts = T.bound_constants(template, "fv4")
+    local = T.local_stats(img, first, sv, sh, cell=CELL, margins=MARGINS)
+    coarse = T.coarse_stats(stats, T.edge_cell_max(sv, sh, CELL))
+    # (b from the first pass and b = 2 (I - first) differ by rounding)
+    for name in T.LOCAL_STATS:
+        if name == "imin":
+            assert np.all(coarse[name] <= local[name])
+        else:
+            assert np.all(coarse[name] >= local[name] - 1e-12 * np.abs(local[name]).max())
+    b_local = T.higher_order_bound(stats, local, blk, consts, cell=CELL)[0]
+    b_coarse = T.higher_order_bound(stats, coarse, blk, consts, cell=CELL)[0]
+    assert np.all(b_local <= b_coarse * (1 + 1e-12))
+    lim = 0.5 * ndimage.minimum_filter(S.tolerance(stats[1], NOISE_TOL), size=3)
+    bound, _ = T.cell_bound(img, first, sv, sh, stats, blk, consts, cell=CELL,
+                            margins=MARGINS, threshold=lim)
+    flagged = b_coarse > lim
+    assert 0 < flagged.sum() < flagged.size
+    # refined where flagged (their neighbours' swept areas keep the coarse maxima)
+    assert np.all(bound[flagged] >= b_local[flagged] * (1 - 1e-12))
+    assert np.all(bound[flagged] <= b_coarse[flagged])
+    assert np.mean(bound[flagged] < 0.9 * b_coarse[flagged]) > 0.5
+    assert np.array_equal(bound[~flagged], b_coarse[~flagged])
+    assert np.all(_cells(np.abs(x2 + x3)).max(axis=(1, 3)) <= bound)
+    part = T.local_stats(img, first, sv, sh, cell=CELL, margins=MARGINS, cells=flagged)
+    for name in T.LOCAL_STATS:
+        assert np.array_equal(part[name][flagged], local[name][flagged])
+        assert np.all(np.isnan(part[name][~flagged]))
+    with pytest.raises(InputError, match="margins must be increasing"):
+        T.local_stats(img, first, sv, sh, cell=CELL, margins=(4, 22, 11))
+
+
 def test_halo_windows_keep_every_active_cell_once(rng):
     for trial in range(20):
         shape = (rng.integers(5, 20) * CELL - rng.integers(0, CELL), 15 * CELL)
