@@ -78,7 +78,7 @@ from lsst_bfdrift.correction._edge_kernels import density_weight
 from lsst_bfdrift.templates.swept import swept_area_kernels
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["bound_constants", "edge_cell_max", "local_stats", "coarse_stats", "LOCAL_STATS",
+__all__ = ["bound_constants", "local_stats", "coarse_stats", "LOCAL_STATS",
            "higher_order_bound", "cell_bound", "halo_windows",
            "window_truncation", "ROUNDING_MARGIN"]
 
@@ -102,8 +102,10 @@ def bound_constants(template, density):
     dict
         ``K`` (largest sum of abs(swept-area kernel) over one edge, px^2 per
         e), ``A`` (sum of abs of the area kernel, the divergence of the
-        swept-area kernels, px^2 per e) and ``W`` (absolute sum of the
-        density stencil's weights).
+        swept-area kernels, px^2 per e), ``W`` (absolute sum of the
+        density stencil's weights) and ``S0`` (largest abs(sum of a
+        swept-area kernel): the swept area per e of a uniform level, 0 to
+        rounding for the bundled template).
     """
     kv, kh = swept_area_kernels(template)
     q = 1.0 / template.charge
@@ -119,41 +121,8 @@ def bound_constants(template, density):
     area[1:-1, :] += dv
     area[:, 1:-1] += dh
     return dict(K=float(max(np.abs(kv).sum(), np.abs(kh).sum())),
-                A=float(np.abs(area).sum()), W=1.0 + 4.0 * abs(density_weight(density)))
-
-
-@numba.njit(parallel=True, cache=True)
-def _edge_cell_max(sv, sh, cell, out):
-    ny, nx = sv.shape[0], sh.shape[1]
-    for cy in numba.prange(out.shape[0]):
-        for j in range(cy * cell, min((cy + 1) * cell, ny)):
-            for cx in range(out.shape[1]):
-                m = out[cy, cx]
-                for i in range(cx * cell, min((cx + 1) * cell, nx)):
-                    m = max(m, abs(sv[j, i]), abs(sv[j, i + 1]), abs(sh[j, i]),
-                            abs(sh[j + 1, i]))
-                out[cy, cx] = m
-
-
-def edge_cell_max(sv, sh, cell):
-    """Largest abs(swept area) over the edges of the pixels of each cell.
-
-    Parameters
-    ----------
-    sv : ndarray, shape (ny, nx + 1)
-    sh : ndarray, shape (ny + 1, nx)
-        Swept areas of the image (px^2).
-    cell : int
-        Cell size (px).
-
-    Returns
-    -------
-    ndarray, shape (ceil(ny / cell), ceil(nx / cell))
-    """
-    ny, nx = sv.shape[0], sh.shape[1]
-    out = np.zeros((-(-ny // cell), -(-nx // cell)))
-    _edge_cell_max(sv, sh, int(cell), out)
-    return out
+                A=float(np.abs(area).sum()), W=1.0 + 4.0 * abs(density_weight(density)),
+                S0=float(max(abs(kv.sum()), abs(kh.sum()))))
 
 
 @numba.njit(parallel=True, cache=True)
@@ -232,7 +201,7 @@ def local_stats(img, first, sv, sh, *, cell, margins=(4, 11, 22), cells=None):
     return out
 
 
-def coarse_stats(stats, smax):
+def coarse_stats(stats, consts):
     """The statistics of :func:`local_stats` with margins of at most one cell
     (two for ``b2``) from the cell statistics: each at least the local one,
     so that :func:`higher_order_bound` of these bounds that of the local ones.
@@ -241,19 +210,33 @@ def coarse_stats(stats, smax):
     ----------
     stats : tuple of ndarray
         Per cell: max abs(I), min I, max abs(b).
-    smax : ndarray
-        Per cell: :func:`edge_cell_max`.
+    consts : dict
+        :func:`bound_constants`.
 
     Returns
     -------
     dict of ndarray
+
+    Notes
+    -----
+    The swept areas are bounded without reading them: where the kernels'
+    reach (R px) stays inside the image, abs(S_e(I)) <= S0 abs(m) + K
+    max abs(I - m) within R px (m the midrange of I over the 3 x 3 cells),
+    elsewhere K max abs(I); plus 1e-6 K max abs(I) over the image for the
+    rounding of the single-precision transforms.
     """
     imax, imin, bmax = stats
     near = dict(size=3, mode="nearest")
     b3 = ndimage.maximum_filter(bmax, **near)
-    return dict(imax=ndimage.maximum_filter(imax, **near),
-                imin=ndimage.minimum_filter(imin, **near),
-                smax=ndimage.maximum_filter(smax, **near), b0=b3, b1=b3,
+    hi = ndimage.maximum_filter(imax, **near)
+    lo = ndimage.minimum_filter(imin, **near)
+    K = consts["K"]
+    smax = consts["S0"] * np.abs(0.5 * (hi + lo)) + K * 0.5 * (hi - lo)
+    edge = np.zeros(imax.shape, bool)
+    edge[:2], edge[-2:], edge[:, :2], edge[:, -2:] = True, True, True, True
+    smax[edge] = (K * hi)[edge]
+    smax += 1e-6 * K * float(imax.max())
+    return dict(imax=hi, imin=lo, smax=ndimage.maximum_filter(smax, **near), b0=b3, b1=b3,
                 b2=ndimage.maximum_filter(bmax, size=5, mode="nearest"))
 
 
@@ -362,14 +345,13 @@ def cell_bound(img, first, sv, sh, stats, blocked, consts, *, cell, margins, thr
 
     Notes
     -----
-    Each coarse statistic (:func:`coarse_stats`) is at least the local one and
-    the bound grows with each, so the coarse bound bounds the refined one:
-    only the cells it flags need the local statistics (the border of a flat,
-    the surroundings of bright stars), which read the image around them
-    again.
+    Each coarse statistic (:func:`coarse_stats`, from the cell statistics
+    alone) is at least the local one and the bound grows with each, so the
+    coarse bound bounds the refined one: only the cells it flags need the
+    local statistics (the border of a flat, the surroundings of bright
+    stars), which read the image, b and the swept areas around them again.
     """
-    smax = edge_cell_max(sv, sh, cell)
-    coarse = coarse_stats(stats, smax)
+    coarse = coarse_stats(stats, consts)
     bound, p_wide = higher_order_bound(stats, coarse, blocked, consts, cell=cell, order=order)
     flagged = bound > threshold
     if flagged.any():

@@ -60,6 +60,7 @@ def test_constants_are_those_of_the_operator(template):
     assert_allclose(consts["A"], np.abs(area).sum(), rtol=1e-9)
     assert_allclose(consts["K"], OperatorCache(template).kernel_abs_sum, rtol=1e-12)
     assert consts["W"] == pytest.approx(4.0 / 3.0)
+    assert consts["S0"] < 1e-9 * consts["K"]  # a uniform level sweeps nothing
     assert T.bound_constants(template, "mean2")["W"] == 1.0
 
 
@@ -113,7 +114,7 @@ def test_refined_bound_lies_between_the_terms_and_the_coarse_bound(field, templa
                                                cell=CELL)
     consts = T.bound_constants(template, "fv4")
     local = T.local_stats(img, first, sv, sh, cell=CELL, margins=MARGINS)
-    coarse = T.coarse_stats(stats, T.edge_cell_max(sv, sh, CELL))
+    coarse = T.coarse_stats(stats, consts)
     # (b from the first pass and b = 2 (I - first) differ by rounding)
     for name in T.LOCAL_STATS:
         if name == "imin":
