@@ -49,7 +49,7 @@ from scipy import ndimage
 
 from lsst_bfdrift.correction._edge_kernels import _fused_serial, density_weight, fused_transfer
 from lsst_bfdrift.correction.tiles import (bound_constants, cell_bound, halo_windows,
-                                           window_truncation)
+                                           window_sides)
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["first_order_terms", "active_cells", "active_from_stats", "tolerance", "window_boxes",
@@ -482,8 +482,13 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
             return True
         k = rows * cell
         part = tuple(x[:rows] for x in stats)
-        act = _tier2_active(part, arrays, blocked[:k])[0][:rows - 2]
-        wins = halo_windows(act, (k - 2 * cell, img.shape[1]), cell=cell, group=group, halo=1)
+        act, p_coef, lmin = _tier2_active(part, arrays, blocked[:k])
+
+        def sides(cells_box):
+            return window_sides(cells_box, part[2], p_coef, fraction * lmin, order=order)[0]
+
+        wins = halo_windows(act[:rows - 2], (k - 2 * cell, img.shape[1]), cell=cell,
+                            group=group, halo=sides)
         area = sum((y1 - y0) * (x1 - x0) for (y0, y1, x0, x1), _ in wins)
         return area > max_fraction * (k - 2 * cell) * img.shape[1]
 
@@ -532,14 +537,11 @@ def _second_tier(img, blocked, ops, out, sv, sh, stats, tier2_active, window_lim
     (``info['reason']``) when the windows would cover more than
     ``max_fraction`` of the image or the fourth-order estimate fails."""
     act, p_coef, lmin = tier2_active(stats, (out, sv, sh), blocked)
-    wins = halo_windows(act, img.shape, cell=cell, group=group, halo=1)
-    wide = halo_windows(act, img.shape, cell=cell, group=group, halo=2) if wins else []
-    chosen = []
-    for (box, keep), w2 in zip(wins, wide):
-        cy0, cy1, cx0, cx1 = box[0] // cell, -(-box[1] // cell), box[2] // cell, -(-box[3] // cell)
-        lim = fraction * lmin[cy0:cy1, cx0:cx1].min()
-        ok = window_truncation(box, keep, stats[2], p_coef, cell=cell, order=order) <= lim
-        chosen.append((box, keep) if ok else w2)
+
+    def sides(cells_box):
+        return window_sides(cells_box, stats[2], p_coef, fraction * lmin, order=order)[0]
+
+    chosen = halo_windows(act, img.shape, cell=cell, group=group, halo=sides)
     boxes = [box for box, _ in chosen]
     frac = sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in boxes) / img.size
     info.update(tier=2, windows=len(boxes), window_fraction=frac,

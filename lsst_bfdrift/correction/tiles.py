@@ -56,9 +56,9 @@ window, x2 and the first two parts of x3 see all their sources and are
 exact; y, needed within R px of a kept pixel, misses the sources up to R
 px beyond the window, so the kept terms differ from the dense series' by
 at most abs(k2) P_3^2 beta_o (beta_o: the largest abs(b) in the cells
-around the window, :func:`window_truncation`). When that exceeds
-``fraction`` x the tolerance the window gets a halo of two cells (>= 2 R +
-2 px: exact).
+just beyond the window, :func:`window_sides`). Each side where that exceeds
+``fraction`` x the tolerance gets a halo of two cells (>= 2 R + 2 px:
+nothing is missed there).
 Windows overlap, and each pixel takes the terms of at most one window.
 
 What this gives up: flux conservation of the higher orders. The first
@@ -79,8 +79,8 @@ from lsst_bfdrift.templates.swept import swept_area_kernels
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["bound_constants", "local_stats", "coarse_stats", "LOCAL_STATS",
-           "higher_order_bound", "cell_bound", "halo_windows",
-           "window_truncation", "ROUNDING_MARGIN"]
+           "higher_order_bound", "cell_bound", "halo_windows", "window_sides",
+           "ROUNDING_MARGIN"]
 
 #: Factor on the bound for the rounding of the single-precision transforms
 #: (relative accuracy ~1e-6 of the swept areas) and of the float64 sums.
@@ -280,7 +280,7 @@ def higher_order_bound(stats, local, blocked, consts, *, cell, order=3):
         Per cell (e).
     p_wide : ndarray
         P per cell over its 3 x 3 cells (the factor of the bound on
-        abs(B(I, g)) per max abs(g), :func:`window_truncation`).
+        abs(B(I, g)) per max abs(g), :func:`window_sides`).
     """
     K, A, W = consts["K"], consts["A"], consts["W"]
     a3 = 1.0 / 6.0 if order >= 3 else 0.0
@@ -365,7 +365,7 @@ def cell_bound(img, first, sv, sh, stats, blocked, consts, *, cell, margins, thr
 
 def halo_windows(active, shape, *, cell, group=6, halo=1):
     """Windows for the active cells: per tile of ``group`` x ``group`` cells,
-    the bounding box of its active cells grown by ``halo`` cells.
+    the bounding box of its active cells grown by a halo.
 
     Parameters
     ----------
@@ -373,8 +373,12 @@ def halo_windows(active, shape, *, cell, group=6, halo=1):
         Per cell.
     shape : tuple of int
         Image shape (ny, nx).
-    cell, group, halo : int
-        Cell size (px), tile size (cells), halo (cells).
+    cell, group : int
+        Cell size (px), tile size (cells).
+    halo : int or callable
+        Halo (cells), or a function of the kept cells' bounding box
+        (cy0, cy1, cx0, cx1) (cells) giving the halos of its four sides
+        (top, bottom, left, right), e.g. :func:`window_sides`.
 
     Returns
     -------
@@ -395,8 +399,9 @@ def halo_windows(active, shape, *, cell, group=6, halo=1):
             rows, cols = np.flatnonzero(sub.any(axis=1)), np.flatnonzero(sub.any(axis=0))
             cy0, cy1 = ty + rows[0], ty + rows[-1] + 1
             cx0, cx1 = tx + cols[0], tx + cols[-1] + 1
-            wy0, wy1 = max(cy0 - halo, 0), min(cy1 + halo, my)
-            wx0, wx1 = max(cx0 - halo, 0), min(cx1 + halo, mx)
+            ht, hb, hl, hr = halo((cy0, cy1, cx0, cx1)) if callable(halo) else (halo,) * 4
+            wy0, wy1 = max(cy0 - ht, 0), min(cy1 + hb, my)
+            wx0, wx1 = max(cx0 - hl, 0), min(cx1 + hr, mx)
             keep_cells = np.zeros((wy1 - wy0, wx1 - wx0), bool)
             keep_cells[cy0 - wy0:cy1 - wy0, cx0 - wx0:cx1 - wx0] = \
                 active[cy0:cy1, cx0:cx1]
@@ -406,40 +411,51 @@ def halo_windows(active, shape, *, cell, group=6, halo=1):
     return out
 
 
-def window_truncation(box, keep, bmax, p_coef, *, cell, order=3):
-    """Bound on the difference between the kept terms of a window with a
-    halo of one cell and the dense series' (module docstring), e.
+def window_sides(cells_box, bmax, p_coef, limit, *, order=3):
+    """Halo of each side of a window (1 or 2 cells) and the bound on its kept
+    terms' difference from the dense series' (module docstring).
 
     Parameters
     ----------
-    box : tuple of int
-        (y0, y1, x0, x1), pixels, on cell boundaries (or the image border).
-    keep : ndarray of bool
-        Kept pixels of the window (at least one cell inside its border,
-        where that border is not the image's).
+    cells_box : tuple of int
+        (cy0, cy1, cx0, cx1): bounding box of the kept cells (cells).
     bmax, p_coef : ndarray
-        Per cell: max abs(b) and P (:func:`higher_order_bound`).
-    cell : int
-        Cell size (px).
+        Per cell: max abs(b) and P over the 3 x 3 cells
+        (:func:`higher_order_bound`).
+    limit : ndarray or float
+        Largest difference allowed (e), per cell (the smallest over the kept
+        cells' box is used) or one value; ``np.inf``: every side gets one
+        cell.
     order : int, optional
         Terms of the forward series.
 
     Returns
     -------
-    float
-        abs(k2) P^2 beta_o with P the largest over the cells around the kept
-        ones and beta_o the largest abs(b) in the ring of cells just outside
-        the window.
+    halos : tuple of int
+        (top, bottom, left, right), cells.
+    bound : float
+        abs(k2) P^2 beta_o (e), P the largest over the window with a halo of
+        one cell and beta_o the largest abs(b) in the cells just outside the
+        sides that keep one cell: beyond a one-cell halo y misses sources
+        within R px; beyond two cells (>= 2 R + 2 px) nothing is missed.
     """
     a3 = 1.0 / 6.0 if order >= 3 else 0.0
     a4 = 1.0 / 24.0 if order >= 4 else 0.0
-    y0, y1, x0, x1 = box
+    cy0, cy1, cx0, cx1 = cells_box
     my, mx = bmax.shape
-    cy0, cx0 = y0 // cell, x0 // cell
-    cy1, cx1 = -(-y1 // cell), -(-x1 // cell)
-    ring = np.zeros((my, mx), bool)
-    ring[max(cy0 - 1, 0):cy1 + 1, max(cx0 - 1, 0):cx1 + 1] = True
-    ring[cy0:cy1, cx0:cx1] = False
-    beta_o = float(bmax[ring].max()) if ring.any() else 0.0
-    p = float(p_coef[cy0:cy1, cx0:cx1].max())
-    return ROUNDING_MARGIN * abs(a3 - a4 - 0.125) * p * p * beta_o
+    wy0, wy1, wx0, wx1 = max(cy0 - 1, 0), min(cy1 + 1, my), max(cx0 - 1, 0), min(cx1 + 1, mx)
+    if np.ndim(limit):
+        limit = float(np.min(limit[cy0:cy1, cx0:cx1]))
+    coef = ROUNDING_MARGIN * abs(a3 - a4 - 0.125) * float(p_coef[wy0:wy1, wx0:wx1].max()) ** 2
+    ya, yb, xa, xb = max(wy0 - 1, 0), min(wy1 + 1, my), max(wx0 - 1, 0), min(wx1 + 1, mx)
+    rings = (bmax[ya:wy0, xa:xb], bmax[wy1:yb, xa:xb], bmax[ya:yb, xa:wx0],
+             bmax[ya:yb, wx1:xb])  # top, bottom, left, right: beyond the image, empty
+    halos, bound = [], 0.0
+    for ring in rings:
+        err = coef * float(ring.max()) if ring.size else 0.0
+        if err > limit:
+            halos.append(2)
+        else:
+            halos.append(1)
+            bound = max(bound, err)
+    return tuple(halos), bound

@@ -168,8 +168,9 @@ def test_halo_windows_keep_every_active_cell_once(rng):
 
 def test_window_terms_within_the_truncation_bound(template):
     """Terms kept one cell inside a window differ from the dense series' by
-    at most the truncation bound (y misses the sources just outside); two
-    cells inside they are exact."""
+    at most the truncation bound of window_sides (y misses the sources just
+    outside); two cells inside they are exact; a side whose bound exceeds
+    the limit gets two cells."""
     img = crowded(256, seed=5)
     blk = np.zeros(img.shape, bool)
     ops = OperatorCache(template)
@@ -180,20 +181,28 @@ def test_window_terms_within_the_truncation_bound(template):
     _, p_wide = T.higher_order_bound(stats, local, blk, T.bound_constants(template, "fv4"),
                                      cell=CELL)
     act = np.zeros(stats[0].shape, bool)
-    act[5:8, 6:9] = True  # a window away from the border
-    act[12, 3] = True
+    act[5:8, 6:9] = True  # away from the border
+    cells_box = (5, 8, 6, 9)
+    halos, bound = T.window_sides(cells_box, stats[2], p_wide, np.inf)
+    assert halos == (1, 1, 1, 1) and bound > 0.0
     for halo in (1, 2):
-        wins = T.halo_windows(act, img.shape, cell=CELL, halo=halo)
-        boxes = [box for box, _ in wins]
-        extra, _, _ = S._window_terms(ops, boxes, img, blk, first, sv, sh, 1 / 6, 0.0, "fv4")
-        for (box, keep), e in zip(wins, extra):
-            y0, y1, x0, x1 = box
-            diff = np.abs(e - (x2 + x3)[y0:y1, x0:x1])[keep]
-            if halo == 1:
-                bound = T.window_truncation(box, keep, stats[2], p_wide, cell=CELL)
-                assert 0.0 < diff.max() <= bound
-            else:
-                assert diff.max() <= 1e-9 * np.abs(x2 + x3).max()
+        (box, keep), = T.halo_windows(act, img.shape, cell=CELL, group=16, halo=halo)
+        assert box == tuple(CELL * v for v in (5 - halo, 8 + halo, 6 - halo, 9 + halo))
+        extra, _, _ = S._window_terms(ops, [box], img, blk, first, sv, sh, 1 / 6, 0.0, "fv4")
+        y0, y1, x0, x1 = box
+        diff = np.abs(extra[0] - (x2 + x3)[y0:y1, x0:x1])[keep]
+        if halo == 1:
+            assert 0.0 < diff.max() <= bound
+        else:
+            assert diff.max() <= 1e-9 * np.abs(x2 + x3).max()
+    # a limit below the bound: the sides that set it get two cells
+    halos, tight = T.window_sides(cells_box, stats[2], p_wide, 0.5 * bound)
+    assert 2 in halos and tight <= 0.5 * bound
+    (box, _), = T.halo_windows(act, img.shape, cell=CELL, group=16,
+                               halo=lambda cb: T.window_sides(cb, stats[2], p_wide,
+                                                              0.5 * bound)[0])
+    assert box == tuple(CELL * v for v in (5 - halos[0], 8 + halos[1], 6 - halos[2],
+                                           9 + halos[3]))
 
 
 def _forced_second_tier(img, blocked, template, monkeypatch, **kw):
@@ -242,12 +251,13 @@ def test_second_tier_declines_what_it_cannot_bound(template, monkeypatch):
 
 
 def test_flat_uses_the_second_tier(template):
-    """A 1024 x 1024 flat of 1e5 e: the first tier flags every cell, the
-    second only the border; the result is within half the tolerance of the
-    dense series."""
-    img = flat(1024)
+    """A 2048 x 2048 flat of 1e5 e, in strips: the first tier flags every
+    cell, the second only the border (also on the first quarter of the rows,
+    where the attempt would stop); the result is within half the tolerance
+    of the dense series."""
+    img = flat(2048)
     kw = dict(density="fv4", noise_tol=NOISE_TOL, start="series", dtype=np.float32,
-              strip=256)
+              strip=512)
     dense, _, _ = C.correct_image(img, template, **kw)
     info = {}
     out, it, conv = C.correct_image(img, template, sparse=True, info=info, **kw)
