@@ -276,12 +276,14 @@ def apriori_ok(x2, x3, limit):
     return bool(np.all(4.0 * r * ndimage.maximum_filter(a3, size=5, mode="nearest") <= limit))
 
 
-def _window_terms(ops, boxes, img, blk, first, sv, sh, a3, a4, cubic):
+def _window_terms(ops, boxes, img, blk, first, sv, sh, a3, a4, cubic, *, pad=None):
     """Per window: the terms beyond first order (c/4 + (1/4 - a3) d + x3),
-    x2 and x3, in ``boxes`` order."""
+    x2 and x3, in ``boxes`` order; each window zero-padded to the shape
+    ``pad(h, w)`` (default: :func:`_nice` of each side)."""
+    pad = (lambda h, w: (_nice(h), _nice(w))) if pad is None else pad
     groups = {}
     for k, (y0, y1, x0, x1) in enumerate(boxes):
-        groups.setdefault((_nice(y1 - y0), _nice(x1 - x0)), []).append(k)
+        groups.setdefault(pad(y1 - y0, x1 - x0), []).append(k)
     extra, x2s, x3s = [None] * len(boxes), [None] * len(boxes), [None] * len(boxes)
     k1 = 0.5 * a3 - 0.125
     w = density_weight(cubic)
@@ -343,6 +345,12 @@ def _nice(n):
     while m < n:
         m = m * 3 // 2 if (m & (m - 1)) == 0 else m * 4 // 3
     return m
+
+
+def _padded(n):
+    """Window side for the second tier: :func:`_nice` up to 256 px, then the
+    next multiple of 128 px (long windows along a flat's border)."""
+    return _nice(n) if n <= 256 else -(-n // 128) * 128
 
 
 def _ring_ok(term, box, shape, lim, fraction):
@@ -553,7 +561,8 @@ def _second_tier(img, blocked, ops, out, sv, sh, stats, tier2_active, window_lim
     if not boxes:
         info["reason"] = None
         return out
-    extra, x2s, x3s = _window_terms(ops, boxes, img, blocked, out, sv, sh, a3, a4, cubic)
+    extra, x2s, x3s = _window_terms(ops, boxes, img, blocked, out, sv, sh, a3, a4, cubic,
+                                    pad=lambda h, w: (_padded(h), _padded(w)))
     for k, (y0, y1, x0, x1) in enumerate(boxes):
         if not apriori_ok(x2s[k], x3s[k], window_limit(y0, y1, x0, x1)):
             info["reason"] = "fourth-order estimate above the tolerance"

@@ -246,15 +246,17 @@ def _exposed_cells(blocked, cell):
     pixels within 4 px of the cell and their stencils)."""
     ny, nx = blocked.shape
     my, mx = -(-ny // cell), -(-nx // cell)
-    pad = np.zeros((my * cell, mx * cell), bool)
-    pad[:ny, :nx] = blocked
-    near = ndimage.binary_dilation(pad.reshape(my, cell, mx, cell).any(axis=(1, 3)),
-                                   structure=np.ones((3, 3), bool))
+    rows = np.flatnonzero(blocked.any(axis=1))
+    near = np.zeros((my, mx), bool)
+    if rows.size:
+        j, i = np.nonzero(blocked[rows])
+        near[rows[j] // cell, i // cell] = True
+        near = ndimage.binary_dilation(near, structure=np.ones((3, 3), bool))
     near[0], near[-1], near[:, 0], near[:, -1] = True, True, True, True
     return near
 
 
-def higher_order_bound(stats, local, blocked, consts, *, cell, order=3):
+def higher_order_bound(stats, local, blocked, consts, *, cell, order=3, exposed=None):
     """Bound on abs(x2 + x3) in every pixel of each cell (module docstring), e.
 
     Parameters
@@ -273,6 +275,9 @@ def higher_order_bound(stats, local, blocked, consts, *, cell, order=3):
         Cell size (px), at least R + 2.
     order : int, optional
         Terms of the forward series.
+    exposed : ndarray of bool, optional
+        Cells near blocked pixels or the image border, if already known
+        (from ``blocked``).
 
     Returns
     -------
@@ -288,7 +293,8 @@ def higher_order_bound(stats, local, blocked, consts, *, cell, order=3):
     k1, k2 = 0.5 * a3 - 0.125, a3 - a4 - 0.125
     imax, imin, bmax = stats
     near = dict(size=3, mode="nearest")
-    exposed = _exposed_cells(blocked, cell)
+    if exposed is None:
+        exposed = _exposed_cells(blocked, cell)
 
     def p_of(hi, lo, exposed):
         # I lies in [lo, hi] (hi is max abs(I) >= max I): m = midrange
@@ -352,13 +358,16 @@ def cell_bound(img, first, sv, sh, stats, blocked, consts, *, cell, margins, thr
     stars), which read the image, b and the swept areas around them again.
     """
     coarse = coarse_stats(stats, consts)
-    bound, p_wide = higher_order_bound(stats, coarse, blocked, consts, cell=cell, order=order)
+    exposed = _exposed_cells(blocked, cell)
+    bound, p_wide = higher_order_bound(stats, coarse, blocked, consts, cell=cell, order=order,
+                                       exposed=exposed)
     flagged = bound > threshold
     if flagged.any():
         local = local_stats(img, first, sv, sh, cell=cell, margins=margins, cells=flagged)
         for name in LOCAL_STATS:
             local[name] = np.where(flagged, local[name], coarse[name])
-        fine = higher_order_bound(stats, local, blocked, consts, cell=cell, order=order)[0]
+        fine = higher_order_bound(stats, local, blocked, consts, cell=cell, order=order,
+                                  exposed=exposed)[0]
         bound = np.where(flagged, np.minimum(fine, bound), bound)
     return bound, p_wide
 
@@ -386,7 +395,9 @@ def halo_windows(active, shape, *, cell, group=6, halo=1):
         ``(box, keep)`` with ``box`` = (y0, y1, x0, x1) in pixels (clipped
         to the image) and ``keep`` the boolean mask of the window's pixels
         that take its terms (the tile's active cells). Every active cell is
-        kept by exactly one window.
+        kept by exactly one window. Windows whose common bounding box is no
+        larger than the two together are merged (their kept cells keep at
+        least their halos).
     """
     ny, nx = shape
     my, mx = active.shape
@@ -402,13 +413,53 @@ def halo_windows(active, shape, *, cell, group=6, halo=1):
             ht, hb, hl, hr = halo((cy0, cy1, cx0, cx1)) if callable(halo) else (halo,) * 4
             wy0, wy1 = max(cy0 - ht, 0), min(cy1 + hb, my)
             wx0, wx1 = max(cx0 - hl, 0), min(cx1 + hr, mx)
-            keep_cells = np.zeros((wy1 - wy0, wx1 - wx0), bool)
-            keep_cells[cy0 - wy0:cy1 - wy0, cx0 - wx0:cx1 - wx0] = \
-                active[cy0:cy1, cx0:cx1]
-            box = (wy0 * cell, min(wy1 * cell, ny), wx0 * cell, min(wx1 * cell, nx))
-            keep = np.kron(keep_cells, np.ones((cell, cell), bool))
-            out.append((box, keep[:box[1] - box[0], :box[3] - box[2]]))
-    return out
+            out.append([wy0, wy1, wx0, wx1, [(cy0, cy1, cx0, cx1)], ty // group, tx // group])
+    out = _merged(out)
+    wins = []
+    for wy0, wy1, wx0, wx1, kept in out:
+        keep_cells = np.zeros((wy1 - wy0, wx1 - wx0), bool)
+        for cy0, cy1, cx0, cx1 in kept:
+            keep_cells[cy0 - wy0:cy1 - wy0, cx0 - wx0:cx1 - wx0] = active[cy0:cy1, cx0:cx1]
+        box = (wy0 * cell, min(wy1 * cell, ny), wx0 * cell, min(wx1 * cell, nx))
+        keep = np.kron(keep_cells, np.ones((cell, cell), bool))
+        wins.append((box, keep[:box[1] - box[0], :box[3] - box[2]]))
+    return wins
+
+
+def _merged(wins):
+    """Windows of neighbouring tiles merged while the bounding box of the two
+    is no larger than they are together (a band along the image border
+    becomes one long window): first along each row of tiles, then along each
+    column of tiles for the windows still of one tile. Each merged window
+    keeps its tiles' cells and contains their windows.
+
+    ``wins``: [wy0, wy1, wx0, wx1, kept boxes, tile row, tile column].
+    """
+    def area(w):
+        return (w[1] - w[0]) * (w[3] - w[2])
+
+    def join(a, b):
+        box = [min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3])]
+        if (box[1] - box[0]) * (box[3] - box[2]) > area(a) + area(b):
+            return None
+        return box + [a[4] + b[4]]
+
+    def sweep(items, line, pos):
+        # runs of windows in consecutive tiles of one line, merged left to right
+        out = []  # (window, line, position of its last tile, first tile's (row, col))
+        for w in sorted(items, key=lambda w: (w[line], w[pos])):
+            if out and out[-1][1] == w[line] and w[pos] - out[-1][2] == 1:
+                m = join(out[-1][0], w)
+                if m is not None:
+                    out[-1] = (m, w[line], w[pos], out[-1][3])
+                    continue
+            out.append((w[:5], w[line], w[pos], (w[5], w[6])))
+        return out
+
+    rows = sweep(wins, 5, 6)
+    multi = [w for w, _, _, _ in rows if len(w[4]) > 1]
+    single = [w + list(t) for w, _, _, t in rows if len(w[4]) == 1]
+    return multi + [w for w, _, _, _ in sweep(single, 6, 5)]
 
 
 def window_sides(cells_box, bmax, p_coef, limit, *, order=3):
