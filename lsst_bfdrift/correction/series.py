@@ -375,7 +375,8 @@ def _ring_ok(term, box, shape, lim, fraction):
 
 def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, density="mean2",
                   strip=512, cell=16, dilate=1, safety=20.0, ring_fraction=0.25,
-                  max_fraction=0.5, second_tier=True, fraction=0.5, group=6, info=None,
+                  max_fraction=0.5, second_tier=True, fraction=0.5, group=6,
+                  second_max_fraction=0.75, info=None,
                   maps=None):
     """Third-order inverse series with windowed higher-order terms.
 
@@ -408,6 +409,13 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         dense solver. Images whose first-tier windows pass are not affected.
     fraction, group
         See :mod:`lsst_bfdrift.correction.tiles`.
+    second_max_fraction : float, optional
+        Largest area of the second tier's windows (they may overlap), as a
+        fraction of the image's; beyond it the dense solver is used.
+        Windows over the whole image would cost about two to three
+        first-order passes, the dense series about four (on the crowded field
+        of ``benchmarks/profile_drift.py``), hence a larger limit than the
+        first tier's.
     info : dict, optional
         Filled with ``windows`` (number), ``window_fraction`` (of the image
         area), ``dilate`` (cells used), ``tier`` (1 or 2; 2: the second tier,
@@ -498,7 +506,7 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         wins = halo_windows(act[:rows - 2], (k - 2 * cell, img.shape[1]), cell=cell,
                             group=group, halo=sides)
         area = sum((y1 - y0) * (x1 - x0) for (y0, y1, x0, x1), _ in wins)
-        return area > max_fraction * (k - 2 * cell) * img.shape[1]
+        return area > second_max_fraction * (k - 2 * cell) * img.shape[1]
 
     terms = first_order_terms(img, blocked, ops, strip=strip, cubic=cubic, stop=stop, cell=cell,
                               maps=maps)
@@ -518,7 +526,7 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
                 return _second_tier(img, blocked, ops, out, sv, sh, stats, _tier2_active,
                                     window_limit, cell=cell, group=group, order=order,
                                     cubic=cubic, a3=a3, a4=a4, fraction=fraction,
-                                    max_fraction=max_fraction, info=info)
+                                    max_fraction=second_max_fraction, info=info)
             return None
         extra, x2s, x3s = _window_terms(ops, boxes, img, blocked, out, sv, sh, a3, a4, cubic)
         lims = [window_limit(*bx) for bx in boxes]
@@ -555,8 +563,8 @@ def _second_tier(img, blocked, ops, out, sv, sh, stats, tier2_active, window_lim
     info.update(tier=2, windows=len(boxes), window_fraction=frac,
                 active_fraction=float(act.mean()))
     if frac > max_fraction:
-        info["reason"] = (f"first-tier windows cover more than {max_fraction:.0%} of the "
-                          f"image, second-tier windows {frac:.0%}")
+        info["reason"] = (f"first-tier windows cover more than half of the image, "
+                          f"second-tier windows {frac:.0%} (at most {max_fraction:.0%})")
         return None
     if not boxes:
         info["reason"] = None

@@ -135,10 +135,21 @@ def test_refined_bound_lies_between_the_terms_and_the_coarse_bound(field, templa
     assert np.mean(bound[flagged] < 0.9 * b_coarse[flagged]) > 0.5
     assert np.array_equal(bound[~flagged], b_coarse[~flagged])
     assert np.all(_cells(np.abs(x2 + x3)).max(axis=(1, 3)) <= bound)
-    part = T.local_stats(img, first, sv, sh, cell=CELL, margins=MARGINS, cells=flagged)
-    for name in T.LOCAL_STATS:
-        assert np.array_equal(part[name][flagged], local[name][flagged])
-        assert np.all(np.isnan(part[name][~flagged]))
+    # a few cells: read pixel by pixel; all of them: by blocks of 4 x 4 px
+    # with the margins rounded up to multiples of 4 (equal for such margins)
+    few = np.zeros(flagged.shape, bool)
+    few.flat[::23] = True
+    for margins in (MARGINS, (4, 12, 24)):
+        part = T.local_stats(img, first, sv, sh, cell=CELL, margins=margins, cells=few)
+        full = T.local_stats(img, first, sv, sh, cell=CELL, margins=margins)
+        for name in T.LOCAL_STATS:
+            assert np.all(np.isnan(part[name][~few]))
+            if margins == MARGINS and name != "imin":
+                assert np.all(full[name][few] >= part[name][few])
+            elif margins == MARGINS:
+                assert np.all(full[name][few] <= part[name][few])
+            else:
+                assert np.array_equal(full[name][few], part[name][few])
     with pytest.raises(InputError, match="margins must be increasing"):
         T.local_stats(img, first, sv, sh, cell=CELL, margins=(4, 22, 11))
 
@@ -213,7 +224,7 @@ def _forced_second_tier(img, blocked, template, monkeypatch, **kw):
     eff, blk = np.where(np.isfinite(img), img, 0.0), blocked | ~np.isfinite(img)
     info = {}
     out = S.sparse_series(eff, blk, ops, noise_tol=NOISE_TOL, density="fv4", strip=None,
-                          max_fraction=1.5, info=info, **kw)
+                          max_fraction=1.5, second_max_fraction=1.5, info=info, **kw)
     return out, info
 
 
@@ -242,7 +253,7 @@ def test_second_tier_declines_what_it_cannot_bound(template, monkeypatch):
     """A flat too small for its interior to outweigh its border: the second
     tier's windows would cover the image, and the dense solver is asked for."""
     out, info = _forced_second_tier(flat(64), np.zeros((64, 64), bool), template, monkeypatch)
-    assert out is not None and info["window_fraction"] > 0.5  # max_fraction 1.5 here
+    assert out is not None and info["window_fraction"] > 0.75  # up to 1.5 allowed here
     ops = OperatorCache(template, dtype=np.float32)
     info = {}
     assert S.sparse_series(flat(96), np.zeros((96, 96), bool), ops, noise_tol=NOISE_TOL,
