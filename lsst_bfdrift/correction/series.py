@@ -38,9 +38,13 @@ beyond it (same bound). Each window is solved with its border edges closed
 checks guard the truncation: the computed terms within 2..5 pixels of a
 window's border must be below ``ring_fraction`` x limit (else all windows
 grow by one cell, at most twice), and the a-priori fourth-order estimate of
-the dense solver must pass in every window. When a check fails or the
-windows would cover more than ``max_fraction`` of the image,
+the dense solver must pass in every window. When a check fails,
 :func:`sparse_series` returns None and the caller uses the dense solver.
+When the windows would cover more than ``max_fraction`` of the image (a
+bright flat, a crowded field), a second tier takes over
+(:mod:`lsst_bfdrift.correction.tiles`: a tighter per-cell bound and
+overlapping windows with a halo) unless its windows would cover more than
+``second_max_fraction`` of it.
 """
 
 import numba
@@ -376,8 +380,7 @@ def _ring_ok(term, box, shape, lim, fraction):
 def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, density="mean2",
                   strip=512, cell=16, dilate=1, safety=20.0, ring_fraction=0.25,
                   max_fraction=0.5, second_tier=True, fraction=0.5, group=6,
-                  second_max_fraction=0.75, info=None,
-                  maps=None):
+                  second_max_fraction=0.75, info=None, maps=None):
     """Third-order inverse series with windowed higher-order terms.
 
     Parameters
@@ -563,8 +566,8 @@ def _second_tier(img, blocked, ops, out, sv, sh, stats, tier2_active, window_lim
     info.update(tier=2, windows=len(boxes), window_fraction=frac,
                 active_fraction=float(act.mean()))
     if frac > max_fraction:
-        info["reason"] = (f"first-tier windows cover more than half of the image, "
-                          f"second-tier windows {frac:.0%} (at most {max_fraction:.0%})")
+        info["reason"] = (f"second-tier windows cover {frac:.0%} of the image (at most "
+                          f"{max_fraction:.0%})")
         return None
     if not boxes:
         info["reason"] = None
