@@ -351,6 +351,17 @@ def _nice(n):
     return m
 
 
+def _dilated_area(active, shape, cell, dilate):
+    """Pixels of the active cells dilated by ``dilate`` cells (the part of the
+    image the first tier's windows cover at least)."""
+    grown = ndimage.binary_dilation(active, structure=np.ones((3, 3), bool),
+                                    iterations=int(dilate)) if dilate > 0 else active
+    ny, nx = shape
+    rows = np.minimum(cell, ny - cell * np.arange(grown.shape[0]))
+    cols = np.minimum(cell, nx - cell * np.arange(grown.shape[1]))
+    return float(rows @ grown.astype(float) @ cols)
+
+
 def _padded(n):
     """Window side for the second tier: :func:`_nice` up to 256 px, then the
     next multiple of 128 px (long windows along a flat's border)."""
@@ -520,9 +531,15 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
     out, sv, sh, stats = terms
     act = active(stats)
     for grow in range(3):
-        boxes = window_boxes(act, img.shape, cell=cell, dilate=dilate + grow)
-        frac = sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in boxes) / img.size
-        info.update(windows=len(boxes), window_fraction=frac, dilate=dilate + grow, tier=1)
+        # the boxes cover the dilated active cells without overlapping: when
+        # those alone exceed max_fraction (a crowded field), so do the boxes
+        floor = _dilated_area(act, img.shape, cell, dilate + grow) / img.size
+        boxes = (window_boxes(act, img.shape, cell=cell, dilate=dilate + grow)
+                 if floor <= max_fraction or not second_tier else None)
+        frac = floor if boxes is None else \
+            sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in boxes) / img.size
+        info.update(windows=None if boxes is None else len(boxes), window_fraction=frac,
+                    dilate=dilate + grow, tier=1)
         if frac > max_fraction:
             info["reason"] = f"windows cover {frac:.0%} of the image"
             if second_tier:

@@ -300,3 +300,17 @@ def test_bad_options(template, kw, match):
     with pytest.raises(InputError, match=match):
         S.sparse_series(np.ones((64, 64)), np.zeros((64, 64), bool), ops, noise_tol=0.05,
                         **kw)
+
+
+def test_first_tier_area_floor(rng):
+    """The dilated active cells' area, which lets the first tier skip forming
+    windows bound to exceed max_fraction, never exceeds its windows' area."""
+    for _ in range(30):
+        shape = (int(rng.integers(40, 300)), int(rng.integers(40, 300)))
+        act = rng.random((-(-shape[0] // CELL), -(-shape[1] // CELL))) < 0.1
+        boxes = S.window_boxes(act, shape, cell=CELL, dilate=1)
+        grown = ndimage.binary_dilation(act, structure=np.ones((3, 3), bool))
+        pixels = np.kron(grown, np.ones((CELL, CELL), bool))[:shape[0], :shape[1]].sum()
+        floor = S._dilated_area(act, shape, CELL, 1)
+        assert floor == pixels
+        assert floor <= sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in boxes)
