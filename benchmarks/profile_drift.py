@@ -129,8 +129,8 @@ def main():
     kw = dict(density="fv4", noise_tol=0.05, start="series", dtype=np.float32, strip=512,
               workers=2)
     wrapped3 = {"first-order pass": (S, "first_order_terms"),
-                "second-tier statistics": (S, "local_stats"),
-                "second-tier bound": (S, "higher_order_bound"),
+                "second-tier bound": (S, "cell_bound"),
+                "second tier (bound, windows and the rest)": (S, "_second_tier"),
                 "windows": (S, "_window_terms"), "dense series": (C, "_series_block")}
     orig3 = {k: getattr(m, v) for k, (m, v) in wrapped3.items()}
 

@@ -474,7 +474,7 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
     r_k = ops.template.size // 2 + 1
     margins = (4, r_k, 2 * r_k)
 
-    def _tier2_active(stats, arrays, blk):
+    def _tier2_active(stats, arrays, blk, refine=True):
         # cells whose higher orders may exceed fraction x the tolerance (rows
         # of blk: those of the statistics)
         k = blk.shape[0]
@@ -484,7 +484,7 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         lmin = ndimage.minimum_filter(lmin, size=3, mode="nearest")
         bound, p_coef = cell_bound(img[:k], first_[:k], sv_[:k], sh_[:k + 1], stats, blk,
                                    consts, cell=cell, margins=margins, order=order,
-                                   threshold=fraction * lmin)
+                                   threshold=fraction * lmin, refine=refine)
         return bound > fraction * lmin, p_coef, lmin
 
     checked = []
@@ -503,16 +503,16 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
             return False
         if not second_tier:
             return True
-        # the second tier on the cell rows done but the last (the swept
-        # areas of its top edges are not all there yet); its windows counted
-        # on those rows but the last two (which the bound takes for the
-        # image border)
+        # the second tier's coarse bound on the cell rows done but the last
+        # (the swept areas of its top edges are not all there yet); its
+        # windows counted on those rows but the last two (which the bound
+        # takes for the image border)
         rows -= 1
         if rows < 4:
             return True
         k = rows * cell
         part = tuple(x[:rows] for x in stats)
-        act, p_coef, lmin = _tier2_active(part, arrays, blocked[:k])
+        act, p_coef, lmin = _tier2_active(part, arrays, blocked[:k], refine=False)
 
         def sides(cells_box):
             return window_sides(cells_box, part[2], p_coef, fraction * lmin, order=order)[0]

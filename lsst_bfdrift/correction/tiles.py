@@ -377,7 +377,7 @@ def higher_order_bound(stats, local, blocked, consts, *, cell, order=3, exposed=
 
 
 def cell_bound(img, first, sv, sh, stats, blocked, consts, *, cell, margins, threshold,
-               order=3):
+               order=3, refine=True):
     """:func:`higher_order_bound` from the cell statistics, refined with
     :func:`local_stats` in the cells where it exceeds ``threshold``.
 
@@ -399,6 +399,8 @@ def cell_bound(img, first, sv, sh, stats, blocked, consts, *, cell, margins, thr
         Per cell (e).
     order : int, optional
         Terms of the forward series.
+    refine : bool, optional
+        False: the coarse bound alone (an estimate of the windows to come).
 
     Returns
     -------
@@ -418,7 +420,7 @@ def cell_bound(img, first, sv, sh, stats, blocked, consts, *, cell, margins, thr
     bound, p_wide = higher_order_bound(stats, coarse, blocked, consts, cell=cell, order=order,
                                        exposed=exposed)
     flagged = bound > threshold
-    if flagged.any():
+    if refine and flagged.any():
         local = local_stats(img, first, sv, sh, cell=cell, margins=margins, cells=flagged)
         for name in LOCAL_STATS:
             local[name] = np.where(flagged, local[name], coarse[name])

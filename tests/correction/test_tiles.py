@@ -129,6 +129,9 @@ def test_refined_bound_lies_between_the_terms_and_the_coarse_bound(field, templa
                             margins=MARGINS, threshold=lim)
     flagged = b_coarse > lim
     assert 0 < flagged.sum() < flagged.size
+    assert np.array_equal(T.cell_bound(img, first, sv, sh, stats, blk, consts, cell=CELL,
+                                       margins=MARGINS, threshold=lim, refine=False)[0],
+                          b_coarse)
     # refined where flagged (their neighbours' swept areas keep the coarse maxima)
     assert np.all(bound[flagged] >= b_local[flagged] * (1 - 1e-12))
     assert np.all(bound[flagged] <= b_coarse[flagged])
