@@ -88,7 +88,7 @@ ROUNDING_MARGIN = 1.05
 
 
 def bound_constants(template, density):
-    """K, A and W of the bound (module docstring).
+    """K, A, W and S0 of the bound (module docstring, :func:`coarse_stats`).
 
     Parameters
     ----------
