@@ -226,8 +226,9 @@ def _forced_second_tier(img, blocked, template, monkeypatch, **kw):
     ops = OperatorCache(template, dtype=np.float32)
     eff, blk = np.where(np.isfinite(img), img, 0.0), blocked | ~np.isfinite(img)
     info = {}
-    out = S.sparse_series(eff, blk, ops, noise_tol=NOISE_TOL, density="fv4", strip=None,
-                          max_fraction=1.5, second_max_fraction=1.5, info=info, **kw)
+    kw = {"noise_tol": NOISE_TOL, **kw}
+    out = S.sparse_series(eff, blk, ops, density="fv4", strip=None, max_fraction=1.5,
+                          second_max_fraction=1.5, info=info, **kw)
     return out, info
 
 
@@ -250,6 +251,20 @@ def test_second_tier_within_half_the_tolerance(field, template, monkeypatch):
     assert dev.max() <= 0.5
     assert dev.max() > 1e-3  # terms were left out
     assert abs(out.sum() - dense.sum()) <= 0.5 * lim[dev > 1e-6].sum()
+
+
+def test_second_tier_with_one_tolerance(template, monkeypatch):
+    """With ``rtol`` (one tolerance for every pixel) instead of the noise:
+    within half of it of the dense series."""
+    img = crowded(512)
+    blk = np.zeros(img.shape, bool)
+    rtol = 1e-5
+    dense, _, _ = C.correct_image(img, template, density="fv4", rtol=rtol, start="series",
+                                  dtype=np.float32)
+    out, info = _forced_second_tier(img, blk, template, monkeypatch, rtol=rtol,
+                                    noise_tol=None)
+    assert info["tier"] == 2 and info["reason"] is None, info
+    assert 0.0 < np.abs(out - dense).max() <= 0.5 * rtol * img.max()
 
 
 def test_second_tier_declines_what_it_cannot_bound(template, monkeypatch):
