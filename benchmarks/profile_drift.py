@@ -10,8 +10,10 @@ in-process figures on the same 4096 x 4096 field (sky 1200 e, 400 stars):
    statistics), the activity test and the windows, median of five calls,
    with the number of windows and the fraction of the image they cover, and
    the astier23 pass alone (``correct_half_shift``) in the same loop;
-3. a bright flat (1e5 e, 2048 x 2048): the dense series alone against the
-   windowed attempt that gives up and falls back to it;
+3. the crowded field (4000 stars) and the 1e5 e flat of ``bench_task.py``:
+   the windowed series (first tier, then the second,
+   :mod:`lsst_bfdrift.correction.tiles`, or the dense fallback) split into
+   its parts, against the astier23 pass and the dense series;
 4. the compiled edge transfer on a 64 x 64 window, one thread against the
    parallel kernel (median per call).
 
@@ -30,6 +32,7 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
+sys.path.insert(0, HERE)
 
 from lsst_bfdrift.utils.io import write_text  # noqa: E402
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
@@ -119,21 +122,60 @@ def main():
                  + f"; {info['windows']} windows covering {100 * info['window_fraction']:.1f} %"
                  f" of the image; astier23 pass alone (correct_half_shift) {np.median(half):.3f} s"
                  f" (ratio {np.median(totals) / np.median(half):.2f}x)")
-    # 3. bright flat: fallback cost
-    rng = np.random.default_rng(2)
-    flat = rng.poisson(1e5, (2048, 2048)).astype(float)
+    # 3. crowded field and bright flat (bench_task.py's): where the time goes
+    from bench_task import star_field as bench_field
+    fields = {"crowded field (4000 stars)": bench_field(4096, 4000, seed=2),
+              "flat 1e5 e": np.random.default_rng(3).poisson(1e5, (4096, 4096)).astype(float)}
     kw = dict(density="fv4", noise_tol=0.05, start="series", dtype=np.float32, strip=512,
-              workers=2, cache=OperatorCache(t, workers=2, dtype=np.float32))
-    C.correct_image(flat, t, **kw)
-    dense, attempt = [], []
-    for _ in range(3):
-        dense.append(timed(C.correct_image, flat, t, **kw)[1])
-        info = {}
-        attempt.append(timed(C.correct_image, flat, t, sparse=True, info=info, **kw)[1])
-    lines.append(f"3. flat 1e5 e, 2048 x 2048: dense series {np.median(dense):.3f} s, windowed "
-                 f"attempt + fallback {np.median(attempt):.3f} s "
-                 f"({np.median(attempt) / np.median(dense):.2f}x; solver {info['solver']}: "
-                 f"{info['reason']})")
+              workers=2)
+    wrapped3 = {"first-order pass": (S, "first_order_terms"),
+                "second-tier bound": (S, "cell_bound"),
+                "second tier (bound, windows and the rest)": (S, "_second_tier"),
+                "windows": (S, "_window_terms"), "dense series": (C, "_series_block")}
+    orig3 = {k: getattr(m, v) for k, (m, v) in wrapped3.items()}
+
+    def wrap3(name):
+        def g(*a, **k):
+            out, dt = timed(orig3[name], *a, **k)
+            acc[name] = acc.get(name, 0.0) + dt
+            return out
+        return g
+
+    for k, (m, v) in wrapped3.items():
+        setattr(m, v, wrap3(k))
+    try:
+        for title, field in fields.items():
+            cache = OperatorCache(t, workers=2, dtype=np.float32)
+            C.correct_image(field, t, sparse=True, cache=cache, **kw)  # operators built
+            C.correct_half_shift(field, t, workers=2, dtype=np.float32, strip=512, cache=cache)
+            sparse, half, dense, parts3 = [], [], [], {k: [] for k in wrapped3}
+            for _ in range(3):
+                acc.clear()
+                info = {}
+                sparse.append(timed(C.correct_image, field, t, sparse=True, cache=cache,
+                                    info=info, **kw)[1])
+                for k in wrapped3:
+                    parts3[k].append(acc.get(k, 0.0))
+                half.append(timed(C.correct_half_shift, field, t, workers=2,
+                                  dtype=np.float32, strip=512, cache=cache)[1])
+                dense.append(timed(C.correct_image, field, t, cache=cache, **kw)[1])
+            h = np.median(half)
+            lines.append(
+                f"3. {title}, 4096 x 4096, median of 3 calls: drift (windowed, solver "
+                f"{info['solver']}, tier {info.get('tier')}) {np.median(sparse):.3f} s = "
+                f"{np.median(sparse) / h:.2f}x the astier23 pass ({h:.3f} s); dense series "
+                f"{np.median(dense):.3f} s = {np.median(dense) / h:.2f}x; of drift: "
+                + ", ".join(f"{k} {np.median(v):.3f} s" for k, v in parts3.items()
+                            if np.median(v) > 0)
+                + (f"; second tier: {100 * info['active_fraction']:.1f} % of the cells "
+                   f"active, {info['windows']} windows covering "
+                   f"{100 * info['window_fraction']:.1f} % of the image"
+                   if info.get("tier") == 2 and info.get("window_fraction") is not None
+                   else "")
+                + (f" ({info['reason']})" if info.get("reason") else ""))
+    finally:
+        for k, (m, v) in wrapped3.items():
+            setattr(m, v, orig3[k])
     # 4. small-window edge transfer, one thread against the parallel kernel
     rng = np.random.default_rng(3)
     f = rng.uniform(0, 1e4, (64, 64))

@@ -23,7 +23,8 @@ from lsst_bfdrift.utils.config import config_from_dict
 from lsst_bfdrift.utils.progress import ProgressBar, StageProgress
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["correct_file", "correct_files", "output_pairs", "stage_weights"]
+__all__ = ["correct_file", "correct_files", "output_pairs", "stage_weights",
+           "STAGE_SECONDS"]
 
 
 def output_pairs(inputs, out_dir):
@@ -37,13 +38,24 @@ def output_pairs(inputs, out_dir):
     return pairs
 
 
+#: Seconds per stage of :func:`correct_file` on a 4096 x 4096 field with 400
+#: stars, without maps, with the linear maps and with the exact ones (2 shared
+#: cores; ``python benchmarks/stage_timings.py``,
+#: ``benchmarks/stage_timings_results.txt``). Each stage runs from the previous
+#: stage's end: ``correct`` (or ``maps`` for the exact ones) includes the Task's
+#: input checks, ``correct`` with the linear maps their first-order part.
+STAGE_SECONDS = {
+    "none": {"read": 0.05, "correct": 1.44, "maps": 0.0, "write": 0.43},
+    "linear": {"read": 0.05, "correct": 2.46, "maps": 0.72, "write": 2.10},
+    "exact": {"read": 0.06, "correct": 0.91, "maps": 9.33, "write": 2.08},
+}
+
+
 def stage_weights(config=None):
     """Shares of one file's time in each stage of :func:`correct_file`.
 
-    Measured on a 4096 x 4096 field with 400 stars (``bfdrift correct``, 2
-    shared cores, 24 s): read 0.8 s, maps 19 s, correct 2.3 s, write 2.1 s;
-    the exact maps (``geometry_method='exact'``) take about twice the linear
-    ones. The stages come in the order they run
+    The measured seconds of :data:`STAGE_SECONDS` for the configuration's
+    maps (none, linear or exact). The stages come in the order they run
     (:func:`~lsst_bfdrift.correction.task.stage_order`): the exact maps
     before the correction, the linear ones after it (from its first pass).
 
@@ -64,12 +76,12 @@ def stage_weights(config=None):
     defaults = BrighterFatterDriftConfig()
     geometry = cfg.get("compute_geometry", defaults.compute_geometry)
     exact = cfg.get("geometry_method", defaults.geometry_method) == "exact"
-    run = {"maps": (0.0 if not geometry else 38.0 if exact else 19.0), "correct": 2.3}
+    run = STAGE_SECONDS["none" if not geometry else "exact" if exact else "linear"]
     order = stage_order(cfg)
-    weights = {"read": 0.8}
+    weights = {"read": run["read"]}
     weights.update((stage, run[stage]) for stage in order)
-    weights.update((stage, w) for stage, w in run.items() if stage not in order)
-    weights["write"] = 2.1
+    weights.update((stage, run[stage]) for stage in ("correct", "maps") if stage not in order)
+    weights["write"] = run["write"]
     return weights
 
 

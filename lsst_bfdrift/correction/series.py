@@ -38,9 +38,13 @@ beyond it (same bound). Each window is solved with its border edges closed
 checks guard the truncation: the computed terms within 2..5 pixels of a
 window's border must be below ``ring_fraction`` x limit (else all windows
 grow by one cell, at most twice), and the a-priori fourth-order estimate of
-the dense solver must pass in every window. When a check fails or the
-windows would cover more than ``max_fraction`` of the image,
+the dense solver must pass in every window. When a check fails,
 :func:`sparse_series` returns None and the caller uses the dense solver.
+When the windows would cover more than ``max_fraction`` of the image (a
+bright flat, a crowded field), a second tier takes over
+(:mod:`lsst_bfdrift.correction.tiles`: a tighter per-cell bound and
+overlapping windows with a halo) unless its windows would cover more than
+``second_max_fraction`` of it.
 """
 
 import numba
@@ -48,6 +52,8 @@ import numpy as np
 from scipy import ndimage
 
 from lsst_bfdrift.correction._edge_kernels import _fused_serial, density_weight, fused_transfer
+from lsst_bfdrift.correction.tiles import (bound_constants, cell_bound, halo_windows,
+                                           window_sides)
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["first_order_terms", "active_cells", "active_from_stats", "tolerance", "window_boxes",
@@ -72,9 +78,10 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=
     cubic : bool or str
         Edge flux density (see :func:`lsst_bfdrift.correction._edge_kernels.fused_transfer`).
     stop : callable, optional
-        Called as ``stop(r1, stats)`` after each block (rows ``0..r1-1``
-        done; ``stats`` as returned, None without ``cell``); when it returns
-        True the work is abandoned and None returned.
+        Called as ``stop(r1, stats, (first, sv, sh))`` after each block (rows
+        ``0..r1-1`` of ``first`` and ``sv`` done, of ``sh`` rows ``0..r1-1``;
+        ``stats`` as returned, None without ``cell``); when it returns True
+        the work is abandoned and None returned.
     keep_swept : bool, optional
         Keep the swept areas (False: ``sv`` and ``sh`` are returned as None;
         the astier23 pass needs only ``first``).
@@ -133,7 +140,7 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=
         # bsv, bsh, bb (and the maps' fields) stay alive until the next block
         # has allocated its own: freed first, their memory would go back to
         # the system and be page-faulted in again (docs/benchmarks.rst)
-        if stop is not None and r1 < ny and stop(r1, stats):
+        if stop is not None and r1 < ny and stop(r1, stats, (first, sv, sh)):
             return None
     return first, sv, sh, stats
 
@@ -273,12 +280,14 @@ def apriori_ok(x2, x3, limit):
     return bool(np.all(4.0 * r * ndimage.maximum_filter(a3, size=5, mode="nearest") <= limit))
 
 
-def _window_terms(ops, boxes, img, blk, first, sv, sh, a3, a4, cubic):
+def _window_terms(ops, boxes, img, blk, first, sv, sh, a3, a4, cubic, *, pad=None):
     """Per window: the terms beyond first order (c/4 + (1/4 - a3) d + x3),
-    x2 and x3, in ``boxes`` order."""
+    x2 and x3, in ``boxes`` order; each window zero-padded to the shape
+    ``pad(h, w)`` (default: :func:`_nice` of each side)."""
+    pad = (lambda h, w: (_nice(h), _nice(w))) if pad is None else pad
     groups = {}
     for k, (y0, y1, x0, x1) in enumerate(boxes):
-        groups.setdefault((_nice(y1 - y0), _nice(x1 - x0)), []).append(k)
+        groups.setdefault(pad(y1 - y0, x1 - x0), []).append(k)
     extra, x2s, x3s = [None] * len(boxes), [None] * len(boxes), [None] * len(boxes)
     k1 = 0.5 * a3 - 0.125
     w = density_weight(cubic)
@@ -342,6 +351,23 @@ def _nice(n):
     return m
 
 
+def _dilated_area(active, shape, cell, dilate):
+    """Pixels of the active cells dilated by ``dilate`` cells (the part of the
+    image the first tier's windows cover at least)."""
+    grown = ndimage.binary_dilation(active, structure=np.ones((3, 3), bool),
+                                    iterations=int(dilate)) if dilate > 0 else active
+    ny, nx = shape
+    rows = np.minimum(cell, ny - cell * np.arange(grown.shape[0]))
+    cols = np.minimum(cell, nx - cell * np.arange(grown.shape[1]))
+    return float(rows @ grown.astype(float) @ cols)
+
+
+def _padded(n):
+    """Window side for the second tier: :func:`_nice` up to 256 px, then the
+    next multiple of 128 px (long windows along a flat's border)."""
+    return _nice(n) if n <= 256 else -(-n // 128) * 128
+
+
 def _ring_ok(term, box, shape, lim, fraction):
     """Computed terms 2..5 px inside the window's border (image borders
     excepted) are below ``fraction`` x the tolerance ``lim`` (window)."""
@@ -364,7 +390,8 @@ def _ring_ok(term, box, shape, lim, fraction):
 
 def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, density="mean2",
                   strip=512, cell=16, dilate=1, safety=20.0, ring_fraction=0.25,
-                  max_fraction=0.5, info=None, maps=None):
+                  max_fraction=0.5, second_tier=True, fraction=0.5, group=6,
+                  second_max_fraction=0.75, info=None, maps=None):
     """Third-order inverse series with windowed higher-order terms.
 
     Parameters
@@ -387,9 +414,27 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         Rows per block of the first operator application.
     cell, dilate, safety, ring_fraction, max_fraction
         See the module docstring.
+    second_tier : bool, optional
+        Where the windows would cover more than ``max_fraction`` of the
+        image, bound the higher orders cell by cell with the tighter bound of
+        :mod:`lsst_bfdrift.correction.tiles` and compute them in windows with
+        a halo around the cells where that bound exceeds ``fraction`` x the
+        tolerance (``group``: cells per tile side), before giving up for the
+        dense solver. Images whose first-tier windows pass are not affected.
+    fraction, group
+        See :mod:`lsst_bfdrift.correction.tiles`.
+    second_max_fraction : float, optional
+        Largest area of the second tier's windows (they may overlap), as a
+        fraction of the image's; beyond it the dense solver is used.
+        Windows over the whole image would cost about two to three
+        first-order passes, the dense series about four (on the crowded field
+        of ``benchmarks/profile_drift.py``), hence a larger limit than the
+        first tier's.
     info : dict, optional
         Filled with ``windows`` (number), ``window_fraction`` (of the image
-        area), ``dilate`` (cells used) and ``reason`` (why None was returned).
+        area), ``dilate`` (cells used), ``tier`` (1 or 2; 2: the second tier,
+        with ``active_fraction``, the fraction of the cells it computes) and
+        ``reason`` (why None was returned).
     maps : FirstOrderPass, optional
         Filled by the first-order pass (:func:`first_order_terms`);
         incomplete when that pass stops early.
@@ -406,6 +451,10 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
     reach = (ops.template.size + 1) // 2 + 3
     if cell < reach:
         raise InputError(f"cell must be at least {reach} px for this template, got {cell}")
+    if not 0.0 < fraction <= 1.0:
+        raise InputError(f"fraction must be in (0, 1] (of the tolerance), got {fraction}")
+    if int(group) < 1:
+        raise InputError(f"group must be at least 1 cell, got {group}")
     scalar = None if noise_tol is not None else rtol * max(np.abs(img).max(), 1e-300)
 
     def window_limit(y0, y1, x0, x1):
@@ -419,9 +468,28 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         return active_from_stats(*stats, ops.kernel_abs_sum, noise_tol=noise_tol, limit=scalar,
                                  safety=safety)
 
+    consts = bound_constants(ops.template, density) if second_tier else None
+    # reach of the swept-area kernels: the transfer at a pixel depends on
+    # the charge within R px
+    r_k = ops.template.size // 2 + 1
+    margins = (4, r_k, 2 * r_k)
+
+    def _tier2_active(stats, arrays, blk, refine=True):
+        # cells whose higher orders may exceed fraction x the tolerance (rows
+        # of blk: those of the statistics)
+        k = blk.shape[0]
+        first_, sv_, sh_ = arrays
+        lmin = (tolerance(stats[1], noise_tol) if scalar is None
+                else np.full(stats[1].shape, scalar))
+        lmin = ndimage.minimum_filter(lmin, size=3, mode="nearest")
+        bound, p_coef = cell_bound(img[:k], first_[:k], sv_[:k], sh_[:k + 1], stats, blk,
+                                   consts, cell=cell, margins=margins, order=order,
+                                   threshold=fraction * lmin, refine=refine)
+        return bound > fraction * lmin, p_coef, lmin
+
     checked = []
 
-    def stop(r1, stats):
+    def stop(r1, stats, arrays):
         # the windows cover at least the active cells: when the first quarter
         # of the rows shows more than max_fraction of them active (a flat, a
         # crowded field), the dense solver will be needed; stop early (one
@@ -430,22 +498,55 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         if checked or rows * cell < ny // 4:
             return False
         checked.append(rows)
-        return active(tuple(x[:rows] for x in stats)).mean() > max_fraction
+        part = tuple(x[:rows] for x in stats)
+        if active(part).mean() <= max_fraction:
+            return False
+        if not second_tier:
+            return True
+        # the second tier's coarse bound on the cell rows done but the last
+        # (the swept areas of its top edges are not all there yet); its
+        # windows counted on those rows but the last two (which the bound
+        # takes for the image border)
+        rows -= 1
+        if rows < 4:
+            return True
+        k = rows * cell
+        part = tuple(x[:rows] for x in stats)
+        act, p_coef, lmin = _tier2_active(part, arrays, blocked[:k], refine=False)
+
+        def sides(cells_box):
+            return window_sides(cells_box, part[2], p_coef, fraction * lmin, order=order)[0]
+
+        wins = halo_windows(act[:rows - 2], (k - 2 * cell, img.shape[1]), cell=cell,
+                            group=group, halo=sides)
+        area = sum((y1 - y0) * (x1 - x0) for (y0, y1, x0, x1), _ in wins)
+        return area > second_max_fraction * (k - 2 * cell) * img.shape[1]
 
     terms = first_order_terms(img, blocked, ops, strip=strip, cubic=cubic, stop=stop, cell=cell,
                               maps=maps)
     if terms is None:
-        info.update(windows=None, window_fraction=None, dilate=dilate,
+        info.update(windows=None, window_fraction=None, dilate=dilate, tier=1,
                     reason=f"more than {max_fraction:.0%} of the cells need the higher orders")
         return None
     out, sv, sh, stats = terms
     act = active(stats)
     for grow in range(3):
-        boxes = window_boxes(act, img.shape, cell=cell, dilate=dilate + grow)
-        frac = sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in boxes) / img.size
-        info.update(windows=len(boxes), window_fraction=frac, dilate=dilate + grow)
+        # the boxes cover the dilated active cells without overlapping: when
+        # those alone exceed max_fraction (a crowded field), so do the boxes
+        floor = _dilated_area(act, img.shape, cell, dilate + grow) / img.size
+        boxes = (window_boxes(act, img.shape, cell=cell, dilate=dilate + grow)
+                 if floor <= max_fraction or not second_tier else None)
+        frac = floor if boxes is None else \
+            sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in boxes) / img.size
+        info.update(windows=None if boxes is None else len(boxes), window_fraction=frac,
+                    dilate=dilate + grow, tier=1)
         if frac > max_fraction:
             info["reason"] = f"windows cover {frac:.0%} of the image"
+            if second_tier:
+                return _second_tier(img, blocked, ops, out, sv, sh, stats, _tier2_active,
+                                    window_limit, cell=cell, group=group, order=order,
+                                    cubic=cubic, a3=a3, a4=a4, fraction=fraction,
+                                    max_fraction=second_max_fraction, info=info)
             return None
         extra, x2s, x3s = _window_terms(ops, boxes, img, blocked, out, sv, sh, a3, a4, cubic)
         lims = [window_limit(*bx) for bx in boxes]
@@ -460,5 +561,44 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
             info["reason"] = "fourth-order estimate above the tolerance"
             return None
         out[y0:y1, x0:x1] += e
+    info["reason"] = None
+    return out
+
+
+def _second_tier(img, blocked, ops, out, sv, sh, stats, tier2_active, window_limit, *, cell,
+                 group, order, cubic, a3, a4, fraction, max_fraction, info):
+    """The higher orders in windows with a halo around the cells where the
+    bound of :mod:`lsst_bfdrift.correction.tiles` exceeds ``fraction`` x the
+    tolerance; ``out`` (the first-order image) completed in place, or None
+    (``info['reason']``) when the windows would cover more than
+    ``max_fraction`` of the image or the fourth-order estimate fails."""
+    act, p_coef, lmin = tier2_active(stats, (out, sv, sh), blocked)
+
+    def sides(cells_box):
+        return window_sides(cells_box, stats[2], p_coef, fraction * lmin, order=order)[0]
+
+    chosen = halo_windows(act, img.shape, cell=cell, group=group, halo=sides)
+    boxes = [box for box, _ in chosen]
+    frac = sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in boxes) / img.size
+    info.update(tier=2, windows=len(boxes), window_fraction=frac,
+                active_fraction=float(act.mean()))
+    if frac > max_fraction:
+        info["reason"] = (f"second-tier windows cover {frac:.0%} of the image (at most "
+                          f"{max_fraction:.0%})")
+        return None
+    if not boxes:
+        info["reason"] = None
+        return out
+    extra, x2s, x3s = _window_terms(ops, boxes, img, blocked, out, sv, sh, a3, a4, cubic,
+                                    pad=lambda h, w: (_padded(h), _padded(w)))
+    for k, (y0, y1, x0, x1) in enumerate(boxes):
+        if not apriori_ok(x2s[k], x3s[k], window_limit(y0, y1, x0, x1)):
+            info["reason"] = "fourth-order estimate above the tolerance"
+            return None
+    del x2s, x3s
+    for (box, keep), e in zip(chosen, extra):
+        y0, y1, x0, x1 = box
+        view = out[y0:y1, x0:x1]
+        view[keep] += e[keep]
     info["reason"] = None
     return out

@@ -2,6 +2,8 @@
 
 import io
 
+import pytest
+
 from lsst_bfdrift.utils.progress import ProgressBar
 
 
@@ -76,3 +78,20 @@ def test_stage_weights_follow_the_tasks_order():
                                                                   "write"]
     w = stage_weights({"compute_geometry": False})
     assert w["maps"] == 0.0 and w["correct"] > 0
+
+
+def test_stage_weights_are_the_measured_seconds():
+    """The weights are benchmarks/stage_timings_results.json's medians."""
+    import json
+    import os
+
+    from lsst_bfdrift.correction.batch import STAGE_SECONDS, stage_weights
+    path = os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks",
+                        "stage_timings_results.json")
+    with open(path) as fh:
+        med = json.load(fh)["medians"]
+    for mode, name in (("none", "no maps"), ("linear", "default"), ("exact", "exact maps")):
+        for stage, sec in med[name].items():
+            assert STAGE_SECONDS[mode][stage] == pytest.approx(sec, abs=0.005), (mode, stage)
+    assert stage_weights() == STAGE_SECONDS["linear"]
+    assert stage_weights({"geometry_method": "exact"}) == STAGE_SECONDS["exact"]
