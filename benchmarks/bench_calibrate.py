@@ -6,7 +6,7 @@ Two inputs, alternated, ``--repeat`` times each, medians reported:
   from its sum rule included);
 * GalSim's own a-matrix of lsst_e2v_50_8 (9 x 9 lags, 2 % errors).
 
-Each run: the candidates' Jacobian at the start, the parameter choice, the
+Each run: the candidates' Jacobian at the start (package data for the default start), the parameter choice, the
 fit, the exact template build (21 x 21 pixels, 32 samples per edge) and the
 area refinement. Prints the machine and writes
 ``benchmarks/bench_calibrate_results.txt`` / ``.json``::
