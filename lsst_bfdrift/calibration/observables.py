@@ -205,6 +205,12 @@ def _pixel_variance(mu, gain, noise):
     return np.asarray(mu, float) / gain + max(float(noise), 0.0) / gain**2
 
 
+def _pair_ratios(mu, mu1, mu2, nvalid, gain, noise):
+    """mu, r = mu2 / mu1 - 1 per pair and its shot-noise error sqrt(2 V / N) / mu."""
+    mu, mu1, mu2, n = (np.asarray(v, float) for v in (mu, mu1, mu2, nvalid))
+    return mu, mu2 / mu1 - 1.0, np.sqrt(2.0 * _pixel_variance(mu, gain, noise) / n) / mu
+
+
 def exposure_scatter(mu, mu1, mu2, nvalid, gain, noise):
     """Relative scatter of one flat's exposure (lamp, shutter) beyond shot noise.
 
@@ -229,11 +235,9 @@ def exposure_scatter(mu, mu1, mu2, nvalid, gain, noise):
         sigma_f, relative (0 when the pairs agree within shot noise or there
         are fewer than 3 pairs).
     """
-    mu, mu1, mu2, n = (np.asarray(v, float) for v in (mu, mu1, mu2, nvalid))
+    mu, r, s = _pair_ratios(mu, mu1, mu2, nvalid, gain, noise)
     if mu.size < 3:
         return 0.0
-    r = mu2 / mu1 - 1.0
-    s = np.sqrt(2.0 * _pixel_variance(mu, gain, noise) / n) / mu
     mean, _ = _wmean(r, s)
     excess = (np.sum((r - mean) ** 2) / (mu.size - 1) - np.mean(s**2)) / 2.0
     return float(np.sqrt(max(excess, 0.0)))
@@ -594,9 +598,7 @@ def pair_ratio_finding(mu, mu1, mu2, nvalid, gain, noise, *, p_threshold=1e-3):
         and ``mean_err``: weighted mean of r.
     """
     name = "pair_ratio"
-    mu, mu1, mu2, n = (np.asarray(v, float) for v in (mu, mu1, mu2, nvalid))
-    r = mu2 / mu1 - 1.0
-    s = np.sqrt(2.0 * _pixel_variance(mu, gain, noise) / n) / mu
+    mu, r, s = _pair_ratios(mu, mu1, mu2, nvalid, gain, noise)
     pull = r / s
     chi2 = float(np.sum(pull**2))
     dof = int(mu.size)
