@@ -184,7 +184,7 @@ def map_errors(img, template):
     return out
 
 
-def part1(size, repeat):
+def part1(size, repeat, load):
     from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask
     from lsst_bfdrift.templates.template import load_default_template
 
@@ -212,7 +212,8 @@ def part1(size, repeat):
                          "flat": map_errors(flat[:c, :c], t)}
     lines = [f"Part 1: {size}x{size}, one process, calls alternated, median (min-max) of "
              f"{repeat} warm calls and the first call; {os.cpu_count()} cores "
-             f"({platform.machine()}, {platform.python_version()}), shared with other jobs"]
+             f"({platform.machine()}, {platform.python_version()}); 1-min load average "
+             f"{load[0]:.2f} before, {os.getloadavg()[0]:.2f} after (1 to 2: this job alone)"]
     for field in ("field", "crowded", "flat"):
         rows = results[field]
         base = rows["astier23"]
@@ -247,6 +248,7 @@ def main():
     args = ap.parse_args()
     root = os.path.dirname(HERE)
     rows = {}
+    load = os.getloadavg()
     runs = (("astier23", "astier23", False, {}),
             ("astier23 no strips", "astier23", False, {"strip": None}),
             ("astier23 float64", "astier23", False, {"fft_precision": "float64"}),
@@ -266,7 +268,7 @@ def main():
         rows[name] = json.loads(out)
     # part 2 first: a child's ru_maxrss starts from its parent's peak, which
     # part 1's images would raise
-    alt, alt_lines = part1(args.size, args.repeat)
+    alt, alt_lines = part1(args.size, args.repeat, load)
     base = rows["astier23"]["seconds"]
     wbase = rows["astier23"]["warm_seconds"]
     lines = alt_lines + [f"Part 2: {args.size}x{args.size} image, {os.cpu_count()} cores, "
@@ -286,6 +288,8 @@ def main():
     text = "\n".join(lines) + "\n"
     print(text, end="")
     write_json(args.out + ".json", {"size": args.size, "cores": os.cpu_count(),
+                                    "load_average_before": load[0],
+                                    "load_average_after": os.getloadavg()[0],
                                     "alternated": alt, "runs": rows}, indent=2)
     write_text(args.out + ".txt", text)
 

@@ -80,27 +80,37 @@ FLAT_STEPS = 40
 STEP_FACTOR = 1.0 - 1.0 / FLAT_STEPS
 
 
+def _progress(what, t0):
+    def report(done, total):
+        print(f"  {what}: {done}/{total} pairs, {time.time() - t0:.0f} s", flush=True)
+    return report
+
+
 def flats_table(sensor, args):
     """a_ij with errors from GalSim-made flat pairs (Astier et al. 2019 fit),
     corrected for the simulation's discrete filling (:data:`STEP_FACTOR`)."""
     from lsst_bfdrift.calibration.ptc import fit_covariance_model, measure_ptc
     from lsst_bfdrift.simulation.flats import simulate_flat_pairs
 
-    path = (f"{args.pairs}_{sensor}_flats_{args.flat_size}_{args.pairs_per_level}.npz"
+    steps = args.flat_steps
+    tag = "" if steps == FLAT_STEPS else f"_{steps}"
+    path = (f"{args.pairs}_{sensor}_flats_{args.flat_size}_{args.pairs_per_level}{tag}.npz"
             if args.pairs else None)
     if path and os.path.isfile(path):
         tab = dict(np.load(path))
     else:
         levels = np.repeat(np.linspace(1e4, 9e4, 9), args.pairs_per_level)
         pairs = simulate_flat_pairs(sensor, levels, engine="galsim",
-                                    shape=(args.flat_size,) * 2, n_steps=FLAT_STEPS,
-                                    seed=zlib.crc32(sensor.encode()) % 1000)
+                                    shape=(args.flat_size,) * 2, n_steps=steps,
+                                    seed=zlib.crc32(sensor.encode()) % 1000,
+                                    progress=_progress(f"{sensor} flats", time.time()))
         tab = measure_ptc(pairs, max_lag=5)  # GalSim kernels vanish beyond lag 4
         tab = {k: np.asarray(tab[k]) for k in ("mu", "cov", "npix")}
         if path:
             np.savez(path, **tab)
     fit = fit_covariance_model(tab["mu"], tab["cov"], npix=tab["npix"])
-    return AcoeffTable(fit["a"] / STEP_FACTOR, fit["a_err"] / STEP_FACTOR,
+    factor = 1.0 - 1.0 / steps
+    return AcoeffTable(fit["a"] / factor, fit["a_err"] / factor,
                        source=f"GalSim {sensor} flats"), fit
 
 
@@ -114,8 +124,12 @@ def main(argv=None):
                     help="lags of GalSim's a-matrix given to calibrate (9: all the 21 x 21 "
                          "template holds)")
     ap.add_argument("--flats", action="store_true", help="also calibrate from GalSim flats")
+    ap.add_argument("--skip-amatrix", action="store_true",
+                    help="leave out the a-matrix route (with --flats: flats only)")
     ap.add_argument("--flat-size", type=int, default=400)
     ap.add_argument("--pairs-per-level", type=int, default=2)
+    ap.add_argument("--flat-steps", type=int, default=FLAT_STEPS,
+                    help="fill steps of each simulated flat (a_ij are divided by 1 - 1/steps)")
     ap.add_argument("--out", default=os.path.join(HERE, "calibrate_sensor_results"))
     args = ap.parse_args(argv)
     lines, out = [], {"sensors": {}}
@@ -130,7 +144,7 @@ def main(argv=None):
         a = galsim_acoeffs(sensor, args.amatrix_lags)
         table = AcoeffTable(a, 0.02 * np.abs(a) + 1e-10, source=f"GalSim {sensor} a-matrix")
         templates = {}
-        routes = [("a-matrix", lambda: (table, None))]
+        routes = [] if args.skip_amatrix else [("a-matrix", lambda: (table, None))]
         if args.flats:
             routes.append(("flats", lambda: flats_table(sensor, args)))
         for route, get in routes:

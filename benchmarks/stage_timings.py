@@ -80,7 +80,7 @@ def main():
     lines = [f"correct_file on a 4096 x 4096 float32 FITS file (400 stars), median of "
              f"{args.repeat} runs per configuration, alternated, after a warm-up; "
              f"{os.cpu_count()} cores ({platform.machine()}, {platform.python_version()}), "
-             "shared with other jobs"]
+             f"1-min load average {os.getloadavg()[0]:.2f} at the end (1 to 2: this job alone)"]
     for name, st in med.items():
         lines.append(f"  {name:10s} " + "  ".join(f"{k} {v:6.2f} s" for k, v in st.items())
                      + f"  total {sum(st.values()):6.2f} s")

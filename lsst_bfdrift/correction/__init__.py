@@ -9,5 +9,6 @@ wires it with the geometry maps, and the batch route over many files.
 
 from lsst_bfdrift.correction.solvers import *  # noqa: F401,F403
 from lsst_bfdrift.correction.series import *  # noqa: F401,F403
+from lsst_bfdrift.correction.checks import *  # noqa: F401,F403
 from lsst_bfdrift.correction.task import *  # noqa: F401,F403
 from lsst_bfdrift.correction.batch import *  # noqa: F401,F403

@@ -132,7 +132,7 @@ def correct_file(src, dst, config=None, *, overwrite=False, progress=None):
     dict
         ``input``, ``output``, ``iterations``, ``converged``, ``layout``,
         ``warnings`` (what looked wrong with the input, see
-        :func:`~lsst_bfdrift.correction.task.input_warnings`),
+        :func:`~lsst_bfdrift.correction.checks.input_warnings`),
         ``flux_moved_sum`` and ``flux_moved_abs_sum`` (e).
     """
     from astropy.io import fits

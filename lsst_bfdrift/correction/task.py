@@ -19,7 +19,8 @@ import lsst.pex.config as pexConfig
 
 from lsst_bfdrift.utils.config import Struct, Task
 from lsst_bfdrift.utils.exposure import (BLOCKING_PLANES, MaskedExposure, add_mask_plane,
-                                         plane_mask, read_exposure, undeclared_bits)
+                                         plane_mask, read_exposure)
+from lsst_bfdrift.correction.checks import input_warnings, mask_warnings
 from lsst_bfdrift.correction.solvers import (MAX_SWEEP, area_coefficients, correct_coulton18,
                                              correct_half_shift, correct_image,
                                              coulton18_kernel, refuse_out_of_range)
@@ -31,7 +32,7 @@ from lsst_bfdrift.templates.template import DistortionTemplate, load_default_tem
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["BrighterFatterDriftConfig", "BrighterFatterDriftTask", "unpack_exposure",
-           "template_digest", "gain_value", "input_warnings", "fits_header", "FLAG_BLOCKED",
+           "template_digest", "gain_value", "fits_header", "FLAG_BLOCKED",
            "FLAG_EDGE", "BF_PLANE_DOC", "stage_order"]
 
 #: Flag bit: pixel masked, saturated or non-finite (no flux exchanged).
@@ -369,75 +370,6 @@ def _fill_masked(image, fill, blocked):
     return np.where(fill, local, image)
 
 
-#: Fraction of the bright pixels' charge that, blocked, makes the Task warn.
-BLOCKED_BRIGHT_WARN = 0.5
-
-
-def input_warnings(image, blocked):
-    """What looks wrong with an input the Task was given (messages; empty if nothing).
-
-    * **Most of the bright charge blocked**: more than
-      :data:`BLOCKED_BRIGHT_WARN` of the charge in pixels 10 sigma above the
-      median sits in blocked pixels. A mask that covers the sources (e.g. a
-      DETECTED plane read as a boolean mask by ``CCDData.read(hdu_mask=...)``)
-      leaves them uncorrected although the solver converges.
-    * **A bias pedestal**: a median above 1000 e whose robust scatter is far
-      below its Poisson noise (variance < 10 % of the median) is an image in
-      ADU with its bias in, not post-ISR electrons.
-
-    Parameters
-    ----------
-    image : ndarray
-        The image in electrons (finite values).
-    blocked : ndarray of bool
-
-    Returns
-    -------
-    list of str
-    """
-    out = []
-    good = image[~blocked] if blocked.any() else image.ravel()
-    if good.size < 16:
-        return out
-    med = float(np.median(good))
-    mad = float(np.median(np.abs(good - med))) * 1.4826
-    thresh = med + 10.0 * max(mad, np.sqrt(max(med, 1.0)))
-    bright = image > thresh
-    total = float(np.sum(image[bright] - med)) if bright.any() else 0.0
-    if total > 0 and blocked.any():
-        frac = float(np.sum((image - med)[bright & blocked])) / total
-        if frac > BLOCKED_BRIGHT_WARN:
-            out.append(f"{100 * frac:.0f} % of the charge in bright pixels (> {thresh:.3g} e) "
-                       f"is blocked by the mask, so those sources are not corrected; is an "
-                       f"informational plane (DETECTED) part of the mask? Read LSST files with "
-                       f"lsst_bfdrift.utils.exposure.read_exposure (named planes) or set "
-                       f"blocking_mask_planes")
-    if med > 1000.0 and mad * mad < 0.1 * med:
-        out.append(f"median {med:.4g} e with a scatter of {mad:.3g} e, far below its Poisson "
-                   f"noise ({np.sqrt(med):.3g} e): a bias pedestal or an image in ADU? The "
-                   f"correction needs post-ISR images in electrons (bias subtracted, gain "
-                   f"applied)")
-    return out
-
-
-def _mask_warnings(exposure, kind):
-    """A bit-plane mask with bits set that no plane declares: they never block (their
-    meaning is unknown), which the user should know."""
-    if kind == "exposure":
-        mask, planes = exposure.mask, exposure.mask_planes
-    elif kind == "afw":
-        mask, planes = np.asarray(exposure.mask.array), exposure.mask.getMaskPlaneDict()
-    else:
-        return []
-    bits = undeclared_bits(mask, planes)
-    if not bits:
-        return []
-    n = int(np.count_nonzero(mask & sum(1 << b for b in bits)))
-    return [f"mask bits {bits} are set in {n} pixels but no MP_<NAME> card declares them: "
-            f"those pixels are not blocked (declared planes: {sorted(planes) or 'none'}); "
-            f"declare the planes in the MASK header to use them"]
-
-
 def fits_header(meta):
     """A FITS header of the values of ``meta`` that FITS can hold.
 
@@ -639,7 +571,7 @@ class BrighterFatterDriftTask(Task):
         # temporaries (two images) are gone by then (peak memory)
         warnings = input_warnings(finite_data if fill is None else
                                   np.where(fill, 0.0, finite_data), blocked)
-        warnings += _mask_warnings(exposure, kind)
+        warnings += mask_warnings(exposure, kind)
         linear = cfg.compute_geometry and cfg.geometry_method == "linear"
         first = None
         if linear and data is finite_data and (

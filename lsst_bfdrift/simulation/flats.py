@@ -420,7 +420,7 @@ def _static_pattern(shape, var, length, rng):
 
 
 def simulate_flat_pairs(model, levels, *, engine="linear", shape=(256, 256), n_steps=40,
-                        gain=1.0, inject=None, depth_derivative=None, seed=0):
+                        gain=1.0, inject=None, depth_derivative=None, seed=0, progress=None):
     """Flat pairs at the given signal levels, with optional injected effects.
 
     Every flat is filled in ``n_steps`` steps; each step adds Poisson(step x
@@ -464,6 +464,8 @@ def simulate_flat_pairs(model, levels, *, engine="linear", shape=(256, 256), n_s
         D_ij = d a_ij / d ln(channel depth), needed for ``well_filling``.
     seed : int, optional
         Random seed.
+    progress : callable, optional
+        Called as ``progress(done, total)`` after each pair.
 
     Returns
     -------
@@ -542,6 +544,8 @@ def simulate_flat_pairs(model, levels, *, engine="linear", shape=(256, 256), n_s
                 s = s * (1 + inject["gain_nonlinearity"][0] * s)
             pair.append(s)
         pairs.append(tuple(pair))
+        if progress is not None:
+            progress(len(pairs), len(levels))
     return pairs
 
 

@@ -128,7 +128,8 @@ def test_galsim_engine_flats_carry_galsims_a00(tmp_path):
     """Flat pairs filled with GalSim's own pixel areas (an independent
     simulator): the variance deficit C00 / mu - 1 grows as a00 mu with
     GalSim's own a00 (within 30 %: 128 x 128 px, 8 pairs, 20 fill steps),
-    and the FITS files carry EXPTIME for the PTC readers."""
+    progress is reported after each pair, and the FITS files carry EXPTIME
+    for the PTC readers."""
     from astropy.io import fits
 
     from lsst_bfdrift.calibration.ptc import pair_covariances
@@ -136,8 +137,10 @@ def test_galsim_engine_flats_carry_galsims_a00(tmp_path):
     from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 
     levels = [2e4, 4e4, 6e4, 8e4] * 2
+    calls = []
     pairs = simulate_flat_pairs("lsst_itl_50_8", levels, engine="galsim", shape=(128, 128),
-                                n_steps=20, seed=2)
+                                n_steps=20, seed=2, progress=lambda *a: calls.append(a))
+    assert calls == [(k + 1, len(levels)) for k in range(len(levels))]
     mu = np.array([pair_covariances(a, b, max_lag=1).mu for a, b in pairs])
     c = np.array([pair_covariances(a, b, max_lag=1).cov[0, 0] for a, b in pairs])
     slope = np.sum((c / mu - 1) * mu) / np.sum(mu * mu)
