@@ -465,7 +465,8 @@ class _Problem:
         err = np.array([fit.errors[k] for k in names])
         xb, th = split(x)
         return {"x": x, "err": err, "chi2": fit.chi2, "model": fit.model,
-                "n_params": x.size, "thetas": th, "theta_err": split(err)[1]}
+                "n_params": x.size, "thetas": th, "theta_err": split(err)[1],
+                "base_cov": np.asarray(fit.covariance, float)[:nb, :nb]}
 
 
 class Diagnosis:
@@ -499,7 +500,8 @@ def _step_summary(problem, fit, effects, label):
                          "errors": {p: float(v) for p, v in zip(e.param_names, te)}}
                         for e, t, te in zip(effects, fit["thetas"], fit["theta_err"])],
             "base_params": {nm: float(v) for nm, v in zip(problem.names, fit["x"])},
-            "base_errors": {nm: float(v) for nm, v in zip(problem.names, fit["err"])}}
+            "base_errors": {nm: float(v) for nm, v in zip(problem.names, fit["err"])},
+            "base_covariance": fit["base_cov"].tolist()}
 
 
 def _per_lag(problem, fit):

@@ -12,7 +12,7 @@ import numpy as np
 
 from lsst_bfdrift.utils.io import atomic_output
 
-__all__ = ["pull_map", "write_report", "diagnosis_markdown"]
+__all__ = ["pull_map", "write_report", "diagnosis_markdown", "template_change_lines"]
 
 
 def pull_map(per_lag, block="a"):
@@ -98,6 +98,9 @@ def diagnosis_markdown(result, figures=()):
         lines.append(f"{k + 1}. " + ", ".join(f"{c['name']} {c['delta_bic']:+.1f}" for c in r[:-1])
                      + f" (cross-validated chi2: before {cv['cv_chi2_before']:.1f}, best "
                      + ("-" if cv["cv_chi2_best"] is None else f"{cv['cv_chi2_best']:.1f}") + ")")
+    if result.get("template_change"):
+        lines += ["", "## What the added effects change in the BF calibration", ""]
+        lines += template_change_lines(result["template_change"])
     lines += _observables_markdown(result.get("observables"))
     lines += ["", "## Not identifiable from this input", ""]
     lines += [f"- {k}: {v}" for k, v in result["not_identifiable"].items()] or ["(none)"]
@@ -105,6 +108,38 @@ def diagnosis_markdown(result, figures=()):
     for f in figures:
         lines += [f"![{f}]({f})", ""]
     return "\n".join(lines)
+
+
+def template_change_lines(tc):
+    """Markdown lines of :func:`~lsst_bfdrift.calibration.consequence.template_change`."""
+    if not tc.get("available"):
+        return [f"Not assessed: {tc.get('reason', 'no result')}."]
+    i, j = tc["largest_shift_lag"]
+    s = tc["shift"][f"{i},{j}"]
+    lines = [f"Base model a_ij without and with the effects: largest shift at a{i}{j}, "
+             f"{s['before']:.4g} -> {s['after']:.4g} 1/e ({tc['largest_shift']:+.1f} sigma)."]
+    for key in ("0,0", "0,1", "1,0"):
+        if key in tc["shift"]:
+            v = tc["shift"][key]
+            lines.append(f"- a{key.replace(',', '')}: {v['before']:.4g} -> {v['after']:.4g} "
+                         f"+- {v['error']:.2g} ({v['sigma']:+.1f} sigma)")
+    if not tc["changed"]:
+        lines.append(f"No a_ij moved by more than {tc['threshold']:g} sigma: the calibrated "
+                     "template does not change.")
+        return lines
+    for side, t in tc.get("templates", {}).items():
+        lines.append(f"- template calibrated {side}: a00 {_num(t['a00'], '.4g')}, a01 "
+                     f"{_num(t['a01'], '.4g')}, a10 {_num(t['a10'], '.4g')} (chi2/dof "
+                     f"{t['chi2_dof']:.2f})")
+    st = tc.get("stars")
+    if st:
+        lines.append(f"- stars (noise-free Gaussians, FWHM {st['fwhm_px']:g} px, "
+                     f"{st['fluxes'][0]:.0e}-{st['fluxes'][-1]:.1e} e, the package's forward "
+                     f"model): correcting with the template calibrated without the effects "
+                     f"leaves {100 * st['size_left']:+.1f} % of the size-flux slope and "
+                     f"{100 * st['e1_left']:+.1f} % of the e1-flux slope, if the final model "
+                     "is right (> 0 under-, < 0 over-corrected)")
+    return lines
 
 
 def _num(v, fmt=".3g"):

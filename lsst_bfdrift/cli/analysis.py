@@ -235,6 +235,10 @@ def _cmd_diagnose(args):
         basis = load_default_basis()
     d = diagnose(obs, basis).as_dict()
     d["input"] = args.input
+    if getattr(args, "template_change", True) and d["effects_added"]:
+        from lsst_bfdrift.calibration.consequence import template_change
+        d["template_change"] = template_change(d, None if obs.kind == "ptc" else basis,
+                                               max_lag=min(args.max_lag, basis.max_lag))
     if args.report:
         from lsst_bfdrift.calibration.report import write_report
         d["report_files"] = write_report(d, args.report)
@@ -245,4 +249,8 @@ def _cmd_diagnose(args):
             print(f"{s['label']:>24s}: chi2/dof {s['chi2_dof']:.3f}, rms pull {s['rms_pull']:.3f}")
         print(f"{'effects added':>24s}: {', '.join(d['effects_added']) or 'none'}")
         print(d["verdict"])
+        tc = d.get("template_change")
+        if tc:
+            from lsst_bfdrift.calibration.report import template_change_lines
+            print("\n".join(template_change_lines(tc)))
     return 0

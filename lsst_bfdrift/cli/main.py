@@ -44,11 +44,12 @@ Subcommands
     size- and ellipticity-flux slopes at fixed position, before and after
     the catalogue-level and/or pixel-level BF correction, with a verdict
     (``residual_bf_detected``) and optional figures.
-``bfdrift diagnose INPUT [--json] [--report DIR] [--basis FILE]``
+``bfdrift diagnose INPUT [--json] [--report DIR] [--basis FILE] [--no-template-change]``
     Where the electrostatic model is wrong and which effect explains it:
     INPUT is an a_ij table, a PTC text file or a directory of flat pairs;
     chi2/dof, rms and largest residual lags before and after each added
-    effect (see ``docs/calibration.rst``).
+    effect, and what an added effect changes in the calibrated template and
+    in star corrections (see ``docs/calibration.rst``).
 ``bfdrift maps [IMAGE] [--template FILE] [--out FILE] [--plot PNG] [--json]``
     Final pixel geometry (area, centroid shift, ellipticity maps) of an image
     in electrons; with no IMAGE, the bundled sample star. This is the quick
@@ -573,6 +574,10 @@ def build_parser():
     dg.add_argument("--basis", help="linearised electrostatic model (JSON; default: the "
                     "shipped fit to the ITL a_ij)")
     dg.add_argument("--max-lag", type=int, default=3, help="largest lag for flat pairs")
+    dg.add_argument("--template-change", action=argparse.BooleanOptionalAction, default=True,
+                    help="when an added effect moves the base a_ij by more than 1 sigma, "
+                    "calibrate templates without and with it and give what the first would "
+                    "leave of the star size and e1 slopes (about a minute; default on)")
     dg.set_defaults(func=_cmd_diagnose)
 
     m = sub.add_parser("maps", help="pixel geometry maps of an image (main job)")

@@ -746,3 +746,41 @@ def test_correct_shows_progress_inside_a_file(capsys, tmp_path):
                         str(tmp_path / "many"), "--no-geometry")
     assert code == 0, err
     assert "correct 100.0%" in err and ".fits: " not in err
+
+
+def test_diagnose_reports_the_template_change(tmp_path, capsys, monkeypatch):
+    """An a_ij table with a charge cloud injected through the basis (the
+    package's own effect model): diagnose adds it and hands the result to
+    template_change (stubbed here; its calibrations take minutes and are
+    tested in tests/calibration/test_consequence.py); --no-template-change
+    skips it."""
+    from lsst_bfdrift.calibration import consequence
+    from lsst_bfdrift.calibration.acoeff_fit import load_default_basis
+    from lsst_bfdrift.simulation.effects import effect_library
+
+    basis = load_default_basis()
+    a = basis.a([basis.x0[n] for n in basis.names], 3)
+    cloud = {e.name: e for e in effect_library(max_lag=3)}["charge_cloud"]
+    a = cloud.apply_a(a, [0.15, 0.05], basis)
+    sig = 0.02 * np.abs(a) + 2e-10
+    a = a + np.random.default_rng(7).normal(0.0, sig)
+    path = tmp_path / "table.txt"
+    path.write_text("".join(f"{i} {j} {a[i, j]:.6e} {sig[i, j]:.3e}\n"
+                            for i in range(4) for j in range(4)))
+    seen = []
+
+    def stub(d, b, **kw):
+        seen.append((d["effects_added"], b))
+        return {"available": True, "changed": False, "threshold": 1.0, "largest_shift": 3.0,
+                "largest_shift_lag": [1, 0], "shift": {"1,0": {
+                    "before": 1.0, "after": 2.0, "error": 0.3, "sigma": 3.0}}}
+
+    monkeypatch.setattr(consequence, "template_change", stub)
+    code, out, _ = _run(capsys, "diagnose", str(path), "--json")
+    d = json.loads(out)
+    assert code == 0 and d["effects_added"] == ["charge_cloud"]
+    assert seen and seen[0][0] == ["charge_cloud"] and seen[0][1] is not None
+    assert d["template_change"]["largest_shift"] == 3.0
+    code, out, _ = _run(capsys, "diagnose", str(path), "--no-template-change")
+    assert code == 0 and "charge_cloud" in out and "largest shift" not in out
+    assert len(seen) == 1
