@@ -45,7 +45,7 @@ these errors (``linearity``, ``pair_ratio``), and is named as such.
 import numpy as np
 from scipy import stats
 
-from lsst_bfdrift.calibration.ptc import pair_covariances, ptc_turnoff
+from lsst_bfdrift.calibration.ptc import edge_border, pair_covariances, ptc_turnoff
 from lsst_bfdrift.simulation.effects import BASE_OBSERVABLES
 from lsst_bfdrift.utils.errors import InputError
 
@@ -83,12 +83,10 @@ def lag_error_factors(max_lag):
 
 
 def _half_regions(shape):
+    """Split name -> the two halves as slices of the image."""
     ny, nx = shape
-    left = np.zeros(shape, bool)
-    left[:, :nx // 2] = True
-    bottom = np.zeros(shape, bool)
-    bottom[:ny // 2] = True
-    return {"left_right": (left, ~left), "bottom_top": (bottom, ~bottom)}
+    return {"left_right": (np.s_[:, :nx // 2], np.s_[:, nx // 2:]),
+            "bottom_top": (np.s_[:ny // 2], np.s_[ny // 2:])}
 
 
 def pair_observables(flat1, flat2, *, max_lag=3, border=None, whole=None):
@@ -121,9 +119,17 @@ def pair_observables(flat1, flat2, *, max_lag=3, border=None, whole=None):
         whole = pair_covariances(a, b, max_lag=max_lag, min_pixels=min(1000, a.size // 4),
                                  border=border)
     out = {"mu1": whole.mu1, "mu2": whole.mu2, "nvalid": whole.nvalid, "halves": {}}
+    # each half on its own cut-out (half the transform of the whole image
+    # masked), with the whole image's border band as a mask: the same pixels
+    # and pixel pairs as the whole image with the other half masked
+    bd = edge_border(a.shape, border)
+    edge = np.zeros(a.shape, bool)
+    if bd:
+        edge[:bd] = edge[-bd:] = True
+        edge[:, :bd] = edge[:, -bd:] = True
     for split, regions in _half_regions(a.shape).items():
         try:
-            hs = [pair_covariances(a, b, max_lag=max_lag, mask=~r, border=border,
+            hs = [pair_covariances(a[r], b[r], max_lag=max_lag, mask=edge[r], border=0,
                                    min_pixels=min(1000, a.size // 16)) for r in regions]
         except InputError as exc:
             out["halves"][split] = f"halves too small or too masked ({exc})"

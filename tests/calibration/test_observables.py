@@ -18,7 +18,8 @@ from lsst_bfdrift.calibration.diagnosis import (Observations, diagnose, load_inp
                                                 observations_from_pairs)
 from lsst_bfdrift.calibration.observables import (CHECKS, assess_observables,
                                                   exposure_scatter, lag_multiplicity,
-                                                  linearity_finding, turnoff_cut)
+                                                  linearity_finding, pair_observables,
+                                                  turnoff_cut)
 from lsst_bfdrift.calibration.report import diagnosis_markdown
 from lsst_bfdrift.simulation.effects import (BASE_OBSERVABLES, OBSERVABLES, GainNonlinearity,
                                              cti_filter_covariance, effect_library)
@@ -277,3 +278,31 @@ def test_effects_state_their_observables():
     nu, mu = 1e-7, 5e4
     lin, fac = GainNonlinearity().measured_signal(np.array([mu]), (nu,))
     assert_allclose(fac[0] * lin[0] / mu, 1 + 3 * nu * lin[0], rtol=1e-4)
+
+
+@pytest.mark.parametrize("shape, border", [((96, 130), None), ((200, 170), 10), ((181, 240), 3)])
+def test_halves_on_cut_outs_equal_the_masked_whole_image(shape, border):
+    """Each half is measured on its own cut-out with the whole image's border
+    band as a mask; the reference is the whole image with the other half
+    masked (the same pixels and pixel pairs, independent of the cut-out's
+    transform shapes). NaN, masked-by-value and clipped pixels included."""
+    from lsst_bfdrift.calibration.ptc import pair_covariances
+
+    rng = np.random.default_rng(sum(shape))
+    a = rng.poisson(3e4, shape).astype(float)
+    b = rng.poisson(3.1e4, shape).astype(float)
+    a[5, 7] = np.nan
+    b[shape[0] // 2 + 3, 20] = 1e7  # clipped (a cosmic ray)
+    got = pair_observables(a, b, max_lag=3, border=border)["halves"]
+    ny, nx = shape
+    for split, cut in (("left_right", lambda r: r[1] < nx // 2),
+                       ("bottom_top", lambda r: r[0] < ny // 2)):
+        yy, xx = np.mgrid[:ny, :nx]
+        first = cut((yy, xx))
+        for k, region in enumerate((first, ~first)):
+            ref = pair_covariances(a, b, max_lag=3, mask=~region, border=border,
+                                   min_pixels=min(1000, a.size // 16))
+            assert_allclose(got[split]["mu"][k], ref.mu, rtol=1e-12)
+            assert got[split]["nvalid"][k] == ref.nvalid
+            assert_allclose(got[split]["npix"][k], ref.npix)
+            assert_allclose(got[split]["cov"][k], ref.cov, rtol=1e-9, atol=1e-9 * ref.cov[0, 0])
