@@ -93,7 +93,8 @@ def flats_table(sensor, args):
     from lsst_bfdrift.simulation.flats import simulate_flat_pairs
 
     steps = args.flat_steps
-    tag = "" if steps == FLAT_STEPS else f"_{steps}"
+    tag = ("" if steps == FLAT_STEPS else f"_{steps}") + (
+        "" if args.flat_max_lag == 5 else f"_lag{args.flat_max_lag}")
     path = (f"{args.pairs}_{sensor}_flats_{args.flat_size}_{args.pairs_per_level}{tag}.npz"
             if args.pairs else None)
     if path and os.path.isfile(path):
@@ -104,7 +105,9 @@ def flats_table(sensor, args):
                                     shape=(args.flat_size,) * 2, n_steps=steps,
                                     seed=zlib.crc32(sensor.encode()) % 1000,
                                     progress=_progress(f"{sensor} flats", time.time()))
-        tab = measure_ptc(pairs, max_lag=5)  # GalSim kernels vanish beyond lag 4
+        # GalSim's kernels vanish beyond lag 4; the far lags measured as ~0
+        # (with their errors) constrain the model's far field
+        tab = measure_ptc(pairs, max_lag=args.flat_max_lag)
         tab = {k: np.asarray(tab[k]) for k in ("mu", "cov", "npix")}
         if path:
             np.savez(path, **tab)
@@ -128,6 +131,8 @@ def main(argv=None):
                     help="leave out the a-matrix route (with --flats: flats only)")
     ap.add_argument("--flat-size", type=int, default=400)
     ap.add_argument("--pairs-per-level", type=int, default=2)
+    ap.add_argument("--flat-max-lag", type=int, default=5,
+                    help="largest lag of the flats' covariances and of the a_ij fitted to them")
     ap.add_argument("--flat-steps", type=int, default=FLAT_STEPS,
                     help="fill steps of each simulated flat (a_ij are divided by 1 - 1/steps)")
     ap.add_argument("--out", default=os.path.join(HERE, "calibrate_sensor_results"))
