@@ -38,7 +38,7 @@ sys.path.insert(0, os.path.dirname(HERE))
 sys.path.insert(0, HERE)
 
 from galsim_flat_sets import set_config  # noqa: E402
-from lsst_bfdrift.calibration.acoeff_fit import LinearBasis, load_default_basis  # noqa: E402
+from lsst_bfdrift.calibration.acoeff_fit import load_default_basis  # noqa: E402
 from lsst_bfdrift.calibration.diagnosis import diagnose, observations_from_pairs  # noqa: E402
 from lsst_bfdrift.simulation.flats import simulate_flat_pairs  # noqa: E402
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
@@ -47,20 +47,6 @@ from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 INJECTIONS = (("cti_parallel", (1e-2,)), ("cti_serial", (1e-2,)),
               ("gain_nonlinearity", (6e-7,)), ("gain_nonlinearity", (2e-7,)),
               ("echo", (1e-2, 3)))
-
-
-def scaled_basis(base, groups):
-    """``base`` plus one direction per lag group: a_ij += (s - 1) a0_ij on the group."""
-    cols, names = [base.jacobian], list(base.names)
-    x0, err = dict(base.x0), dict(base.errors)
-    for k, group in enumerate(groups):
-        col = np.zeros_like(base.a0)
-        for i, j in group:
-            col[i, j] = base.a0[i, j]
-        cols.append(col[..., None])
-        names.append(f"scale{k}")
-        x0[f"scale{k}"], err[f"scale{k}"] = 1.0, 0.05
-    return LinearBasis(base.a0, np.concatenate(cols, axis=-1), names, x0, err)
 
 
 def run(a, cfg, bases, *, steps=20, inject=None):
@@ -87,9 +73,9 @@ def main(argv=None):
     base = load_default_basis()
     L = base.max_lag
     bases = {"default": base,
-             "+ global scale": scaled_basis(base, [[(i, j) for i in range(L + 1)
-                                                     for j in range(L + 1)]]),
-             "+ a00, a01, a10 scales": scaled_basis(base, [[(0, 0)], [(0, 1)], [(1, 0)]])}
+             "+ global scale": base.with_scales([[(i, j) for i in range(L + 1)
+                                                  for j in range(L + 1)]]),
+             "+ a00, a01, a10 scales": base.with_scales([[(0, 0)], [(0, 1)], [(1, 0)]])}
     configs = [set_config(k) for k in range(50) if set_config(k)["size"] == 240]
     galsim_a = {s: galsim_acoeffs(s, 5) for s in {c["sensor"] for c in configs}}
     own_a = base.a([base.x0[n] for n in base.names])

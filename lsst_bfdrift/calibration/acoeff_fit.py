@@ -495,6 +495,46 @@ class LinearBasis:
         k = out.shape[0] if max_lag is None else int(max_lag) + 1
         return out[:k, :k]
 
+    def with_scales(self, groups, *, error=0.05):
+        """This basis plus one scale direction per group of lags.
+
+        Scale ``scale{k}`` (1 at the expansion point) multiplies the a_ij of
+        group k: a_ij += (s_k - 1) a0_ij for (i, j) in the group. It lets
+        a base model follow a sensor's a-matrix beyond what the linearised
+        electrostatics can (``benchmarks/diagnose_base_model.py``: the
+        diagnosis' false alarms on large flat sets of other sensors vanish
+        with scales for a00, a01 and a10).
+
+        Parameters
+        ----------
+        groups : sequence of sequence of (int, int)
+            Lags (i serial, j parallel) of each scale.
+        error : float, optional
+            The scales' prior error (the diagnosis' step scale).
+
+        Returns
+        -------
+        LinearBasis
+        """
+        L = self.max_lag
+        cols, names = [self.jacobian], list(self.names)
+        x0, err = dict(self.x0), dict(self.errors)
+        for k, group in enumerate(groups):
+            col = np.zeros_like(self.a0)
+            for i, j in group:
+                if not (0 <= int(i) <= L and 0 <= int(j) <= L):
+                    raise InputError(f"lag ({i}, {j}) is outside the basis' lags 0..{L}")
+                col[int(i), int(j)] = self.a0[int(i), int(j)]
+            name = f"scale{k}"
+            if name in names:
+                raise InputError(f"the basis already has a parameter {name!r}")
+            cols.append(col[..., None])
+            names.append(name)
+            x0[name], err[name] = 1.0, float(error)
+        return LinearBasis(self.a0, np.concatenate(cols, axis=-1), names, x0, err,
+                           note=(self.note + "; " if self.note else "")
+                           + f"scales of {[list(map(tuple, g)) for g in groups]}")
+
     def dlog_depth(self, max_lag=None):
         """D_ij = d a_ij / d ln(channel depth) at x0 (per e)."""
         if "channel_depth" not in self.names:
