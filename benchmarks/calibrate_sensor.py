@@ -11,9 +11,10 @@ For each GalSim sensor model (default lsst_itl_50_8 and lsst_e2v_50_8):
    pixel-area response and Poisson noise
    (:func:`~lsst_bfdrift.simulation.flats.simulate_flat_pairs`, engine
    'galsim', 9 levels of 1e4-9e4 e, ``--pairs-per-level`` pairs of
-   ``--flat-size`` pixels, 40 fill steps), their covariances, the Astier et
-   al. (2019) fit for a_ij with errors, divided by 1 - 1/40 for the discrete
-   filling (:data:`STEP_FACTOR`), and the same calibration.
+   ``--flat-size`` pixels, ``--flat-steps`` fill steps, default 40), their
+   covariances to ``--flat-max-lag`` (default 5), the Astier et al. (2019)
+   fit for a_ij with errors, divided by 1 - 1/steps for the discrete
+   filling, and the same calibration.
 3. **stars**: Moffat and Kolmogorov stars (FWHM 0.6-0.9", fluxes 1e4-1.5e6
    e, sky 1000 e through the sensor) drawn by galsim.SiliconSensor with a
    paired no-BF twin
@@ -75,9 +76,8 @@ def star_pairs(sensor, psf, args):
 #: Fill steps of each simulated flat. Discrete filling gives C_ij = a_ij mu^2
 #: (1 - 1/n) to first order (the charge of a step sees only the earlier
 #: steps' boundaries; ``benchmarks/flat_closure.py`` checks it), so the fitted
-#: a_ij are divided by STEP_FACTOR to be those of a continuous exposure.
+#: a_ij are divided by 1 - 1/steps to be those of a continuous exposure.
 FLAT_STEPS = 40
-STEP_FACTOR = 1.0 - 1.0 / FLAT_STEPS
 
 
 def _progress(what, t0):
@@ -88,7 +88,7 @@ def _progress(what, t0):
 
 def flats_table(sensor, args):
     """a_ij with errors from GalSim-made flat pairs (Astier et al. 2019 fit),
-    corrected for the simulation's discrete filling (:data:`STEP_FACTOR`)."""
+    corrected for the simulation's discrete filling (1 - 1/steps)."""
     from lsst_bfdrift.calibration.ptc import fit_covariance_model, measure_ptc
     from lsst_bfdrift.simulation.flats import simulate_flat_pairs
 

@@ -22,7 +22,9 @@ that).
 import numpy as np
 from scipy.special import erf
 
+from lsst_bfdrift.calibration.ptc import _line
 from lsst_bfdrift.correction.solvers import correct_image, recorded_image
+from lsst_bfdrift.simulation.stars import image_moments
 from lsst_bfdrift.templates.swept import SweptAreas
 from lsst_bfdrift.utils.errors import InputError
 
@@ -45,17 +47,12 @@ def _gaussian_stamp(size, sigma, offset):
 
 
 def _moments(img):
-    jj, ii = np.mgrid[:img.shape[0], :img.shape[1]]
-    t = img.sum()
-    x, y = (img * ii).sum() / t, (img * jj).sum() / t
-    ixx = (img * (ii - x) ** 2).sum() / t
-    iyy = (img * (jj - y) ** 2).sum() / t
-    return ixx + iyy, (ixx - iyy) / (ixx + iyy)
+    m = image_moments(img)  # unweighted: noise-free stamps
+    return m["T"], m["e1"]
 
 
 def _slope(f, v):
-    f = np.asarray(f, float)
-    return float(np.sum((f - f.mean()) * (v - v.mean())) / np.sum((f - f.mean()) ** 2))
+    return float(_line(f, v)[0])
 
 
 def star_consequence(true_template, used_template, *, fwhm=3.5, fluxes=CONSEQUENCE_FLUXES,

@@ -45,7 +45,7 @@ these errors (``linearity``, ``pair_ratio``), and is named as such.
 import numpy as np
 from scipy import stats
 
-from lsst_bfdrift.calibration.ptc import edge_border, pair_covariances, ptc_turnoff
+from lsst_bfdrift.calibration.ptc import edge_mask, pair_covariances, ptc_turnoff
 from lsst_bfdrift.simulation.effects import BASE_OBSERVABLES
 from lsst_bfdrift.utils.errors import InputError
 
@@ -122,11 +122,7 @@ def pair_observables(flat1, flat2, *, max_lag=3, border=None, whole=None):
     # each half on its own cut-out (half the transform of the whole image
     # masked), with the whole image's border band as a mask: the same pixels
     # and pixel pairs as the whole image with the other half masked
-    bd = edge_border(a.shape, border)
-    edge = np.zeros(a.shape, bool)
-    if bd:
-        edge[:bd] = edge[-bd:] = True
-        edge[:, :bd] = edge[:, -bd:] = True
+    edge = edge_mask(a.shape, border)
     for split, regions in _half_regions(a.shape).items():
         try:
             hs = [pair_covariances(a[r], b[r], max_lag=max_lag, mask=edge[r], border=0,

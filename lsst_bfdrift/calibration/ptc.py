@@ -31,7 +31,7 @@ from lsst_bfdrift.utils.errors import InputError
 __all__ = ["PairCovariance", "pair_covariances", "measure_ptc", "ptc_exponential_model",
            "fit_ptc_exponential", "ptc_turnoff", "covariance_model", "fit_covariance_model",
            "read_ptc_text", "read_flat_pair", "count_levels", "MIN_LEVELS", "SIGNAL_RANGE",
-           "EDGE_BORDER", "edge_border"]
+           "EDGE_BORDER", "edge_border", "edge_mask"]
 
 #: Fewest distinct signal levels of any PTC fit.
 MIN_LEVELS = 3
@@ -250,11 +250,7 @@ def pair_covariances(flat1, flat2, *, max_lag=8, mask=None, nsig=5.0, min_pixels
         if mask.shape != a.shape:
             raise InputError(f"mask shape {mask.shape} does not match flats {a.shape}")
         bad |= mask
-    edge = np.zeros(a.shape, bool)
-    bd = edge_border(a.shape, border)
-    if bd:
-        edge[:bd] = edge[-bd:] = True
-        edge[:, :bd] = edge[:, -bd:] = True
+    edge = edge_mask(a.shape, border)
     n_edge_bad = int((bad & edge).sum())  # NaN or masked in the border: still counted
     bad |= edge
     if (~bad).sum() < min_pixels:
@@ -309,6 +305,16 @@ def edge_border(shape, border=None):
     if border < 0:
         raise InputError(f"border must be >= 0 px, got {border}")
     return min(border, min(shape) // 8)
+
+
+def edge_mask(shape, border=None):
+    """True in the band of :func:`edge_border` pixels along each image edge."""
+    edge = np.zeros(shape, bool)
+    bd = edge_border(shape, border)
+    if bd:
+        edge[:bd] = edge[-bd:] = True
+        edge[:, :bd] = edge[:, -bd:] = True
+    return edge
 
 
 def _lagged(prod, L):
