@@ -45,7 +45,7 @@ def run_set(path, basis):
     cfg = json.loads(str(d["config"]))
     pairs = [(f[0].astype(float), f[1].astype(float)) for f in d["flats"]]
     t0 = time.time()
-    res = diagnose(observations_from_pairs(pairs, max_lag=3), basis)
+    res = diagnose(observations_from_pairs(pairs, max_lag=3, exptimes=d["exptime"]), basis)
     base = res.steps[0]
     return {"set": cfg["index"], "sensor": cfg["sensor"], "size": cfg["size"],
             "pairs": len(pairs), "levels": len(cfg["levels"]),

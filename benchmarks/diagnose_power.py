@@ -26,7 +26,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, ".."))
 
 from lsst_bfdrift.calibration.acoeff_fit import load_default_basis  # noqa: E402
-from lsst_bfdrift.calibration.diagnosis import diagnose, observations_from_pairs  # noqa: E402
+from lsst_bfdrift.calibration.diagnosis import (diagnose, observations_from_pairs,  # noqa: E402
+                                               scaled_basis)
 from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
 
 OUT = os.path.join(HERE, "diagnose_power_results")
@@ -36,8 +37,9 @@ def _fit(path, basis):
     d = np.load(path)
     cfg = json.loads(str(d["config"]))
     pairs = [(f[0].astype(float), f[1].astype(float)) for f in d["flats"]]
-    res = diagnose(observations_from_pairs(pairs, max_lag=3), basis)
-    a = basis.a(np.array([res.steps[-1]["base_params"][n] for n in basis.names]), 1)
+    res = diagnose(observations_from_pairs(pairs, max_lag=3, exptimes=d["exptime"]), basis)
+    used = scaled_basis(basis, res.base_scales)
+    a = used.a(np.array([res.steps[-1]["base_params"][n] for n in used.names]), 1)
     return cfg, res, a
 
 

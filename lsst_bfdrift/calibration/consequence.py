@@ -156,7 +156,7 @@ def template_change(diagnosis, basis, *, max_lag=None, threshold=1.0, calibrate_
     diagnosis : dict
         ``Diagnosis.as_dict()`` of a table or flats diagnosis.
     basis : LinearBasis
-        The basis the diagnosis used.
+        The basis given to the diagnosis (its ``base_scales`` are added).
     max_lag : int, optional
         Lags compared and calibrated (default: those of the basis, at most 3).
     threshold : float, optional
@@ -180,6 +180,7 @@ def template_change(diagnosis, basis, *, max_lag=None, threshold=1.0, calibrate_
         final model is right (:func:`star_consequence`).
     """
     from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable
+    from lsst_bfdrift.calibration.diagnosis import scaled_basis
     from lsst_bfdrift.calibration.tuning import calibrate
 
     steps = diagnosis.get("steps") or []
@@ -188,6 +189,7 @@ def template_change(diagnosis, basis, *, max_lag=None, threshold=1.0, calibrate_
                 "reason": "needs an electrostatic basis (a-matrix table or flat pairs input)"}
     if len(steps) < 2:
         return {"available": False, "reason": "no effect was added"}
+    basis = scaled_basis(basis, diagnosis.get("base_scales"))
     L = min(basis.max_lag, 3) if max_lag is None else int(max_lag)
     a0, s0 = base_acoeffs(steps[0], basis, L)
     a1, s1 = base_acoeffs(steps[-1], basis, L)

@@ -12,6 +12,7 @@ import json
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
+from scipy import stats
 
 from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable, load_default_basis
 from lsst_bfdrift.calibration.diagnosis import (Observations, diagnose, load_input,
@@ -64,10 +65,15 @@ def test_clean_galsim_set_has_no_finding(galsim_pairs, basis):
     assert_allclose(lin["slope"], 1.0 / EXPTIME_PER_E, rtol=1e-3)  # ADU per s
     assert abs(lin["offset"]) < 5 * lin["offset_err"]
     assert d.observables["turnoff"]["excluded"] == []
-    # the checks leave the fit alone: the same statistics given as arrays fit the same
+    # the means against EXPTIME are a block of the fit ('M'): the same statistics
+    # given as arrays, without exposure times, fit the covariances alone
     obs = observations_from_pairs(galsim_pairs, max_lag=3)
     bare = diagnose(Observations.from_flats(obs.mu, obs.cov, obs.static, obs.npix), basis)
-    assert_allclose(bare.chi2_dof_before, d.chi2_dof_before, rtol=1e-12)
+    means = d.residuals_before["M0,0"]
+    assert means["n"] == LEVELS.size and "M0,0" not in bare.residuals_before
+    assert means["chi2"] < stats.chi2.ppf(0.999, LEVELS.size - 2)
+    assert_allclose(d.steps[0]["base_params"]["rate"], 1.0 / EXPTIME_PER_E, rtol=1e-3)
+    assert_allclose(bare.chi2_dof_before, d.chi2_dof_before, rtol=0.1)
     assert bare.effects_added == d.effects_added
     json.dumps(d.as_dict()["observables"])  # plain JSON, no numpy objects
 
@@ -89,6 +95,11 @@ def test_nonlinear_exposure_is_flagged_by_linearity(galsim_pairs, basis):
     assert not d.observables["halves"]["detected"]
     assert "linearity: the mean departs from a line" in d.verdict
     assert "not produced by the base BF model" in d.verdict
+    # the means are a block of the fit: the jump stays the unexplained residual,
+    # named at its level, and no effect is bent to it
+    assert d.effects_added == [] and d.unexplained and d.worst_lag == "M0,0"
+    worst = d.steps[0]["largest_residuals"][0]
+    assert worst["block"] == "M" and worst["level"] in hit and worst["pull"] > 10
 
 
 def test_lamp_noise_is_not_taken_for_a_nonlinearity(galsim_pairs, basis):
