@@ -56,7 +56,7 @@ def run(a, cfg, bases, *, steps=20, inject=None):
     obs = observations_from_pairs(pairs, max_lag=3, exptimes=levels * 1e-4)
     out = {}
     for name, basis in bases.items():
-        res = diagnose(obs, basis)
+        res = diagnose(obs, basis, base_scales=())  # the bases as given
         cand = res.candidates[0][:-1] if res.candidates else []
         best = min(cand, key=lambda c: c["delta_bic"]) if cand else None
         out[name] = {"added": res.effects_added, "unexplained": res.unexplained,

@@ -11,13 +11,17 @@ tuned to one configuration.
     python benchmarks/galsim_flat_sets.py --n-sets 50 --out /work/flatcache
     python benchmarks/galsim_flat_sets.py --injections --out /work/flatcache
 
-``--injections`` draws the power sets instead: each effect of the library
-that GalSim's engine can carry (CTI on either axis, an echo, gain
-non-linearity, a static response pattern, diffusion) at three amplitudes (the
-first two near what sensors show, the third well above, to find the
-threshold)
-(:data:`INJECTIONS`) on two sizes (160 and 240 px), named
-``inj_<effect>_<k>_<size>.npz``.
+``--injections`` draws the power sets of the effects that act while a flat
+fills (a static response pattern, diffusion) at three amplitudes (the first
+two near what sensors show, the third well above, to find the threshold;
+:data:`FILL_INJECTIONS`) on two sizes (160 and 240 px), named
+``inj_<effect>_<k>_<size>.npz``, each with its effect-free twin (the same
+configuration and seed without the effect), ``twin_<effect>_<k>_<size>.npz``.
+The effects that act on the read-out of the collected charge (CTI on either
+axis, an echo, gain non-linearity;
+:data:`~lsst_bfdrift.simulation.flats.READOUT_EFFECTS`) need no drawing:
+``benchmarks/diagnose_power.py`` applies them to the effect-free sets, which
+are then their exact twins.
 
 Writes one ``set_NNN.npz`` per set (flats as float32 electrons, the levels,
 EXPTIME per flat, the configuration) and skips sets that exist, so it can be
@@ -50,6 +54,8 @@ INJECTIONS = {"cti_serial": [(3e-4,), (1e-3,), (1e-2,)],
               "gain_nonlinearity": [(2e-7,), (6e-7,), (3e-6,)],
               "static_area": [(1e-5, 3.0), (4e-5, 3.0), (4e-4, 3.0)],
               "diffusion": [(0.1,), (0.25,), (0.5,)]}
+#: The injections that change how a flat fills: drawn with their twins.
+FILL_INJECTIONS = ("static_area", "diffusion")
 SIZES = (160, 200, 240)
 
 
@@ -90,11 +96,15 @@ def main(argv=None):
     if args.injections:
         jobs = []
         for n, (name, amps) in enumerate(INJECTIONS.items()):
+            if name not in FILL_INJECTIONS:
+                continue
             for a, amp in enumerate(amps):
                 for size in (160, 240):
                     cfg = set_config(1000 + 10 * n + 2 * a + (size == 240))
-                    cfg.update(size=size, pairs_per_level=3, inject={name: list(amp)},
-                               sensor=SENSORS[(n + a) % 2])
+                    cfg.update(size=size, pairs_per_level=3, sensor=SENSORS[(n + a) % 2])
+                    jobs.append((os.path.join(args.out, f"twin_{name}_{a}_{size}.npz"),
+                                 dict(cfg)))
+                    cfg.update(inject={name: list(amp)})
                     jobs.append((os.path.join(args.out, f"inj_{name}_{a}_{size}.npz"), cfg))
     for path, cfg in jobs:
         if os.path.exists(path):

@@ -10,8 +10,8 @@ its parameters free. :func:`diagnose` then repeats
    BIC = chi2 + k ln n and by K-fold cross-validation over the data points
    (fit on K - 1 folds, chi2 of the held-out fold, summed);
 3. add the best candidate only when it lowers BIC by more than
-   ``bic_threshold`` *and* lowers the cross-validated chi2 (summed over
-   the folds, and in most folds);
+   ``bic_threshold`` *and* lowers the cross-validated chi2 (in most folds,
+   and summed over all folds but the worst);
 
 until nothing pays. The verdict then says plainly whether the residual is
 consistent with noise (chi2 p-value >= ``p_threshold``) or an unexplained
@@ -31,7 +31,8 @@ Inputs (:class:`Observations`):
     from flat pairs, and the pair means against EXPTIME (block 'M', when the
     pairs carry at least 3 exposure times); base: Astier's full covariance
     model with the electrostatic a_ij, free scales of a00, a01 and a10
-    (:data:`BASE_SCALES`, with a Gaussian prior, block 'P'), gain, read
+    (:data:`BASE_SCALES`, with a Gaussian prior of :data:`BASE_SCALE_PRIOR`,
+    block 'P'), gain, read
     noise and the line mu = rate t + offset. An effect that changes the
     measured signal (a gain non-linearity) must explain the means and the
     covariances together: a00 cannot take up the variance's curvature while
@@ -61,7 +62,7 @@ from lsst_bfdrift.simulation.effects import effect_library, EFFECT_NAMES
 
 __all__ = ["Observations", "pair_statistics", "edge_profile", "edge_signature",
            "observations_from_pairs", "diagnose",
-           "Diagnosis", "BASE_SCALES", "scaled_basis", "LINEAR_RANGE", "load_input"]
+           "Diagnosis", "BASE_SCALES", "BASE_SCALE_PRIOR", "scaled_basis", "LINEAR_RANGE", "load_input"]
 
 #: Lags whose a_ij get a free scale in the base model of flat pairs: a00, a01
 #: and a10. The shipped basis is the electrostatics linearised about one
@@ -70,6 +71,12 @@ __all__ = ["Observations", "pair_statistics", "edge_profile", "edge_signature",
 #: (``benchmarks/diagnose_base_model.py``: 3 of 19 effect-free configurations
 #: added an effect with the basis alone, none with these scales).
 BASE_SCALES = (((0, 0),), ((0, 1),), ((1, 0),))
+
+#: Prior error of each scale of :data:`BASE_SCALES` (fractional). The size of
+#: the shipped basis' misses on the noise-free a-matrices of GalSim's two
+#: sensor models with its parameters free within their range: a01 by 17 %,
+#: a00 by 6-9 %, a10 by up to 5 % (lsst_itl_50_8 and lsst_e2v_50_8, lags <= 3).
+BASE_SCALE_PRIOR = 0.2
 
 #: Fractional range around the expansion point within which the linearised
 #: electrostatic parameters may move.
@@ -592,6 +599,8 @@ def _per_lag(problem, fit):
     r = (problem.y - fit["model"]) / problem.sigma
     out = {}
     for k, (blk, lev, i, j) in enumerate(problem.labels):
+        if blk == "P":  # the scales' prior: not data
+            continue
         key = f"{blk}{i},{j}" if problem.obs.kind != "ptc" else f"C0,0@{lev}"
         d = out.setdefault(key, {"block": blk, "i": i, "j": j, "chi2": 0.0, "n": 0,
                                  "residual": [], "pull": []})
@@ -622,7 +631,7 @@ def scaled_basis(basis, scales):
     rebuild the basis its ``base_params`` refer to."""
     if basis is None or not scales or any(nm.startswith("scale") for nm in basis.names):
         return basis
-    return basis.with_scales([[tuple(ij) for ij in g] for g in scales])
+    return basis.with_scales([[tuple(ij) for ij in g] for g in scales], error=BASE_SCALE_PRIOR)
 
 
 def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1e-3,
@@ -700,11 +709,11 @@ def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1
         best_cv = _cv_chi2(problem, current + [best["effect"]], best["fit"]["x"], folds) \
             if best["delta_bic"] < -bic_threshold else None
         # held-out test: the candidate must predict the held-out points better in
-        # most folds (median of the per-fold change < 0; robust to one bad fold)
-        # and in all folds together (an effect bent to one outlying block, e.g.
-        # one level's mean, fails the sum)
+        # most folds (median of the per-fold change < 0) and in all folds but the
+        # worst together (an effect bent to an outlying block, e.g. one level's
+        # mean, fails that sum); both are robust to one fold whose fit strays
         gain = None if best_cv is None else float(np.median(best_cv - cv))
-        if gain is not None and best_cv.sum() >= cv.sum():
+        if gain is not None and np.sort(best_cv - cv)[:-1].sum() >= 0:
             gain = max(gain, 0.0)
         rounds.append([{"name": s["name"], "chi2": s["chi2"], "delta_bic": s["delta_bic"]}
                        for s in scores] + [{"cv_chi2_before": float(cv.sum()),
@@ -763,6 +772,7 @@ def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1
                      worst_lag_p=lag_p[worst_lag],
                      unexplained=bool(unexplained), n_points=int(n), note=obs.note,
                      base_scales=scales,
+                     levels=[] if obs.kind == "table" else [float(v) for v in obs.mu],
                      edge=edge, observables=findings, signatures=signatures)
 
 

@@ -37,7 +37,7 @@ def _figures(result, outdir):
     from lsst_bfdrift.utils.plotting import save_figure
 
     files = []
-    blocks = sorted({v["block"] for v in result["residuals_before"].values()})
+    blocks = sorted({v["block"] for v in result["residuals_before"].values()} - {"M"})
     if result["kind"] != "ptc":
         for blk in blocks:
             fig, axes = plt.subplots(1, 2, figsize=(9, 4))
@@ -53,6 +53,12 @@ def _figures(result, outdir):
             save_figure(fig, os.path.join(outdir, name))
             plt.close(fig)
             files.append(name)
+    if result.get("levels") and result["kind"] == "flats":
+        name = "residuals_vs_mean.png"
+        fig = _residuals_vs_mean(result, plt)
+        save_figure(fig, os.path.join(outdir, name))
+        plt.close(fig)
+        files.append(name)
     fig, ax = plt.subplots(figsize=(9, 3.5))
     keys = list(result["residuals_before"])
     x = np.arange(len(keys))
@@ -69,6 +75,34 @@ def _figures(result, outdir):
     plt.close(fig)
     files.append("chi2_per_lag.png")
     return files
+
+
+def _residuals_vs_mean(result, plt):
+    """Pulls against the mean signal, before and after the added effects: the
+    means against EXPTIME ('M') and the lags (0, 0), (0, 1), (1, 0) and the
+    worst lag of the difference-image covariances."""
+    mu = np.asarray(result["levels"], float)
+    keys = [k for k in ("M0,0", "C0,0", "C0,1", "C1,0") if k in result["residuals_before"]]
+    worst = result.get("worst_lag")
+    if worst and worst not in keys and worst in result["residuals_before"]:
+        keys.append(worst)
+    from matplotlib.ticker import NullFormatter
+
+    fig, axes = plt.subplots(1, len(keys), figsize=(2.6 * len(keys), 3.2), squeeze=False)
+    for ax, k in zip(axes[0], keys):
+        for key, lab, mk in (("residuals_before", "base model", "o"),
+                             ("residuals_after", "after", "x")):
+            pull = np.asarray(result[key][k]["pull"], float)
+            ax.plot(mu[:pull.size], pull, mk, ms=3, label=lab)
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_xlabel("mean signal (ADU)")
+        ax.set_title("means vs EXPTIME" if k == "M0,0" else k, fontsize=9)
+    axes[0][0].set_ylabel("pull (residual / error)")
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    return fig
 
 
 def diagnosis_markdown(result, figures=()):

@@ -35,7 +35,8 @@ from lsst_bfdrift.simulation.effects import ChargeCloud, full_lags
 from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["simulate_flat_pairs", "write_flat_pairs", "INJECTABLE", "GALSIM_AREA_BAND", "PeriodicAreas",
+__all__ = ["simulate_flat_pairs", "write_flat_pairs", "apply_readout_effects", "INJECTABLE",
+           "READOUT_EFFECTS", "GALSIM_AREA_BAND", "PeriodicAreas",
            "simulate_flats", "simulate_ptc_levels", "template_area_coefficients",
            "with_responsivity"]
 
@@ -429,7 +430,10 @@ def simulate_flat_pairs(model, levels, *, engine="linear", shape=(256, 256), n_s
 
     * ``engine='linear'``: the linearised area model of the electrostatic
       template, area = 1 + sum_q a(p - q) Q_q (circular convolution by FFT;
-      the same physics as moving boundaries to first order);
+      the same physics as moving boundaries to first order), divided by its
+      mean: a kernel truncated at lag L does not sum to zero, and the pixels
+      must keep the total charge (otherwise the mean signal would depend on
+      the charge as a gain non-linearity does);
     * ``engine='galsim'``: GalSim's own pixel areas,
       ``galsim.SiliconSensor(model).calculate_pixel_areas`` of the current
       charge image (an independent simulator's BF; about 0.25 s a step for
@@ -512,7 +516,8 @@ def simulate_flat_pairs(model, levels, *, engine="linear", shape=(256, 256), n_s
             area = 1.0 + sp_fft.irfft2(sp_fft.rfft2(q) * ka, shape)
             if kd is not None:
                 area += sp_fft.irfft2(sp_fft.rfft2(q * q) * kd, shape)
-            return area
+            # a kernel truncated at lag L does not sum to zero: keep the total
+            return area / area.mean()
     else:
         raise InputError(f"engine must be 'linear' or 'galsim', got {engine!r}")
     static = 0.0
@@ -537,19 +542,7 @@ def simulate_flat_pairs(model, levels, *, engine="linear", shape=(256, 256), n_s
                                          axis=(0, 1))
                 else:
                     q += rng.poisson(lam)
-            out = q.copy()
-            for name, axis in (("cti_serial", 1), ("cti_parallel", 0)):
-                if name in inject:
-                    eps = inject[name][0]
-                    prev = np.roll(q, 1, axis=axis)
-                    out = (1 - eps) * out + eps * prev
-            if "echo" in inject:
-                kappa, lag = inject["echo"]
-                out = out + kappa * np.roll(q, int(lag), axis=1)
-            s = out / gain
-            if "gain_nonlinearity" in inject:
-                s = s * (1 + inject["gain_nonlinearity"][0] * s)
-            pair.append(s)
+            pair.append(apply_readout_effects(q, inject, gain=gain))
         pairs.append(tuple(pair))
         if progress is not None:
             progress(len(pairs), len(levels))
@@ -559,6 +552,49 @@ def simulate_flat_pairs(model, levels, *, engine="linear", shape=(256, 256), n_s
 #: Pixels at each edge that :func:`simulate_flat_pairs` (engine 'galsim')
 #: leaves out when it sets the mean area of the interior to 1.
 GALSIM_AREA_BAND = 10
+
+
+#: The effects :func:`apply_readout_effects` applies: they act on the collected
+#: charge image after the exposure, not on how it fills.
+READOUT_EFFECTS = ("cti_serial", "cti_parallel", "echo", "gain_nonlinearity")
+
+
+def apply_readout_effects(charge, inject, *, gain=1.0):
+    """The read-out of a collected charge image, with the effects that act after
+    the exposure.
+
+    Parameters
+    ----------
+    charge : array_like, 2-d
+        Collected electrons, indexed [y, x] (y parallel).
+    inject : dict
+        ``{name: parameters}``; the names of :data:`READOUT_EFFECTS` act
+        (others are ignored): CTI ``(eps,)`` on either axis (a fraction eps
+        of each pixel's charge read with the previous pixel's), ``echo``
+        ``(kappa, lag)`` (kappa times the charge ``lag`` serial pixels
+        earlier added), ``gain_nonlinearity`` ``(nu,)`` (s -> s (1 + nu s),
+        nu per ADU).
+    gain : float, optional
+        e/ADU.
+
+    Returns
+    -------
+    ndarray
+        The image in ADU, float64 (a new array; ``charge`` is not changed).
+    """
+    q = np.asarray(charge, dtype=float)
+    out = q.copy()
+    for name, axis in (("cti_serial", 1), ("cti_parallel", 0)):
+        if name in inject:
+            eps = inject[name][0]
+            out = (1 - eps) * out + eps * np.roll(q, 1, axis=axis)
+    if "echo" in inject:
+        kappa, lag = inject["echo"]
+        out = out + kappa * np.roll(q, int(lag), axis=1)
+    s = out / gain
+    if "gain_nonlinearity" in inject:
+        s = s * (1 + inject["gain_nonlinearity"][0] * s)
+    return s
 
 
 def _galsim_areas(sensor, shape):
