@@ -79,7 +79,9 @@ def _diagnose(flats, exptime, basis):
 
 def _row(name, amp, cfg, res, a, twin_a, *, drawn_twin):
     in_library = name in EFFECT_NAMES
-    if in_library:
+    if name in res.not_identifiable:  # the diagnosis says the input cannot show it
+        found = None
+    elif in_library:
         found = name in res.effects_added
     else:  # an effect nobody declared: an unexplained residual at its lag
         found = bool(res.unexplained and res.worst_lag == ECHO_LAG)
@@ -90,7 +92,9 @@ def _row(name, amp, cfg, res, a, twin_a, *, drawn_twin):
         bias[k] = float((v - v0) / (np.hypot(s, s0) if drawn_twin else s))
     return {"effect": name, "amplitude": list(amp), "size": cfg["size"],
             "sensor": cfg["sensor"], "pairs": len(cfg["levels"]) * cfg["pairs_per_level"],
-            "set": cfg.get("index"), "in_library": in_library, "found": bool(found),
+            "set": cfg.get("index"), "in_library": in_library,
+            "found": None if found is None else bool(found),
+            "not_identifiable": res.not_identifiable.get(name),
             "added": res.effects_added, "other_effects": others,
             "unexplained": bool(res.unexplained), "worst_lag": res.worst_lag,
             "d_a00_sd": bias["a00"], "d_a01_sd": bias["a01"], "drawn_twin": drawn_twin}
@@ -152,16 +156,25 @@ def main(argv=None):
                     continue
                 d00 = np.abs([r["d_a00_sd"] for r in sel])
                 d01 = np.abs([r["d_a01_sd"] for r in sel])
+                nid = all(r["found"] is None for r in sel)
                 t = {"effect": name, "amplitude": list(amp), "size": size, "sets": len(sel),
-                     "found": sum(r["found"] for r in sel),
+                     "found": None if nid else sum(bool(r["found"]) for r in sel),
                      "other": sum(bool(r["other_effects"]) for r in sel),
                      "d_a00_median": float(np.median(d00)), "d_a00_max": float(d00.max()),
                      "d_a01_median": float(np.median(d01)), "d_a01_max": float(d01.max())}
                 table.append(t)
-                say(f"{name:18s} {amp[0]:9.1e}  {size:4d}  {len(sel):4d}  {t['found']:5d}  "
+                found = "  n/i" if nid else f"{t['found']:5d}"
+                say(f"{name:18s} {amp[0]:9.1e}  {size:4d}  {len(sel):4d}  {found}  "
                     f"{t['other']:12d}  {t['d_a00_median']:4.2f}, {t['d_a00_max']:4.2f}  "
                     f"{t['d_a01_median']:4.2f}, {t['d_a01_max']:4.2f}")
     say()
+    say(f"another effect added (a false attribution) in "
+        f"{sum(bool(r['other_effects']) for r in rows)} of {len(rows)} injected sets")
+    nid = sorted({r["effect"] for r in rows if r["found"] is None})
+    for name in nid:
+        why = next(r["not_identifiable"] for r in rows if r["effect"] == name)
+        say(f"n/i: the diagnosis reports {name} as not identifiable from flat pairs ({why}); "
+            "silence is the right answer")
     say("found: the effect named (library effects), or the residual called unexplained with "
         f"its worst lag at {ECHO_LAG} (the echo, which the library lacks); other effect: "
         "another effect added; d/sd: the final fit's a00, a01 minus the twin's, over the "

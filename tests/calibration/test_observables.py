@@ -328,8 +328,6 @@ def test_gain_nonlinearity_is_named_through_the_means(galsim_pairs, basis):
     and the free a00 scale does not take it up: a00 stays within 1 sigma of the
     clean set's. Without exposure times the same covariances alone do not
     constrain it as well."""
-    from lsst_bfdrift.calibration.diagnosis import scaled_basis
-
     nu = 2e-7
     pairs = [(a * (1 + nu * a), b * (1 + nu * b)) for a, b in galsim_pairs]
     d = _diagnose(pairs, basis)
@@ -339,14 +337,7 @@ def test_gain_nonlinearity_is_named_through_the_means(galsim_pairs, basis):
     assert abs(e["params"]["nu"] - nu) < 3 * e["errors"]["nu"]
     assert e["errors"]["nu"] < 0.2 * nu
 
-    def a00(diag):
-        used = scaled_basis(basis, diag.base_scales)
-        st = diag.steps[-1]
-        x = [st["base_params"][n] for n in used.names]
-        g = used.jacobian[0, 0] * np.array([st["base_errors"][n] for n in used.names])
-        return used.a(x, 0)[0, 0], np.sqrt(np.sum(g**2))
-
-    (v, s), (v0, s0) = a00(d), a00(clean)
+    (v, s), (v0, s0) = _a00(d, basis), _a00(clean, basis)
     assert abs(v - v0) < max(s, s0)
     bare = diagnose(observations_from_pairs(pairs, max_lag=3), basis)
     eb = [x for x in bare.steps[-1]["effects"] if x["name"] == "gain_nonlinearity"]
@@ -368,3 +359,52 @@ def test_flats_report_plots_the_residuals_against_the_mean(galsim_pairs, basis, 
     assert (tmp_path / "pull_map_C.png").exists() and not (tmp_path / "pull_map_M.png").exists()
     assert "residuals_vs_mean.png" in (tmp_path / "report.md").read_text()
     assert str(tmp_path / "report.md") in paths
+
+
+def _a00(diag, basis):
+    """a00 of the final fit and its error, through the basis the diagnosis used."""
+    from lsst_bfdrift.calibration.diagnosis import scaled_basis
+
+    used = scaled_basis(basis, diag.base_scales)
+    st = diag.steps[-1]
+    x = [st["base_params"][n] for n in used.names]
+    k = len(used.names)
+    g = used.jacobian[0, 0]
+    cov = np.asarray(st["base_covariance"], float)[:k, :k]
+    return used.a(x, 0)[0, 0], float(np.sqrt(g @ cov @ g))
+
+
+@pytest.mark.parametrize("name, eps", [("cti_serial", 2e-2), ("cti_parallel", 3e-2)])
+def test_cti_on_galsim_flats_is_named_on_its_axis(galsim_pairs, basis, name, eps):
+    """CTI applied to the read-out of GalSim-made flats (the same flats are the
+    exact effect-free twin): named on its axis with eps within 3 sigma, nothing
+    else added, and a00 within 1 sigma of the twin's. Amplitudes where these
+    small data (10 pairs of 100 x 100 px) find it; the detection thresholds at
+    larger sizes are in benchmarks/diagnose_power_results.txt."""
+    from lsst_bfdrift.simulation.flats import apply_readout_effects
+
+    inj = {name: (eps,)}
+    pairs = [(apply_readout_effects(a, inj), apply_readout_effects(b, inj))
+             for a, b in galsim_pairs]
+    d = _diagnose(pairs, basis)
+    assert d.effects_added == [name] and not d.unexplained
+    e = d.steps[-1]["effects"][0]
+    assert abs(e["params"]["eps"] - eps) < 3 * e["errors"]["eps"]
+    (v, s), (v0, _) = _a00(d, basis), _a00(_diagnose(galsim_pairs, basis), basis)
+    assert abs(v - v0) < s
+
+
+def test_an_undeclared_echo_is_named_where_it_is(galsim_pairs, basis):
+    """An effect the library lacks (an electronic echo: 3 % of the charge 3
+    serial pixels earlier) on GalSim-made flats: not silence and not a
+    library effect, but an unexplained residual at lag (3, 0), positive."""
+    from lsst_bfdrift.simulation.flats import apply_readout_effects
+
+    inj = {"echo": (3e-2, 3)}
+    pairs = [(apply_readout_effects(a, inj), apply_readout_effects(b, inj))
+             for a, b in galsim_pairs]
+    d = _diagnose(pairs, basis)
+    assert d.effects_added == [] and d.unexplained
+    assert d.worst_lag == "C3,0" and d.worst_lag_p < 1e-6
+    assert np.mean(d.residuals_after["C3,0"]["pull"]) > 1.0
+    assert "C(3,0)" in d.verdict and "nothing in the library explains" in d.verdict
