@@ -10,8 +10,8 @@ Two kinds of injection, both on flats drawn with GalSim's own pixel areas
   effect-free sets ``set_*.npz`` themselves: every amplitude on every set of
   160 and 240 px (``--per-size`` of each, both sensors), and the effect-free
   set is the exact twin. This gives detection *rates*.
-* **fill effects** (a static response pattern, diffusion) change how a flat
-  fills: ``inj_*.npz`` sets drawn with them, each against its twin
+* **fill effects** (a static response pattern, diffusion, a charge cloud)
+  change how a flat fills: ``inj_*.npz`` sets drawn with them, each against its twin
   ``twin_*.npz`` (same configuration and seed, no effect; its noise is not
   the same, so the bias below has both sets' errors).
 

@@ -12,7 +12,7 @@ tuned to one configuration.
     python benchmarks/galsim_flat_sets.py --injections --out /work/flatcache
 
 ``--injections`` draws the power sets of the effects that act while a flat
-fills (a static response pattern, diffusion) at three amplitudes (the first
+fills (a static response pattern, diffusion, a charge cloud) at two or three amplitudes (the first
 two near what sensors show, the third well above, to find the threshold;
 :data:`FILL_INJECTIONS`) on two sizes (160 and 240 px), named
 ``inj_<effect>_<k>_<size>.npz``, each with its effect-free twin (the same
@@ -53,9 +53,10 @@ INJECTIONS = {"cti_serial": [(3e-4,), (1e-3,), (1e-2,)],
               "echo": [(3e-4, 3), (1e-3, 3), (1e-2, 3)],
               "gain_nonlinearity": [(2e-7,), (6e-7,), (3e-6,)],
               "static_area": [(1e-5, 3.0), (4e-5, 3.0), (4e-4, 3.0)],
-              "diffusion": [(0.1,), (0.25,), (0.5,)]}
+              "diffusion": [(0.1,), (0.25,), (0.5,)],
+              "charge_cloud": [(0.05, 0.05), (0.15, 0.15)]}
 #: The injections that change how a flat fills: drawn with their twins.
-FILL_INJECTIONS = ("static_area", "diffusion")
+FILL_INJECTIONS = ("static_area", "diffusion", "charge_cloud")
 SIZES = (160, 200, 240)
 
 
@@ -89,6 +90,8 @@ def main(argv=None):
     ap.add_argument("--first", type=int, default=0)
     ap.add_argument("--out", default="/work/flatcache")
     ap.add_argument("--injections", action="store_true", help="draw the power sets")
+    ap.add_argument("--only", nargs="+", help="with --injections: these effects only")
+    ap.add_argument("--size", type=int, help="with --injections: this size only")
     args = ap.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
     jobs = [(os.path.join(args.out, f"set_{k:03d}.npz"), set_config(k))
@@ -96,10 +99,10 @@ def main(argv=None):
     if args.injections:
         jobs = []
         for n, (name, amps) in enumerate(INJECTIONS.items()):
-            if name not in FILL_INJECTIONS:
+            if name not in FILL_INJECTIONS or (args.only and name not in args.only):
                 continue
             for a, amp in enumerate(amps):
-                for size in (160, 240):
+                for size in (160, 240) if args.size is None else (args.size,):
                     cfg = set_config(1000 + 10 * n + 2 * a + (size == 240))
                     cfg.update(size=size, pairs_per_level=3, sensor=SENSORS[(n + a) % 2])
                     jobs.append((os.path.join(args.out, f"twin_{name}_{a}_{size}.npz"),

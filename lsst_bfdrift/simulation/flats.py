@@ -444,8 +444,9 @@ def simulate_flat_pairs(model, levels, *, engine="linear", shape=(256, 256), n_s
       which would make the mean signal non-linear in exposure by 2e-4);
       photon shooting keeps every photon, and so does this engine. The
       edges keep GalSim's open-boundary loss relative to the interior.
-      ``charge_cloud`` and ``well_filling`` act on the a_ij kernel and are
-      not injectable with it.
+      ``charge_cloud`` ``(var_serial, var_parallel)`` (px^2) computes the
+      areas from the charge image convolved with the cloud;
+      ``well_filling`` acts on the a_ij kernel and is not injectable with it.
 
     Discrete filling gives covariances C_ij = a_ij mu^2 (1 - 1/n_steps) to
     first order (the charge of a step sees only the boundaries of the
@@ -493,11 +494,10 @@ def simulate_flat_pairs(model, levels, *, engine="linear", shape=(256, 256), n_s
     shape = tuple(int(v) for v in shape)
     rng = np.random.default_rng(seed)
     if engine == "galsim":
-        kernel_only = [k for k in ("charge_cloud", "well_filling") if k in inject]
-        if kernel_only:
-            raise InputError(f"{kernel_only} act on the a_ij kernel: not injectable with "
+        if "well_filling" in inject:
+            raise InputError("['well_filling'] acts on the a_ij kernel: not injectable with "
                              "engine='galsim'")
-        areas_of = _galsim_areas(model, shape)
+        areas_of = _galsim_areas(model, shape, charge_cloud=inject.get("charge_cloud"))
     elif engine == "linear":
         a = np.asarray(model, dtype=float)
         if a.ndim != 2 or a.shape[0] != a.shape[1]:
@@ -597,9 +597,26 @@ def apply_readout_effects(charge, inject, *, gain=1.0):
     return s
 
 
-def _galsim_areas(sensor, shape):
-    """areas_of(q): GalSim's pixel areas for the charge image q (e)."""
+def _galsim_areas(sensor, shape, *, charge_cloud=None):
+    """areas_of(q): GalSim's pixel areas for the charge image q (e).
+
+    ``charge_cloud`` ``(var_serial, var_parallel)`` (px^2): each pixel's
+    collected charge is a cloud with these variances, so the boundaries see
+    the charge image convolved with it. The cloud is the 3-tap kernel
+    (v/2, 1 - v, v/2) on each axis: exactly variance v on the pixel grid
+    (a sampled Gaussian under-represents a variance below a pixel), which is
+    what :class:`~lsst_bfdrift.simulation.effects.ChargeCloud` models to
+    second order.
+    """
     import galsim
+    from scipy.ndimage import convolve1d
+
+    blur = None
+    if charge_cloud is not None:
+        vs, vp = (float(v) for v in charge_cloud)
+        if not (0 <= vs <= 1 and 0 <= vp <= 1):
+            raise InputError(f"charge_cloud variances must be in [0, 1] px^2, got {(vs, vp)}")
+        blur = [(axis, np.array([v / 2, 1 - v, v / 2])) for axis, v in ((1, vs), (0, vp))]
 
     try:
         sim = galsim.SiliconSensor(str(sensor), diffusion_factor=0.0)
@@ -611,6 +628,9 @@ def _galsim_areas(sensor, shape):
                  min(GALSIM_AREA_BAND, nx // 4):nx - min(GALSIM_AREA_BAND, nx // 4)]
 
     def areas_of(q):
+        if blur is not None:
+            for axis, w in blur:
+                q = convolve1d(np.asarray(q, float), w, axis=axis, mode="nearest")
         img = galsim.ImageD(np.ascontiguousarray(q, dtype=np.float64), scale=1.0)
         area = sim.calculate_pixel_areas(img, use_flux=True).array
         # GalSim's polygon areas lose area to second order in the charge even
