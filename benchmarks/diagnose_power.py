@@ -44,6 +44,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, ".."))
 
 from lsst_bfdrift.calibration.acoeff_fit import load_default_basis  # noqa: E402
+from lsst_bfdrift.calibration.consequence import base_acoeffs  # noqa: E402
 from lsst_bfdrift.calibration.diagnosis import (diagnose, observations_from_pairs,  # noqa: E402
                                                scaled_basis)
 from lsst_bfdrift.simulation.effects import EFFECT_NAMES  # noqa: E402
@@ -66,15 +67,9 @@ def _load(path):
 def _diagnose(flats, exptime, basis):
     pairs = [(f[0], f[1]) for f in flats]
     res = diagnose(observations_from_pairs(pairs, max_lag=3, exptimes=exptime), basis)
-    used = scaled_basis(basis, res.base_scales)
-    step = res.steps[-1]
-    x = np.array([step["base_params"][n] for n in used.names])
-    cov = np.asarray(step["base_covariance"], float)[:len(used.names), :len(used.names)]
-    out = {}
-    for key, (i, j) in (("a00", (0, 0)), ("a01", (0, 1))):
-        g = used.jacobian[i, j]
-        out[key] = (float(used.a(x, 1)[i, j]), float(np.sqrt(max(g @ cov @ g, 0.0))))
-    return res, out
+    a, s = base_acoeffs(res.steps[-1], scaled_basis(basis, res.base_scales), 1)
+    return res, {key: (float(a[i, j]), float(s[i, j]))
+                 for key, (i, j) in (("a00", (0, 0)), ("a01", (0, 1)))}
 
 
 def _row(name, amp, cfg, res, a, twin_a, *, drawn_twin):

@@ -52,10 +52,9 @@ from scipy import stats
 
 from lsst_bfdrift.calibration.acoeff_fit import DEFAULT_FREE
 from lsst_bfdrift.calibration.fitting import fit_parameters
-from lsst_bfdrift.calibration.observables import (_pixel_variance, assess_observables,
-                                                  credit_findings, exposure_scatter,
-                                                  lag_error_factors, pair_observables,
-                                                  turnoff_cut)
+from lsst_bfdrift.calibration.observables import (assess_observables, credit_findings,
+                                                  lag_error_factors, pair_mean_errors,
+                                                  pair_observables, turnoff_cut)
 from lsst_bfdrift.calibration.ptc import covariance_model, fit_ptc_exponential, pair_covariances
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.simulation.effects import effect_library, EFFECT_NAMES
@@ -435,10 +434,7 @@ class _Problem:
         if t is None or extra is None or np.unique(np.round(np.log(t), 3)).size < 3:
             return
         t = np.asarray(t, float)
-        nvalid = np.array([x["nvalid"] for x in extra], float)
-        sig = np.sqrt(_pixel_variance(o.mu, gain, noise) / (2.0 * nvalid))
-        scatter = exposure_scatter(o.mu, [x["mu1"] for x in extra], [x["mu2"] for x in extra],
-                                   nvalid, gain, noise)
+        sig, scatter = pair_mean_errors(o.mu, extra, gain, noise)
         sig = np.sqrt(sig**2 + (scatter * o.mu) ** 2 / 2.0)
         A = np.stack([t, np.ones_like(t)], axis=1) / sig[:, None]
         coef = np.linalg.lstsq(A, o.mu / sig, rcond=None)[0]

@@ -50,7 +50,8 @@ from lsst_bfdrift.simulation.effects import BASE_OBSERVABLES
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["CHECKS", "SPLITS", "lag_multiplicity", "lag_error_factors", "pair_observables",
-           "turnoff_cut", "not_available", "exposure_scatter", "linearity_finding",
+           "turnoff_cut", "not_available", "exposure_scatter", "pair_mean_errors",
+           "linearity_finding",
            "sum_rule_finding", "table_sum_rule_finding", "halves_finding", "pair_ratio_finding",
            "turnoff_finding", "assess_observables", "credit_findings"]
 
@@ -243,6 +244,33 @@ def exposure_scatter(mu, mu1, mu2, nvalid, gain, noise):
     mean, _ = _wmean(r, s)
     excess = (np.sum((r - mean) ** 2) / (mu.size - 1) - np.mean(s**2)) / 2.0
     return float(np.sqrt(max(excess, 0.0)))
+
+
+def pair_mean_errors(mu, pairs, gain, noise):
+    """Shot-noise errors of the pair means (ADU) and the exposure scatter.
+
+    Parameters
+    ----------
+    mu : array_like, shape (n,)
+        Pair means (ADU).
+    pairs : sequence of dict
+        Per pair ``mu1``, ``mu2`` and ``nvalid``
+        (:func:`pair_observables`).
+    gain, noise : float
+        e/ADU and read noise (e^2).
+
+    Returns
+    -------
+    sigma : ndarray
+        sqrt(V / (2 N)) per pair, V the pixel variance of the sum rule.
+    scatter : float
+        :func:`exposure_scatter` of the pairs.
+    """
+    mu = np.asarray(mu, float)
+    n = np.array([e["nvalid"] for e in pairs], float)
+    sig = np.sqrt(_pixel_variance(mu, gain, noise) / (2.0 * n))
+    return sig, exposure_scatter(mu, [e["mu1"] for e in pairs], [e["mu2"] for e in pairs],
+                                 n, gain, noise)
 
 
 def linearity_finding(mu, exptime, sigma, *, exposure_scatter=0.0, scatter_dof=None,
@@ -716,11 +744,7 @@ def assess_observables(obs, *, model=None, sigma=None, gain=None, noise=0.0,
     no_pairs = "statistics given as arrays (Observations.from_flats), not flat pairs"
     t = getattr(obs, "exptime", None)
     if t is not None and extra is not None and gain:
-        sig_mu = np.sqrt(_pixel_variance(obs.mu, gain, noise)
-                         / (2.0 * np.array([e["nvalid"] for e in extra])))
-        scatter = exposure_scatter(obs.mu, [e["mu1"] for e in extra],
-                                   [e["mu2"] for e in extra],
-                                   [e["nvalid"] for e in extra], gain, noise)
+        sig_mu, scatter = pair_mean_errors(obs.mu, extra, gain, noise)
         out["linearity"] = linearity_finding(obs.mu, t, sig_mu, exposure_scatter=scatter,
                                              scatter_dof=len(extra) - 1,
                                              p_threshold=p_threshold)

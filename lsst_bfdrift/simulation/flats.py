@@ -624,8 +624,8 @@ def _galsim_areas(sensor, shape, *, charge_cloud=None):
         raise InputError(f"engine 'galsim': no GalSim sensor {sensor!r} ({exc})") from None
     ny, nx = shape
 
-    band = np.s_[min(GALSIM_AREA_BAND, ny // 4):ny - min(GALSIM_AREA_BAND, ny // 4),
-                 min(GALSIM_AREA_BAND, nx // 4):nx - min(GALSIM_AREA_BAND, nx // 4)]
+    by, bx = min(GALSIM_AREA_BAND, ny // 4), min(GALSIM_AREA_BAND, nx // 4)
+    band = np.s_[by:ny - by, bx:nx - bx]
 
     def areas_of(q):
         if blur is not None:
