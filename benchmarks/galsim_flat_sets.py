@@ -12,11 +12,14 @@ tuned to one configuration.
     python benchmarks/galsim_flat_sets.py --injections --out /work/flatcache
 
 ``--injections`` draws the power sets of the effects that act while a flat
-fills (a static response pattern, diffusion, a charge cloud) at two or three amplitudes (the first
+fills (a static response pattern, diffusion, a charge cloud, well filling) at two or three
+amplitudes (the first
 two near what sensors show, the third well above, to find the threshold;
 :data:`FILL_INJECTIONS`) on two sizes (160 and 240 px), named
 ``inj_<effect>_<k>_<size>.npz``, each with its effect-free twin (the same
-configuration and seed without the effect), ``twin_<effect>_<k>_<size>.npz``.
+configuration and seed without the effect), ``twin_<effect>_<k>_<size>.npz``;
+``--repeats`` draws more sets per cell (``..._r<r>.npz``, other configurations,
+seeds and sensors).
 The effects that act on the read-out of the collected charge (CTI on either
 axis, an echo, gain non-linearity;
 :data:`~lsst_bfdrift.simulation.flats.READOUT_EFFECTS`) need no drawing:
@@ -46,17 +49,20 @@ SENSORS = ("lsst_itl_50_8", "lsst_e2v_50_8")
 #: Injected effects and amplitudes (the package's parameters, simulation.flats.INJECTABLE):
 #: CTI eps (fraction of a pixel's charge trailing into the next, per axis), echo (kappa,
 #: lag px), gain non-linearity (nu per ADU), static pattern (variance, correlation length
-#: px), diffusion (rms px). The first two are near what sensors show; the third is
-#: far above, to locate the detection threshold at these data sizes.
+#: px), diffusion (rms px), charge cloud (variances px^2), well filling (beta per e:
+#: a_ij grows by beta Q, 24 %, 80 % and 240 % at 80 ke). The first two are near what
+#: sensors show (well filling: the first); the others are far above, to locate the
+#: detection threshold at these data sizes.
 INJECTIONS = {"cti_serial": [(3e-4,), (1e-3,), (1e-2,)],
               "cti_parallel": [(3e-4,), (1e-3,), (1e-2,)],
               "echo": [(3e-4, 3), (1e-3, 3), (1e-2, 3)],
               "gain_nonlinearity": [(2e-7,), (6e-7,), (3e-6,)],
               "static_area": [(1e-5, 3.0), (4e-5, 3.0), (4e-4, 3.0)],
               "diffusion": [(0.1,), (0.25,), (0.5,)],
-              "charge_cloud": [(0.05, 0.05), (0.15, 0.15)]}
+              "charge_cloud": [(0.05, 0.05), (0.15, 0.15)],
+              "well_filling": [(3e-6,), (1e-5,), (3e-5,)]}
 #: The injections that change how a flat fills: drawn with their twins.
-FILL_INJECTIONS = ("static_area", "diffusion", "charge_cloud")
+FILL_INJECTIONS = ("static_area", "diffusion", "charge_cloud", "well_filling")
 SIZES = (160, 200, 240)
 
 
@@ -92,6 +98,10 @@ def main(argv=None):
     ap.add_argument("--injections", action="store_true", help="draw the power sets")
     ap.add_argument("--only", nargs="+", help="with --injections: these effects only")
     ap.add_argument("--size", type=int, help="with --injections: this size only")
+    ap.add_argument("--amplitude", type=int, help="with --injections: this amplitude (index) only")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="with --injections: sets per effect, amplitude and size (repeat r > 0 "
+                         "is named ..._r<r>.npz and has its own configuration and seed)")
     args = ap.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
     jobs = [(os.path.join(args.out, f"set_{k:03d}.npz"), set_config(k))
@@ -102,13 +112,17 @@ def main(argv=None):
             if name not in FILL_INJECTIONS or (args.only and name not in args.only):
                 continue
             for a, amp in enumerate(amps):
+                if args.amplitude is not None and a != args.amplitude:
+                    continue
                 for size in (160, 240) if args.size is None else (args.size,):
-                    cfg = set_config(1000 + 10 * n + 2 * a + (size == 240))
-                    cfg.update(size=size, pairs_per_level=3, sensor=SENSORS[(n + a) % 2])
-                    jobs.append((os.path.join(args.out, f"twin_{name}_{a}_{size}.npz"),
-                                 dict(cfg)))
-                    cfg.update(inject={name: list(amp)})
-                    jobs.append((os.path.join(args.out, f"inj_{name}_{a}_{size}.npz"), cfg))
+                    for r in range(args.repeats):
+                        cfg = set_config(1000 + 10 * n + 2 * a + (size == 240) + 1000 * r)
+                        cfg.update(size=size, pairs_per_level=3,
+                                   sensor=SENSORS[(n + a + r) % 2])
+                        tag = f"{name}_{a}_{size}" + (f"_r{r}" if r else "")
+                        jobs.append((os.path.join(args.out, f"twin_{tag}.npz"), dict(cfg)))
+                        cfg.update(inject={name: list(amp)})
+                        jobs.append((os.path.join(args.out, f"inj_{tag}.npz"), cfg))
     for path, cfg in jobs:
         if os.path.exists(path):
             continue

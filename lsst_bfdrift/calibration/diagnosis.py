@@ -53,7 +53,8 @@ from scipy import stats
 from lsst_bfdrift.calibration.acoeff_fit import DEFAULT_FREE
 from lsst_bfdrift.calibration.fitting import fit_parameters
 from lsst_bfdrift.calibration.observables import (assess_observables, credit_findings,
-                                                  lag_error_factors, pair_mean_errors,
+                                                  exposure_line, lag_error_factors,
+                                                  pair_mean_errors,
                                                   pair_observables, turnoff_cut)
 from lsst_bfdrift.calibration.ptc import covariance_model, fit_ptc_exponential, pair_covariances
 from lsst_bfdrift.utils.errors import InputError
@@ -436,9 +437,8 @@ class _Problem:
         t = np.asarray(t, float)
         sig, scatter = pair_mean_errors(o.mu, extra, gain, noise)
         sig = np.sqrt(sig**2 + (scatter * o.mu) ** 2 / 2.0)
-        A = np.stack([t, np.ones_like(t)], axis=1) / sig[:, None]
-        coef = np.linalg.lstsq(A, o.mu / sig, rcond=None)[0]
-        err = np.sqrt(np.diag(np.linalg.inv(A.T @ A)))
+        coef, cov = exposure_line(o.mu, t, sig)
+        err = np.sqrt(np.diag(cov))
         self.exptime = t
         self.names += ["rate", "offset"]
         self.x0 = np.concatenate([self.x0, coef])
@@ -608,9 +608,14 @@ def _per_lag(problem, fit):
 
 
 def _cv_chi2(problem, effects, start, folds, rng_seed=0):
-    """Held-out chi2 per fold (data points assigned to folds at random, seeded)."""
+    """Held-out chi2 per fold (data points assigned to folds at random, seeded).
+
+    The scales' prior (block 'P') is not data: it stays in every training set
+    and is never held out."""
     n = problem.y.size
-    perm = np.random.default_rng(rng_seed).permutation(n)
+    data = np.array([lab[0] != "P" for lab in problem.labels])
+    idx = np.flatnonzero(data)
+    perm = idx[np.random.default_rng(rng_seed).permutation(idx.size)]
     out = np.zeros(folds)
     for f in range(folds):
         test = np.zeros(n, bool)

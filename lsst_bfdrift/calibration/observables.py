@@ -51,7 +51,7 @@ from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["CHECKS", "SPLITS", "lag_multiplicity", "lag_error_factors", "pair_observables",
            "turnoff_cut", "not_available", "exposure_scatter", "pair_mean_errors",
-           "linearity_finding",
+           "exposure_line", "linearity_finding",
            "sum_rule_finding", "table_sum_rule_finding", "halves_finding", "pair_ratio_finding",
            "turnoff_finding", "assess_observables", "credit_findings"]
 
@@ -273,6 +273,27 @@ def pair_mean_errors(mu, pairs, gain, noise):
                                  n, gain, noise)
 
 
+def exposure_line(mu, exptime, sigma):
+    """Weighted least-squares line mu = k t + c of the pair means.
+
+    Parameters
+    ----------
+    mu, exptime, sigma : array_like, shape (n,)
+        Pair means (ADU), exposure times (s) and the means' errors (ADU).
+
+    Returns
+    -------
+    coef : ndarray, shape (2,)
+        ``(k, c)``: slope (ADU/s) and offset (ADU).
+    cov : ndarray, shape (2, 2)
+        Their covariance.
+    """
+    mu, t, s = (np.asarray(v, float) for v in (mu, exptime, sigma))
+    A = np.stack([t, np.ones_like(t)], axis=1) / s[:, None]
+    coef = np.linalg.lstsq(A, mu / s, rcond=None)[0]
+    return coef, np.linalg.inv(A.T @ A)
+
+
 def linearity_finding(mu, exptime, sigma, *, exposure_scatter=0.0, scatter_dof=None,
                       p_threshold=1e-3):
     """Mean signal against exposure time: fit mu = k t + c and its residuals.
@@ -320,9 +341,7 @@ def linearity_finding(mu, exptime, sigma, *, exposure_scatter=0.0, scatter_dof=N
     if distinct < 3:
         return not_available(name, f"{distinct} distinct exposure time(s); a line with an "
                                    "offset needs at least 3")
-    A = np.stack([t, np.ones_like(t)], axis=1) / s[:, None]
-    coef, *_ = np.linalg.lstsq(A, mu / s, rcond=None)
-    cov = np.linalg.inv(A.T @ A)
+    coef, cov = exposure_line(mu, t, s)
     model = coef[0] * t + coef[1]
     res = mu - model
     pull = res / s

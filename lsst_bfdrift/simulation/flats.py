@@ -36,7 +36,7 @@ from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["simulate_flat_pairs", "write_flat_pairs", "apply_readout_effects", "INJECTABLE",
-           "READOUT_EFFECTS", "GALSIM_AREA_BAND", "PeriodicAreas",
+           "READOUT_EFFECTS", "GALSIM_AREA_BAND", "PeriodicAreas", "engine_acoeffs",
            "simulate_flats", "simulate_ptc_levels", "template_area_coefficients",
            "with_responsivity"]
 
@@ -446,7 +446,13 @@ def simulate_flat_pairs(model, levels, *, engine="linear", shape=(256, 256), n_s
       edges keep GalSim's open-boundary loss relative to the interior.
       ``charge_cloud`` ``(var_serial, var_parallel)`` (px^2) computes the
       areas from the charge image convolved with the cloud;
-      ``well_filling`` acts on the a_ij kernel and is not injectable with it.
+      ``well_filling`` ``(beta,)`` (per e) makes each pixel's pull on its
+      neighbours' boundaries grow with its own charge: GalSim sees the charge
+      Q (1 + beta Q / 2), so a_ij(Q) = a_ij (1 + beta Q). This is the
+      library's :class:`~lsst_bfdrift.simulation.effects.WellFilling` with
+      GalSim's a_ij in place of d a_ij / d ln(channel depth), which GalSim
+      cannot give (in the shipped basis the two agree within 8 % at lags
+      <= 1).
 
     Discrete filling gives covariances C_ij = a_ij mu^2 (1 - 1/n_steps) to
     first order (the charge of a step sees only the boundaries of the
@@ -494,10 +500,9 @@ def simulate_flat_pairs(model, levels, *, engine="linear", shape=(256, 256), n_s
     shape = tuple(int(v) for v in shape)
     rng = np.random.default_rng(seed)
     if engine == "galsim":
-        if "well_filling" in inject:
-            raise InputError("['well_filling'] acts on the a_ij kernel: not injectable with "
-                             "engine='galsim'")
-        areas_of = _galsim_areas(model, shape, charge_cloud=inject.get("charge_cloud"))
+        beta = inject.get("well_filling", (0.0,))[0]
+        areas_of = _galsim_areas(model, shape, charge_cloud=inject.get("charge_cloud"),
+                                 well_filling=float(beta))
     elif engine == "linear":
         a = np.asarray(model, dtype=float)
         if a.ndim != 2 or a.shape[0] != a.shape[1]:
@@ -597,8 +602,85 @@ def apply_readout_effects(charge, inject, *, gain=1.0):
     return s
 
 
-def _galsim_areas(sensor, shape, *, charge_cloud=None):
+def engine_acoeffs(model, inject=None, *, max_lag=3, charge=1e4):
+    """The a-matrix that flats of :func:`simulate_flat_pairs` carry, noise-free (1/e).
+
+    What their covariances measure, C_ij = a_ij mu^2 (1 - 1/n_steps) to
+    first order, for the fill injections that reshape it: the truth against
+    which a fit to such flats is judged.
+
+    * No injection: ``model`` itself (engine 'linear') or GalSim's areas
+      around one charged pixel (engine 'galsim': ``charge`` and
+      ``charge / 2``; the areas are quadratic in the charge, so
+      (4 (A(Q/2) - 1) - (A(Q) - 1)) / Q is the slope at zero charge).
+    * ``charge_cloud``: the aggressor's charge spread by the cloud (GalSim:
+      the engine's 3-tap kernel before the areas; linear: the library's
+      :class:`~lsst_bfdrift.simulation.effects.ChargeCloud`, as the engine
+      applies it).
+    * ``diffusion`` (rms px): electrons are moved after the areas set where
+      they land, each independently, so the flat's noise stays white (a
+      thinned Poisson process) while the area response is smoothed once,
+      a_eff = w * a with w the engine's 3 x 3 pixel-integrated Gaussian (to
+      first order in a the power spectrum grows as dP/dt = 2 r W A P + r).
+    * ``well_filling``: a_ij at zero charge, unchanged (they grow as
+      a_ij (1 + beta Q)). Read-out effects and ``static_area`` leave the
+      a-matrix unchanged.
+
+    Parameters
+    ----------
+    model : str or array_like
+        A GalSim sensor name (engine 'galsim') or a[i, j] (engine 'linear').
+    inject : dict, optional
+        ``{name: parameters}`` as for :func:`simulate_flat_pairs`.
+    max_lag : int, optional
+        Largest lag.
+    charge : float, optional
+        Aggressor charge (e) of the GalSim evaluation.
+
+    Returns
+    -------
+    ndarray, shape (max_lag + 1, max_lag + 1)
+        a[i, j], i serial, j parallel.
+    """
+    inject = dict(inject or {})
+    bad = [k for k in inject if k not in INJECTABLE]
+    if bad:
+        raise InputError(f"cannot inject {bad}; known: {list(INJECTABLE)}")
+    L = int(max_lag)
+    n = 2 * L + 2 * GALSIM_AREA_BAND + 21
+    c = n // 2
+    if isinstance(model, str):
+        areas_of = _galsim_areas(model, (n, n), charge_cloud=inject.get("charge_cloud"))
+        d = []
+        for q0 in (charge, charge / 2):
+            q = np.zeros((n, n))
+            q[c, c] = q0
+            d.append(areas_of(q) - 1.0)
+        alpha = (4 * d[1] - d[0]) / charge  # [y, x]
+    else:
+        a = np.asarray(model, dtype=float)
+        if a.ndim != 2 or a.shape[0] != a.shape[1]:
+            raise InputError(f"model must be a square a_ij array or a sensor name, "
+                             f"got shape {a.shape}")
+        if "charge_cloud" in inject:
+            a = ChargeCloud().apply_a(a, inject["charge_cloud"], None)
+        f = full_lags(a).T  # [dj, di] = [y, x], centred
+        m = a.shape[0] - 1
+        alpha = np.zeros((n, n))
+        k = min(m, c)
+        alpha[c - k:c + k + 1, c - k:c + k + 1] = f[m - k:m + k + 1, m - k:m + k + 1]
+    if "diffusion" in inject:
+        w = _diffusion_weights(float(inject["diffusion"][0]))
+        alpha = sum(w[dy + 1, dx + 1] * np.roll(alpha, (dy, dx), axis=(0, 1))
+                    for dy in (-1, 0, 1) for dx in (-1, 0, 1))
+    return alpha[c:c + L + 1, c:c + L + 1].T.copy()
+
+
+def _galsim_areas(sensor, shape, *, charge_cloud=None, well_filling=0.0):
     """areas_of(q): GalSim's pixel areas for the charge image q (e).
+
+    ``well_filling`` beta (per e): the boundaries see the charge
+    q (1 + beta q / 2), so the area coefficients grow as a_ij (1 + beta Q).
 
     ``charge_cloud`` ``(var_serial, var_parallel)`` (px^2): each pixel's
     collected charge is a cloud with these variances, so the boundaries see
@@ -617,6 +699,9 @@ def _galsim_areas(sensor, shape, *, charge_cloud=None):
         if not (0 <= vs <= 1 and 0 <= vp <= 1):
             raise InputError(f"charge_cloud variances must be in [0, 1] px^2, got {(vs, vp)}")
         blur = [(axis, np.array([v / 2, 1 - v, v / 2])) for axis, v in ((1, vs), (0, vp))]
+    if not np.isfinite(well_filling) or abs(well_filling) > 1e-4:
+        raise InputError(f"well_filling beta must be finite and within +-1e-4 per e, "
+                         f"got {well_filling}")
 
     try:
         sim = galsim.SiliconSensor(str(sensor), diffusion_factor=0.0)
@@ -628,6 +713,8 @@ def _galsim_areas(sensor, shape, *, charge_cloud=None):
     band = np.s_[by:ny - by, bx:nx - bx]
 
     def areas_of(q):
+        if well_filling:
+            q = np.asarray(q, float) * (1.0 + 0.5 * well_filling * np.asarray(q, float))
         if blur is not None:
             for axis, w in blur:
                 q = convolve1d(np.asarray(q, float), w, axis=axis, mode="nearest")
