@@ -78,7 +78,7 @@ def _diagnose(flats, exptime, basis):
                  for key, (i, j) in (("a00", (0, 0)), ("a01", (0, 1)))}
 
 
-def _row(name, amp, cfg, res, a, twin_a, *, drawn_twin):
+def _row(name, amp, cfg, res, a, twin_a, *, drawn_twin, twin_res):
     in_library = name in EFFECT_NAMES
     if name in res.not_identifiable:  # the diagnosis says the input cannot show it
         found = None
@@ -100,7 +100,18 @@ def _row(name, amp, cfg, res, a, twin_a, *, drawn_twin):
         sd = np.hypot(s, s0) if drawn_twin else s
         bias[k] = float((v - v0) / sd)
         off[k] = float((v - v0 - truth[ij]) / sd)
-    return {"effect": name, "amplitude": list(amp), "size": cfg["size"],
+    # not added: the base a00, a01 with the effect free (Diagnosis.not_excluded) against
+    # the twin's with it free
+    free = {}
+    ne = {d["effect"]: d for d in res.not_excluded}
+    ne0 = {d["effect"]: d for d in twin_res.not_excluded}
+    if name in ne and name in ne0:
+        for k in ("a00", "a01"):
+            (v, s), (v0, s0) = ne[name][k], ne0[name][k]
+            free[k] = float((v - v0) / (np.hypot(s, s0) if drawn_twin else s))
+    return {"d_a00_free_sd": free.get("a00"), "d_a01_free_sd": free.get("a01"),
+            "a00_shift_if_free_sd": ne[name]["a00_shift_sd"] if name in ne else None,
+            "effect": name, "amplitude": list(amp), "size": cfg["size"],
             "sensor": cfg["sensor"], "pairs": len(cfg["levels"]) * cfg["pairs_per_level"],
             "set": cfg.get("index"), "in_library": in_library,
             "found": None if found is None else bool(found),
@@ -138,13 +149,14 @@ def main(argv=None):
     for size, paths in clean.items():
         for p in paths:
             cfg, flats, t = _load(p)
-            _, a0 = _diagnose(flats, t, basis)
+            res0, a0 = _diagnose(flats, t, basis)
             for name in READOUT_EFFECTS:
                 for amp in INJECTIONS[name]:
                     inj = np.array([[apply_readout_effects(f, {name: tuple(amp)}) for f in pr]
                                     for pr in flats])
                     res, a = _diagnose(inj, t, basis)
-                    rows.append(_row(name, amp, cfg, res, a, a0, drawn_twin=False))
+                    rows.append(_row(name, amp, cfg, res, a, a0, drawn_twin=False,
+                                     twin_res=res0))
     for p in sorted(glob.glob(os.path.join(args.cache, "inj_*.npz"))):
         twin = p.replace("inj_", "twin_")
         if not os.path.exists(twin):
@@ -152,8 +164,8 @@ def main(argv=None):
         cfg, flats, t = _load(p)
         (name, amp), = cfg["inject"].items()
         res, a = _diagnose(flats, t, basis)
-        _, a0 = _diagnose(*_load(twin)[1:], basis)
-        rows.append(_row(name, amp, cfg, res, a, a0, drawn_twin=True))
+        res0, a0 = _diagnose(*_load(twin)[1:], basis)
+        rows.append(_row(name, amp, cfg, res, a, a0, drawn_twin=True, twin_res=res0))
     say()
     say("effect              amplitude  size  sets  found  other  moved: a00     a01"
         "         vs truth: a00   a01   (|d|/sd median, max)")
@@ -185,6 +197,22 @@ def main(argv=None):
                     f"{t['d_a01_median']:4.2f}, {t['d_a01_max']:4.2f}      "
                     f"{t['truth_a00_median']:4.2f}, {t['truth_a00_max']:4.2f}  "
                     f"{t['truth_a01_median']:4.2f}, {t['truth_a01_max']:4.2f}")
+    say()
+    say("not added, with the effect free (Diagnosis.not_excluded): the base a00, a01 "
+        "minus the twin's with it free, |d|/sd median, max")
+    for name in INJECTIONS:
+        for amp in INJECTIONS[name]:
+            sel = [r for r in rows if r["effect"] == name and r["amplitude"] == list(amp)
+                   and r["d_a00_free_sd"] is not None]
+            if not sel:
+                continue
+            f00 = np.abs([r["d_a00_free_sd"] for r in sel])
+            f01 = np.abs([r["d_a01_free_sd"] for r in sel])
+            sh = np.abs([r["a00_shift_if_free_sd"] for r in sel])
+            say(f"  {name:18s} {amp[0]:9.1e}  {len(sel):3d} sets  a00 {np.median(f00):4.2f}, "
+                f"{f00.max():4.2f}  a01 {np.median(f01):4.2f}, {f01.max():4.2f}  "
+                f"(freeing it moves a00 by {np.median(sh):.1f}, up to {sh.max():.1f} sigma of "
+                "the final fit)")
     say()
     say(f"another effect added (a false attribution) in "
         f"{sum(bool(r['other_effects']) for r in rows)} of {len(rows)} injected sets")

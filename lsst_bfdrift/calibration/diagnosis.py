@@ -687,7 +687,7 @@ def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1
             usable.append(e)
         else:
             skipped[e.name] = why
-    current = []
+    current, final_scores = [], []
     fit = problem.fit(current)
     bic = fit["chi2"] + fit["n_params"] * np.log(n)
     cv = _cv_chi2(problem, current, fit["x"], folds)
@@ -722,6 +722,7 @@ def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1
                                             else float(best_cv.sum()),
                                             "cv_median_fold_change": gain}])
         if best_cv is None or gain >= 0:
+            final_scores = scores
             break
         current = current + [best["effect"]]
         fit, bic, cv = best["fit"], best["bic"], best_cv
@@ -760,6 +761,7 @@ def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1
                                               p_threshold)
     for sig in signatures:  # like the edge: named, outside the fit's own decision
         verdict += "; " + sig
+    not_excluded = _not_excluded(problem, fit, current, final_scores, basis)
     for r in rounds:
         for s in r:
             s.pop("fit", None)
@@ -774,7 +776,42 @@ def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1
                      unexplained=bool(unexplained), n_points=int(n), note=obs.note,
                      base_scales=scales,
                      levels=[] if obs.kind == "table" else [float(v) for v in obs.mu],
-                     edge=edge, observables=findings, signatures=signatures)
+                     edge=edge, observables=findings, signatures=signatures,
+                     not_excluded=not_excluded)
+
+
+def _not_excluded(problem, fit, current, scores, basis):
+    """What each effect that was tried and not added would do to the base a00, a01.
+
+    An effect below the detection threshold may still be there. Its
+    candidate fit (the final model plus that effect) gives the base
+    coefficients with it free: their shift from the final fit, in units of
+    the final fit's errors, is the systematic the base a_ij carry if it is
+    present (well filling below its threshold moves a00 by several sigma,
+    ``docs/benchmarks.rst``). Sorted by the largest shift; empty without an
+    electrostatic basis (PTC input).
+    """
+    from lsst_bfdrift.calibration.consequence import base_acoeffs
+
+    if basis is None or problem.obs.kind == "ptc" or not scores:
+        return []
+    a, sd = base_acoeffs(_step_summary(problem, fit, current, "final"), basis, 1)
+    out = []
+    for sc in scores:
+        e = sc["effect"]
+        if e in current:
+            continue
+        step = _step_summary(problem, sc["fit"], current + [e], e.name)
+        aw, sw = base_acoeffs(step, basis, 1)
+        eff = step["effects"][-1]
+        out.append({"effect": e.name, "delta_bic": float(sc["delta_bic"]),
+                    "params": eff["params"], "errors": eff["errors"],
+                    **{f"a{i}{j}": [float(aw[i, j]), float(sw[i, j])]
+                       for i, j in ((0, 0), (0, 1))},
+                    **{f"a{i}{j}_shift_sd": float((aw[i, j] - a[i, j]) / sd[i, j])
+                       for i, j in ((0, 0), (0, 1))}})
+    out.sort(key=lambda d: -max(abs(d["a00_shift_sd"]), abs(d["a01_shift_sd"])))
+    return out
 
 
 def _observable_checks(obs, problem, fit, library, added, p_threshold):

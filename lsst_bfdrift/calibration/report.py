@@ -135,6 +135,19 @@ def diagnosis_markdown(result, figures=()):
     if result.get("template_change"):
         lines += ["", "## What the added effects change in the BF calibration", ""]
         lines += template_change_lines(result["template_change"])
+    ne = [d for d in result.get("not_excluded") or []
+          if max(abs(d["a00_shift_sd"]), abs(d["a01_shift_sd"])) >= 1.0]
+    if ne:
+        lines += ["", "## Not excluded, and what it would change", "",
+                  "Effects tried and not added (below the threshold) that would move the "
+                  "base a00 or a01 by 1 sigma or more if they were there:", ""]
+        for d in ne:
+            p = ", ".join(f"{k} = {v:.3g} +- {d['errors'][k]:.2g}"
+                          for k, v in list(d["params"].items())[:3])
+            lines.append(f"- **{d['effect']}** (delta BIC {d['delta_bic']:+.1f}; {p}): "
+                         f"a00 {d['a00'][0]:.4g} +- {d['a00'][1]:.2g} "
+                         f"({d['a00_shift_sd']:+.1f} sigma), a01 {d['a01'][0]:.4g} +- "
+                         f"{d['a01'][1]:.2g} ({d['a01_shift_sd']:+.1f} sigma)")
     lines += _observables_markdown(result.get("observables"))
     lines += ["", "## Not identifiable from this input", ""]
     lines += [f"- {k}: {v}" for k, v in result["not_identifiable"].items()] or ["(none)"]

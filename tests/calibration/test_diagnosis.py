@@ -272,3 +272,31 @@ def test_well_filling_named_on_galsim_flats():
     assert not d.unexplained
     beta = d.steps[-1]["effects"][0]["params"]["beta"]
     assert 2e-5 < beta < 8e-5
+
+
+def test_well_filling_below_threshold_is_reported_as_not_excluded(basis):
+    """Consistency (the package's linear engine): well filling of 1e-5 per e on
+    192 x 192 px, 3 pairs at 8 levels, is not added (below the threshold), and the
+    final base a00 takes up the mean of a_ij (1 + beta Q): many sigma from the
+    zero-charge truth. ``not_excluded`` reports what freeing it does: a00 within
+    1.5 of its (3x larger) error of the truth, and the shift it would make; the
+    Markdown report names it."""
+    from lsst_bfdrift.calibration.consequence import base_acoeffs
+    from lsst_bfdrift.calibration.diagnosis import scaled_basis
+    from lsst_bfdrift.calibration.report import diagnosis_markdown
+
+    levels = np.repeat(np.geomspace(4e3, 8e4, 8), 3)
+    pairs = simulate_flat_pairs(basis.a0, levels, inject={"well_filling": (1e-5,)},
+                                shape=(192, 192), n_steps=20,
+                                depth_derivative=basis.dlog_depth(3), seed=1)
+    d = diagnose(observations_from_pairs(pairs, max_lag=3, exptimes=levels * 1e-4), basis)
+    assert d.effects_added == []
+    truth = basis.a0[0, 0] * (1 - 1 / 20)  # discrete filling
+    a, s = base_acoeffs(d.steps[-1], scaled_basis(basis, d.base_scales), 1)
+    assert abs(a[0, 0] - truth) > 5 * s[0, 0]
+    w = {x["effect"]: x for x in d.not_excluded}["well_filling"]
+    assert abs(w["a00"][0] - truth) < 1.5 * w["a00"][1]
+    assert w["a00_shift_sd"] > 5 and w["a00"][1] > 2 * s[0, 0]
+    assert d.not_excluded[0]["effect"] == "well_filling"  # the largest shift first
+    md = diagnosis_markdown(d.as_dict())
+    assert "## Not excluded" in md and "**well_filling**" in md
