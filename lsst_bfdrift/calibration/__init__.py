@@ -18,5 +18,6 @@ from lsst_bfdrift.calibration.sensor_fit import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.tuning import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.catalog import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.star_slopes import *  # noqa: F401,F403
+from lsst_bfdrift.calibration.flat_observations import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.diagnosis import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.report import *  # noqa: F401,F403

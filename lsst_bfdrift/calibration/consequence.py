@@ -22,13 +22,14 @@ that).
 import numpy as np
 from scipy.special import erf
 
+from lsst_bfdrift.calibration.diagnosis import base_acoeffs, scaled_basis
 from lsst_bfdrift.calibration.ptc import _line
 from lsst_bfdrift.correction.solvers import correct_image, recorded_image
 from lsst_bfdrift.simulation.stars import image_moments
 from lsst_bfdrift.templates.swept import SweptAreas
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["star_consequence", "base_acoeffs", "template_change", "CONSEQUENCE_FLUXES"]
+__all__ = ["star_consequence", "template_change", "CONSEQUENCE_FLUXES"]
 
 #: Star fluxes (e) of :func:`star_consequence`: 1e4 to 1.5e6 e, as the
 #: calibrate benchmark's stars.
@@ -110,43 +111,6 @@ def star_consequence(true_template, used_template, *, fwhm=3.5, fluxes=CONSEQUEN
     return out
 
 
-def base_acoeffs(step, basis, max_lag):
-    """The base model's a_ij of one diagnosis step, with errors.
-
-    Parameters
-    ----------
-    step : dict
-        One of ``Diagnosis.steps`` (``base_params`` and ``base_errors``).
-    basis : LinearBasis
-        The diagnosis' electrostatic basis.
-    max_lag : int
-        Largest lag.
-
-    Returns
-    -------
-    a, sigma : ndarray, shape (max_lag + 1, max_lag + 1)
-        a_ij (1/e) and their errors propagated through the basis from the
-        parameters' covariance (``base_covariance``; from their errors alone
-        when the step has none).
-    """
-    try:
-        x = np.array([step["base_params"][n] for n in basis.names])
-        e = np.array([step["base_errors"][n] for n in basis.names])
-    except KeyError as exc:
-        raise InputError(f"the diagnosis step has no base parameter {exc}") from None
-    a = basis.a(x, max_lag)
-    k = int(max_lag) + 1
-    jac = basis.jacobian[:k, :k]
-    cov = step.get("base_covariance")
-    if cov is not None and np.shape(cov)[0] >= len(basis.names):
-        # the base parameters come first, in the basis' order
-        c = np.asarray(cov, float)[:len(basis.names), :len(basis.names)]
-        sigma = np.sqrt(np.maximum(np.einsum("ijk,kl,ijl->ij", jac, c, jac), 0.0))
-    else:
-        sigma = np.sqrt(np.sum((jac * e) ** 2, axis=-1))
-    return a, sigma
-
-
 def template_change(diagnosis, basis, *, max_lag=None, threshold=1.0, calibrate_kw=None,
                     star_kw=None):
     """What the added effects change in the BF calibration and in star corrections.
@@ -180,7 +144,6 @@ def template_change(diagnosis, basis, *, max_lag=None, threshold=1.0, calibrate_
         final model is right (:func:`star_consequence`).
     """
     from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable
-    from lsst_bfdrift.calibration.diagnosis import scaled_basis
     from lsst_bfdrift.calibration.tuning import calibrate
 
     steps = diagnosis.get("steps") or []

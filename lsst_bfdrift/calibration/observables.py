@@ -717,7 +717,7 @@ def assess_observables(obs, *, model=None, sigma=None, gain=None, noise=0.0,
     ----------
     obs : Observations
         Kind 'flats' (the per-pair quantities of
-        :func:`~lsst_bfdrift.calibration.diagnosis.observations_from_pairs`
+        :func:`~lsst_bfdrift.calibration.flat_observations.observations_from_pairs`
         when present), 'ptc' or 'table'.
     model : ndarray, optional
         The base fit's prediction: C_ij, shape (n, L + 1, L + 1) (ADU^2) for

@@ -17,8 +17,9 @@ from astropy.io import fits
 
 from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable, LinearBasis
 from lsst_bfdrift.cli.main import main
-from lsst_bfdrift.calibration.diagnosis import (Observations, diagnose, load_input, observations_from_pairs,
-                                    pair_statistics)
+from lsst_bfdrift.calibration.diagnosis import (Observations, diagnose, load_input,
+                                               observations_from_pairs)
+from lsst_bfdrift.calibration.flat_observations import pair_statistics
 from lsst_bfdrift.simulation.effects import ChargeCloud
 from lsst_bfdrift.simulation.flats import _static_pattern, simulate_flat_pairs
 
@@ -281,7 +282,7 @@ def test_well_filling_below_threshold_is_reported_as_not_excluded(basis):
     zero-charge truth. ``not_excluded`` reports what freeing it does: a00 within
     1.5 of its (3x larger) error of the truth, and the shift it would make; the
     Markdown report names it."""
-    from lsst_bfdrift.calibration.consequence import base_acoeffs
+    from lsst_bfdrift.calibration.diagnosis import base_acoeffs
     from lsst_bfdrift.calibration.diagnosis import scaled_basis
     from lsst_bfdrift.calibration.report import diagnosis_markdown
 

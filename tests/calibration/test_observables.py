@@ -363,7 +363,7 @@ def test_flats_report_plots_the_residuals_against_the_mean(galsim_pairs, basis, 
 
 def _a00(diag, basis):
     """a00 of the final fit and its error, through the basis the diagnosis used."""
-    from lsst_bfdrift.calibration.consequence import base_acoeffs
+    from lsst_bfdrift.calibration.diagnosis import base_acoeffs
     from lsst_bfdrift.calibration.diagnosis import scaled_basis
 
     a, s = base_acoeffs(diag.steps[-1], scaled_basis(basis, diag.base_scales), 0)
