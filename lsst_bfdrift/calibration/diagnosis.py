@@ -66,10 +66,9 @@ __all__ = ["diagnose",
 
 #: Lags whose a_ij get a free scale in the base model of flat pairs: a00, a01
 #: and a10. The shipped basis is the electrostatics linearised about one
-#: sensor; on large flat sets of another sensor it cannot follow the nearest
-#: coefficients within their errors, and effects absorbed the mismatch
-#: (``benchmarks/diagnose_base_model.py``: 3 of 19 effect-free configurations
-#: added an effect with the basis alone, none with these scales).
+#: sensor; it misses the noise-free a-matrices of other sensors by up to 17 %
+#: at these lags (:data:`BASE_SCALE_PRIOR`), which large flat sets resolve
+#: and an effect would otherwise absorb.
 BASE_SCALES = (((0, 0),), ((0, 1),), ((1, 0),))
 
 #: Prior error of each scale of :data:`BASE_SCALES` (fractional). The size of
