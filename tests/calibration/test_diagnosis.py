@@ -21,7 +21,7 @@ from lsst_bfdrift.calibration.diagnosis import (Observations, diagnose, load_inp
                                                observations_from_pairs)
 from lsst_bfdrift.calibration.flat_observations import pair_statistics
 from lsst_bfdrift.simulation.effects import ChargeCloud
-from lsst_bfdrift.simulation.flats import _static_pattern, simulate_flat_pairs
+from lsst_bfdrift.simulation.flats import _static_pattern, simulate_flat_pairs, write_flat_pairs
 
 BASIS = os.path.join(os.path.dirname(os.path.dirname(__file__)), "data", "itl_basis_lag3.json")
 E2V = "/work/shared/data/measured/eotest_e2v_ptc_amp05.txt"
@@ -275,7 +275,7 @@ def test_well_filling_named_on_galsim_flats():
     assert 2e-5 < beta < 8e-5
 
 
-def test_well_filling_below_threshold_is_reported_as_not_excluded(basis):
+def test_well_filling_below_threshold_is_reported_as_not_excluded(basis, tmp_path, capsys):
     """Consistency (the package's linear engine): well filling of 1e-5 per e on
     192 x 192 px, 3 pairs at 8 levels, is not added (below the threshold), and the
     final base a00 takes up the mean of a_ij (1 + beta Q): many sigma from the
@@ -301,3 +301,7 @@ def test_well_filling_below_threshold_is_reported_as_not_excluded(basis):
     assert d.not_excluded[0]["effect"] == "well_filling"  # the largest shift first
     md = diagnosis_markdown(d.as_dict())
     assert "## Not excluded" in md and "**well_filling**" in md
+    # the command line says it too (the same basis, the flats as FITS with EXPTIME)
+    write_flat_pairs(pairs, levels, tmp_path, exptime_per_e=1e-4)
+    assert main(["diagnose", str(tmp_path), "--basis", BASIS, "--no-template-change"]) == 0
+    assert "not excluded: well_filling would move a00 by" in capsys.readouterr().out
