@@ -9,7 +9,11 @@ are known exactly except for noise:
 * GalSim's noise-free a-matrix of the sensor, lags <= 3 and <= 5;
 * the same plus Gaussian noise with the flats' own errors per lag (the
   covariance fit's ``a_err``), ``--draws`` times;
-* the same with the errors divided by sqrt(10) (ten times the pixel pairs).
+* the same with the errors divided by sqrt(10) (ten times the pixel pairs);
+* the calibrated (refined) template of the flats and the draws that
+  :func:`~lsst_bfdrift.templates.refine.draw_templates` makes from the
+  uncertainty it stores (what the Task's ``uncertainty_draws`` use): their
+  spread is the package's own statement of this floor.
 
 Each template corrects the same GalSim stars (drift), and the size and e1
 slopes left are printed as % of the uncorrected ones, with the rms over the
@@ -42,7 +46,7 @@ from lsst_bfdrift.calibration.ptc import fit_covariance_model  # noqa: E402
 from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
-from lsst_bfdrift.templates.refine import match_area_coefficients  # noqa: E402
+from lsst_bfdrift.templates.refine import draw_templates, match_area_coefficients  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.validation.stars import per_star_residuals, residual_slopes  # noqa: E402
 
@@ -87,6 +91,12 @@ def main(argv=None):
         for k in range(args.draws):
             templates[f"GalSim a_ij + {label}, draw {k}"] = match_area_coefficients(
                 built, truth + rng.normal(0.0, sigma * scale), max_lag=L)
+    # the package's own uncertainty: the calibrated (refined) template and the
+    # draws the Task's uncertainty_draws make from it
+    refined = calibrate(table, allow_poor_fit=True).template
+    templates["calibrated (flats, refined)"] = refined
+    for k, tpl in enumerate(draw_templates(refined, args.draws, seed=args.seed)):
+        templates[f"its uncertainty draw {k} (draw_templates)"] = tpl
     templates["true (GalSim file)"] = import_galsim_sensor(sensor, match="transfers")
     d = np.load(stars)
     pairs = [{"bf": b, "truth": t, "flux": float(f)}
@@ -114,6 +124,13 @@ def main(argv=None):
         err = 100 * r["drift"]["size_slope_err"] / abs(u)
         rec["templates"][name] = {"size": size, "size_err": err, "e1": e1}
         say(f"  {name:44s} size {size:+6.2f} +- {err:.2f} %   e1 {e1:+6.1f} %")
+    own = np.array([v["size"] for k, v in rec["templates"].items() if "draw_templates" in k])
+    centre = rec["templates"]["calibrated (flats, refined)"]["size"]
+    rec["rms size, draw_templates about the calibrated template"] = float(
+        np.sqrt(np.mean((own - centre) ** 2)))
+    say(f"  the calibrated template's own draws (draw_templates, the Task's uncertainty_draws): "
+        f"size spread rms {np.sqrt(np.mean((own - centre) ** 2)):.1f} % about its "
+        f"{centre:+.1f} %")
     for label in ("flats' errors", "errors / sqrt(10)"):
         s = np.array([v["size"] for k, v in rec["templates"].items() if label in k])
         rec[f"rms size, {label}"] = float(np.sqrt(np.mean(s**2)))
