@@ -491,7 +491,7 @@ def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1
                                               p_threshold)
     for sig in signatures:  # like the edge: named, outside the fit's own decision
         verdict += "; " + sig
-    not_excluded = _not_excluded(problem, fit, current, final_scores, basis)
+    not_excluded = _not_excluded(problem, last, current, final_scores, basis)
     for r in rounds:
         for s in r:
             s.pop("fit", None)
@@ -547,7 +547,7 @@ def base_acoeffs(step, basis, max_lag):
     return a, sigma
 
 
-def _not_excluded(problem, fit, current, scores, basis):
+def _not_excluded(problem, last, current, scores, basis):
     """What each effect that was tried and not added would do to the base a00, a01.
 
     An effect below the detection threshold may still be there. Its
@@ -560,7 +560,7 @@ def _not_excluded(problem, fit, current, scores, basis):
     """
     if basis is None or problem.obs.kind == "ptc" or not scores:
         return []
-    a, sd = base_acoeffs(_step_summary(problem, fit, current, "final"), basis, 1)
+    a, sd = base_acoeffs(last, basis, 1)  # the final step, already summarised
     out = []
     for sc in scores:
         e = sc["effect"]

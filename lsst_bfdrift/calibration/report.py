@@ -12,7 +12,8 @@ import numpy as np
 
 from lsst_bfdrift.utils.io import atomic_output
 
-__all__ = ["pull_map", "write_report", "diagnosis_markdown", "template_change_lines"]
+__all__ = ["pull_map", "write_report", "diagnosis_markdown", "template_change_lines",
+           "notable_not_excluded"]
 
 
 def pull_map(per_lag, block="a"):
@@ -135,8 +136,7 @@ def diagnosis_markdown(result, figures=()):
     if result.get("template_change"):
         lines += ["", "## What the added effects change in the BF calibration", ""]
         lines += template_change_lines(result["template_change"])
-    ne = [d for d in result.get("not_excluded") or []
-          if max(abs(d["a00_shift_sd"]), abs(d["a01_shift_sd"])) >= 1.0]
+    ne = notable_not_excluded(result)
     if ne:
         lines += ["", "## Not excluded, and what it would change", "",
                   "Effects tried and not added (below the threshold) that would move the "
@@ -155,6 +155,13 @@ def diagnosis_markdown(result, figures=()):
     for f in figures:
         lines += [f"![{f}]({f})", ""]
     return "\n".join(lines)
+
+
+def notable_not_excluded(result, threshold=1.0):
+    """The entries of a diagnosis' ``not_excluded`` that would move the base a00
+    or a01 by at least ``threshold`` of the final fit's errors (report and CLI)."""
+    return [d for d in result.get("not_excluded") or []
+            if max(abs(d["a00_shift_sd"]), abs(d["a01_shift_sd"])) >= threshold]
 
 
 def template_change_lines(tc):

@@ -248,11 +248,11 @@ def _cmd_diagnose(args):
         for s in d["steps"]:
             print(f"{s['label']:>24s}: chi2/dof {s['chi2_dof']:.3f}, rms pull {s['rms_pull']:.3f}")
         print(f"{'effects added':>24s}: {', '.join(d['effects_added']) or 'none'}")
-        for x in d.get("not_excluded") or []:
-            if max(abs(x["a00_shift_sd"]), abs(x["a01_shift_sd"])) >= 1.0:
-                print(f"{'not excluded':>24s}: {x['effect']} would move a00 by "
-                      f"{x['a00_shift_sd']:+.1f} sigma, a01 by {x['a01_shift_sd']:+.1f} sigma "
-                      f"(a00 {x['a00'][0]:.4g} +- {x['a00'][1]:.2g} with it free)")
+        from lsst_bfdrift.calibration.report import notable_not_excluded
+        for x in notable_not_excluded(d):
+            print(f"{'not excluded':>24s}: {x['effect']} would move a00 by "
+                  f"{x['a00_shift_sd']:+.1f} sigma, a01 by {x['a01_shift_sd']:+.1f} sigma "
+                  f"(a00 {x['a00'][0]:.4g} +- {x['a00'][1]:.2g} with it free)")
         print(d["verdict"])
         tc = d.get("template_change")
         if tc:

@@ -714,7 +714,8 @@ def _galsim_areas(sensor, shape, *, charge_cloud=None, well_filling=0.0):
 
     def areas_of(q):
         if well_filling:
-            q = np.asarray(q, float) * (1.0 + 0.5 * well_filling * np.asarray(q, float))
+            q = np.asarray(q, float)
+            q = q * (1.0 + 0.5 * well_filling * q)
         if blur is not None:
             for axis, w in blur:
                 q = convolve1d(np.asarray(q, float), w, axis=axis, mode="nearest")
