@@ -6,12 +6,12 @@ For each GalSim sensor model (default lsst_itl_50_8 and lsst_e2v_50_8):
    Poisson noise (:func:`~lsst_bfdrift.simulation.flats.simulate_flat_pairs`,
    engine 'galsim'), the Astier et al. (2019) fit for a_ij with errors, and
    :func:`~lsst_bfdrift.calibration.tuning.calibrate` (flats-only template).
-2. **flats + stars**: one sky-like field of the same sensor drawn by
+2. **flats + stars**: sky-like fields of the same sensor drawn by
    galsim.SiliconSensor (:func:`~lsst_bfdrift.simulation.skysim.simulate_star_field`:
    Moffat PSF varying smoothly over the field, fluxes 1e4-1.5e6 e, sky
-   through the sensor, no truth), and
-   :func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars` (half of
-   the field's stars fitted, half held out).
+   through the sensor, no truth; ``--fields`` of them, own seeds), and
+   :func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars` (all
+   stars fitted; the held-out slopes by two-fold cross-validation).
 3. **validation on other stars**: GalSim stars of the same sensor with a
    paired no-BF twin (:func:`~lsst_bfdrift.validation.stars.draw_star_pairs`,
    Moffat, their own seed), corrected by drift with the flats-only, the
@@ -22,7 +22,8 @@ paired stars, as % of the uncorrected slopes, and writes
 ``benchmarks/calibrate_stars_results.txt`` / ``.json``::
 
     python benchmarks/calibrate_stars.py [--sensors lsst_itl_50_8 lsst_e2v_50_8]
-        [--field-stars 800] [--field-size 2048] [--n-stars 200] [--cache /tmp/cst]
+        [--fields 3] [--field-stars 800] [--field-size 2048] [--n-stars 200]
+        [--cache /tmp/cst]
 """
 
 import argparse
@@ -37,7 +38,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 sys.path.insert(0, HERE)
 
-from calibrate_sensor import flats_table, star_pairs  # noqa: E402
+from calibrate_sensor import FLAT_STEPS, flats_table, star_pairs  # noqa: E402
 from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable  # noqa: E402
 from lsst_bfdrift.calibration.star_fit import calibrate_with_stars  # noqa: E402
 from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
@@ -49,7 +50,8 @@ from lsst_bfdrift.validation.stars import per_star_residuals, residual_slopes  #
 
 
 def cached_flats(sensor, args):
-    path = os.path.join(args.cache, f"flats_{sensor}_{args.flat_size}_{args.pairs_per_level}.npz")
+    path = os.path.join(args.cache, f"flats_{sensor}_{args.flat_size}_{args.pairs_per_level}"
+                        f"_{args.flat_steps}_{args.flat_max_lag}.npz")
     if os.path.isfile(path):
         d = np.load(path)
         return AcoeffTable(d["a"], d["a_err"], source=f"GalSim {sensor} flats"), 0.0
@@ -59,8 +61,9 @@ def cached_flats(sensor, args):
     return table, time.time() - t0
 
 
-def cached_field(sensor, args):
-    seed = zlib.crc32(f"field:{sensor}".encode()) % 100000
+def cached_field(sensor, args, k=0):
+    """Star field k of a sensor (its own seed; field 0 keeps the historical seed)."""
+    seed = zlib.crc32((f"field:{sensor}" + (f":{k}" if k else "")).encode()) % 100000
     path = os.path.join(args.cache, f"field_{sensor}_{args.field_size}_{args.field_stars}_{seed}.npy")
     if os.path.isfile(path):
         return np.load(path), seed, 0.0
@@ -76,9 +79,17 @@ def main(argv=None):
     ap.add_argument("--sensors", nargs="+", default=["lsst_itl_50_8", "lsst_e2v_50_8"])
     ap.add_argument("--field-stars", type=int, default=800)
     ap.add_argument("--field-size", type=int, default=2048)
+    ap.add_argument("--fields", type=int, default=3,
+                    help="star fields per sensor (own seeds, the same PSF family)")
+    ap.add_argument("--holdout", default="auto", help="held-out stars (calibrate_with_stars)")
     ap.add_argument("--n-stars", type=int, default=200)
     ap.add_argument("--flat-size", type=int, default=400)
     ap.add_argument("--pairs-per-level", type=int, default=2)
+    ap.add_argument("--flat-max-lag", type=int, nargs="+", default=[5],
+                    help="largest lag of the flats' covariances and of the a_ij fitted to them "
+                         "(one value, or one per sensor)")
+    ap.add_argument("--flat-steps", type=int, default=FLAT_STEPS,
+                    help="fill steps of each simulated flat (a_ij are divided by 1 - 1/steps)")
     ap.add_argument("--cache", default="/tmp/cst")
     ap.add_argument("--pairs", default="/tmp/cs_pairs", help="cache prefix of the paired stars")
     ap.add_argument("--out", default=os.path.join(HERE, "calibrate_stars_results"))
@@ -91,8 +102,12 @@ def main(argv=None):
         lines.append(s)
 
     default = load_default_template()
-    for sensor in args.sensors:
+    lags = args.flat_max_lag
+    if len(lags) not in (1, len(args.sensors)):
+        ap.error("--flat-max-lag: one value, or one per sensor")
+    for k_sensor, sensor in enumerate(args.sensors):
         rec = out["sensors"][sensor] = {}
+        args.flat_max_lag = lags[k_sensor if len(lags) > 1 else 0]
         table, cost = cached_flats(sensor, args)
         say(f"{sensor}: flats a-matrix (lags <= {table.max_lag})"
             + (f", flats drawn and fitted in {cost:.0f} s" if cost else " (cached)"))
@@ -102,21 +117,26 @@ def main(argv=None):
         say(f"  flats-only: {', '.join(f'{n} = {f.values[n]:.4g}' for n in f.names)}; chi2 "
             f"{f.chi2:.1f} / {f.dof} dof; {time.time() - t0:.0f} s")
         rec["flats"] = res.summary()
-        img, fseed, fcost = cached_field(sensor, args)
-        say(f"  star field {args.field_size}^2, {args.field_stars} stars (seed {fseed})"
-            + (f", drawn in {fcost:.0f} s" if fcost else " (cached)"))
+        imgs = []
+        for k in range(args.fields):
+            img, fseed, fcost = cached_field(sensor, args, k)
+            imgs.append(img)
+            say(f"  star field {k}: {args.field_size}^2, {args.field_stars} stars (seed {fseed})"
+                + (f", drawn in {fcost:.0f} s" if fcost else " (cached)"))
         t0 = time.time()
-        joint = calibrate_with_stars(res, [img], seed=fseed, progress=True)
-        say(f"  flats+stars: directions {joint.directions}, "
-            + ", ".join(f"{n} {c['parameter_change']:+.3g} +- {c['parameter_change_err']:.2g}"
-                        for n, c in joint.coefficients.items())
+        joint = calibrate_with_stars(res, imgs, seed=fseed, holdout=args.holdout, progress=True)
+        say("  flats+stars: directions "
+            + (", ".join(f"{n} {c['parameter_change']:+.3g} +- {c['parameter_change_err']:.2g}"
+                         for n, c in joint.coefficients.items())
+               or "none (none lowers the chi2 by ln N)")
             + f"; chi2 a-matrix {joint.chi2['flats_only']['amatrix']:.1f} -> "
             f"{joint.chi2['joint']['amatrix']:.1f} ({joint.chi2['n_amatrix']} lags), stars "
             f"{joint.chi2['flats_only']['stars']:.1f} -> {joint.chi2['joint']['stars']:.1f} "
             f"({joint.chi2['n_stars']} slopes); tension p = {joint.tension['p_value']:.2g}; "
             f"{time.time() - t0:.0f} s")
-        say("  star share of the information: " + ", ".join(
-            f"{n} {v:.2f}" for n, v in joint.star_information.items()))
+        if joint.star_information:
+            say("  star share of the information: " + ", ".join(
+                f"{n} {v:.2f}" for n, v in joint.star_information.items()))
         for w in joint.warnings:
             say(f"  warning: {w}")
         for ln in joint.held_out_table().splitlines():

@@ -48,15 +48,24 @@ kept). The result reports:
 * per direction, the share of its Fisher information that comes from the
   stars;
 * **held-out stars**: the slopes, with bootstrap errors, of stars not used
-  in the fit (the last field when there are several, else a seeded half of
-  the stars of the field), before correction, corrected with T_a and with
-  T(c). Only these count as a validation.
+  in the fit, before correction, corrected with T_a and with T(c). Only
+  these count as a validation. By default the template is fitted to all the
+  stars, and two-fold cross-validation gives the held-out slopes: each field
+  is split into two seeded halves paired in flux, the fit (direction choice
+  included) is repeated on one half alone and measured on the other, both
+  ways. Every star is then measured with a template that never saw it, and
+  no star is wasted on validation alone (a single split leaves the template
+  half the stars). The directions' corrected catalogues are computed once
+  and serve the three fits.
 
 How many stars: the size slope of a field is measured to about
-``1 / sqrt(N)`` of its own scatter; the validate-sky benchmark measured it to
-20 % (z = 4.8) with 150 stars of 1e4-1.5e6 e on a 1k x 1k ITL field. A star
-field constrains the template when its uncorrected size slope is detected at
-z > 10: several hundred unsaturated, isolated stars spanning 1e4 to 1e6 e.
+``1 / sqrt(N)`` of its own scatter, the photon noise of the brightest stars'
+sizes (:mod:`~lsst_bfdrift.calibration.star_slopes`); the validate-sky
+benchmark measured it to 15 % (z = 6.6) with 150 stars of 1e4-1.5e6 e on a
+1k x 1k ITL field. A star field constrains the template when its
+uncorrected size slope is detected at z > 10: several hundred unsaturated,
+isolated stars spanning 1e4 to 1e6 e (docs/calibration.rst gives the
+figures per sensor).
 """
 
 import time
@@ -182,6 +191,7 @@ class StarField:
                 hold[pair[rng.integers(pair.size)]] = True
         self.held_out = hold
         self.fit_stars = self.usable & ~hold
+        self.half_a, self.half_b = self.fit_stars.copy(), hold.copy()
 
     def corrected_catalog(self, template):
         """Catalogue of the same stars after a drift correction with ``template``
@@ -265,8 +275,9 @@ class StarCalibrationResult:
         lines = []
         for name, d in self.held_out.items():
             b = d["before"]
-            lines.append(f"held-out stars of {name} ({d['n_stars']} stars), slopes per 1e5 e "
-                         "(% of before):")
+            how = " (two-fold cross-validation)" if "folds" in d else ""
+            lines.append(f"held-out stars of {name}{how} ({d['n_stars']} stars), slopes per "
+                         "1e5 e (% of before):")
             for what in ("before", "flats_only", "joint"):
                 row = d[what]
                 cells = []
@@ -288,6 +299,21 @@ def _star_vector(slopes_per_field, fields):
     return np.array(vals), np.array(errs)
 
 
+def _combine_folds(rows):
+    """Held-out slopes of the cross-validation folds combined (inverse-variance means;
+    the folds' stars are disjoint, so their slopes are independent)."""
+    out = {"folds": rows, "n_stars": int(sum(r["n_stars"] for r in rows))}
+    for what in ("before", "flats_only", "joint"):
+        comb = {"n_stars": int(sum(r[what]["n_stars"] for r in rows))}
+        for k in _SLOPES:
+            v = np.array([r[what][k][0] for r in rows])
+            e = np.array([r[what][k][1] for r in rows])
+            w = 1.0 / np.maximum(e, 1e-300) ** 2
+            comb[k] = (float(np.sum(w * v) / np.sum(w)), float(1.0 / np.sqrt(np.sum(w))))
+        out[what] = comb
+    return out
+
+
 def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_directions=6,
                          n_boot=200, iterations=2, gain=None, min_snr=30.0,
                          min_stars=30, progress=False):
@@ -301,10 +327,14 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     stars : sequence
         Star fields: paths, arrays (electrons), CCDData/NDData, or
         :class:`StarField` objects.
-    holdout : {'auto', 'split', 'last'}, optional
-        Held-out stars: 'last' holds out the last field (needs two or more),
-        'split' a seeded half of every field's stars, 'auto' 'last' with two
-        or more fields, else 'split'.
+    holdout : {'auto', 'cross', 'split', 'last'}, optional
+        Held-out stars. 'cross' (and 'auto'): two-fold cross-validation. The
+        template is fitted to all the stars; every field is split in two
+        seeded halves (paired in flux), the fit is repeated on each half
+        alone, and each half's slopes are measured with the template fitted
+        to the other half; the held-out slopes are the two folds' combined.
+        'split' fits one half and holds out the other; 'last' holds out the
+        last field (needs two or more).
     seed : int, optional
         Seed of the split and the bootstrap.
     max_directions : int, optional
@@ -353,21 +383,23 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     if len(set(names)) != len(names):
         for k, f in enumerate(fields):
             f.name = f"{f.name}#{k}"
-    if holdout not in ("auto", "split", "last"):
-        raise InputError(f"holdout must be 'auto', 'split' or 'last', got {holdout!r}")
-    mode = ("last" if len(fields) > 1 else "split") if holdout == "auto" else holdout
+    if holdout not in ("auto", "cross", "split", "last"):
+        raise InputError(f"holdout must be 'auto', 'cross', 'split' or 'last', got {holdout!r}")
+    mode = "cross" if holdout == "auto" else holdout
     if mode == "last" and len(fields) < 2:
         raise CalibrationError("holdout='last' needs two or more star fields")
     fit_fields = fields[:-1] if mode == "last" else fields
     hold_fields = fields[-1:] if mode == "last" else fields
     warn = []
     for f in fields:
+        f.split(seed)
         if mode == "split":
-            f.split(seed)
-        else:
+            n_fit = int(f.fit_stars.sum())
+        else:  # 'last' fits every star of the other fields, 'cross' each half in turn
+            n_fit = int(min(f.half_a.sum(), f.half_b.sum())) if mode == "cross" \
+                else int(f.usable.sum())
             f.fit_stars = f.usable.copy()
             f.held_out = f.usable.copy()
-        n_fit = int(f.fit_stars.sum()) if f in fit_fields else int(f.usable.sum())
         if n_fit < min_stars:
             flagged = ", ".join(f"{v} {k}" for k, v in f.flag_counts.items() if v)
             raise CalibrationError(
@@ -394,7 +426,9 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     def alpha_of(t):
         return template_alpha(t)[c:c + L + 1, c:c + L + 1].T[lag_mask]
 
-    n_steps = len(cands) + 3 + len(fit_fields) * (len(cands) + 3 + iterations) + len(hold_fields) * 3
+    n_fits = 3 if mode == "cross" else 1
+    n_steps = len(cands) + 3 + len(fit_fields) * (len(cands) + 2 + n_fits * (iterations + 1)) \
+        + len(hold_fields) * 3 * (2 if mode == "cross" else 1)
     bar = ProgressBar(n_steps, "stars", enabled=progress)
     # 'scale': the flats template itself (its overall strength, c = fractional change)
     dirs, steps = ["scale"], {"scale": 1.0}
@@ -425,78 +459,118 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     # a-matrix Jacobian (exact: linear area response is linear in displacements)
     a0 = alpha_of(ta)
     Ja = np.column_stack([alpha_of(combine_templates(ta, [d], [1.0])) - a0 for d in deltas])
-    # star Jacobian by finite differences on the fitted stars
-    fit_slopes = {}
-
-    def star_eval(template, n_b=0):
-        out = {}
-        for f in fit_fields:
-            bar(1)
-            out[f.name] = f.slopes(template, f.fit_stars, n_boot=n_b, seed=seed)
-        return out
-
-    s_before = {f.name: f.slopes(None, f.fit_stars, n_boot=n_boot, seed=seed) for f in fit_fields}
-    s_a = star_eval(ta, n_boot)
-    r_s0, sig_s = _star_vector(s_a, fit_fields)
-    Js, keep = [], []
+    # the direction templates, each correcting every field once (the catalogues are
+    # kept per template: every subset of stars reuses them)
+    dir_templates, keep = [], []
     for k, d in enumerate(deltas):
         # a quarter step: small enough that bright pixels stay in the modelled range
+        t_k = combine_templates(ta, [d], [_EPS])
         try:
-            s_k = star_eval(combine_templates(ta, [d], [_EPS]))
+            for f in fit_fields:
+                bar(1)
+                f.corrected_catalog(t_k)
         except InputError as exc:
             warn.append(f"direction {dirs[k]} skipped: the stars cannot be corrected with "
                         f"it ({exc})")
             continue
         keep.append(k)
-        Js.append((_star_vector(s_k, fit_fields)[0] - r_s0) / _EPS)
+        dir_templates.append(t_k)
     dirs = [dirs[k] for k in keep]
     deltas = [deltas[k] for k in keep]
     Ja = Ja[:, keep]
-    Js = np.column_stack(Js) if Js else np.zeros((r_s0.size, 0))
     if not dirs:
         raise CalibrationError("no direction of the template family can be evaluated on "
                                "the star fields")
     t_jac = time.perf_counter() - t0 - t_dirs
-    # joint linear system
-    # plus a Gaussian prior of PRIOR_STEPS steps per direction: keeps directions the
-    # data hardly see inside the linear range of the family
-    nd = len(dirs)
+    a_res0 = a0 - a_meas
     n_a = a0.size
-    r0 = np.concatenate([a0 - a_meas, r_s0, np.zeros(nd)])
-    sig = np.concatenate([a_sig, sig_s, np.full(nd, PRIOR_STEPS)])
-    J = np.vstack([Ja, Js, np.eye(nd)])
-    n_data = n_a + r_s0.size  # ln N counts the data, not the prior rows
-    # the prior rows take part in the choice: a direction that would need many
-    # steps (beyond its linear range) to lower chi2 pays for them
-    chosen, selection = _select(J, r0, sig, np.ones(J.shape[0], bool), dirs,
-                                max_params=max_directions, always_first=False,
-                                n_points=n_data)
-    cols = [dirs.index(n) for n in chosen]
-    rows = np.r_[np.arange(n_data), n_data + np.asarray(cols, int)]
-    Jc, r0, sig = J[rows][:, cols], r0[rows], sig[rows]
-    W = 1.0 / sig ** 2
-    F = Jc.T @ (Jc * W[:, None])
-    cov = np.linalg.pinv(F) if cols else np.zeros((0, 0))
-    coef = -cov @ (Jc.T @ (W * r0))
-    # Gauss-Newton refinement with exact star evaluations
-    t_joint = combine_templates(ta, [deltas[k] for k in cols], coef)
-    s_j = None
-    for _ in range(max(int(iterations), 0) + 1):
-        try:
-            s_j = star_eval(t_joint)
-        except InputError as exc:
-            raise CalibrationError(
-                f"the joint template ({', '.join(f'{n} {c:+.3g} steps' for n, c in zip(chosen, coef))}) "
-                f"cannot correct the star fields: {exc}") from exc
-        r = np.concatenate([alpha_of(t_joint) - a_meas, _star_vector(s_j, fit_fields)[0],
-                            coef])
-        step = -cov @ (Jc.T @ (W * r))
-        if _ >= iterations or np.all(np.abs(step) < 0.02 * np.sqrt(np.diag(cov)) + 1e-12):
-            break
-        coef = coef + step
+
+    def fit(subsets):
+        """The joint fit to the a-matrix and the stars ``subsets`` (field name -> mask)."""
+        def vec(template, n_b=0):
+            return _star_vector({f.name: f.slopes(template, subsets[f.name], n_boot=n_b,
+                                                  seed=seed) for f in fit_fields}, fit_fields)
+
+        r_s0, sig_s = vec(ta, n_boot)
+        Js = np.column_stack([(vec(t_k)[0] - r_s0) / _EPS for t_k in dir_templates])
+        # plus a Gaussian prior of PRIOR_STEPS steps per direction: keeps directions the
+        # data hardly see inside the linear range of the family
+        nd = len(dirs)
+        r0 = np.concatenate([a_res0, r_s0, np.zeros(nd)])
+        sig = np.concatenate([a_sig, sig_s, np.full(nd, PRIOR_STEPS)])
+        J = np.vstack([Ja, Js, np.eye(nd)])
+        n_data = n_a + r_s0.size  # ln N counts the data, not the prior rows
+        # the prior rows take part in the choice: a direction that would need many
+        # steps (beyond its linear range) to lower chi2 pays for them
+        chosen, selection = _select(J, r0, sig, np.ones(J.shape[0], bool), dirs,
+                                    max_params=max_directions, always_first=False,
+                                    n_points=n_data)
+        cols = [dirs.index(n) for n in chosen]
+        rows = np.r_[np.arange(n_data), n_data + np.asarray(cols, int)]
+        Jc, r0c, sigc = J[rows][:, cols], r0[rows], sig[rows]
+        W = 1.0 / sigc ** 2
+        cov = np.linalg.pinv(Jc.T @ (Jc * W[:, None])) if cols else np.zeros((0, 0))
+        coef = -cov @ (Jc.T @ (W * r0c))
+        # Gauss-Newton refinement with exact star evaluations
         t_joint = combine_templates(ta, [deltas[k] for k in cols], coef)
-    r_fin = np.concatenate([alpha_of(t_joint) - a_meas, _star_vector(s_j, fit_fields)[0]])
-    chi2_a0 = float(np.sum(((a0 - a_meas) / a_sig) ** 2))
+        s_j = r_s0
+        if cols:
+            for it in range(max(int(iterations), 0) + 1):
+                for _f in fit_fields:
+                    bar(1)
+                try:
+                    s_j = vec(t_joint)[0]
+                except InputError as exc:
+                    raise CalibrationError(
+                        "the joint template ("
+                        + ", ".join(f"{n} {c:+.3g} steps" for n, c in zip(chosen, coef))
+                        + f") cannot correct the star fields: {exc}") from exc
+                r = np.concatenate([alpha_of(t_joint) - a_meas, s_j, coef])
+                step = -cov @ (Jc.T @ (W * r))
+                if it >= iterations or np.all(np.abs(step) < 0.02 * np.sqrt(np.diag(cov))
+                                              + 1e-12):
+                    break
+                coef = coef + step
+                t_joint = combine_templates(ta, [deltas[k] for k in cols], coef)
+        r_fin = np.concatenate([alpha_of(t_joint) - a_meas, s_j])
+        return {"chosen": chosen, "cols": cols, "coef": coef, "cov": cov, "t": t_joint,
+                "r_s0": r_s0, "sig_s": sig_s, "Js": Js, "r_fin": r_fin,
+                "selection": selection}
+
+    def held_slopes(f, sub, template_of):
+        row = {}
+        for what in ("before", "flats_only", "joint"):
+            bar(1)
+            row[what] = f.slopes(template_of[what], sub, n_boot=n_boot, seed=seed + 1)
+        row["n_stars"] = row["before"]["n_stars"]
+        return row
+
+    final = fit({f.name: f.fit_stars for f in fit_fields})
+    held = {}
+    if mode == "cross":
+        # two folds: each half of every field fitted alone and validated on the other half
+        folds = []
+        for k, (fit_half, other) in enumerate((("A", "B"), ("B", "A"))):
+            sub = {f.name: (f.half_a if fit_half == "A" else f.half_b) for f in fields}
+            fk = fit(sub)
+            folds.append((k, fit_half, other, fk))
+        for f in fields:
+            rows = []
+            for k, fit_half, other, fk in folds:
+                sub = f.half_b if fit_half == "A" else f.half_a
+                row = held_slopes(f, sub, {"before": None, "flats_only": ta, "joint": fk["t"]})
+                row["fitted_on"] = f"half {fit_half}"
+                row["directions"] = fk["chosen"]
+                rows.append(row)
+            held[f.name] = _combine_folds(rows)
+    else:
+        for f in hold_fields:
+            held[f.name] = held_slopes(f, f.held_out,
+                                       {"before": None, "flats_only": ta, "joint": final["t"]})
+    chosen, cols, coef, cov = final["chosen"], final["cols"], final["coef"], final["cov"]
+    t_joint, r_s0, sig_s, Js = final["t"], final["r_s0"], final["sig_s"], final["Js"]
+    r_fin, selection = final["r_fin"], final["selection"]
+    chi2_a0 = float(np.sum((a_res0 / a_sig) ** 2))
     chi2_s0 = float(np.sum((r_s0 / sig_s) ** 2))
     chi2_a1 = float(np.sum((r_fin[:n_a] / a_sig) ** 2))
     chi2_s1 = float(np.sum((r_fin[n_a:] / sig_s) ** 2))
@@ -530,18 +604,12 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     if big:
         warn.append(f"directions {big} moved by more than 5 steps: beyond the linear range "
                     "of the template family; check the held-out stars")
+    fit_slopes = {}
     for f in fit_fields:
-        fit_slopes[f.name] = {"before": s_before[f.name], "flats_only": s_a[f.name],
-                              "joint": f.slopes(t_joint, f.fit_stars, n_boot=n_boot, seed=seed)}
-    held = {}
-    for f in hold_fields:
-        sub = f.held_out
-        row = {}
-        for what, t in (("before", None), ("flats_only", ta), ("joint", t_joint)):
-            bar(1)
-            row[what] = f.slopes(t, sub, n_boot=n_boot, seed=seed + 1)
-        row["n_stars"] = row["before"]["n_stars"]
-        held[f.name] = row
+        fit_slopes[f.name] = {
+            "before": f.slopes(None, f.fit_stars, n_boot=n_boot, seed=seed),
+            "flats_only": f.slopes(ta, f.fit_stars, n_boot=n_boot, seed=seed),
+            "joint": f.slopes(t_joint, f.fit_stars, n_boot=n_boot, seed=seed)}
     meta = dict(ta.meta)
     calib = dict(meta.get("calibration", {}))
     calib["stars"] = {"fields": [f.name for f in fields], "holdout": mode,

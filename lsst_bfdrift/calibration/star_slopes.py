@@ -16,9 +16,14 @@ the star position (the PSF's variation over the field), F_i the flux (e),
 ``s`` the slope (per 1e5 e; for ln T the fractional size change), and
 ``b / nu^2`` absorbs the noise bias of adaptive moments of faint stars
 (nu = signal-to-noise ratio). Stars are weighted by
-``1 / (alpha^2 / nu_i^2 + tau^2)``: measurement noise of adaptive moments
-falling as 1 / SNR plus an intrinsic scatter tau (PSF-model residuals), with
-alpha and tau fitted to the squared residuals (non-negative least squares);
+``1 / (alpha^2 / nu_i^2 + beta^2 / F_i + tau^2)``: measurement noise of
+adaptive moments falling as 1 / SNR, an extra term of the star's own photon
+noise (it sits in the core, where the moment weight is largest, so at the
+same SNR a source-dominated star measures its size less well than a
+sky-dominated one: 1.0 / SNR against 1.7 / SNR on the GalSim ITL field of
+``benchmarks/calibrate_stars.py``), and an intrinsic scatter tau
+(PSF-model residuals), with alpha, beta and tau fitted to the squared
+residuals (non-negative least squares; beta only when the fluxes are given);
 outliers are down-weighted by Huber iteratively reweighted least squares
 (c = 1.345), and the formal errors are scaled by the reduced chi^2. With at
 least 30 stars the slope error is the larger of the formal error and a
@@ -64,28 +69,31 @@ def _wls(a, q, w):
     return coef
 
 
-def _robust_fit(a, q, snr, huber, max_iter=30):
-    """Huber IRLS with the noise model alpha^2 / snr^2 + tau^2 fitted to the residuals.
+def _robust_fit(a, q, snr, huber, max_iter=30, flux=None):
+    """Huber IRLS with the noise model alpha^2 / snr^2 (+ beta^2 / flux) + tau^2
+    fitted to the residuals.
 
-    Returns coef, cov (scaled by the reduced chi^2), alpha, tau, Huber weights, chi^2/dof.
+    Returns coef, cov (scaled by the reduced chi^2), (alpha, beta, tau), Huber
+    weights, chi^2/dof.
     """
     from scipy.optimize import nnls
 
     n, p = a.shape
     inv2 = 1.0 / snr ** 2
+    cols = [inv2, np.ones(n)] if flux is None else [inv2, 1.0 / flux, np.ones(n)]
+    basis = np.column_stack(cols)
     hw = np.ones(n)
     coef = _wls(a, q, 1.0 / inv2)
     var = inv2.copy()
-    alpha2 = tau2 = 0.0
+    pars = np.zeros(basis.shape[1])
     for it in range(max_iter):
         r = q - a @ coef
         # variance model from the squared residuals (outliers clipped), dof-corrected
         r2 = np.minimum(r * r, 25.0 * np.median(r * r / var) * var) * n / max(n - p, 1)
-        (alpha2, tau2), _ = nnls(np.column_stack([inv2, np.ones(n)]) * np.sqrt(hw)[:, None],
-                                 r2 * np.sqrt(hw))
-        if alpha2 <= 0 and tau2 <= 0:
-            alpha2 = float(np.median(r2 / inv2)) or 1e-30
-        var = alpha2 * inv2 + tau2
+        pars, _ = nnls(basis * np.sqrt(hw)[:, None], r2 * np.sqrt(hw))
+        if not np.any(pars > 0):
+            pars[0] = float(np.median(r2 / inv2)) or 1e-30
+        var = basis @ pars
         z = np.abs(r) / np.sqrt(var)
         hw = np.where(z <= huber, 1.0, huber / np.maximum(z, 1e-300))
         coef_new = _wls(a, q, hw / var)
@@ -97,10 +105,12 @@ def _robust_fit(a, q, snr, huber, max_iter=30):
     cov = np.linalg.pinv((a * w[:, None]).T @ a)
     r = q - a @ coef
     chi2 = float(np.sum(w * r * r) / max(n - p, 1))
-    return coef, cov * chi2, float(np.sqrt(alpha2)), float(np.sqrt(tau2)), hw, chi2
+    alpha, tau = float(np.sqrt(pars[0])), float(np.sqrt(pars[-1]))
+    beta = float(np.sqrt(pars[1])) if flux is not None else 0.0
+    return coef, cov * chi2, (alpha, beta, tau), hw, chi2
 
 
-def fit_flux_slope(x, y, regressor, q, snr, *, poly_order=2, noise_term=True,
+def fit_flux_slope(x, y, regressor, q, snr, *, flux=None, poly_order=2, noise_term=True,
                    huber=1.345, n_boot=200, seed=20151, frame=None):
     """Robust slope of a star quantity against flux (or magnitude) at fixed position.
 
@@ -115,6 +125,9 @@ def fit_flux_slope(x, y, regressor, q, snr, *, poly_order=2, noise_term=True,
     snr : array_like
         Signal-to-noise ratio of each star (measurement error alpha / snr,
         alpha fitted).
+    flux : array_like, optional
+        Flux of each star (e): adds the source-noise term beta^2 / flux to
+        the noise model (beta fitted). Default: no such term.
     poly_order : int, optional
         Order of the 2-d position polynomial (lowered automatically when
         there are too few stars: at least 4 more stars than parameters).
@@ -134,7 +147,8 @@ def fit_flux_slope(x, y, regressor, q, snr, *, poly_order=2, noise_term=True,
     dict
         ``slope``, ``slope_err`` (max of ``err_formal`` and ``err_boot``),
         ``z`` (slope / slope_err), ``n_stars``, ``n_downweighted`` (Huber
-        weight < 1), ``tau`` (intrinsic scatter), ``chi2_dof``, ``poly_order``,
+        weight < 1), ``alpha``, ``beta`` (noise model), ``tau`` (intrinsic
+        scatter), ``chi2_dof``, ``poly_order``,
         ``intercept`` (q at the frame centre, faint limit), ``points`` (per-star
         arrays for plots: ``detrended`` = q minus the position polynomial,
         ``trend`` = fitted flux and noise-bias terms, the design ``coef``).
@@ -145,9 +159,11 @@ def fit_flux_slope(x, y, regressor, q, snr, *, poly_order=2, noise_term=True,
         With fewer than 6 usable stars.
     """
     x, y, g, q, snr = (np.asarray(v, float) for v in (x, y, regressor, q, snr))
+    fl = np.ones_like(x) if flux is None else np.asarray(flux, float)
     ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(g) & np.isfinite(q) & np.isfinite(snr) \
-        & (snr > 0)
-    x, y, g, q, snr = x[ok], y[ok], g[ok], q[ok], snr[ok]
+        & (snr > 0) & np.isfinite(fl) & (fl > 0)
+    x, y, g, q, snr, fl = x[ok], y[ok], g[ok], q[ok], snr[ok], fl[ok]
+    fl = None if flux is None else fl
     n = x.size
     if n < 6:
         raise InputError(f"only {n} usable stars; need at least 6 to fit a size-flux slope")
@@ -162,7 +178,7 @@ def fit_flux_slope(x, y, regressor, q, snr, *, poly_order=2, noise_term=True,
     a, names = _design(x, y, order, g, snr, noise_term, frame)
     if a.shape[1] + 2 > n:
         raise InputError(f"only {n} usable stars for {a.shape[1]} parameters")
-    coef, cov, alpha_fit, tau, hw, chi2 = _robust_fit(a, q, snr, huber)
+    coef, cov, (alpha_fit, beta_fit, tau), hw, chi2 = _robust_fit(a, q, snr, huber, flux=fl)
     k = names.index("slope")
     err_formal = float(np.sqrt(cov[k, k]))
     err_boot = 0.0
@@ -174,7 +190,8 @@ def fit_flux_slope(x, y, regressor, q, snr, *, poly_order=2, noise_term=True,
             if np.ptp(g[idx]) == 0:
                 continue
             try:
-                c, *_ = _robust_fit(a[idx], q[idx], snr[idx], huber, max_iter=8)
+                c, *_ = _robust_fit(a[idx], q[idx], snr[idx], huber, max_iter=8,
+                                    flux=None if fl is None else fl[idx])
             except np.linalg.LinAlgError:
                 continue
             boots.append(c[k])
@@ -192,7 +209,7 @@ def fit_flux_slope(x, y, regressor, q, snr, *, poly_order=2, noise_term=True,
     return {"points": points,"slope": float(coef[k]), "slope_err": err, "err_formal": err_formal,
             "err_boot": err_boot, "z": float(coef[k] / err) if err > 0 else float("inf"),
             "n_stars": int(n), "n_downweighted": int(np.sum(hw < 1)), "tau": float(tau),
-            "alpha": alpha_fit,
+            "alpha": alpha_fit, "beta": beta_fit,
             "chi2_dof": chi2, "poly_order": order, "intercept": float(coef[0]),
             "noise_bias": float(coef[names.index("noise_bias")]) if noise_term else None}
 
@@ -244,7 +261,8 @@ def shape_flux_relations(catalog, *, min_snr=30.0, poly_order=2, noise_term=True
     f = catalog["flux"].value[ok]
     snr = np.asarray(catalog["snr"], float)[ok]
     t = catalog["T"].value[ok]
-    kw = dict(poly_order=poly_order, noise_term=noise_term, n_boot=n_boot, seed=seed, frame=frame)
+    kw = dict(flux=f, poly_order=poly_order, noise_term=noise_term, n_boot=n_boot, seed=seed,
+              frame=frame)
     out = {"size": fit_flux_slope(x, y, f / FLUX_UNIT, np.log(t), snr, **kw),
            "e1": fit_flux_slope(x, y, f / FLUX_UNIT, np.asarray(catalog["e1"])[ok], snr, **kw),
            "e2": fit_flux_slope(x, y, f / FLUX_UNIT, np.asarray(catalog["e2"])[ok], snr, **kw),

@@ -426,10 +426,11 @@ def build_parser():
     ca.add_argument("--stars", nargs="+", metavar="EXPOSURE",
                     help="star fields (FITS, electrons or ADU with GAIN) fitted jointly with "
                          "the a-matrix: corrected star size and shape must not depend on flux")
-    ca.add_argument("--holdout", choices=("auto", "split", "last"), default="auto",
-                    help="stars held out for validation: the last field ('last'), a seeded "
-                         "half of each field ('split'); 'auto': 'last' with two or more fields "
-                         "(default: %(default)s)")
+    ca.add_argument("--holdout", choices=("auto", "cross", "split", "last"), default="auto",
+                    help="stars held out for validation: two-fold cross-validation over "
+                         "seeded halves of every field, the template fitted to all stars "
+                         "('cross', and 'auto'); one half fitted, the other held out "
+                         "('split'); the last field held out ('last') (default: %(default)s)")
     ca.add_argument("--gain", type=float, help="e/ADU of star fields in ADU without GAIN")
     ca.add_argument("--plot", help="write a PNG: a_ij against lag, pulls, correlations")
     ca.add_argument("--overwrite", action="store_true",

@@ -57,7 +57,7 @@ def _compact(rel):
         r = rel[k]
         out[k] = {"slope": r["slope"], "slope_err": r["slope_err"], "z": r["z"],
                   "err_formal": r["err_formal"], "err_boot": r["err_boot"], "tau": r["tau"],
-                  "alpha": r["alpha"],
+                  "alpha": r["alpha"], "beta": r["beta"],
                   "chi2_dof": r["chi2_dof"], "n_downweighted": r["n_downweighted"],
                   "poly_order": r["poly_order"]}
     out["n_stars"] = rel["n_stars"]

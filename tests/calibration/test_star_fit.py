@@ -8,7 +8,8 @@ Kinds:
   detection (consistency);
 * the joint fit on a star field drawn by galsim.SiliconSensor (independent
   data): a flats template 40 % too weak is pulled back by the stars, and the
-  held-out half of the stars, not fitted, shows it.
+  held-out stars (two-fold cross-validation: each half measured with the
+  template fitted to the other half) show it.
 """
 
 import functools
@@ -93,9 +94,14 @@ def test_stars_pull_a_weak_template_back_and_held_out_stars_show_it():
     assert weak_s[0] > 2 * weak_s[1]                  # the weak template leaves BF
     assert abs(fixed[0]) < 0.5 * weak_s[0]            # the stars' fit removes most of it
     assert abs(fixed[0]) < 3 * fixed[1]
-    # the split: disjoint halves of the usable stars
-    assert joint.fields[0]["n_fit"] + joint.fields[0]["n_held_out"] == \
-        joint.fields[0]["n_usable"]
+    # two-fold cross-validation: the template fitted to every usable star, and each
+    # star held out once, from the fold fitted to the other half (disjoint halves)
+    info = joint.fields[0]
+    assert info["n_fit"] == info["n_held_out"] == info["n_usable"]
+    folds = held["folds"]
+    assert [f["fitted_on"] for f in folds] == ["half A", "half B"]
+    assert folds[0]["n_stars"] + folds[1]["n_stars"] == info["n_usable"]
+    assert "two-fold cross-validation" in joint.held_out_table()
     # the figure of the held-out validation draws the three slopes with their errors
     from lsst_bfdrift.calibration.plots import plot_star_calibration
     fig = plot_star_calibration(joint)
@@ -155,8 +161,27 @@ def test_a_right_template_is_left_alone():
     img = paired_fields()["images"][2]
     loose = AcoeffTable(res.table.a, 50.0 * res.table.sigma, source="loose")
     joint = calibrate_with_stars(type(res)(**{**res.__dict__, "table": loose}), [img],
-                                 min_stars=8, seed=3)
+                                 min_stars=8, seed=3, holdout="split")
     assert joint.directions == []
+    # one seeded half fitted, the other held out
+    info = joint.fields[0]
+    assert info["n_fit"] + info["n_held_out"] == info["n_usable"]
     held = joint.held_out["field0"]
     assert held["joint"]["size"] == held["flats_only"]["size"]
     assert abs(held["joint"]["size"][0]) < 3 * held["joint"]["size"][1]
+
+
+def test_a_field_of_another_sensor_is_reported_as_tension():
+    # flats of a sensor with BF strength 10 (a-matrix to 5 %), stars of one with
+    # strength 5 (GalSim fields, same photons): no template satisfies both, and
+    # the report names the size slope of the stars as the data that pull
+    res = _calibration()
+    joint = calibrate_with_stars(res, [paired_fields()["images"][1]], min_stars=8, seed=3)
+    assert joint.tension["p_value"] < 1e-5
+    assert joint.tension["worst"][0]["what"] == "field0:size"
+    assert joint.tension["worst"][0]["pull"] < -4      # the flats template over-corrects
+    assert any(w.startswith("tension between the a-matrix and the stars") for w in joint.warnings)
+    # the same flats with this sensor's own stars: no tension
+    own = calibrate_with_stars(res, [paired_fields()["images"][2]], min_stars=8, seed=3)
+    assert own.tension["p_value"] > 0.05
+    assert "worst" not in own.tension

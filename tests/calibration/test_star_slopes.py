@@ -4,6 +4,7 @@ catalogues)."""
 
 import numpy as np
 import pytest
+from numpy.testing import assert_allclose
 
 from lsst_bfdrift.calibration.star_slopes import fit_flux_slope, shape_flux_relations
 
@@ -50,3 +51,29 @@ def test_too_few_stars_get_clear_messages():
     x, y, g, q, snr, _ = _synthetic(rng, 5, 0.0)
     with pytest.raises(ValueError, match="only 5 usable stars"):
         fit_flux_slope(x, y, g, q, snr)
+
+
+def test_source_noise_term_weights_bright_stars_right():
+    # stars whose size noise has a source term b / sqrt(F) beside 1 / SNR (as
+    # adaptive moments of bright stars do): with the fluxes given, the fit
+    # recovers b, its pulls stay N(0, 1), and the slope error is smaller than
+    # the SNR-only model's (which must take the source term as a floor tau)
+    rng = np.random.default_rng(4)
+    b = 1.5
+    z_flux, err_flux, err_snr, betas = [], [], [], []
+    for _ in range(150):
+        x = rng.uniform(0, 1000, 200)
+        y = rng.uniform(0, 1000, 200)
+        flux = np.exp(rng.uniform(np.log(1e4), np.log(1.5e6), 200))
+        snr = flux / np.sqrt(flux + 3e4)
+        sigma = np.sqrt(1.0 / snr ** 2 + b ** 2 / flux)
+        q = 1.8 + 0.1 * x / 1000 + rng.normal(0, sigma)
+        r = fit_flux_slope(x, y, flux / 1e5, q, snr, flux=flux, n_boot=0)
+        z_flux.append(r["z"])
+        err_flux.append(r["slope_err"])
+        betas.append(r["beta"])
+        err_snr.append(fit_flux_slope(x, y, flux / 1e5, q, snr, n_boot=0)["slope_err"])
+    z_flux = np.array(z_flux)
+    assert 0.8 < np.std(z_flux) < 1.2 and abs(np.mean(z_flux)) < 0.25
+    assert_allclose(np.median(betas), b, rtol=0.2)
+    assert np.median(np.array(err_flux) / np.array(err_snr)) < 0.9
