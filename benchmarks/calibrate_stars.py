@@ -45,6 +45,7 @@ from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
 from lsst_bfdrift.simulation.skysim import simulate_star_field  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
+from lsst_bfdrift.utils.errors import InputError  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.validation.stars import per_star_residuals, residual_slopes  # noqa: E402
 
@@ -150,7 +151,12 @@ def main(argv=None):
             + (f", drawn in {pcost:.0f} s" if pcost else ""))
         rec["validation"] = {}
         for name, tpl in templates.items():
-            fl, rows = per_star_residuals(pairs, tpl, methods=("drift",), sky=1000.0)
+            try:
+                fl, rows = per_star_residuals(pairs, tpl, methods=("drift",), sky=1000.0)
+            except InputError as exc:  # a template too strong for the brightest stars
+                rec["validation"][name] = {"refused": str(exc)}
+                say(f"    {name:20s} drift  refused: {exc}")
+                continue
             r = residual_slopes(fl, rows)
             u, ue = r["uncorrected"]["size_slope"], r["uncorrected"]["e_slope"]
             d = r["drift"]
