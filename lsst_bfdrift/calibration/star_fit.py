@@ -178,6 +178,7 @@ class StarField:
         self.fit_stars = self.usable.copy()
         self.held_out = np.zeros_like(self.usable)
         self._corrected = {}
+        self._slopes = {}
 
     def split(self, seed):
         """Hold out a seeded random half of the usable stars (stratified by flux)."""
@@ -218,14 +219,22 @@ class StarField:
     def slopes(self, template, subset, *, n_boot=0, seed=20151):
         """Size, e1 and e2 slopes (per 1e5 e) of ``subset`` after a drift correction.
 
-        ``template`` None: the uncorrected image.
+        ``template`` None: the uncorrected image. Kept per template, subset,
+        ``n_boot`` and ``seed``: the fits, the folds and the report ask for the
+        same slopes more than once, and the bootstrap is not free.
         """
-        cat = self.corrected_catalog(template).copy(copy_data=False)
-        cat["use"] = np.asarray(subset, bool)
-        rel = shape_flux_relations(cat, min_snr=self.min_snr, n_boot=n_boot, seed=seed,
-                                   frame=self.frame)
-        return {k: (rel[k]["slope"], rel[k]["slope_err"]) for k in _SLOPES} | \
-            {"n_stars": rel["n_stars"]}
+        subset = np.asarray(subset, bool)
+        self.corrected_catalog(template)  # keeps the template, so its id stays unique
+        key = (None if template is None else id(template), subset.tobytes(), int(n_boot),
+               int(seed))
+        if key not in self._slopes:
+            cat = self.corrected_catalog(template).copy(copy_data=False)
+            cat["use"] = subset
+            rel = shape_flux_relations(cat, min_snr=self.min_snr, n_boot=n_boot, seed=seed,
+                                       frame=self.frame)
+            self._slopes[key] = {k: (rel[k]["slope"], rel[k]["slope_err"]) for k in _SLOPES} \
+                | {"n_stars": rel["n_stars"]}
+        return dict(self._slopes[key])
 
 
 class StarCalibrationResult:
@@ -512,7 +521,8 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         cov = np.linalg.pinv(Jc.T @ (Jc * W[:, None])) if cols else np.zeros((0, 0))
         coef = -cov @ (Jc.T @ (W * r0c))
         # Gauss-Newton refinement with exact star evaluations
-        t_joint = combine_templates(ta, [deltas[k] for k in cols], coef)
+        # no direction: T_a itself (its corrections are already made)
+        t_joint = combine_templates(ta, [deltas[k] for k in cols], coef) if cols else ta
         s_j = r_s0
         if cols:
             for it in range(max(int(iterations), 0) + 1):
@@ -610,6 +620,8 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
             "before": f.slopes(None, f.fit_stars, n_boot=n_boot, seed=seed),
             "flats_only": f.slopes(ta, f.fit_stars, n_boot=n_boot, seed=seed),
             "joint": f.slopes(t_joint, f.fit_stars, n_boot=n_boot, seed=seed)}
+    if t_joint is ta:  # the result is a template of its own (the input is not modified)
+        t_joint = combine_templates(ta, [], [])
     meta = dict(ta.meta)
     calib = dict(meta.get("calibration", {}))
     calib["stars"] = {"fields": [f.name for f in fields], "holdout": mode,
