@@ -159,8 +159,8 @@ def correct_file(src, dst, config=None, *, overwrite=False, progress=None):
                                  ("centroid_y", "pixel", "centroid shift along y (px)"),
                                  ("e1", "", "pixel ellipticity e1"),
                                  ("e2", "", "pixel ellipticity e2")):
-            extra.append(_described(fits.ImageHDU(getattr(res, name).astype(np.float32),
-                                                  name=name.upper()), unit, what))
+            data = getattr(res, name).astype(np.float32, copy=False)
+            extra.append(_described(fits.ImageHDU(data, name=name.upper()), unit, what))
     report("write", 0.0)
     write_exposure(dst, res.exposure, extra_hdus=extra, overwrite=overwrite, inputs=[src])
     report("write", 1.0)

@@ -91,7 +91,9 @@ class BrighterFatterDriftConfig(pexConfig.Config):
                  "image": "the recorded image"})
     fft_precision = pexConfig.ChoiceField(
         doc="precision of the FFT convolutions", dtype=str, default="float32", optional=False,
-        allowed={"float32": "single (half the time and memory)", "float64": "double"})
+        allowed={"float32": "single (half the time and memory); the linear centroid and "
+                            "ellipticity maps are returned in float32 too",
+                 "float64": "double"})
     strip = pexConfig.Field(
         doc="rows per block for the drift and astier23 solvers (bounded memory); None: whole "
             "image", dtype=int, default=512, optional=True, check=lambda v: v >= 16)
@@ -577,7 +579,8 @@ class BrighterFatterDriftTask(Task):
         if linear and data is finite_data and (
                 cfg.method == "astier23"
                 or (cfg.method == "drift" and cfg.sparse and cfg.start == "series")):
-            first = FirstOrderPass(self.template, data.shape, maps=names, samples=samples)
+            first = FirstOrderPass(self.template, data.shape, maps=names, samples=samples,
+                                   dtype=dtype)
         if cfg.compute_geometry and not linear:
             # stage 'maps' before 'correct' (exact maps)
             report("maps", 0.0)
@@ -605,7 +608,7 @@ class BrighterFatterDriftTask(Task):
                 workers=cfg.workers, dtype=dtype, maps=names,
                 strip=data.shape[0] if cfg.strip is None else cfg.strip,
                 first_order=first, ops=self._operators(dtype), check_range=False,
-                progress=lambda f: report("maps", f))
+                map_dtype=dtype, progress=lambda f: report("maps", f))
             del first
             geom = dict(area=maps.area, centroid_x=maps.dx, centroid_y=maps.dy, e1=maps.e1,
                         e2=maps.e2)

@@ -80,8 +80,8 @@ def pixel_abs_dev_sums(q, qbar, disp, outside, rows, cols, out):
 
 
 @numba.njit(cache=True)
-def store_tile(res, r, y0, x0, h, w, nominal, slot, outs, smax):
-    """Copy a tile's convolutions into the float64 maps and track their signal.
+def store_tile(res, r, y0, x0, h, w, nominal, slot, outs, area, smax):
+    """Copy a tile's convolutions into the maps and track their signal.
 
     Serial: it runs between the FFTs' threads (a parallel loop here
     competed with them and took ten times longer).
@@ -89,14 +89,16 @@ def store_tile(res, r, y0, x0, h, w, nominal, slot, outs, smax):
     Parameters
     ----------
     res : (m, fy, fx) float32 or float64, the tile's convolutions; tile pixel
-        (j, i) is ``res[:, r + j, r + i]``
+        (j, i) is ``res[:, r + j, r + i]``; map 0 is the area
     r : int, halo (px)
     y0, x0 : int, the tile's first pixel in the image
     h, w : int, tile size (px)
     nominal : (m,) float64, the undistorted value of each map (added)
     slot : (m,) int64, index in ``outs`` of each map, -1 when not stored
-        (every map is tracked in ``smax``)
-    outs : (k, ny, nx) float64, the stored maps
+        (every map is tracked in ``smax``); map 0 goes to ``area`` when its
+        slot is not -1
+    outs : (k, ny, nx) float32 or float64, the stored maps but the area
+    area : (ny, nx) float64, the area map
     smax : (m,) float64, updated with max abs(res) over the tile
     """
     for k in range(res.shape[0]):
@@ -106,9 +108,14 @@ def store_tile(res, r, y0, x0, h, w, nominal, slot, outs, smax):
         for j in range(h):
             src = res[k, r + j, r:r + w]
             if s >= 0:
-                dst = outs[s, y0 + j, x0:x0 + w]
-                for i in range(w):
-                    dst[i] = nom + src[i]
+                if k == 0:
+                    dst = area[y0 + j, x0:x0 + w]
+                    for i in range(w):
+                        dst[i] = nom + src[i]
+                else:
+                    dsto = outs[s, y0 + j, x0:x0 + w]
+                    for i in range(w):
+                        dsto[i] = nom + src[i]
             for i in range(w):
                 a = abs(np.float64(src[i]))
                 v = a if a > v else v
@@ -116,7 +123,7 @@ def store_tile(res, r, y0, x0, h, w, nominal, slot, outs, smax):
 
 
 @numba.njit(cache=True)
-def combine_rows(sv, sh, m1v, m1h, p3, c, off, r0, r1, slot, outs, smax):
+def combine_rows(sv, sh, m1v, m1h, p3, c, off, r0, r1, slot, outs, area, smax):
     """First-order maps of image rows r0..r1-1 from the edge fields of a block.
 
     Serial: it runs between the FFTs' threads, and the arrays are read once
@@ -135,9 +142,11 @@ def combine_rows(sv, sh, m1v, m1h, p3, c, off, r0, r1, slot, outs, smax):
         the horizontal ones (t = j - r0 + off).
     c : int, the operator's offset (the template's centre)
     off, r0, r1 : int, block row of image row r0, and the rows to fill
-    slot : (5,) int64, index in ``outs`` of area, dx, dy, e1, e2 (-1: not
-        stored; every map is tracked in ``smax``)
-    outs : (k, ny, nx) float64, written (area with its nominal 1)
+    slot : (5,) int64, index in ``outs`` of dx, dy, e1, e2 (-1: not
+        stored; every map is tracked in ``smax``); the area is stored in
+        ``area`` when its slot is not -1
+    outs : (k, ny, nx) float32 or float64, written
+    area : (ny, nx) float64, written with its nominal 1
     smax : (5,) float64, updated with max abs(map - nominal) over the rows
     """
     nx = outs.shape[2]
@@ -172,7 +181,7 @@ def combine_rows(sv, sh, m1v, m1h, p3, c, off, r0, r1, slot, outs, smax):
             m3 = max(m3, abs(v3))
             m4 = max(m4, abs(v4))
             if s0 >= 0:
-                outs[s0, j, i] = 1.0 + v0
+                area[j, i] = 1.0 + v0
             if s1 >= 0:
                 outs[s1, j, i] = v1
             if s2 >= 0:

@@ -296,6 +296,21 @@ def _framed(view, shape, c):
     return out
 
 
+def _map_store(names, shape, dtype):
+    """Storage of the maps ``names``: the slot of each of :data:`LINEAR_MAPS`
+    in the store (-1: not kept; the area's own array when kept), the store
+    (k, ny, nx) of ``dtype`` for dx, dy, e1, e2, the area (float64, always:
+    it is 1 plus a signal that can be below single precision's 6e-8), and
+    the maps in ``names`` order."""
+    others = [k for k in names if k != "area"]
+    store = np.empty((len(others),) + tuple(shape), dtype)
+    area = np.empty(tuple(shape) if "area" in names else (0, 0))
+    slot = np.array([0 if (k == "area" and k in names) else
+                     others.index(k) if k in others else -1 for k in LINEAR_MAPS], np.int64)
+    outs = [area if k == "area" else store[others.index(k)] for k in names]
+    return slot, store, area, outs
+
+
 class FirstOrderPass:
     """The first-order maps of one charge image, filled block by block.
 
@@ -328,12 +343,16 @@ class FirstOrderPass:
         signal is tracked).
     samples : int, optional
         As for :func:`linear_moment_maps` (the same kernels).
+    dtype : {numpy.float64, numpy.float32}, optional
+        Precision of the stored centroid and ellipticity maps (float32
+        rounds them to 6e-8 of their value; they are computed in float64
+        from the operator's fields either way); the area is float64.
 
     Attributes
     ----------
     outs : list of ndarray
-        The kept maps (float64), in ``maps`` order; rows not yet done are
-        undefined.
+        The kept maps (area float64, the others ``dtype``), in ``maps``
+        order; rows not yet done are undefined.
     smax : ndarray, shape (5,)
         max abs(map - nominal) over the rows done, per map of
         :data:`LINEAR_MAPS`.
@@ -341,14 +360,15 @@ class FirstOrderPass:
         Rows done (blocks come in order from row 0).
     """
 
-    def __init__(self, template, shape, *, maps=None, samples=None):
+    def __init__(self, template, shape, *, maps=None, samples=None, dtype=np.float64):
         self.lk = linear_kernels(template, samples=samples)
         self.names = LINEAR_MAPS if maps is None else tuple(maps)
         self.shape = (int(shape[0]), int(shape[1]))
-        self._store = np.empty((len(self.names),) + self.shape)
-        self.outs = [self._store[k] for k in range(len(self.names))]
-        self._slot = np.array([self.names.index(k) if k in self.names else -1
-                               for k in LINEAR_MAPS], np.int64)
+        if np.dtype(dtype) not in (np.dtype(np.float64), np.dtype(np.float32)):
+            raise InputError(f"dtype must be float64 or float32, got {dtype!r}")
+        self.dtype = np.dtype(dtype)
+        self._slot, self._store, self._area, self.outs = _map_store(self.names, self.shape,
+                                                                    self.dtype)
         self.smax = np.zeros(len(LINEAR_MAPS))
         self.rows = 0
 
@@ -386,10 +406,10 @@ class FirstOrderPass:
             # starting at (c, c)
             full = more[0].shape
             combine_rows(_framed(sv, full, c), _framed(sh, full, c), more[0], more[1], more[2],
-                         c, r0 - a, r0, r1, self._slot, self._store, self.smax)
+                         c, r0 - a, r0, r1, self._slot, self._store, self._area, self.smax)
         else:
             store_tile(np.stack(more)[:, r0 - a:], c, r0, 0, r1 - r0, nx, _NOMINAL,
-                       self._slot, self._store, self.smax)
+                       self._slot, self._store, self._area, self.smax)
         self.rows = r1
 
     def run(self, q, ops, *, rows=512, progress=None):
@@ -538,7 +558,8 @@ def _refined_flag(lk, q, flag, b, qbar, eps_small, threshold):
 def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, fallback=True,
                        bound="measured", bin=2, max_fraction=0.5, workers=1,
                        dtype=np.float32, strip=512, maps=None, info=None, first_order=None,
-                       ops=None, refine=True, check_range=True, progress=None):
+                       ops=None, refine=True, check_range=True, map_dtype=np.float64,
+                       progress=None):
     """Area, centroid-shift and ellipticity maps: linear, exact where needed.
 
     Parameters
@@ -619,8 +640,8 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
     Returns
     -------
     MomentMaps
-        ``area``, ``dx``, ``dy``, ``e1``, ``e2`` (float64; the second
-        moments ``ixx``, ``iyy``, ``ixy`` are None).
+        ``area`` (float64), ``dx``, ``dy``, ``e1``, ``e2`` (``map_dtype``;
+        the second moments ``ixx``, ``iyy``, ``ixy`` are None).
 
     Notes
     -----
@@ -659,7 +680,8 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
     r = lk.reach
     out = MomentMaps((0, 0), ())
     if first_order is None:
-        first_order = FirstOrderPass(template, q.shape, maps=names, samples=samples)
+        first_order = FirstOrderPass(template, q.shape, maps=names, samples=samples,
+                                     dtype=map_dtype)
     elif first_order.shape != q.shape or first_order.names != names:
         raise InputError("first_order must be a FirstOrderPass of this image's shape and maps")
 
@@ -773,8 +795,7 @@ def _linear_maps(lk, q, names, tile, dtype, workers, progress=None):
     th, tw = min(tile[0], ny), min(tile[1], nx)
     fshape = (sp_fft.next_fast_len(th + 2 * r), sp_fft.next_fast_len(tw + 2 * r))
     spec = lk.spectra(fshape, dtype, workers)
-    store = np.empty((len(names), ny, nx))
-    slot = np.array([names.index(k) if k in names else -1 for k in LINEAR_MAPS], np.int64)
+    slot, store, area, outs = _map_store(names, (ny, nx), np.float64)
     smax = np.zeros(len(LINEAR_MAPS))
     pad = np.zeros(fshape, dtype)
     for y0 in range(0, ny, th):
@@ -787,7 +808,7 @@ def _linear_maps(lk, q, names, tile, dtype, workers, progress=None):
             f = sp_fft.rfft2(pad, workers=workers)
             res = sp_fft.irfft2(spec * f, fshape, axes=(-2, -1), workers=workers,
                                 overwrite_x=True)
-            store_tile(res, r, y0, x0, h, w, _NOMINAL, slot, store, smax)
+            store_tile(res, r, y0, x0, h, w, _NOMINAL, slot, store, area, smax)
         if progress is not None:
             progress((y0 + h) / ny)
-    return [store[k] for k in range(len(names))], smax
+    return outs, smax
