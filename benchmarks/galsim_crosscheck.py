@@ -3,12 +3,14 @@
 Run from the repository root::
 
     python benchmarks/galsim_crosscheck.py [--n-stars 24] [--out PREFIX]
+    python benchmarks/galsim_crosscheck.py --sensor lsst_e2v_50_8 \
+        --variants match_areas match_transfers --out benchmarks/galsim_crosscheck_e2v_results
 
 For each star the same photons (GalSim photon shooting, Gaussian PSF) are
 accumulated three ways, in the same order and with the boundaries updated
 every ``nrecalc`` conversions in all of them:
 
-* ``galsim``: ``galsim.SiliconSensor('lsst_itl_50_8', diffusion_factor=0,
+* ``galsim``: ``galsim.SiliconSensor(SENSOR, diffusion_factor=0,
   nrecalc=...)`` (one OpenMP thread, see below);
 * ``ours``: :class:`lsst_bfdrift.simulation.stars.StarSimulation` with the template
   imported from the same sensor file: shared (tiling) boundaries with the
@@ -25,7 +27,9 @@ The brighter-fatter size change of a star is dT/T = T / T_nominal - 1 with T
 = Ixx + Iyy (unweighted moments over the stamp). Slopes of dT/T against
 flux (through the origin, per 1e5 e) are fitted for each simulator, with
 errors from the scatter of the stars, and the paired ratio ours / galsim
-(slope of the per-star differences) with its error. A deterministic check
+(slope of the per-star differences) with its error; the same for the
+ellipticity change de1 = e1 - e1_nominal (the e1 the correction must
+remove). A deterministic check
 of the boundary models alone compares the pixel areas of one charge image
 (GalSim's ``calculate_pixel_areas`` against ours).
 
@@ -75,14 +79,14 @@ def star_photons(flux, *, fwhm=0.7, stamp=31, pixel_scale=0.2, seed=0):
     return np.asarray(img.photons.x) + c.x, np.asarray(img.photons.y) + c.y
 
 
-def galsim_image(x, y, *, stamp=31, nrecalc=1000, seed=0, qdist=3):
+def galsim_image(x, y, *, stamp=31, nrecalc=1000, seed=0, qdist=3, sensor=SENSOR):
     """Accumulate photons (GalSim frame) with galsim.SiliconSensor, no diffusion."""
     import galsim
     p = galsim.PhotonArray(x.size)
     p.x = x
     p.y = y
     p.flux = np.ones(x.size)
-    sens = galsim.SiliconSensor(SENSOR, diffusion_factor=0.0, nrecalc=nrecalc, qdist=qdist,
+    sens = galsim.SiliconSensor(sensor, diffusion_factor=0.0, nrecalc=nrecalc, qdist=qdist,
                                 rng=galsim.BaseDeviate(int(seed) + 7))
     im = galsim.ImageD(stamp, stamp, scale=0.2)
     sens.accumulate(p, im)
@@ -102,30 +106,37 @@ def our_image(template, x, y, *, stamp=31, nrecalc=1000, layout="shared", seed=0
 GALSIM_RUNS = {"galsim_q3": 3, "galsim_q4": 4}
 
 
-def default_variants():
-    """Our variants: name -> (template, layout, qdist, galsim_box)."""
-    raw = import_galsim_sensor(SENSOR, match="none")
-    return {"match_areas": (import_galsim_sensor(SENSOR, match="areas"), "shared",
-                            None, False),
-            "match_transfers": (import_galsim_sensor(SENSOR, match="transfers"),
-                                "shared", None, False),
-            "match_transfers_1e5": (import_galsim_sensor(
-                SENSOR, match="transfers", transfer_charge=None, transfer_cells=2000),
+def default_variants(sensor=SENSOR, names=None):
+    """Our variants: name -> (template, layout, qdist, galsim_box); ``names``
+    keeps only those (all by default)."""
+    def raw():
+        return import_galsim_sensor(sensor, match="none")
+
+    make = {"match_areas": lambda: (import_galsim_sensor(sensor, match="areas"), "shared",
+                                    None, False),
+            "match_transfers": lambda: (import_galsim_sensor(sensor, match="transfers"),
+                                        "shared", None, False),
+            "match_transfers_1e5": lambda: (import_galsim_sensor(
+                sensor, match="transfers", transfer_charge=None, transfer_cells=2000),
                 "shared", None, False),
-            "nearest_pixel": (raw, "shared", None, False),
-            "galsim_layout_q3_exactbox": (raw, "galsim", 3, False),
-            "galsim_layout_q3": (raw, "galsim", 3, True),
-            "galsim_layout_q4": (raw, "galsim", None, True)}
+            "nearest_pixel": lambda: (raw(), "shared", None, False),
+            "galsim_layout_q3_exactbox": lambda: (raw(), "galsim", 3, False),
+            "galsim_layout_q3": lambda: (raw(), "galsim", 3, True),
+            "galsim_layout_q4": lambda: (raw(), "galsim", None, True)}
+    unknown = sorted(set(names or ()) - set(make))
+    if unknown:
+        raise SystemExit(f"unknown variants {unknown}; choose from {sorted(make)}")
+    return {k: f() for k, f in make.items() if names is None or k in names}
 
 
 def crosscheck(fluxes, *, fwhm=0.7, stamp=31, nrecalc=1000, seed=2015, variants=None,
-               galsim_runs=None, progress=False):
+               galsim_runs=None, progress=False, sensor=SENSOR):
     """Per-star dT/T of each GalSim run and each of our variants; slopes and
     paired ratios (each variant against each GalSim run)."""
     import galsim
     threads = galsim.utilities.get_omp_threads()
     galsim.utilities.set_omp_threads(1)
-    variants = variants if variants is not None else default_variants()
+    variants = variants if variants is not None else default_variants(sensor)
     galsim_runs = galsim_runs if galsim_runs is not None else GALSIM_RUNS
     names = list(galsim_runs) + list(variants)
     seconds = {k: 0.0 for k in names}
@@ -137,7 +148,7 @@ def crosscheck(fluxes, *, fwhm=0.7, stamp=31, nrecalc=1000, seed=2015, variants=
             for name, qd in galsim_runs.items():
                 t0 = time.perf_counter()
                 images[name] = galsim_image(x, y, stamp=stamp, nrecalc=nrecalc, seed=seed + k,
-                                            qdist=qd)
+                                            qdist=qd, sensor=sensor)
                 seconds[name] += time.perf_counter() - t0
             nominal = None
             for name, (tpl, layout, qd, gbox) in variants.items():
@@ -146,13 +157,16 @@ def crosscheck(fluxes, *, fwhm=0.7, stamp=31, nrecalc=1000, seed=2015, variants=
                                                   layout=layout, seed=seed + k, qdist=qd,
                                                   galsim_box=gbox)
                 seconds[name] += time.perf_counter() - t0
-            t_nom = image_moments(nominal)["T"]
+            mom = {n: image_moments(images[n]) for n in names}
+            nom = image_moments(nominal)
+            t_nom = nom["T"]
             out = {"flux": float(x.size),
                    "bf_moved": float(np.abs(images[next(iter(galsim_runs))] - nominal).sum() / 2)}
             for v in variants:
                 for g in galsim_runs:
                     out[f"moved:{v}/{g}"] = float(np.abs(images[v] - images[g]).sum() / 2)
-            out.update({n: image_moments(images[n])["T"] / t_nom - 1.0 for n in names})
+            out.update({n: mom[n]["T"] / t_nom - 1.0 for n in names})
+            out.update({"e1:" + n: mom[n]["e1"] - nom["e1"] for n in names})
             rows.append(out)
             if progress:
                 print(f"  star {k + 1}/{len(fluxes)}: flux {x.size:.0f}, dT/T " + ", ".join(
@@ -160,11 +174,14 @@ def crosscheck(fluxes, *, fwhm=0.7, stamp=31, nrecalc=1000, seed=2015, variants=
     finally:
         galsim.utilities.set_omp_threads(threads)
     f5 = np.array([r["flux"] for r in rows]) / 1e5
-    res = {"n_stars": len(rows), "fwhm": fwhm, "nrecalc": nrecalc, "seconds": seconds,
-           "stars": rows, "slopes": {}, "ratios": {}}
+    res = {"sensor": sensor, "n_stars": len(rows), "fwhm": fwhm, "nrecalc": nrecalc,
+           "seconds": seconds, "stars": rows, "slopes": {}, "ratios": {}, "e1_slopes": {},
+           "e1_ratios": {}}
     for n in names:
         s, e = _slope(f5, [r[n] for r in rows])
         res["slopes"][n] = {"slope": s, "slope_err": e}
+        s, e = _slope(f5, [r["e1:" + n] for r in rows])
+        res["e1_slopes"][n] = {"slope": s, "slope_err": e}
     for v in variants:
         for g in galsim_runs:
             d, de = _slope(f5, [r[v] - r[g] for r in rows])
@@ -173,6 +190,9 @@ def crosscheck(fluxes, *, fwhm=0.7, stamp=31, nrecalc=1000, seed=2015, variants=
                                          "diff_slope": d, "diff_slope_err": de,
                                          "photons_elsewhere": sum(r[f"moved:{v}/{g}"]
                                                                   for r in rows)}
+            d, de = _slope(f5, [r["e1:" + v] - r["e1:" + g] for r in rows])
+            sg = res["e1_slopes"][g]["slope"]
+            res["e1_ratios"][f"{v}/{g}"] = {"ratio": 1.0 + d / sg, "ratio_err": abs(de / sg)}
     res["photons_total"] = float(sum(r["flux"] for r in rows))
     res["photons_moved_by_bf"] = float(sum(r["bf_moved"] for r in rows))
     for r in rows:  # keep the json small: drop the per-pair photon counts
@@ -181,19 +201,19 @@ def crosscheck(fluxes, *, fwhm=0.7, stamp=31, nrecalc=1000, seed=2015, variants=
     return res
 
 
-def area_check(*, stamp=31, peak=2e5, sigma=1.5):
+def area_check(*, stamp=31, peak=2e5, sigma=1.5, sensor=SENSOR):
     """Pixel areas of one Gaussian charge image: GalSim's against ours."""
     import galsim
     jj, ii = np.mgrid[:stamp, :stamp]
     c = stamp // 2 + 0.25
     q = np.round(peak * np.exp(-0.5 * ((ii - c) ** 2 + (jj - c) ** 2) / sigma**2))
-    ag = galsim.SiliconSensor(SENSOR, diffusion_factor=0.0).calculate_pixel_areas(
+    ag = galsim.SiliconSensor(sensor, diffusion_factor=0.0).calculate_pixel_areas(
         galsim.ImageD(q.copy(), scale=0.2)).array
     w = q * ((ii - c) ** 2 + (jj - c) ** 2)
     out = {"charge": float(q.sum()), "galsim_A00": float(ag[stamp // 2, stamp // 2]),
            "galsim_area_sum_minus_npix": float(ag.sum() - stamp**2)}
     for name, ma in (("match_areas", True), ("nearest_pixel", False)):
-        a = moment_maps(import_galsim_sensor(SENSOR, match="areas" if ma else "none"), q).area
+        a = moment_maps(import_galsim_sensor(sensor, match="areas" if ma else "none"), q).area
         out[name] = {"A00": float(a[stamp // 2, stamp // 2]),
                      "max_abs_area_diff": float(np.abs(a - ag).max()),
                      # change of the r^2-weighted area deficit, the lever of the size change
@@ -209,14 +229,20 @@ def main():
     ap.add_argument("--fwhm", type=float, default=0.7)
     ap.add_argument("--nrecalc", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=2015)
+    ap.add_argument("--sensor", default=SENSOR, help="GalSim sensor name")
+    ap.add_argument("--variants", nargs="+", default=None,
+                    help="our variants to run (default: all)")
     ap.add_argument("--out", default=os.path.join("benchmarks", "galsim_crosscheck_results"))
     args = ap.parse_args()
+    variants = default_variants(args.sensor, args.variants)
     fluxes = np.geomspace(args.fmin, args.fmax, args.n_stars)
     t0 = time.perf_counter()
-    res = crosscheck(fluxes, fwhm=args.fwhm, nrecalc=args.nrecalc, seed=args.seed, progress=True)
+    res = crosscheck(fluxes, fwhm=args.fwhm, nrecalc=args.nrecalc, seed=args.seed, progress=True,
+                     sensor=args.sensor, variants=variants)
     res["wall_seconds"] = time.perf_counter() - t0
-    res["areas"] = area_check()
-    lines = [f"GalSim cross-check, {SENSOR}: {res['n_stars']} Gaussian stars FWHM {args.fwhm}\", "
+    res["areas"] = area_check(sensor=args.sensor)
+    lines = [f"GalSim cross-check, {args.sensor}: {res['n_stars']} Gaussian stars "
+             f"FWHM {args.fwhm}\", "
              f"flux {args.fmin:.0e}..{args.fmax:.0e} e, same photons, nrecalc = update_every = "
              f"{args.nrecalc}, no diffusion; {res['wall_seconds']:.0f} s"]
     for n, v in res["slopes"].items():
@@ -228,6 +254,11 @@ def main():
     for n, v in res["ratios"].items():
         lines.append(f"    {n:38s} {v['ratio']:.4f} +- {v['ratio_err']:.4f}   "
                      f"{v['photons_elsewhere']:.0f}")
+    lines.append("  ellipticity: de1 slope (per 1e5 e) and paired ratios ours / GalSim:")
+    for n, v in res["e1_slopes"].items():
+        lines.append(f"    {n:25s} de1 slope {v['slope']:.3e} +- {v['slope_err']:.1e}")
+    for n, v in res["e1_ratios"].items():
+        lines.append(f"    {n:38s} {v['ratio']:.4f} +- {v['ratio_err']:.4f}")
     a = res["areas"]
     lines.append(f"  areas of one charge image ({a['charge']:.3g} e, peak 2e5): GalSim A00 "
                  f"{a['galsim_A00']:.5f}, area sum - npix {a['galsim_area_sum_minus_npix']:.2e}")
