@@ -177,7 +177,7 @@ def test_a_field_of_another_sensor_is_reported_as_tension():
     # the report names the size slope of the stars as the data that pull
     res = _calibration()
     joint = calibrate_with_stars(res, [paired_fields()["images"][1]], min_stars=8, seed=3)
-    assert joint.tension["p_value"] < 1e-5
+    assert joint.tension["p_value"] < 1e-4
     assert joint.tension["worst"][0]["what"] == "field0:size"
     assert joint.tension["worst"][0]["pull"] < -4      # the flats template over-corrects
     assert any(w.startswith("tension between the a-matrix and the stars") for w in joint.warnings)

@@ -68,12 +68,39 @@ def test_source_noise_term_weights_bright_stars_right():
         snr = flux / np.sqrt(flux + 3e4)
         sigma = np.sqrt(1.0 / snr ** 2 + b ** 2 / flux)
         q = 1.8 + 0.1 * x / 1000 + rng.normal(0, sigma)
-        r = fit_flux_slope(x, y, flux / 1e5, q, snr, flux=flux, n_boot=0)
+        # no noise-bias terms in either fit: the weights alone are compared
+        r = fit_flux_slope(x, y, flux / 1e5, q, snr, flux=flux, n_boot=0, noise_term=False)
         z_flux.append(r["z"])
         err_flux.append(r["slope_err"])
         betas.append(r["beta"])
-        err_snr.append(fit_flux_slope(x, y, flux / 1e5, q, snr, n_boot=0)["slope_err"])
+        err_snr.append(fit_flux_slope(x, y, flux / 1e5, q, snr, n_boot=0,
+                                      noise_term=False)["slope_err"])
     z_flux = np.array(z_flux)
     assert 0.8 < np.std(z_flux) < 1.2 and abs(np.mean(z_flux)) < 0.25
     assert_allclose(np.median(betas), b, rtol=0.2)
     assert np.median(np.array(err_flux) / np.array(err_snr)) < 0.9
+
+
+def test_two_noise_bias_terms_remove_a_source_noise_bias():
+    # adaptive moments are biased by the sky's noise and by the star's own
+    # photon noise with coefficients of their own: q = ... + b / SNR^2 + c / F
+    # with c != b. The 1/SNR^2 term alone leaves part of c / F in the slope;
+    # with the fluxes given both terms are fitted and the slope is unbiased
+    # (independent reference: the zero slope put in)
+    rng = np.random.default_rng(5)
+    one, two = [], []
+    for _ in range(60):
+        x = rng.uniform(0, 1000, 700)
+        y = rng.uniform(0, 1000, 700)
+        flux = np.exp(rng.uniform(np.log(1e4), np.log(1.5e6), 700))
+        snr = flux / np.sqrt(flux + 5e4)
+        q = 1.8 + 0.1 * x / 1000 + 2.0 / snr ** 2 + 150.0 / flux \
+            + rng.normal(0, np.sqrt(1.0 / snr ** 2 + 1.5 ** 2 / flux))
+        one.append(fit_flux_slope(x, y, flux / 1e5, q, snr, n_boot=0))
+        two.append(fit_flux_slope(x, y, flux / 1e5, q, snr, flux=flux, n_boot=0))
+    z1 = np.array([r["z"] for r in one])
+    z2 = np.array([r["z"] for r in two])
+    assert abs(np.mean(z2)) < 0.35 and 0.7 < np.std(z2) < 1.3
+    assert abs(np.mean(z1)) > 1.0  # the single term leaves a bias
+    assert_allclose(np.median([r["source_bias"] for r in two]), 150.0 / 1e5, rtol=0.3)
+    assert all(r["source_bias"] is None for r in one)
