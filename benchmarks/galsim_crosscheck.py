@@ -109,8 +109,12 @@ GALSIM_RUNS = {"galsim_q3": 3, "galsim_q4": 4}
 def default_variants(sensor=SENSOR, names=None):
     """Our variants: name -> (template, layout, qdist, galsim_box); ``names``
     keeps only those (all by default)."""
-    def raw():
-        return import_galsim_sensor(sensor, match="none")
+    imported = {}
+
+    def raw():  # imported once, shared by the variants that use it
+        if "none" not in imported:
+            imported["none"] = import_galsim_sensor(sensor, match="none")
+        return imported["none"]
 
     make = {"match_areas": lambda: (import_galsim_sensor(sensor, match="areas"), "shared",
                                     None, False),

@@ -32,7 +32,7 @@ sys.path.insert(0, os.path.dirname(HERE))
 
 from lsst_bfdrift.calibration.star_fit import StarField  # noqa: E402
 from lsst_bfdrift.calibration.star_slopes import FLUX_UNIT, fit_flux_slope, select_stars  # noqa: E402
-from lsst_bfdrift.simulation.skysim import _positions  # noqa: E402
+from lsst_bfdrift.simulation.skysim import _field_psf, _positions  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 
@@ -46,10 +46,7 @@ def bf_free_field(seed, *, size=2048, n_stars=800, sky=1000.0, read_noise=5.0,
     img = np.zeros((size, size))
     for x, y in _positions(rng, n_stars, (size, size), half + 1, 32.0):
         f = float(np.exp(rng.uniform(np.log(1e4), np.log(1.5e6))))
-        fw = fwhm[0] + (fwhm[1] - fwhm[0]) * x / (size - 1)
-        e1 = e_range * (2 * y / (size - 1) - 1)
-        e2 = 0.5 * e_range * (1 - 2 * x / (size - 1))
-        prof = galsim.Moffat(beta=3.5, fwhm=fw).shear(e1=e1, e2=e2).withFlux(f)
+        prof = _field_psf(galsim, x, y, f, (size, size), fwhm=fwhm, e_range=e_range)[0]
         ix, iy = int(np.floor(x + 0.5)), int(np.floor(y + 0.5))
         st = galsim.ImageD(stamp, stamp, scale=pixel_scale)
         prof.drawImage(st, method="phot", rng=galsim.BaseDeviate(int(rng.integers(1, 2**30))),

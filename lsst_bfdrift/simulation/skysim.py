@@ -193,6 +193,20 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
             "strength": req[0] if np.ndim(strength) == 0 else req}
 
 
+def _field_psf(galsim, x, y, flux, shape, *, fwhm=(0.7, 0.95), e_range=0.04, beta_moffat=3.5):
+    """The field's Moffat star at (x, y) px of an image of ``shape`` (ny, nx):
+    FWHM (arcsec) linear in x from ``fwhm[0]`` to ``fwhm[1]``, e1 from
+    -``e_range`` (y = 0) to +``e_range``, e2 from +``e_range`` / 2 (x = 0) to
+    -``e_range`` / 2 (as :func:`simulate_star_field` documents). Returns the
+    galsim profile with ``flux`` (e), its FWHM, e1 and e2."""
+    ny, nx = shape
+    fw = fwhm[0] + (fwhm[1] - fwhm[0]) * x / max(nx - 1, 1)
+    e1 = e_range * (2 * y / max(ny - 1, 1) - 1)
+    e2 = 0.5 * e_range * (1 - 2 * x / max(nx - 1, 1))
+    prof = galsim.Moffat(beta=beta_moffat, fwhm=fw).shear(e1=e1, e2=e2).withFlux(flux)
+    return prof, fw, e1, e2
+
+
 def _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_range, flux,
           beta_moffat, stamp, half, pixel_scale, sensor, sky, sky_radius, updates, min_nrecalc,
           collected):
@@ -209,10 +223,8 @@ def _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_r
     with ProgressBar(len(pos), "galsim field", enabled=progress) as bar:
         for x, y in pos:
             f = float(np.exp(rng.uniform(np.log(flux[0]), np.log(flux[1]))))
-            fw = fwhm[0] + (fwhm[1] - fwhm[0]) * x / max(nx - 1, 1)
-            e1 = e_range * (2 * y / max(ny - 1, 1) - 1)
-            e2 = 0.5 * e_range * (1 - 2 * x / max(nx - 1, 1))
-            prof = galsim.Moffat(beta=beta_moffat, fwhm=fw).shear(e1=e1, e2=e2).withFlux(f)
+            prof, fw, e1, e2 = _field_psf(galsim, x, y, f, (ny, nx), fwhm=fwhm, e_range=e_range,
+                                         beta_moffat=beta_moffat)
             ix, iy = int(np.floor(x + 0.5)), int(np.floor(y + 0.5))
             s1, s2 = (int(v) for v in rng.integers(1, 2**30, 2))
             px, py, pf = shoot_stamp_photons(prof, stamp, pixel_scale=pixel_scale, seed=s1,
