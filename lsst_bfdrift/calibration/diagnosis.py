@@ -39,7 +39,7 @@ Inputs (:class:`~lsst_bfdrift.calibration.flat_observations.Observations`):
     the means say the signal chain is linear.
 
 Beside the fit, every other observable the input carries is checked
-(:mod:`lsst_bfdrift.calibration.observables`: linearity in exposure time,
+(:mod:`lsst_bfdrift.calibration.findings`: linearity in exposure time,
 the sum rule, image halves, the two flats of each pair, the turn-off); a
 significant finding is named in the verdict with the effects that could
 produce it, and never credited to the base model. These checks do not
@@ -52,8 +52,8 @@ from scipy import stats
 
 from lsst_bfdrift.calibration.acoeff_fit import DEFAULT_FREE
 from lsst_bfdrift.calibration.fitting import fit_parameters
-from lsst_bfdrift.calibration.observables import (assess_observables, credit_findings,
-                                                  exposure_line, pair_mean_errors)
+from lsst_bfdrift.calibration.findings import assess_observables, credit_findings
+from lsst_bfdrift.calibration.observables import exposure_line, pair_mean_errors
 from lsst_bfdrift.calibration.flat_observations import (Observations, edge_signature,
                                                        observations_from_pairs)
 from lsst_bfdrift.calibration.ptc import covariance_model, fit_ptc_exponential
@@ -398,7 +398,7 @@ def diagnose(obs, basis=None, *, library=None, bic_threshold=10.0, p_threshold=1
         ``not_identifiable`` (effect -> reason), ``residuals_before``,
         ``residuals_after`` (per lag), ``verdict`` and ``unexplained``;
         ``observables`` (check name -> finding,
-        :mod:`~lsst_bfdrift.calibration.observables`) and ``signatures`` (the
+        :mod:`~lsst_bfdrift.calibration.findings`) and ``signatures`` (the
         significant findings as named in the verdict).
     """
     library = effect_library(max_lag=max(obs.max_lag, 0)) if library is None \

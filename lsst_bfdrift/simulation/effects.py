@@ -28,7 +28,7 @@ Observables
 -----------
 Each effect also states which observables of a flat set it moves (the
 class attribute ``observables``, names from :data:`OBSERVABLES`); the
-diagnosis (:mod:`lsst_bfdrift.calibration.observables`) uses it to say which
+diagnosis (:mod:`lsst_bfdrift.calibration.findings`) uses it to say which
 effect could produce a finding, and never credits the base BF model with
 one it cannot produce:
 

@@ -17,10 +17,9 @@ from scipy import stats
 from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable, load_default_basis
 from lsst_bfdrift.calibration.diagnosis import (Observations, diagnose, load_input,
                                                 observations_from_pairs)
-from lsst_bfdrift.calibration.observables import (CHECKS, assess_observables,
-                                                  exposure_scatter, lag_multiplicity,
-                                                  linearity_finding, pair_observables,
-                                                  turnoff_cut)
+from lsst_bfdrift.calibration.findings import CHECKS, assess_observables, linearity_finding
+from lsst_bfdrift.calibration.observables import (exposure_scatter, lag_multiplicity,
+                                                  pair_observables, turnoff_cut)
 from lsst_bfdrift.calibration.report import diagnosis_markdown
 from lsst_bfdrift.simulation.effects import (BASE_OBSERVABLES, OBSERVABLES, GainNonlinearity,
                                              cti_filter_covariance, effect_library)
