@@ -159,7 +159,10 @@ def correct_file(src, dst, config=None, *, overwrite=False, progress=None):
                                  ("centroid_y", "pixel", "centroid shift along y (px)"),
                                  ("e1", "", "pixel ellipticity e1"),
                                  ("e2", "", "pixel ellipticity e2")):
-            data = getattr(res, name).astype(np.float32, copy=False)
+            # the area keeps float64: it is 1 plus a signal that can be below
+            # float32's resolution at 1 (6e-8); the other maps are small numbers
+            data = getattr(res, name).astype(np.float64 if name == "area" else np.float32,
+                                             copy=False)
             extra.append(_described(fits.ImageHDU(data, name=name.upper()), unit, what))
     report("write", 0.0)
     write_exposure(dst, res.exposure, extra_hdus=extra, overwrite=overwrite, inputs=[src])

@@ -173,6 +173,11 @@ def test_lsst_file_through_bfdrift_correct(tmp_path):
         assert [h.name for h in b][len(a):] == ["FLUX_MOVED", "BFFLAGS", "AREA", "CENTROID_X",
                                                 "CENTROID_Y", "E1", "E2"]  # geometry on
         assert b["AREA"].header["BUNIT"] == "pixel2"
+        # the area is written in float64 (1 + a signal below float32's 6e-8 at 1)
+        assert b["AREA"].data.dtype.itemsize == 8 and b["E1"].data.dtype.itemsize == 4
+        task = BrighterFatterDriftTask(config=BrighterFatterDriftConfig())
+        area = task.run(read_exposure(src)).area
+        assert_array_equal(b["AREA"].data, area)
         bits = {k[3:]: v for k, v in b["MASK"].header.items() if k.startswith("MP_")}
         assert bits["BF"] == 6 and {k: bits[k] for k in PLANES} == PLANES
         out_img, out_mask = b["IMAGE"].data, b["MASK"].data
