@@ -91,7 +91,7 @@ def first_order_terms(img, blocked, ops, *, strip, cubic, stop=None, keep_swept=
         is in cache.
     maps : FirstOrderPass, optional
         First-order geometry maps of ``img``
-        (:class:`~lsst_bfdrift.geometry.linear.FirstOrderPass`), computed
+        (:class:`~lsst_bfdrift.geometry.first_order.FirstOrderPass`), computed
         block by block from the same transforms of the image as the swept
         areas (the swept areas and ``first`` are the same, bit for bit).
 

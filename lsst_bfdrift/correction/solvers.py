@@ -515,7 +515,7 @@ def correct_half_shift(image, template, *, blocked=None, workers=1, dtype=np.flo
     ``(N + 1) // 2 + 2`` rows, which gives the whole-image result exactly)
     and ``cache`` as for :func:`correct_image`; ``check_range`` refuses
     images the model cannot describe (:func:`refuse_out_of_range`); ``maps``
-    (:class:`~lsst_bfdrift.geometry.linear.FirstOrderPass`) gets the
+    (:class:`~lsst_bfdrift.geometry.first_order.FirstOrderPass`) gets the
     first-order geometry maps from the same transforms.
 
     Returns

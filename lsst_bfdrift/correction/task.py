@@ -24,7 +24,8 @@ from lsst_bfdrift.correction.checks import input_warnings, mask_warnings
 from lsst_bfdrift.correction.solvers import (MAX_SWEEP, area_coefficients, correct_coulton18,
                                              correct_half_shift, correct_image,
                                              coulton18_kernel, refuse_out_of_range)
-from lsst_bfdrift.geometry.linear import FirstOrderPass, linear_moment_maps
+from lsst_bfdrift.geometry.first_order import FirstOrderPass
+from lsst_bfdrift.geometry.linear import linear_moment_maps
 from lsst_bfdrift.geometry.superpose import moment_maps
 from lsst_bfdrift.templates.refine import draw_templates
 from lsst_bfdrift.templates.swept import OperatorCache
@@ -188,7 +189,7 @@ def stage_order(config=None):
 def _correct(data, template, blocked, cfg, dtype, cache, maps=None, progress=None):
     """The configured correction of ``data`` with ``template``: (flux,
     iterations, converged, order, density, solver info); ``maps``
-    (:class:`~lsst_bfdrift.geometry.linear.FirstOrderPass`) is filled by the
+    (:class:`~lsst_bfdrift.geometry.first_order.FirstOrderPass`) is filled by the
     astier23 pass and by the drift series' first-order pass when it is the
     sparse one; ``progress`` (a fraction) as for
     :func:`~lsst_bfdrift.correction.solvers.correct_image`."""

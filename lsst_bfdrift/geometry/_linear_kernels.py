@@ -1,4 +1,5 @@
-"""Compiled (numba) kernels of :mod:`lsst_bfdrift.geometry.linear`.
+"""Compiled (numba) kernels of the first-order maps and their bounds
+(:mod:`lsst_bfdrift.geometry.first_order`, :mod:`lsst_bfdrift.geometry.bounds`).
 
 One pass over the charge image per call: numpy needs two full-size
 temporaries for ``abs(q - qbar)`` and a reshape for the bin sums (about

@@ -101,7 +101,7 @@ def displacement_bound(lk, q, *, bin=2, workers=1, qbar=None, outside=None):
 
     Parameters
     ----------
-    lk : lsst_bfdrift.geometry.linear.LinearKernels
+    lk : lsst_bfdrift.geometry.first_order.LinearKernels
     q : ndarray, shape (ny, nx), float64
         Charge (e), finite.
     bin : int, optional
@@ -162,7 +162,7 @@ def pixel_displacement_bound(lk, q, rows, cols, *, qbar, outside=0.0):
 
     Parameters
     ----------
-    lk : lsst_bfdrift.geometry.linear.LinearKernels
+    lk : lsst_bfdrift.geometry.first_order.LinearKernels
     q : ndarray, shape (ny, nx), float64
         Charge (e), finite.
     rows, cols : ndarray of int

@@ -13,9 +13,9 @@ from numpy.testing import assert_allclose
 
 from lsst_bfdrift.geometry.bounds import (displacement_bound, pixel_displacement_bound,
                                           second_order_bounds)
-from lsst_bfdrift.geometry.linear import (LINEAR_MAPS, MEASURED_CONSTANTS, FirstOrderPass,
-                                          _linear_maps, error_bounds, linear_kernels,
-                                          linear_moment_maps)
+from lsst_bfdrift.geometry.first_order import (LINEAR_MAPS, FirstOrderPass, _linear_maps,
+                                               linear_kernels)
+from lsst_bfdrift.geometry.linear import MEASURED_CONSTANTS, error_bounds, linear_moment_maps
 from lsst_bfdrift.geometry.superpose import moment_maps, resample_template, superpose_boundaries
 
 NOMINAL = dict(area=1.0, dx=0.0, dy=0.0, e1=0.0, e2=0.0)
