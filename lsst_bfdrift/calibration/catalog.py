@@ -30,7 +30,8 @@ segment moments would be dominated by noise for faint stars.
 Flags (bit mask ``flags``; ``use`` is True when ``flags == 0``):
 
 =================  ===  ========================================================
-FLAG_SATURATED       1  a pixel of the source at or above ``saturation`` (e)
+FLAG_SATURATED       1  a pixel of the source at or above ``saturation`` (e; given, the
+                        SATURATE keyword, or a flat top, :func:`load_electrons`)
 FLAG_BLENDED         2  several peaks in one segment, segment touching another,
                         or another source's centroid within ``isolation`` px
 FLAG_EDGE            4  the measurement stamp leaves the image
@@ -46,6 +47,7 @@ import warnings
 import numpy as np
 from astropy import units as u
 from astropy.table import QTable
+from astropy.utils.exceptions import AstropyUserWarning
 
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.utils.progress import ProgressBar
@@ -81,7 +83,9 @@ def load_electrons(exposure, *, gain=None, mask=None, saturation=None):
         Extra bad pixels (True = bad).
     saturation : float, optional
         Saturation level in the image's own unit (ADU or e); default the
-        SATURATE header keyword if present.
+        SATURATE header keyword if present, else the image's largest value
+        when three or more unmasked pixels share it exactly (a flat top:
+        the image was clipped there), with a warning.
 
     Returns
     -------
@@ -114,7 +118,36 @@ def load_electrons(exposure, *, gain=None, mask=None, saturation=None):
         if not float(saturation) > 0:
             raise InputError(f"saturation must be positive, got {saturation}")
         sat_e = float(saturation) * g
+    else:
+        sat_e = _plateau_level(data, bad)
+        if sat_e is not None:
+            warnings.warn(f"no saturation level given: {int(np.sum(data == sat_e))} pixels share "
+                          f"the image's largest value, {sat_e:.6g} e (a flat top: the image "
+                          "was clipped there); taken as the saturation level (pass "
+                          "saturation= or a SATURATE keyword to set it)", AstropyUserWarning)
     return data, bad, sat_e, g
+
+
+#: Unmasked pixels that must share the image's largest value exactly for
+#: :func:`load_electrons` to take it as the saturation level.
+PLATEAU_PIXELS = 3
+
+
+def _plateau_level(data, bad):
+    """The image's largest unmasked value when at least :data:`PLATEAU_PIXELS`
+    pixels (and not most of the image) share it exactly, else None.
+
+    A star's peak is shared by no other pixel of a noisy image; a value that
+    several pixels share exactly is where the read-out clipped them.
+    """
+    good = data[~bad]
+    if good.size == 0:
+        return None
+    top = good.max()
+    n = int(np.count_nonzero(good == top))
+    if n < PLATEAU_PIXELS or n > good.size // 2 or not top > np.median(good):
+        return None
+    return float(top)
 
 
 def _background(data, bad, box_size):

@@ -4,6 +4,7 @@ import galsim
 import numpy as np
 import pytest
 from astropy.io import fits
+from astropy.utils.exceptions import AstropyUserWarning
 from numpy.testing import assert_allclose
 
 from lsst_bfdrift.calibration.catalog import FLAG_BLENDED, FLAG_EDGE, FLAG_MASKED, FLAG_NOT_STAR, \
@@ -77,6 +78,29 @@ def test_flags_saturation_blending_edges_masks():
     k, _ = _nearest(cat, 75, 80)
     assert cat["flags"][k] & FLAG_NOT_STAR and cat["flag_not_star"][k]
     assert cat["T"][k].value > 3 * np.median(cat["T"].value[cat["use"]])
+
+
+def test_a_clipped_image_gives_its_saturation_level():
+    """An image clipped at a level (a flat top on its brightest stars) and no
+    saturation given: that level is taken, with a warning, and only the
+    clipped stars are flagged; the same image unclipped infers nothing (and
+    integer pixels do not fake a plateau)."""
+    stars = [(40.0, 40.0, 3e5, 1.8, 0, 0), (120.0, 40.0, 2e5, 1.8, 0, 0),
+             (60.0, 110.0, 5e4, 1.8, 0, 0), (120.0, 120.0, 5e4, 1.8, 0, 0)]
+    arr = _gauss_field(stars)
+    level = 0.5 * 2e5 / (2 * np.pi * 1.8 ** 2) + SKY  # below the two bright peaks
+    clipped = np.minimum(arr, level)
+    before = clipped.copy()
+    with pytest.warns(AstropyUserWarning, match=r"pixels share the image's largest value"):
+        cat = measure_stars(clipped)
+    np.testing.assert_array_equal(clipped, before)  # the input is not modified
+    assert cat.meta["saturation"] == pytest.approx(level)
+    for x, y, sat in ((40, 40, True), (120, 40, True), (60, 110, False), (120, 120, False)):
+        k, _ = _nearest(cat, x, y)
+        assert bool(cat["flags"][k] & FLAG_SATURATED) == sat
+    for img in (arr, np.round(arr).astype(np.int32)):
+        cat = measure_stars(img)  # warnings are errors here: none is raised
+        assert cat.meta["saturation"] is None and not np.any(cat["flags"] & FLAG_SATURATED)
 
 
 def test_adu_with_gain_equals_electrons(tmp_path):
