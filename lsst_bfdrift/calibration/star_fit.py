@@ -419,6 +419,10 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
             warn.append(f"{f.name}: {f.flag_counts['saturated']} saturated stars excluded")
         if f.flag_counts.get("blended"):
             warn.append(f"{f.name}: {f.flag_counts['blended']} blended detections excluded")
+        if f.flag_counts.get("masked"):
+            warn.append(f"{f.name}: {f.flag_counts['masked']} stars with masked or non-finite "
+                        "pixels in their aperture excluded (an LSST exposure's SAT plane "
+                        "counts here)")
     # directions: the built template's change per parameter step
     params, settings = result.params, result.settings
     cands = result.candidates

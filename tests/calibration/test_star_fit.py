@@ -16,6 +16,7 @@ import functools
 
 import numpy as np
 import pytest
+from astropy.utils.exceptions import AstropyUserWarning
 from numpy.testing import assert_allclose
 
 from tests.validation._galsim_fields import STRENGTHS, paired_fields
@@ -128,6 +129,28 @@ def test_bad_star_inputs_get_clear_errors():
     nores = type(res)(**{**res.__dict__, "template": None})
     with pytest.raises(CalibrationError, match="template built"):
         calibrate_with_stars(nores, [img])
+
+
+def test_saturated_and_masked_stars_are_excluded_and_counted():
+    """A field clipped below its brightest peaks (no saturation level given) and
+    with a NaN on another star: the clipped stars are flagged saturated (the
+    level taken from the flat top), the NaN one masked; the report counts
+    both, and the input image is not modified."""
+    res = _calibration()
+    img = paired_fields()["images"][0].copy()
+    level = 0.7 * img.max()  # below the two brightest stars' cores
+    img = np.minimum(img, level)
+    iy, ix = np.unravel_index(np.argsort(np.where(img < 0.3 * level, img, 0).ravel())[-1],
+                              img.shape)
+    img[iy, ix] = np.nan
+    before = img.copy()
+    with pytest.warns(AstropyUserWarning, match="flat top"):
+        out = calibrate_with_stars(res, [img], min_stars=8)
+    np.testing.assert_array_equal(img, before)
+    sat = [w for w in out.warnings if "saturated stars excluded" in w]
+    masked = [w for w in out.warnings if "masked or non-finite" in w]
+    assert len(sat) == 1 and int(sat[0].split(": ")[1].split()[0]) >= 1
+    assert len(masked) == 1 and masked[0].startswith("field0: 1 stars")
 
 
 def test_curl_direction_moves_e1_and_not_the_a_matrix():
