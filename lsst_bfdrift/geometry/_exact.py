@@ -21,9 +21,11 @@ def _boxes(flag, b, shape, *, band, block=32):
     """Pixel boxes (y0, y1, x0, x1) covering the flagged bins.
 
     Flagged bins within ``band`` bins of the image border (where the
-    uniform level's displacements are) make one strip per side, as long as
-    the flagged part of that side and as deep as its deepest flagged bin;
-    the others, the bounding box of every connected group of flagged bins
+    uniform level's displacements are) make strips along each side: one per
+    run of flagged bins along the side (runs less than ``2 band + 1`` bins
+    apart merged), each as deep as its deepest flagged bin, so that a source
+    near one end of a side does not make a strip of the whole side; the
+    others, the bounding box of every connected group of flagged bins
     within each ``block`` x ``block`` block of bins.
     """
     ny, nx = shape
@@ -35,16 +37,19 @@ def _boxes(flag, b, shape, *, band, block=32):
         sides = ((flag[:band], False, False), (flag[nby - band:][::-1], False, True),
                  (flag[:, :band].T, True, False), (flag[:, nbx - band:][:, ::-1].T, True, True))
         for f, transposed, far in sides:
-            if not f.any():
-                continue
-            depth = int(np.flatnonzero(f.any(axis=1))[-1]) + 1
             cols = np.flatnonzero(f.any(axis=0))
-            a, z = int(cols[0]) * b, (int(cols[-1]) + 1) * b
+            if not cols.size:
+                continue
             n_along, n_across = (ny, nx) if transposed else (nx, ny)
             bins_across = nbx if transposed else nby
-            lo, hi = ((bins_across - depth) * b, n_across) if far else (0, min(depth * b, n_across))
-            z = min(z, n_along)
-            out.append((a, z, lo, hi) if transposed else (lo, hi, a, z))
+            cuts = np.flatnonzero(np.diff(cols) > 2 * band + 1) + 1
+            for run in np.split(cols, cuts):
+                c0, c1 = int(run[0]), int(run[-1]) + 1
+                depth = int(np.flatnonzero(f[:, c0:c1].any(axis=1))[-1]) + 1
+                a, z = c0 * b, min(c1 * b, n_along)
+                lo, hi = (((bins_across - depth) * b, n_across) if far
+                          else (0, min(depth * b, n_across)))
+                out.append((a, z, lo, hi) if transposed else (lo, hi, a, z))
         flag[:band] = flag[nby - band:] = False
         flag[:, :band] = flag[:, nbx - band:] = False
     labels, _ = ndimage.label(flag, structure=np.ones((3, 3), int))
@@ -67,44 +72,18 @@ def _exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtyp
     boundaries were convolved. ``progress`` is called with the fraction of
     that area done (by blocks of rows).
 
-    A box on the image border (the strips of :func:`_boxes`) is computed on
-    the image itself, with ``r`` rows or columns of charge on its inner sides
-    (beyond the image there is none: the transforms' zero padding). The
-    others, each with ``r`` pixels of its charge around it, are slots on one
-    canvas, on shelves, apart from each other by their margins (no pixel of
-    a box sees another slot's charge). Only the boxes' own pixels get their
-    polygons' moments (:func:`_box_moments`).
+    Each box, with ``r`` pixels of its charge around it, is a slot on one
+    canvas, on shelves, apart from the others by their margins (no pixel of
+    a box sees another slot's charge); beyond the image border a margin
+    holds no charge, as the transforms' zero padding of the image would
+    give. Only the boxes' own pixels get their polygons' moments
+    (:func:`_box_moments`).
     """
+    if not boxes:
+        return 0
     ny, nx = q.shape
-    area = 0
-    inner, border = [], []
-    for box in boxes:
-        y0, y1, x0, x1 = box
-        if y0 > 0 and x0 > 0 and y1 < ny and x1 < nx:
-            inner.append(box)
-        else:
-            border.append((box, (max(y0 - r, 0), min(y1 + r, ny), max(x0 - r, 0),
-                                 min(x1 + r, nx))))
-    tick = None
-    if progress is not None:
-        # the canvas's area (before its last block's padding) counted in advance
-        total = sum((a1 - a0) * (b1 - b0) for _, (a0, a1, b0, b1) in border)
-        total += _canvas_area(inner, r)
-        done = [0]
-
-        def tick(n):
-            done[0] += n
-            progress(min(done[0] / max(total, 1), 1.0))
-    for box, (a0, a1, b0, b1) in border:
-        y0, y1, x0, x1 = box
-        block = q[a0:a1, b0:b1]
-        area += _box_moments(template, block, [(y0 - a0, x0 - b0, box)], outs, names,
-                             samples=samples, workers=workers, dtype=dtype, strip=strip,
-                             progress=tick)
-    if not inner:
-        return area
     slots = sorted(((y1 - y0 + 2 * r, x1 - x0 + 2 * r, (y0, y1, x0, x1))
-                    for y0, y1, x0, x1 in inner), reverse=True)
+                    for y0, y1, x0, x1 in boxes), reverse=True)
     total = sum(h * w for h, w, _ in slots)
     width = max(max(w for _, w, _ in slots), int(math.sqrt(total) * 1.1))
     place, x, y, shelf = [], 0, 0, 0
@@ -116,27 +95,18 @@ def _exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtyp
         shelf = max(shelf, h)
     canvas = np.zeros((y + shelf, width))
     for cy, cx, (y0, y1, x0, x1) in place:
-        canvas[cy - r:cy + y1 - y0 + r, cx - r:cx + x1 - x0 + r] = q[y0 - r:y1 + r, x0 - r:x1 + r]
-    return area + _box_moments(template, canvas, place, outs, names, samples=samples,
-                               workers=workers, dtype=dtype, strip=strip, progress=tick)
+        a0, a1, b0, b1 = max(y0 - r, 0), min(y1 + r, ny), max(x0 - r, 0), min(x1 + r, nx)
+        canvas[cy + a0 - y0:cy + a1 - y0, cx + b0 - x0:cx + b1 - x0] = q[a0:a1, b0:b1]
+    tick = None
+    if progress is not None:
+        done = [0]
+        size = canvas.size
 
-
-def _canvas_area(inner, r):
-    """Area (px) of the shelf-packed canvas :func:`_exact_windows` makes for
-    the ``inner`` boxes (0 for none)."""
-    if not inner:
-        return 0
-    slots = sorted(((y1 - y0 + 2 * r, x1 - x0 + 2 * r) for y0, y1, x0, x1 in inner),
-                   reverse=True)
-    total = sum(h * w for h, w in slots)
-    width = max(max(w for _, w in slots), int(math.sqrt(total) * 1.1))
-    x, y, shelf = 0, 0, 0
-    for h, w in slots:
-        if x + w > width:
-            y, x, shelf = y + shelf, 0, 0
-        x += w
-        shelf = max(shelf, h)
-    return (y + shelf) * width
+        def tick(n):
+            done[0] += n
+            progress(min(done[0] / max(size, 1), 1.0))
+    return _box_moments(template, canvas, place, outs, names, samples=samples,
+                        workers=workers, dtype=dtype, strip=strip, progress=tick)
 
 
 def _box_moments(template, canvas, place, outs, names, *, samples, workers, dtype, strip,

@@ -11,6 +11,7 @@ import pytest
 from tests.geometry.conftest import star_field
 from numpy.testing import assert_allclose
 
+from lsst_bfdrift.geometry._exact import _boxes
 from lsst_bfdrift.geometry.bounds import (displacement_bound, pixel_displacement_bound,
                                           second_order_bounds)
 from lsst_bfdrift.geometry.first_order import (LINEAR_MAPS, FirstOrderPass, _linear_maps,
@@ -189,6 +190,38 @@ def test_bright_star_windows_only(default_template, rng):
     s = _signal(exact)
     for k in LINEAR_MAPS:
         assert np.abs(getattr(m, k) - getattr(exact, k)).max() <= 1e-3 * s[k], k
+
+
+def test_border_strips_follow_the_flagged_runs():
+    """_boxes: flagged bins near the border make one strip per run along the
+    side (runs farther apart than 2 band + 1 bins stay apart), each as deep as
+    its own deepest flagged bin; every flagged bin lies in a box."""
+    flag = np.zeros((40, 50), bool)
+    flag[0, 3:6] = True          # a run near the left end of the bottom side
+    flag[0:2, 30:33] = True      # another, deeper, far along the same side
+    flag[20:22, 20:23] = True    # an interior group
+    boxes = _boxes(flag, 2, (80, 100), band=3)
+    bottom = sorted(bx for bx in boxes if bx[0] == 0)
+    assert bottom == [(0, 2, 6, 12), (0, 4, 60, 66)]
+    assert (40, 44, 40, 46) in boxes and len(boxes) == 3
+    for by, bx in zip(*np.nonzero(flag)):
+        assert any(y0 <= 2 * by < y1 and x0 <= 2 * bx < x1 for y0, y1, x0, x1 in boxes)
+
+
+def test_star_at_the_border_within_tolerance_of_exact(default_template, rng):
+    """A bright star 3 px from the right edge: its windows reach the image
+    border (no charge beyond it) and the maps stay within 1e-3 of each map's
+    signal of the exact polygon moments."""
+    q = rng.poisson(1200.0, (160, 160)).astype(float)
+    yy, xx = np.mgrid[:160, :160]
+    q += 1.5e6 / (2 * np.pi * 1.5**2) * np.exp(-((xx - 156.3)**2 + (yy - 40.2)**2) / (2 * 1.5**2))
+    info = {}
+    m = linear_moment_maps(default_template, q, samples=8, info=info)
+    exact = moment_maps(default_template, q, samples=8)
+    s = _signal(exact)
+    for k in LINEAR_MAPS:
+        assert np.abs(getattr(m, k) - getattr(exact, k)).max() <= 1e-3 * s[k], k
+    assert info["method"] == "linear+exact"
 
 
 def test_float32_rounding_is_small(fields, default_template):
