@@ -12,8 +12,8 @@ from tests.geometry.conftest import star_field
 from numpy.testing import assert_allclose
 
 from lsst_bfdrift.geometry._exact import _boxes
-from lsst_bfdrift.geometry.bounds import (displacement_bound, pixel_displacement_bound,
-                                          second_order_bounds)
+from lsst_bfdrift.geometry.bounds import (_binned_eps, _index_map, displacement_bound,
+                                          pixel_displacement_bound, second_order_bounds)
 from lsst_bfdrift.geometry.first_order import (LINEAR_MAPS, FirstOrderPass, _linear_maps,
                                                linear_kernels)
 from lsst_bfdrift.geometry.linear import MEASURED_CONSTANTS, error_bounds, linear_moment_maps
@@ -190,6 +190,20 @@ def test_bright_star_windows_only(default_template, rng):
     s = _signal(exact)
     for k in LINEAR_MAPS:
         assert np.abs(getattr(m, k) - getattr(exact, k)).max() <= 1e-3 * s[k], k
+
+
+@pytest.mark.parametrize("n, shape, b", [(23, (301, 299), 2), (23, (100, 37), 3),
+                                         (11, (11, 50), 4), (7, (7, 7), 1)])
+def test_binned_eps_is_the_bin_maximum(n, shape, b):
+    """_binned_eps against the direct maximum over each bin of the uniform
+    response spread over the image (partial bins at the far edges)."""
+    eps = np.random.default_rng(n + b).random((n, n))
+    rm, cm = _index_map(shape[0], n), _index_map(shape[1], n)
+    nby, nbx = -(-shape[0] // b), -(-shape[1] // b)
+    full = np.full((nby * b, nbx * b), -np.inf)
+    full[:shape[0], :shape[1]] = eps[np.ix_(rm, cm)]
+    direct = full.reshape(nby, b, nbx, b).max(axis=(1, 3))
+    np.testing.assert_array_equal(_binned_eps(eps, rm, cm, b, nby, nbx), direct)
 
 
 def test_border_strips_follow_the_flagged_runs():
