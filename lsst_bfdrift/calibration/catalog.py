@@ -49,6 +49,7 @@ from astropy import units as u
 from astropy.table import QTable
 from astropy.utils.exceptions import AstropyUserWarning
 
+from lsst_bfdrift.correction.checks import plateau_level
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.utils.progress import ProgressBar
 
@@ -84,7 +85,9 @@ def load_electrons(exposure, *, gain=None, mask=None, saturation=None):
     saturation : float, optional
         Saturation level in the image's own unit (ADU or e); default the
         SATURATE header keyword if present, else the image's largest value
-        when three or more unmasked pixels share it exactly (a flat top:
+        when three or more unmasked pixels share it exactly, 10 sigma above
+        the sky (a flat top,
+        :func:`~lsst_bfdrift.correction.checks.plateau_level`:
         the image was clipped there), with a warning.
 
     Returns
@@ -119,35 +122,13 @@ def load_electrons(exposure, *, gain=None, mask=None, saturation=None):
             raise InputError(f"saturation must be positive, got {saturation}")
         sat_e = float(saturation) * g
     else:
-        sat_e = _plateau_level(data, bad)
+        sat_e = plateau_level(np.where(bad, -np.inf, data), bad)
         if sat_e is not None:
             warnings.warn(f"no saturation level given: {int(np.sum(data == sat_e))} pixels share "
                           f"the image's largest value, {sat_e:.6g} e (a flat top: the image "
                           "was clipped there); taken as the saturation level (pass "
                           "saturation= or a SATURATE keyword to set it)", AstropyUserWarning)
     return data, bad, sat_e, g
-
-
-#: Unmasked pixels that must share the image's largest value exactly for
-#: :func:`load_electrons` to take it as the saturation level.
-PLATEAU_PIXELS = 3
-
-
-def _plateau_level(data, bad):
-    """The image's largest unmasked value when at least :data:`PLATEAU_PIXELS`
-    pixels (and not most of the image) share it exactly, else None.
-
-    A star's peak is shared by no other pixel of a noisy image; a value that
-    several pixels share exactly is where the read-out clipped them.
-    """
-    good = data[~bad]
-    if good.size == 0:
-        return None
-    top = good.max()
-    n = int(np.count_nonzero(good == top))
-    if n < PLATEAU_PIXELS or n > good.size // 2 or not top > np.median(good):
-        return None
-    return float(top)
 
 
 def _background(data, bad, box_size):

@@ -2,7 +2,8 @@
 
 :func:`input_warnings` names a mask that covers the sources and a bias
 pedestal; :func:`robust_level` gives the median and robust scatter it uses,
-from an evenly strided sample of a large image. The refusals (images the
+from an evenly strided sample of a large image; :func:`plateau_level` finds
+the level an image without a stated saturation was clipped at. The refusals (images the
 model cannot describe) live with the solvers
 (:func:`~lsst_bfdrift.templates.swept.refuse_out_of_range`).
 """
@@ -11,8 +12,8 @@ import numpy as np
 
 from lsst_bfdrift.utils.exposure import undeclared_bits
 
-__all__ = ["input_warnings", "mask_warnings", "robust_level", "BLOCKED_BRIGHT_WARN",
-           "ROBUST_SAMPLE"]
+__all__ = ["input_warnings", "mask_warnings", "robust_level", "plateau_level",
+           "BLOCKED_BRIGHT_WARN", "ROBUST_SAMPLE", "PLATEAU_PIXELS"]
 
 
 #: Fraction of the bright pixels' charge that, blocked, makes the Task warn.
@@ -21,6 +22,52 @@ BLOCKED_BRIGHT_WARN = 0.5
 
 #: Largest number of pixels :func:`robust_level` reads (an evenly strided sample).
 ROBUST_SAMPLE = 1 << 20
+
+
+#: Unblocked pixels that must share the image's largest value exactly for
+#: :func:`plateau_level` to take it as the saturation level.
+PLATEAU_PIXELS = 3
+
+
+def plateau_level(image, blocked=None):
+    """The level an image was clipped at: its largest value, when at least
+    :data:`PLATEAU_PIXELS` unblocked pixels (and not most of the image) share
+    it exactly and it stands more than 10 sigma above the median (robust
+    scatter, at least the Poisson noise of the median); else None.
+
+    A star's peak is shared by no other pixel of a noisy image; a value that
+    several pixels share exactly is where the read-out (or a clipping step)
+    stopped. The level test keeps the largest counts of an integer sky,
+    which several pixels can share by chance, from passing for a plateau. Used when no saturation level is stated (the Task's
+    ``saturation``, a SATURATE keyword), with a warning.
+
+    Parameters
+    ----------
+    image : ndarray
+        Finite values (e).
+    blocked : ndarray of bool, optional
+        Pixels left out of the count (a largest value that only blocked
+        pixels hold is not a plateau).
+
+    Returns
+    -------
+    float or None
+    """
+    if image.size == 0:
+        return None
+    top = image.max()
+    eq = image == top
+    n = int(np.count_nonzero(eq))
+    if n < PLATEAU_PIXELS:
+        return None
+    if blocked is not None:
+        n = int(np.count_nonzero(eq & ~blocked))
+    if n < PLATEAU_PIXELS or n > image.size // 2:
+        return None
+    med, mad = robust_level(image, np.zeros(image.shape, bool) if blocked is None else blocked)
+    if med is not None and not top > med + 10.0 * max(mad, np.sqrt(max(med, 1.0))):
+        return None
+    return float(top)
 
 
 def robust_level(image, blocked, *, sample=ROBUST_SAMPLE):

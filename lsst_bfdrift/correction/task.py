@@ -20,7 +20,7 @@ import lsst.pex.config as pexConfig
 from lsst_bfdrift.utils.config import Struct, Task
 from lsst_bfdrift.utils.exposure import (BLOCKING_PLANES, MaskedExposure, add_mask_plane,
                                          plane_mask, read_exposure)
-from lsst_bfdrift.correction.checks import input_warnings, mask_warnings
+from lsst_bfdrift.correction.checks import input_warnings, mask_warnings, plateau_level
 from lsst_bfdrift.correction.solvers import (MAX_SWEEP, area_coefficients, correct_coulton18,
                                              correct_half_shift, correct_image,
                                              coulton18_kernel, refuse_out_of_range)
@@ -107,7 +107,9 @@ class BrighterFatterDriftConfig(pexConfig.Config):
         default=None, optional=True, check=lambda v: math.isfinite(v) and v > 0)
     saturation = pexConfig.Field(
         doc="level at and above which pixels are blocked, in the image's units (e, or ADU for "
-            "an image in ADU); None: the SATURATE keyword of the header if present, else no "
+            "an image in ADU); None: the SATURATE keyword of the header if present, else the "
+            "image's largest value when three or more unblocked pixels share it exactly, 10 "
+            "sigma above the sky (a flat top, checks.plateau_level; with a warning), else no "
             "limit", dtype=float,
         default=None, optional=True, check=lambda v: math.isfinite(v) and v > 0)
     compute_geometry = pexConfig.Field(
@@ -540,6 +542,12 @@ class BrighterFatterDriftTask(Task):
                                  "is not a positive level")
             sat_e = float(sat) * gain  # image units -> e
             blocked |= finite_data >= sat_e
+        else:
+            # no stated level: an image clipped at one (a flat top) gives it
+            sat_e = plateau_level(finite_data, blocked)
+            if sat_e is not None:
+                plateau = int(np.count_nonzero(finite_data == sat_e))
+                blocked |= finite_data >= sat_e
         dtype = np.float32 if cfg.fft_precision == "float32" else np.float64
         # pixels masked as blocking (a hot pixel, a saturated core) never stop a run
         checked = finite_data if mask is None or not mask.any() else \
@@ -575,6 +583,11 @@ class BrighterFatterDriftTask(Task):
         warnings = input_warnings(finite_data if fill is None else
                                   np.where(fill, 0.0, finite_data), blocked)
         warnings += mask_warnings(exposure, kind)
+        if sat is None and sat_e is not None:
+            warnings.append(f"no saturation level given: {plateau} pixels share the image's "
+                            f"largest value, {sat_e:.6g} e (a flat top: the image was clipped "
+                            "there); they are blocked as saturated (set config.saturation or "
+                            "a SATURATE keyword to state the level)")
         linear = cfg.compute_geometry and cfg.geometry_method == "linear"
         first = None
         if linear and data is finite_data and (

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from lsst_bfdrift.correction.checks import ROBUST_SAMPLE, input_warnings, robust_level
+from lsst_bfdrift.correction.checks import ROBUST_SAMPLE, input_warnings, plateau_level, robust_level
 
 
 def _full(image, blocked):
@@ -51,3 +51,22 @@ def test_warnings_do_not_modify_the_input():
     warnings = input_warnings(img, blocked)
     assert any("bias pedestal" in w for w in warnings)
     assert np.array_equal(img, before)
+
+
+def test_plateau_level():
+    """The largest value shared exactly by >= 3 unblocked pixels; not by two,
+    not by blocked pixels, not a constant image."""
+    img = np.random.default_rng(4).normal(1000.0, 30.0, (40, 40))
+    assert plateau_level(img) is None
+    img[3, 4:7] = 5000.0
+    assert plateau_level(img) == 5000.0
+    blocked = np.zeros(img.shape, bool)
+    blocked[3, 4] = True
+    assert plateau_level(img, blocked) is None  # two unblocked pixels left
+    img[3, 4] = 4000.0
+    assert plateau_level(img) is None
+    assert plateau_level(np.full((8, 8), 7.0)) is None
+    assert plateau_level(np.empty((0, 0))) is None
+    # an integer sky: its largest count, shared by chance, is no plateau
+    low = np.random.default_rng(6).poisson(2.0, (200, 200)).astype(float)
+    assert np.count_nonzero(low == low.max()) >= 3 and plateau_level(low) is None

@@ -197,6 +197,25 @@ def test_saturation_blocks_pixels(star):
     assert np.all(res.exposure[hot] == image[hot]) and res.area is None
 
 
+def test_a_clipped_image_is_blocked_at_its_flat_top(star):
+    """No saturation stated and the image clipped at 0.9 of its peak: the
+    pixels of the flat top are blocked as saturated, with a warning and
+    BFSATUR; the same as stating that level. Unclipped, nothing is inferred."""
+    image = star[0]
+    level = float(image.max()) * 0.6
+    clipped = np.minimum(image, level)
+    cfg = BrighterFatterDriftConfig(compute_geometry=False)
+    res = BrighterFatterDriftTask(config=cfg).run(clipped)
+    top = clipped == level
+    assert top.sum() >= 3 and np.all(res.flux_moved[top] == 0)
+    assert any("flat top" in w and f"{int(top.sum())} pixels" in w for w in res.warnings)
+    stated = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(
+        compute_geometry=False, saturation=level)).run(clipped)
+    np.testing.assert_array_equal(res.exposure, stated.exposure)
+    plain = BrighterFatterDriftTask(config=cfg).run(image)
+    assert not any("flat top" in w for w in plain.warnings)
+
+
 def test_coulton18_kernel_laplacian(small_template):
     from lsst_bfdrift.correction.solvers import area_coefficients, coulton18_kernel
     a = area_coefficients(small_template)
