@@ -3,8 +3,8 @@
 :func:`input_warnings` names a mask that covers the sources and a bias
 pedestal; :func:`robust_level` gives the median and robust scatter it uses,
 from an evenly strided sample of a large image; :func:`plateau_level` finds
-the level an image without a stated saturation was clipped at. The refusals (images the
-model cannot describe) live with the solvers
+the level an image without a stated saturation was clipped at. The
+refusals (images the model cannot describe) live with the solvers
 (:func:`~lsst_bfdrift.templates.swept.refuse_out_of_range`).
 """
 
@@ -38,8 +38,9 @@ def plateau_level(image, blocked=None):
     A star's peak is shared by no other pixel of a noisy image; a value that
     several pixels share exactly is where the read-out (or a clipping step)
     stopped. The level test keeps the largest counts of an integer sky,
-    which several pixels can share by chance, from passing for a plateau. Used when no saturation level is stated (the Task's
-    ``saturation``, a SATURATE keyword), with a warning.
+    which several pixels can share by chance, from passing for a plateau.
+    Used when no saturation level is stated (the Task's ``saturation``, a
+    SATURATE keyword), with a warning.
 
     Parameters
     ----------
