@@ -211,19 +211,16 @@ def _index_map(size, n):
 
 
 def _binned_eps(eps, rowmap, colmap, b, nby, nbx):
-    """Largest ``eps[rowmap[j], colmap[i]]`` over every b x b bin.
-
-    The maps of :func:`_index_map` are non-decreasing in steps of at most 1,
-    so a bin's indices are the whole range from its first to its last: bins
-    are classed by that range (a few near the borders, one inside).
-    """
+    """Largest ``eps[rowmap[j], colmap[i]]`` over every b x b bin (the bins
+    classed by the indices they hold: a few near the borders, one inside)."""
     def classes(m, nb):
-        first = m[np.arange(nb) * b]
-        last = m[np.minimum(np.arange(1, nb + 1) * b, m.size) - 1]
-        keys, idx = np.unique(np.stack([first, last], axis=1), axis=0, return_inverse=True)
-        return [np.arange(lo, hi + 1) for lo, hi in keys], idx.ravel()
+        keys, idx = {}, np.empty(nb, np.int64)
+        for k in range(nb):
+            key = tuple(np.unique(m[k * b:(k + 1) * b]))
+            idx[k] = keys.setdefault(key, len(keys))
+        return list(keys), idx
 
-    ky, iy = classes(np.asarray(rowmap), nby)
-    kx, ix = classes(np.asarray(colmap), nbx)
+    ky, iy = classes(rowmap, nby)
+    kx, ix = classes(colmap, nbx)
     table = np.array([[eps[np.ix_(a, c)].max() for c in kx] for a in ky])
     return table[iy][:, ix]
