@@ -64,19 +64,28 @@ def pixel_abs_dev_sums(q, qbar, disp, outside, rows, cols, out):
     out : (k,) float64, written (px)
     """
     ny, nx = q.shape
-    r = disp.shape[0] // 2
+    m = disp.shape[0]
+    r = m // 2
     for k in numba.prange(rows.size):
         j = rows[k]
         i = cols[k]
         s = 0.0
-        for dj in range(-r, r + 1):
-            a = j - dj
-            for di in range(-r, r + 1):
-                c = i - di
-                if 0 <= a < ny and 0 <= c < nx:
-                    s += disp[dj + r, di + r] * abs(q[a, c] - qbar)
-                else:
-                    s += disp[dj + r, di + r] * outside
+        if r <= j < ny - r and r <= i < nx - r:
+            # inside: no bounds tests (kernel row t meets image row j + r - t)
+            for t in range(m):
+                qa = q[j + r - t]
+                kt = disp[t]
+                for u in range(m):
+                    s += kt[u] * abs(qa[i + r - u] - qbar)
+        else:
+            for dj in range(-r, r + 1):
+                a = j - dj
+                for di in range(-r, r + 1):
+                    c = i - di
+                    if 0 <= a < ny and 0 <= c < nx:
+                        s += disp[dj + r, di + r] * abs(q[a, c] - qbar)
+                    else:
+                        s += disp[dj + r, di + r] * outside
         out[k] = s
 
 

@@ -203,7 +203,29 @@ def test_binned_eps_is_the_bin_maximum(n, shape, b):
     full = np.full((nby * b, nbx * b), -np.inf)
     full[:shape[0], :shape[1]] = eps[np.ix_(rm, cm)]
     direct = full.reshape(nby, b, nbx, b).max(axis=(1, 3))
-    np.testing.assert_array_equal(_binned_eps(eps, rm, cm, b, nby, nbx), direct)
+    got = _binned_eps(eps, rm, cm, b, nby, nbx)
+    np.testing.assert_array_equal(got, direct)
+    assert got.flags.c_contiguous  # the callers' in-place arithmetic is 15x slower otherwise
+
+
+def test_pixel_bound_is_the_direct_sum(default_template):
+    """pixel_displacement_bound against ``sum_a disp(p - a) g(a)`` summed
+    with numpy over a zero-padded image (``outside`` beyond it), for pixels
+    inside, next to the borders and in the corners."""
+    lk = linear_kernels(default_template, samples=8)
+    r = lk.disp.shape[0] // 2
+    q = np.random.default_rng(7).poisson(900.0, (60, 47)).astype(float)
+    q[30, 20] += 4e5
+    qbar, outside = 880.0, 123.0
+    g = np.full((q.shape[0] + 2 * r, q.shape[1] + 2 * r), outside)
+    g[r:-r, r:-r] = np.abs(q - qbar)
+    rows = np.array([30, 0, 59, 5, r, q.shape[0] - r - 1, 31, 0])
+    cols = np.array([20, 3, 46, 0, r, q.shape[1] - r - 1, 45, 46])
+    # disp[dj + r, di + r] weighs the aggressor at (j - dj, i - di)
+    direct = [(lk.disp[::-1, ::-1] * g[j:j + 2 * r + 1, i:i + 2 * r + 1]).sum()
+              for j, i in zip(rows, cols)]
+    got = pixel_displacement_bound(lk, q, rows, cols, qbar=qbar, outside=outside)
+    assert_allclose(got, np.array(direct) * (1 + 1e-12) + abs(qbar) * lk.net, rtol=1e-13)
 
 
 def test_border_strips_follow_the_flagged_runs():
