@@ -31,11 +31,14 @@ Flags (bit mask ``flags``; ``use`` is True when ``flags == 0``):
 
 =================  ===  ========================================================
 FLAG_SATURATED       1  a pixel of the source at or above ``saturation`` (e; given, the
-                        SATURATE keyword, or a flat top, :func:`load_electrons`)
+                        SATURATE keyword, or a flat top, :func:`load_electrons`), or a
+                        saturated pixel (``saturated``, or an LSST exposure's SAT
+                        plane) within the aperture radius
 FLAG_BLENDED         2  several peaks in one segment, segment touching another,
                         or another source's centroid within ``isolation`` px
 FLAG_EDGE            4  the measurement stamp leaves the image
-FLAG_MASKED          8  masked or non-finite pixel within the aperture radius
+FLAG_MASKED          8  masked or non-finite pixel (other than a saturated one) within
+                        the aperture radius
 FLAG_MOMENTS        16  adaptive moments failed (no convergence, nonsense size)
 FLAG_NOT_STAR       32  size off the local stellar locus by more than ``size_tolerance``
                         (galaxy, cosmic ray, artefact)
@@ -101,8 +104,21 @@ def load_electrons(exposure, *, gain=None, mask=None, saturation=None):
     gain : float
         The gain applied (1 for images in electrons).
     """
-    from lsst_bfdrift.correction.task import unpack_exposure
+    return _load_electrons(exposure, gain=gain, mask=mask, saturation=saturation)[:4]
 
+
+def _load_electrons(exposure, *, gain=None, mask=None, saturation=None):
+    """:func:`load_electrons`, and the pixels of the exposure's SAT plane (an
+    LSST exposure or its file; None for inputs without bit planes or a SAT
+    plane): saturated pixels that ISR may have interpolated over."""
+    import os
+
+    from lsst_bfdrift.correction.task import unpack_exposure
+    from lsst_bfdrift.utils.exposure import plane_pixels, read_exposure
+
+    if isinstance(exposure, (str, os.PathLike)):
+        exposure = read_exposure(exposure)  # read once: the image and its planes
+    sat_pix = plane_pixels(exposure, ("SAT",))
     # the package's one gain rule (unpack_exposure): a given gain means ADU, and an
     # image that states electrons with a gain is an error
     data, emask, _, meta, unit, g, _ = unpack_exposure(exposure, gain)
@@ -128,7 +144,17 @@ def load_electrons(exposure, *, gain=None, mask=None, saturation=None):
                           f"the image's largest value, {sat_e:.6g} e (a flat top: the image "
                           "was clipped there); taken as the saturation level (pass "
                           "saturation= or a SATURATE keyword to set it)", AstropyUserWarning)
-    return data, bad, sat_e, g
+    return data, bad, sat_e, g, sat_pix
+
+
+def _saturated_pixels(saturated, from_exposure, shape):
+    """The ``saturated`` argument (bool, image shape) or else the exposure's SAT plane."""
+    if saturated is None:
+        return from_exposure
+    saturated = np.asarray(saturated, dtype=bool)
+    if saturated.shape != tuple(shape):
+        raise InputError(f"saturated shape {saturated.shape} does not match image {tuple(shape)}")
+    return saturated
 
 
 def _background(data, bad, box_size):
@@ -226,10 +252,13 @@ class StarDetections:
         e/ADU applied to the detection image.
     settings : dict
         Detection settings.
+    saturated : ndarray of bool or None
+        Pixels known to be saturated whatever their value (the ``saturated``
+        argument or the exposure's SAT plane), or None.
     """
 
     def __init__(self, labels, centroids, blended, background, rms, bad, saturation, gain,
-                 settings):
+                 settings, saturated=None):
         self.labels = labels
         self.centroids = centroids
         self.blended = blended
@@ -239,6 +268,7 @@ class StarDetections:
         self.saturation = saturation
         self.gain = gain
         self.settings = settings
+        self.saturated = saturated
 
     @property
     def shape(self):
@@ -246,8 +276,8 @@ class StarDetections:
         return self.labels.shape
 
 
-def detect_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=5.0,
-                 n_pixels=9, kernel_fwhm=3.0, box_size=64, deblend=True):
+def detect_stars(exposure, *, gain=None, mask=None, saturation=None, saturated=None,
+                 threshold=5.0, n_pixels=9, kernel_fwhm=3.0, box_size=64, deblend=True):
     """Background, segmentation and blend flags of the sources of an exposure.
 
     Steps 1-3 of the module docstring; :func:`measure_stars` measures the
@@ -257,7 +287,7 @@ def detect_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=5
 
     Parameters
     ----------
-    exposure, gain, mask, saturation, threshold, n_pixels, kernel_fwhm, box_size, deblend
+    exposure, gain, mask, saturation, saturated, threshold, n_pixels, kernel_fwhm, box_size, deblend
         See :func:`measure_stars`.
 
     Returns
@@ -269,12 +299,15 @@ def detect_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=5
     ValueError
         For a blank or non-finite image, an image too small, or no detection.
     """
-    data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask, saturation=saturation)
+    data, bad, sat_e, g, sat_pix = _load_electrons(exposure, gain=gain, mask=mask,
+                                                   saturation=saturation)
     return _detect(data, bad, sat_e, g, threshold=threshold, n_pixels=n_pixels,
-                   kernel_fwhm=kernel_fwhm, box_size=box_size, deblend=deblend)
+                   kernel_fwhm=kernel_fwhm, box_size=box_size, deblend=deblend,
+                   saturated=_saturated_pixels(saturated, sat_pix, data.shape))
 
 
-def _detect(data, bad, sat_e, g, *, threshold, n_pixels, kernel_fwhm, box_size, deblend):
+def _detect(data, bad, sat_e, g, *, threshold, n_pixels, kernel_fwhm, box_size, deblend,
+            saturated=None):
     """:func:`detect_stars` of an image already in electrons."""
     from photutils.segmentation import detect_sources, make_2dgaussian_kernel
     from photutils.utils.exceptions import NoDetectionsWarning
@@ -311,13 +344,14 @@ def _detect(data, bad, sat_e, g, *, threshold, n_pixels, kernel_fwhm, box_size, 
     centroids = np.array([[c[1], c[0]] for c in cen], float).reshape(-1, 2)
     return StarDetections(labels, centroids, split, bkg, rms, bad, sat_e, g,
                           dict(threshold=float(threshold), n_pixels=int(n_pixels),
-                               kernel_fwhm=float(kernel_fwhm), box_size=int(box_size)))
+                               kernel_fwhm=float(kernel_fwhm), box_size=int(box_size)),
+                          saturated=saturated)
 
 
-def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=5.0,
-                  n_pixels=9, kernel_fwhm=3.0, box_size=64, stamp=25, aperture_radius=10.0,
-                  isolation=12.0, size_tolerance=0.3, deblend=True, detections=None,
-                  progress=False):
+def measure_stars(exposure, *, gain=None, mask=None, saturation=None, saturated=None,
+                  threshold=5.0, n_pixels=9, kernel_fwhm=3.0, box_size=64, stamp=25,
+                  aperture_radius=10.0, isolation=12.0, size_tolerance=0.3, deblend=True,
+                  detections=None, progress=False):
     """Detect stars and measure flux, centroid, adaptive moments and flags.
 
     Parameters
@@ -330,6 +364,13 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
         Bad pixels (True = bad).
     saturation : float, optional
         Saturation level in the image's unit (default: SATURATE keyword, else none).
+    saturated : array_like of bool, optional
+        Pixels known to be saturated whatever their value (True =
+        saturated; e.g. an LSST exposure's SAT plane, whose pixels ISR may
+        have interpolated over). Default: the SAT plane of an LSST exposure
+        or file, else those of ``detections``, else none. Stars with such a
+        pixel in their segment or aperture are flagged saturated (not
+        masked, though the pixels are not used).
     threshold : float, optional
         Detection threshold in units of the background rms (per smoothed pixel).
     n_pixels : int, optional
@@ -378,16 +419,20 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
     """
     from scipy import ndimage
 
-    data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask, saturation=saturation)
+    data, bad, sat_e, g, sat_pix = _load_electrons(exposure, gain=gain, mask=mask,
+                                                   saturation=saturation)
+    sat_pix = _saturated_pixels(saturated, sat_pix, data.shape)
     if detections is None:
         detections = _detect(data, bad, sat_e, g, threshold=threshold, n_pixels=n_pixels,
-                             kernel_fwhm=kernel_fwhm, box_size=box_size, deblend=deblend)
+                             kernel_fwhm=kernel_fwhm, box_size=box_size, deblend=deblend,
+                             saturated=sat_pix)
     else:
         if data.shape != detections.shape:
             raise InputError(f"image shape {data.shape} differs from the detections' "
                              f"{detections.shape}")
         bad = bad | detections.bad
         sat_e = detections.saturation if sat_e is None else sat_e
+        sat_pix = detections.saturated if sat_pix is None else sat_pix
     labels = detections.labels
     bkg, rms = detections.background, detections.rms
     split = detections.blended
@@ -411,6 +456,8 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
             own = labels[sl] == lab
             raw = data[sl][own]
             if sat_e is not None and np.nanmax(np.where(np.isfinite(raw), raw, -np.inf)) >= sat_e:
+                flags |= FLAG_SATURATED
+            if sat_pix is not None and np.any(sat_pix[sl][own]):
                 flags |= FLAG_SATURATED
             # blended: deblended child, touching segment, or a close neighbour
             if lab in split:
@@ -439,7 +486,10 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, threshold=
             badst = bad[ssl]
             r2 = (xx + ix - cx) ** 2 + (yy + iy - cy) ** 2
             inap = r2 <= aperture_radius ** 2
-            if np.any(badst & inap):
+            satst = np.zeros_like(badst) if sat_pix is None else sat_pix[ssl]
+            if np.any(satst & inap & ~other):
+                flags |= FLAG_SATURATED
+            if np.any(badst & inap & ~satst):  # saturated pixels count as saturation
                 flags |= FLAG_MASKED
             if sat_e is not None and np.any((data[ssl] >= sat_e) & inap & ~other):
                 flags |= FLAG_SATURATED

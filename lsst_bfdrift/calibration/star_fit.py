@@ -74,7 +74,8 @@ import numpy as np
 from scipy import stats
 
 from lsst_bfdrift.utils.errors import InputError
-from lsst_bfdrift.calibration.catalog import FLAG_NAMES, detect_stars, load_electrons, measure_stars
+from lsst_bfdrift.calibration.catalog import (FLAG_NAMES, _load_electrons, detect_stars,
+                                          measure_stars)
 from lsst_bfdrift.calibration.star_slopes import FLUX_UNIT, select_stars, shape_flux_relations
 from lsst_bfdrift.calibration.tuning import CalibrationError, _select
 from lsst_bfdrift.templates.refine import curl_free_template, template_alpha
@@ -162,10 +163,10 @@ class StarField:
     def __init__(self, exposure, *, gain=None, mask=None, saturation=None, min_snr=30.0,
                  name=None, catalog_kwargs=None):
         self.name = name or (str(exposure) if isinstance(exposure, str) else "field")
-        data, bad, sat_e, g = load_electrons(exposure, gain=gain, mask=mask,
-                                             saturation=saturation)
+        data, bad, sat_e, g, sat_pix = _load_electrons(exposure, gain=gain, mask=mask,
+                                                       saturation=saturation)
         self.data, self.bad, self.saturation, self.gain = data, bad, sat_e, g
-        self.detections = detect_stars(data, mask=bad, saturation=sat_e,
+        self.detections = detect_stars(data, mask=bad, saturation=sat_e, saturated=sat_pix,
                                        **dict(catalog_kwargs or {}))
         self.catalog = measure_stars(data, mask=bad, saturation=sat_e,
                                      detections=self.detections)
@@ -421,8 +422,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
             warn.append(f"{f.name}: {f.flag_counts['blended']} blended detections excluded")
         if f.flag_counts.get("masked"):
             warn.append(f"{f.name}: {f.flag_counts['masked']} stars with masked or non-finite "
-                        "pixels in their aperture excluded (an LSST exposure's SAT plane "
-                        "counts here)")
+                        "pixels in their aperture excluded")
     # directions: the built template's change per parameter step
     params, settings = result.params, result.settings
     cands = result.candidates

@@ -43,8 +43,8 @@ import numpy as np
 from lsst_bfdrift.utils.errors import InputError, InputFileError
 from lsst_bfdrift.utils.io import atomic_output, hdu_pixels, open_fits
 
-__all__ = ["MaskedExposure", "read_exposure", "write_exposure", "plane_mask", "add_mask_plane",
-           "header_value", "undeclared_bits", "BLOCKING_PLANES", "PRODUCT_HDUS"]
+__all__ = ["MaskedExposure", "read_exposure", "write_exposure", "plane_mask", "plane_pixels",
+           "add_mask_plane", "header_value", "undeclared_bits", "BLOCKING_PLANES", "PRODUCT_HDUS"]
 
 #: Mask planes that block the flux exchange by default (LSST's ISR choice).
 BLOCKING_PLANES = ("SAT", "BAD", "NO_DATA", "SUSPECT", "UNMASKEDNAN")
@@ -160,6 +160,34 @@ def plane_mask(mask, planes, names):
         return None if mask is None else np.zeros(mask.shape, bool)
     return bitfield_to_boolean_mask(mask, ignore_flags=bits, flip_bits=True,
                                     good_mask_value=False)
+
+
+def plane_pixels(exposure, names):
+    """Pixels of an exposure with bit planes that have any of the planes ``names`` set.
+
+    Parameters
+    ----------
+    exposure : MaskedExposure or lsst.afw.image.Exposure-like
+        Other inputs (arrays, NDData, masked arrays) have no named planes.
+    names : sequence of str
+        Plane names (e.g. ``('SAT',)``).
+
+    Returns
+    -------
+    ndarray of bool or None
+        None when the exposure has no bit-plane mask or defines none of
+        ``names``.
+    """
+    if isinstance(exposure, MaskedExposure):
+        mask, planes = exposure.mask, exposure.mask_planes
+    elif all(hasattr(exposure, a) for a in ("image", "mask", "getMetadata")) \
+            and hasattr(getattr(exposure, "mask", None), "getMaskPlaneDict"):
+        mask, planes = np.asarray(exposure.mask.array), exposure.mask.getMaskPlaneDict()
+    else:
+        return None
+    if mask is None or not any(n in planes for n in names):
+        return None
+    return plane_mask(mask, planes, names)
 
 
 def undeclared_bits(mask, planes):

@@ -103,6 +103,57 @@ def test_a_clipped_image_gives_its_saturation_level():
         assert cat.meta["saturation"] is None and not np.any(cat["flags"] & FLAG_SATURATED)
 
 
+def _lsst_file(path, arr, mask, planes):
+    """An LSST Exposure layout (IMAGE, MASK with its MP_ cards, VARIANCE), in e."""
+    mh = fits.Header()
+    for name, bit in planes.items():
+        mh[f"MP_{name}"] = bit
+    fits.HDUList([fits.PrimaryHDU(),
+                  fits.ImageHDU(arr.astype(np.float32), name="IMAGE",
+                                header=fits.Header({"BUNIT": "electron"})),
+                  fits.ImageHDU(mask.astype(np.int32), header=mh, name="MASK"),
+                  fits.ImageHDU(arr.astype(np.float32), name="VARIANCE")]).writeto(path)
+    return str(path)
+
+
+def test_sat_plane_stars_are_saturated_not_masked(tmp_path):
+    """An LSST exposure whose SAT plane covers a star's core (values left as
+    ISR's interpolation would: no level is exceeded, no SATURATE keyword):
+    that star is flagged saturated and not masked; a BAD pixel in another
+    star's aperture flags it masked only. The same flags from an array with
+    ``saturated=``, and on a copy measured with the first one's detections."""
+    stars = [(40.0, 40.0, 2e5, 1.8, 0, 0), (120.0, 120.0, 5e4, 1.8, 0, 0),
+             (60.0, 110.0, 5e4, 1.8, 0, 0), (120.0, 40.0, 5e4, 1.8, 0, 0)]
+    arr = _gauss_field(stars)
+    planes = {"BAD": 0, "SAT": 1, "INTRP": 2}
+    mask = np.zeros(arr.shape, np.int32)
+    mask[39:42, 39:42] |= (1 << 1) | (1 << 2)
+    mask[122, 123] |= 1 << 0
+    path = _lsst_file(tmp_path / "exp.fits", arr, mask, planes)
+    sat = (mask & (1 << 1)) != 0
+    bad = (mask & 1) != 0
+    from lsst_bfdrift.calibration.catalog import detect_stars
+
+    det = detect_stars(arr, mask=bad | sat, saturated=sat)
+    cats = {"file": measure_stars(path),
+            "array": measure_stars(arr, mask=bad | sat, saturated=sat),
+            "reused": measure_stars(arr * 1.001, mask=bad | sat, detections=det)}
+    for name, cat in cats.items():
+        k, _ = _nearest(cat, 40, 40)
+        assert cat["flags"][k] & FLAG_SATURATED and not cat["flags"][k] & FLAG_MASKED, name
+        k, _ = _nearest(cat, 120, 120)
+        assert cat["flags"][k] & FLAG_MASKED and not cat["flags"][k] & FLAG_SATURATED, name
+        for x, y in ((60, 110), (120, 40)):
+            k, _ = _nearest(cat, x, y)
+            assert cat["flags"][k] == 0, name
+    # without the plane's meaning the star is only masked
+    cat = measure_stars(arr, mask=bad | sat)
+    k, _ = _nearest(cat, 40, 40)
+    assert cat["flags"][k] & FLAG_MASKED and not cat["flags"][k] & FLAG_SATURATED
+    with pytest.raises(ValueError, match=r"saturated shape \(3, 3\) does not match"):
+        measure_stars(arr, saturated=np.zeros((3, 3), bool))
+
+
 def test_adu_with_gain_equals_electrons(tmp_path):
     arr = _gauss_field([(80.0, 80.0, 1e5, 2.0, 0.05, 0.0)])
     cat_e = measure_stars(arr)
