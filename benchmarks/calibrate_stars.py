@@ -119,14 +119,17 @@ def main(argv=None):
         say(f"  flats-only: {', '.join(f'{n} = {f.values[n]:.4g}' for n in f.names)}; chi2 "
             f"{f.chi2:.1f} / {f.dof} dof; {time.time() - t0:.0f} s")
         rec["flats"] = res.summary()
-        imgs = []
+        imgs, seeds = [], []
         for k in range(args.fields):
             img, fseed, fcost = cached_field(sensor, args, k)
             imgs.append(img)
+            seeds.append(fseed)
             say(f"  star field {k}: {args.field_size}^2, {args.field_stars} stars (seed {fseed})"
                 + (f", drawn in {fcost:.0f} s" if fcost else " (cached)"))
         t0 = time.time()
-        joint = calibrate_with_stars(res, imgs, seed=fseed, holdout=args.holdout, progress=True)
+        # the first field's seed: every field's halves stay the same whatever --fields
+        joint = calibrate_with_stars(res, imgs, seed=seeds[0], holdout=args.holdout,
+                                     progress=True)
         say("  flats+stars: directions "
             + (", ".join(f"{n} {c['parameter_change']:+.3g} +- {c['parameter_change_err']:.2g}"
                          for n, c in joint.coefficients.items())

@@ -18,8 +18,8 @@ from astropy.nddata import CCDData, NDData
 import lsst.pex.config as pexConfig
 
 from lsst_bfdrift.utils.config import Struct, Task
-from lsst_bfdrift.utils.exposure import (BLOCKING_PLANES, MaskedExposure, add_mask_plane,
-                                         plane_mask, read_exposure)
+from lsst_bfdrift.utils.exposure import (BLOCKING_PLANES, MaskedExposure, _is_afw_like,
+                                         add_mask_plane, plane_mask, read_exposure)
 from lsst_bfdrift.correction.checks import input_warnings, mask_warnings, plateau_level
 from lsst_bfdrift.correction.solvers import (MAX_SWEEP, area_coefficients, correct_coulton18,
                                              correct_half_shift, correct_image,
@@ -413,12 +413,6 @@ def gain_value(gain):
     if isinstance(gain, (bool, np.bool_)) or not isinstance(gain, (int, float, np.number)):
         raise InputError(f"gain {gain!r} is not a number of e/ADU")
     return float(gain)
-
-
-def _is_afw_like(obj):
-    """An object with the shape of an lsst.afw.image.Exposure."""
-    return all(hasattr(obj, a) for a in ("image", "mask", "getMetadata")) and \
-        hasattr(obj.image, "array") and hasattr(obj.mask, "getMaskPlaneDict")
 
 
 def _bunit(bunit, source):

@@ -162,6 +162,12 @@ def plane_mask(mask, planes, names):
                                     good_mask_value=False)
 
 
+def _is_afw_like(obj):
+    """An object with the shape of an lsst.afw.image.Exposure."""
+    return all(hasattr(obj, a) for a in ("image", "mask", "getMetadata")) and \
+        hasattr(obj.image, "array") and hasattr(obj.mask, "getMaskPlaneDict")
+
+
 def plane_pixels(exposure, names):
     """Pixels of an exposure with bit planes that have any of the planes ``names`` set.
 
@@ -180,8 +186,7 @@ def plane_pixels(exposure, names):
     """
     if isinstance(exposure, MaskedExposure):
         mask, planes = exposure.mask, exposure.mask_planes
-    elif all(hasattr(exposure, a) for a in ("image", "mask", "getMetadata")) \
-            and hasattr(getattr(exposure, "mask", None), "getMaskPlaneDict"):
+    elif _is_afw_like(exposure):
         mask, planes = np.asarray(exposure.mask.array), exposure.mask.getMaskPlaneDict()
     else:
         return None
