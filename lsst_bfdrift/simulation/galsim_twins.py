@@ -250,7 +250,10 @@ def galsim_acoeffs(sensor, max_lag=8, *, charge=1e4):
     one pixel holding ``charge`` and ``charge / 2`` electrons (no
     diffusion); areas are quadratic in the charge (GalSim moves the vertices
     linearly), so alpha = (4 (A(Q/2) - 1) - (A(Q) - 1)) / Q is the exact
-    d A / d Q at Q = 0, the a_ij that flats of that sensor measure.
+    d A / d Q at Q = 0, the a_ij that flats of that sensor measure. The
+    flats engine's own evaluation
+    (:func:`~lsst_bfdrift.simulation.flats.engine_acoeffs` with no
+    injection), which GalSim flats carry.
 
     Parameters
     ----------
@@ -266,21 +269,10 @@ def galsim_acoeffs(sensor, max_lag=8, *, charge=1e4):
     ndarray, shape (max_lag + 1, max_lag + 1)
         a[i, j] (1/e), i serial (x), j parallel (y).
     """
-    import galsim
+    from lsst_bfdrift.simulation.flats import engine_acoeffs
 
     if int(max_lag) != max_lag or max_lag < 0:
         raise InputError(f"max_lag must be a non-negative integer, got {max_lag!r}")
     if not charge > 0:
         raise InputError(f"charge must be positive, got {charge!r}")
-    L = int(max_lag)
-    sim = galsim.SiliconSensor(sensor, diffusion_factor=0.0)
-    n = 2 * L + 25
-    areas = []
-    for q in (charge, charge / 2):
-        img = galsim.ImageD(n, n, scale=0.2)
-        img.setCenter(0, 0)
-        img[0, 0] = q
-        areas.append(sim.calculate_pixel_areas(img).array)
-    c = n // 2
-    alpha = (4 * (areas[1] - 1) - (areas[0] - 1)) / charge
-    return alpha[c:c + L + 1, c:c + L + 1].T.copy()
+    return engine_acoeffs(str(sensor), max_lag=int(max_lag), charge=float(charge))
