@@ -287,7 +287,9 @@ def detect_stars(exposure, *, gain=None, mask=None, saturation=None, saturated=N
 
     Parameters
     ----------
-    exposure, gain, mask, saturation, saturated, threshold, n_pixels, kernel_fwhm, box_size, deblend
+    exposure, gain, mask, saturation, saturated
+        See :func:`measure_stars`.
+    threshold, n_pixels, kernel_fwhm, box_size, deblend
         See :func:`measure_stars`.
 
     Returns
