@@ -76,6 +76,23 @@ def cached_field(sensor, args, k=0):
     return f["image"], seed, time.time() - t0
 
 
+def held_out_mean(held_out):
+    """Inverse-variance mean over the fields of the held-out size residual, in %
+    of each field's uncorrected slope, with the chi2 about it."""
+    cells = []
+    for what in ("flats_only", "joint"):
+        r = np.array([100 * d[what]["size"][0] / d["before"]["size"][0]
+                      for d in held_out.values()])
+        e = np.array([100 * d[what]["size"][1] / abs(d["before"]["size"][0])
+                      for d in held_out.values()])
+        w = 1.0 / e**2
+        m = float(np.sum(w * r) / np.sum(w))
+        cells.append(f"{what} {m:+.1f} +- {np.sum(w) ** -0.5:.1f} % (chi2 "
+                     f"{float(np.sum(w * (r - m) ** 2)):.1f} / {r.size - 1})")
+    return (f"held-out size residual over the {len(held_out)} fields (inverse-variance "
+            "mean): " + ", ".join(cells))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sensors", nargs="+", default=["lsst_itl_50_8", "lsst_e2v_50_8"])
@@ -146,6 +163,8 @@ def main(argv=None):
             say(f"  warning: {w}")
         for ln in joint.held_out_table().splitlines():
             say("  " + ln)
+        if len(joint.held_out) > 1:
+            say("  " + held_out_mean(joint.held_out))
         rec["joint"] = joint.summary()
         templates = {"flats-only": res.template, "flats+stars": joint.template,
                      # GalSim's own sensor file, imported two ways: neither reproduces
