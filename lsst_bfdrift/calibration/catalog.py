@@ -418,6 +418,20 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, saturated=
     ------
     ValueError
         For a blank or non-finite image, an image too small, or no detection.
+
+    Examples
+    --------
+    A GalSim Gaussian star (sigma 1.5 px) with Poisson noise: its adaptive
+    moments give T = 2 sigma^2 plus the pixel's 1/6:
+
+    >>> import galsim
+    >>> import numpy as np
+    >>> from lsst_bfdrift.calibration.catalog import measure_stars
+    >>> star = galsim.Gaussian(sigma=1.5, flux=4e5).drawImage(nx=48, ny=48, scale=1.0)
+    >>> img = np.random.default_rng(1).poisson(star.array + 1000.0).astype(float)
+    >>> cat = measure_stars(img)
+    >>> len(cat), bool(cat["use"][0]), round(float(cat["T"][0].value), 1)
+    (1, True, 4.7)
     """
     from scipy import ndimage
 

@@ -452,6 +452,31 @@ class BrighterFatterDriftTask(Task):
     ``run(exposure)`` predicts the final pixel boundaries from the recorded
     image with the template as Green's function, returns the pixel geometry
     maps and the flux-conserving correction.
+
+    Examples
+    --------
+    A bright star (4e5 e) on a sky of 1000 e, in electrons. The correction
+    moves the charge the star pushed into its neighbours back to its core,
+    and conserves the flux:
+
+    >>> import numpy as np
+    >>> from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask
+    >>> yy, xx = np.mgrid[:48, :48] - 24.0
+    >>> img = 1000.0 + 4e5 / (2 * np.pi * 1.5**2) * np.exp(-0.5 * (xx**2 + yy**2) / 1.5**2)
+    >>> res = BrighterFatterDriftTask().run(img)
+    >>> bool(np.isclose(res.exposure.sum(), img.sum(), rtol=1e-12))
+    True
+    >>> bool(res.exposure[24, 24] > img[24, 24])
+    True
+    >>> res.area.shape, res.header["BFMETHOD"]
+    ((48, 48), 'drift')
+
+    The astier23 correction with the same template, without the maps:
+
+    >>> config = BrighterFatterDriftConfig(method="astier23", compute_geometry=False)
+    >>> res = BrighterFatterDriftTask(config=config).run(img)
+    >>> res.area is None, bool(np.isclose(res.exposure.sum(), img.sum(), rtol=1e-12))
+    (True, True)
     """
 
     ConfigClass = BrighterFatterDriftConfig

@@ -125,6 +125,22 @@ def drift_lines(model, x0, y0, z0=None, *, z_stop=None, step_scale=0.15, min_ste
     -------
     DriftResult
         Arrays with the broadcast shape of the inputs.
+
+    Examples
+    --------
+    Pixel (i, j) spans ``[i p, (i + 1) p)`` in x and ``[j p, (j + 1) p)`` in
+    y (p = 10 um). A line that starts 0.2 um inside pixel (0, 0)'s right
+    edge lands in that pixel in an empty sensor, and in its neighbour once
+    the pixel holds 1e5 electrons:
+
+    >>> from lsst_bfdrift import SensorModel, drift_lines
+    >>> empty = SensorModel()
+    >>> full = SensorModel(charge={(0, 0): 1e5})
+    >>> for model in (empty, full):
+    ...     line = drift_lines(model, [9.8], [5.0])
+    ...     print(bool(line.finished[0]), [int(k[0]) for k in model.pixel_of(line.x, line.y)])
+    True [0, 0]
+    True [1, 0]
     """
     P = model.params
     if z0 is None:

@@ -57,6 +57,17 @@ def polygon_moments(x, y, *, origin=None):
     Returns
     -------
     PolygonMoments
+
+    Examples
+    --------
+    A unit square (clockwise vertices): area 1, centroid at the origin,
+    second moments 1/12, no ellipticity:
+
+    >>> import numpy as np
+    >>> from lsst_bfdrift import polygon_moments
+    >>> m = polygon_moments(np.array([-0.5, -0.5, 0.5, 0.5]), np.array([-0.5, 0.5, 0.5, -0.5]))
+    >>> float(m.area), float(m.x), float(m.ixx), float(m.iyy), float(m.e1)
+    (1.0, 0.0, 0.0833..., 0.0833..., 0.0)
     """
     x = np.asarray(x, dtype=float)
     y = np.asarray(y, dtype=float)

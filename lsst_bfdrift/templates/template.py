@@ -654,5 +654,16 @@ def default_template_path():
 
 
 def load_default_template():
-    """The template shipped with the package (see ``docs/templates.rst``, "The default template")."""
+    """The template shipped with the package (see ``docs/templates.rst``, "The default template").
+
+    Examples
+    --------
+    A 21 x 21 pixel Green's function: the boundary displacements around one
+    aggressor pixel holding 1e4 electrons (the pixel at ``center``):
+
+    >>> from lsst_bfdrift import load_default_template
+    >>> t = load_default_template()
+    >>> t.size, t.center, t.charge
+    (21, 10, 10000.0)
+    """
     return DistortionTemplate.load(default_template_path())
