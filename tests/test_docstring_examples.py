@@ -11,7 +11,8 @@ import importlib
 import pytest
 
 MODULES = ["lsst_bfdrift.physics.drift", "lsst_bfdrift.physics.polygons",
-           "lsst_bfdrift.templates.template", "lsst_bfdrift.geometry.superpose",
+           "lsst_bfdrift.templates.template", "lsst_bfdrift.templates.galsim_io",
+           "lsst_bfdrift.geometry.superpose",
            "lsst_bfdrift.geometry.linear", "lsst_bfdrift.correction.task",
            "lsst_bfdrift.calibration.catalog"]
 

@@ -72,6 +72,17 @@ def import_galsim_sensor(name="lsst_itl_50_8", *, match="areas", qdist=3, transf
         The per-pixel table keeps the file's vertices exactly
         (``polygons(per_pixel=True)``). ``meta['galsim_match']`` records
         the match.
+
+    Examples
+    --------
+    GalSim's LSST ITL sensor as a template (the file's 9 x 9 pixels around
+    an aggressor of 1e5 e), ready for the Task:
+
+    >>> from lsst_bfdrift import BrighterFatterDriftTask, import_galsim_sensor
+    >>> t = import_galsim_sensor("lsst_itl_50_8")
+    >>> t.size, t.charge, t.meta["galsim_match"]
+    (9, 100000.0, 'areas')
+    >>> task = BrighterFatterDriftTask(template=t)
     """
     if match not in ("areas", "transfers", "none"):
         raise InputError(f"match must be 'areas', 'transfers' or 'none', got {match!r}")
