@@ -446,6 +446,39 @@ def _as_float64(array):
     return array.astype(np.float64, copy=False)
 
 
+def _result_header(meta, cfg, template, *, warnings, order, density, iterations, converged,
+                   solver, filled, gain, saturation):
+    """The input's header with the BF* cards of one run and LSST ISR's BF keys."""
+    header = fits.Header(meta)
+    header["BFDRIFT"] = (True, "BF correction applied (lsst_bfdrift)")
+    header["BFWARN"] = (warnings, "input warnings (see the task's log)")
+    header["BFMETHOD"] = (cfg.method, "correction method")
+    header["BFORDER"] = (order, "time-history series order")
+    header["BFDENS"] = (density, "edge flux density estimate")
+    header["BFITER"] = (iterations, "solver iterations")
+    header["BFCONV"] = (bool(converged), "solver converged")
+    if cfg.method == "drift":
+        header["BFSOLVER"] = (solver.get("solver", "dense"), "drift series: sparse or dense")
+    if cfg.compute_geometry:
+        ns = template.edge_samples
+        if cfg.geometry_samples is not None:
+            ns = min(cfg.geometry_samples, ns)
+        header["BFGSAMP"] = (ns, "edge samples of the geometry maps")
+        header["BFGMETH"] = (cfg.geometry_method, "geometry maps: linear or exact")
+    header["BFQTMPL"] = (template.charge, "template aggressor charge (e)")
+    header["BFTMPL"] = (os.path.basename(str(cfg.template or "bundled default"))[-40:],
+                        "BF template file")
+    header["BFVERS"] = (_version(), "lsst_bfdrift version")
+    header["BFNFILL"] = (filled, "masked pixels interpolated as aggressors")
+    header["BFTSUM"] = (template_digest(template), "BF template digest (sha1, 16)")
+    header["BFGAIN"] = (float(gain), "gain applied (e/ADU; 1: image in e)")
+    if saturation is not None:
+        header["BFSATUR"] = (saturation, "saturation level applied (e)")
+    header["HIERARCH LSST ISR BF APPLIED"] = True
+    header["HIERARCH LSST ISR BF CORR METHOD"] = _LSST_METHOD[cfg.method]
+    return header
+
+
 class BrighterFatterDriftTask(Task):
     """Correct the brighter-fatter effect with an electrostatic template.
 
@@ -665,34 +698,11 @@ class BrighterFatterDriftTask(Task):
             raise InputError("input refused (on_input_warning='raise'): " + "; ".join(warnings))
         for w in warnings:
             self.log.warning("%s", w)
-        header = fits.Header(meta)
-        header["BFDRIFT"] = (True, "BF correction applied (lsst_bfdrift)")
-        header["BFWARN"] = (len(warnings), "input warnings (see the task's log)")
-        header["BFMETHOD"] = (cfg.method, "correction method")
-        header["BFORDER"] = (order, "time-history series order")
-        header["BFDENS"] = (density, "edge flux density estimate")
-        header["BFITER"] = (iterations, "solver iterations")
-        header["BFCONV"] = (bool(converged), "solver converged")
-        if cfg.method == "drift":
-            header["BFSOLVER"] = (solver.get("solver", "dense"), "drift series: sparse or dense")
-        if cfg.compute_geometry:
-            ns = self.template.edge_samples
-            if cfg.geometry_samples is not None:
-                ns = min(cfg.geometry_samples, ns)
-            header["BFGSAMP"] = (ns, "edge samples of the geometry maps")
-            header["BFGMETH"] = (cfg.geometry_method, "geometry maps: linear or exact")
-        header["BFQTMPL"] = (self.template.charge, "template aggressor charge (e)")
-        header["BFTMPL"] = (os.path.basename(str(cfg.template or "bundled default"))[-40:],
-                            "BF template file")
-        header["BFVERS"] = (_version(), "lsst_bfdrift version")
-        header["BFNFILL"] = (0 if fill is None else int(fill.sum()),
-                             "masked pixels interpolated as aggressors")
-        header["BFTSUM"] = (template_digest(self.template), "BF template digest (sha1, 16)")
-        header["BFGAIN"] = (float(gain), "gain applied (e/ADU; 1: image in e)")
-        if sat_e is not None:
-            header["BFSATUR"] = (sat_e, "saturation level applied (e)")
-        header["HIERARCH LSST ISR BF APPLIED"] = True
-        header["HIERARCH LSST ISR BF CORR METHOD"] = _LSST_METHOD[cfg.method]
+        header = _result_header(meta, cfg, self.template, warnings=len(warnings), order=order,
+                                density=density, iterations=iterations,
+                                converged=converged, solver=solver,
+                                filled=0 if fill is None else int(fill.sum()), gain=gain,
+                                saturation=sat_e)
         out_data = flux if gain == 1.0 else flux / gain  # flux: a new array of the solver
         if moved_err is not None:
             header["BFUNCN"] = (cfg.uncertainty_draws, "template draws of flux_moved_err")
