@@ -52,7 +52,7 @@ from astropy import units as u
 from astropy.table import QTable
 from astropy.utils.exceptions import AstropyUserWarning
 
-from lsst_bfdrift.correction.checks import plateau_level
+from lsst_bfdrift.correction.checks import plateau_level, plateau_warning
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.utils.progress import ProgressBar
 
@@ -140,10 +140,9 @@ def _load_electrons(exposure, *, gain=None, mask=None, saturation=None):
     else:
         sat_e = plateau_level(np.where(bad, -np.inf, data), bad)
         if sat_e is not None:
-            warnings.warn(f"no saturation level given: {int(np.sum(data == sat_e))} pixels share "
-                          f"the image's largest value, {sat_e:.6g} e (a flat top: the image "
-                          "was clipped there); taken as the saturation level (pass "
-                          "saturation= or a SATURATE keyword to set it)", AstropyUserWarning)
+            warnings.warn(plateau_warning(data, sat_e, "taken as the saturation level (pass "
+                                          "saturation= or a SATURATE keyword to set it)"),
+                          AstropyUserWarning)
     return data, bad, sat_e, g, sat_pix
 
 

@@ -12,7 +12,7 @@ import numpy as np
 
 from lsst_bfdrift.utils.exposure import undeclared_bits
 
-__all__ = ["input_warnings", "mask_warnings", "robust_level", "plateau_level",
+__all__ = ["input_warnings", "mask_warnings", "robust_level", "plateau_level", "plateau_warning",
            "BLOCKED_BRIGHT_WARN", "ROBUST_SAMPLE", "PLATEAU_PIXELS"]
 
 
@@ -69,6 +69,15 @@ def plateau_level(image, blocked=None):
     if med is not None and not top > med + 10.0 * max(mad, np.sqrt(max(med, 1.0))):
         return None
     return float(top)
+
+
+def plateau_warning(image, level, remedy):
+    """The warning for a saturation level taken from :func:`plateau_level`:
+    how many pixels of ``image`` hold ``level`` (e), what was done, and
+    ``remedy`` (how to state the level instead)."""
+    n = int(np.count_nonzero(image == level))
+    return (f"no saturation level given: {n} pixels share the image's largest value, "
+            f"{level:.6g} e (a flat top: the image was clipped there); {remedy}")
 
 
 def robust_level(image, blocked, *, sample=ROBUST_SAMPLE):

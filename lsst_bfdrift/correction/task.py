@@ -20,7 +20,8 @@ import lsst.pex.config as pexConfig
 from lsst_bfdrift.utils.config import Struct, Task
 from lsst_bfdrift.utils.exposure import (BLOCKING_PLANES, MaskedExposure, _is_afw_like,
                                          add_mask_plane, plane_mask, read_exposure)
-from lsst_bfdrift.correction.checks import input_warnings, mask_warnings, plateau_level
+from lsst_bfdrift.correction.checks import (input_warnings, mask_warnings, plateau_level,
+                                            plateau_warning)
 from lsst_bfdrift.correction.solvers import (MAX_SWEEP, area_coefficients, correct_coulton18,
                                              correct_half_shift, correct_image,
                                              coulton18_kernel, refuse_out_of_range)
@@ -598,7 +599,6 @@ class BrighterFatterDriftTask(Task):
             # no stated level: an image clipped at one (a flat top) gives it
             sat_e = plateau_level(finite_data, blocked)
             if sat_e is not None:
-                plateau = int(np.count_nonzero(finite_data == sat_e))
                 blocked |= finite_data >= sat_e
         dtype = np.float32 if cfg.fft_precision == "float32" else np.float64
         # pixels masked as blocking (a hot pixel, a saturated core) never stop a run
@@ -636,10 +636,9 @@ class BrighterFatterDriftTask(Task):
                                   np.where(fill, 0.0, finite_data), blocked)
         warnings += mask_warnings(exposure, kind)
         if sat is None and sat_e is not None:
-            warnings.append(f"no saturation level given: {plateau} pixels share the image's "
-                            f"largest value, {sat_e:.6g} e (a flat top: the image was clipped "
-                            "there); they are blocked as saturated (set config.saturation or "
-                            "a SATURATE keyword to state the level)")
+            warnings.append(plateau_warning(
+                finite_data, sat_e, "they are blocked as saturated (set config.saturation or a "
+                "SATURATE keyword to state the level)"))
         linear = cfg.compute_geometry and cfg.geometry_method == "linear"
         first = None
         if linear and data is finite_data and (
