@@ -166,6 +166,8 @@ def main(argv=None):
             f"{joint.chi2['flats_only']['stars']:.1f} -> {joint.chi2['joint']['stars']:.1f} "
             f"({joint.chi2['n_stars']} slopes); tension p = {joint.tension['p_value']:.2g}; "
             f"{time.time() - t0:.0f} s")
+        if joint.uncertainty:
+            say("  " + joint.uncertainty_line())
         if joint.star_information:
             say("  star share of the information: " + ", ".join(
                 f"{n} {v:.2f}" for n, v in joint.star_information.items()))

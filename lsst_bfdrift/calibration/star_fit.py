@@ -26,7 +26,26 @@ shifts that the a-matrix cannot see, T_a minus the curl-free template with
 the same areas (:func:`~lsst_bfdrift.templates.refine.curl_free_template`).
 It moves how a pixel's area change divides between its serial and parallel
 edges, and with it the stars' e1 slope, and leaves every a_ij unchanged
-(c = -1 removes it, c = +1 doubles it). Both data sets are linear in c:
+(c = -1 removes it, c = +1 doubles it). With ``flats_uncertainty`` (the
+default) there are the directions of the a-matrix's errors: minimum-norm,
+curl-free edge shifts that change the measured a_ij by one standard
+deviation along each principal axis of their errors, conditioned on the sum
+rule (the measured lags' area sum is kept, so no area is pushed into the
+unmeasured far lags; :func:`~lsst_bfdrift.templates.refine.area_response_directions`).
+They span what the flats leave uncertain: T_a plus their sum with standard
+normal coefficients is a template drawn from those errors. They are always
+in the fit (not chosen), and each step costs one unit of the a-matrix's
+chi2. With them, the model's directions are left out, but ``curl``: they
+would undo a model direction's change at the measured lags for free,
+leaving a change of the unmeasured far lags alone, which nothing measures
+(``flats_uncertainty=False`` fits the model's directions instead, to ask
+which physics resolves a tension). So the stars
+move the template within the a-matrix's errors, along the combination that
+changes their slopes most for the least chi2: a Gaussian update of the
+flats' estimate by the stars. It matters where the flats are small: the
+flats of ``benchmarks/calibrate_noise_floor.py`` (800 x 800 px, 36 pairs)
+leave GalSim ITL's size slope uncertain by about 12 % rms, which two star
+fields measure better. Both data sets are linear in c:
 
 * the a-matrix: the template's linear area response is linear in its
   displacements, so a(c) = a(T_a) + sum_k c_k alpha(Delta T_k) exactly;
@@ -35,8 +54,11 @@ edges, and with it the stars' e1 slope, and leaves every a_ij unchanged
   :func:`~lsst_bfdrift.calibration.catalog.detect_stars`) give the size,
   e1 and e2 slopes (per 1e5 e) and their finite differences.
 
-The chi2 is the a-matrix's (measured errors) plus the stars' (slopes / their
-bootstrap errors; a right correction leaves zero). Directions are added one
+The chi2 is the a-matrix's, of the template's change from T_a (measured
+errors; T_a is the flats' estimate, and its residuals to the measured a_ij,
+where the refinement kept the model within their errors, are not refitted),
+plus the stars' (slopes / their bootstrap errors; a right correction leaves
+zero). Directions are added one
 at a time while the chi2 drops by more than ln N (the same rule as the
 a-matrix fit); then c is solved by weighted least squares and refined by
 Gauss-Newton steps with exact evaluations of the stars' slopes (the Jacobian
@@ -78,7 +100,8 @@ from lsst_bfdrift.calibration.catalog import (FLAG_NAMES, _load_electrons, detec
                                           measure_stars)
 from lsst_bfdrift.calibration.star_slopes import FLUX_UNIT, select_stars, shape_flux_relations
 from lsst_bfdrift.calibration.tuning import CalibrationError, _select
-from lsst_bfdrift.templates.refine import curl_free_template, template_alpha
+from lsst_bfdrift.templates.refine import (area_response_directions, curl_free_template,
+                                          template_alpha)
 from lsst_bfdrift.templates.template import DistortionTemplate, build_template
 from lsst_bfdrift.utils.progress import ProgressBar
 
@@ -248,7 +271,17 @@ class StarCalibrationResult:
     flats_template : DistortionTemplate
         The a-matrix-only template T_a it started from.
     directions : list of str
-        The parameter directions used (chosen by the data).
+        The model directions used (chosen by the data; the lags of the flats'
+        uncertainty are always in and are reported in ``uncertainty``).
+    uncertainty : dict or None
+        The move within the a-matrix's errors (None with
+        ``flats_uncertainty=False``): ``n_directions`` and ``steps`` along
+        each direction of those errors; the joint template's change from the
+        flats template as the a-matrix sees it (all directions, exact
+        polygon areas): ``a_change`` per lag (1/e), ``chi2`` (with the
+        a-matrix's errors), ``largest`` (the three largest a_ij changes, also
+        in units of their errors, ``sigma``); ``slope_change`` (per fitted
+        field, the size, e1 and e2 slope change of the whole move, per 1e5 e).
     coefficients : dict
         Per direction: ``steps`` (c_k), ``parameter_change`` (c_k h_k, in the
         parameter's unit) and its error.
@@ -274,11 +307,24 @@ class StarCalibrationResult:
 
     def summary(self):
         """JSON-friendly summary."""
-        keys = ("directions", "coefficients", "chi2", "tension", "star_information",
+        keys = ("directions", "coefficients", "uncertainty", "chi2", "tension",
+                "star_information",
                 "fit_slopes", "held_out", "selection", "seconds", "fields", "warnings")
         out = {k: getattr(self, k) for k in keys}
         out["covariance"] = np.asarray(self.covariance).tolist()
         return out
+
+    def uncertainty_line(self):
+        """One line on the move within the a-matrix's errors ('' without it)."""
+        u = self.uncertainty
+        if not u:
+            return ""
+        sc = u["slope_change"]
+        return (f"within the a-matrix's errors ({u['n_directions']} directions): chi2 cost "
+                f"{u['chi2']:.2f}; largest a_ij changes " + ", ".join(
+                    f"{d['lag']} {d['sigma']:+.2f} sigma" for d in u["largest"])
+                + "; fitted size slopes moved by " + ", ".join(
+                    f"{v['size']:+.2e}" for v in sc.values()) + " per 1e5 e")
 
     def held_out_table(self):
         """Text table of the held-out slopes (the validation)."""
@@ -326,7 +372,7 @@ def _combine_folds(rows):
 
 def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_directions=6,
                          n_boot=200, iterations=2, gain=None, min_snr=30.0,
-                         min_stars=30, progress=False):
+                         min_stars=30, flats_uncertainty=True, progress=False):
     """Refit a calibration jointly to its a-matrix and to star fields.
 
     Parameters
@@ -348,7 +394,8 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     seed : int, optional
         Seed of the split and the bootstrap.
     max_directions : int, optional
-        Most parameter directions the fit may use.
+        Most model directions the fit may use (0: with ``flats_uncertainty``,
+        only the directions of the a-matrix's errors).
     n_boot : int, optional
         Bootstrap resamples of the slope errors.
     iterations : int, optional
@@ -359,6 +406,12 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         Stars below this signal-to-noise ratio are not used.
     min_stars : int, optional
         Fewest usable fitted stars per field.
+    flats_uncertainty : bool, optional
+        Let the stars move the template within the a-matrix's errors (with
+        its sum rule; :func:`~lsst_bfdrift.templates.refine.area_response_directions`):
+        directions always in the fit, their cost the a-matrix's chi2
+        (module docstring); the model's directions are then left out, but
+        ``curl``. False: the model's directions (tension resolved by physics).
     progress : bool, optional
         Progress bar on stderr.
 
@@ -439,15 +492,25 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     def alpha_of(t):
         return template_alpha(t)[c:c + L + 1, c:c + L + 1].T[lag_mask]
 
+    # the flats' own uncertainty: per measured lag, the curl-free change of one error
+    sig_lags = np.where(mask, table.sigma, np.nan)[:L + 1, :L + 1]
+    lag_dirs = area_response_directions(ta, sig_lags, max_lag=L) if flats_uncertainty else {}
     n_fits = 3 if mode == "cross" else 1
-    n_steps = len(cands) + 3 + len(fit_fields) * (len(cands) + 2 + n_fits * (iterations + 1)) \
+    n_model = 0 if lag_dirs else len(cands) + 1  # the candidates and 'scale'
+    n_steps = n_model + 2 + len(fit_fields) * (n_model + 1 + len(lag_dirs)
+                                               + n_fits * (iterations + 1)) \
         + len(hold_fields) * 3 * (2 if mode == "cross" else 1)
     bar = ProgressBar(n_steps, "stars", enabled=progress)
-    # 'scale': the flats template itself (its overall strength, c = fractional change)
-    dirs, steps = ["scale"], {"scale": 1.0}
-    deltas = [{k: getattr(ta, k) for k in ("corner_d", "vedge_d", "hedge_d", "vedge_t",
-                                            "hedge_t")}]
-    for n, (lo, hi) in cands.items():
+    # 'scale': the flats template itself (its overall strength, c = fractional change).
+    # With the a-matrix's own directions, the model's are left out (but curl): the
+    # a-matrix directions would undo a model direction's change at the measured lags
+    # for free, leaving a change of the unmeasured far lags alone that nothing measures
+    dirs, steps, deltas = [], {}, []
+    if not lag_dirs:
+        dirs, steps = ["scale"], {"scale": 1.0}
+        deltas = [{k: getattr(ta, k) for k in ("corner_d", "vedge_d", "hedge_d", "vedge_t",
+                                                "hedge_t")}]
+    for n, (lo, hi) in ({} if lag_dirs else cands).items():
         bar(1)
         x0 = float(getattr(params, n))
         h = 0.1 * max(abs(x0), 0.01 * (hi - lo))
@@ -468,26 +531,40 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     dirs.append("curl")
     deltas.append(_delta(ta, curl_free_template(ta)))
     steps["curl"] = 1.0
+    lag_names = set()
+    for name, d in lag_dirs.items():
+        dirs.append(name)
+        deltas.append(d["delta"])
+        steps[name] = 1.0
+        lag_names.add(name)
     t_dirs = time.perf_counter() - t0
     # a-matrix Jacobian (exact: linear area response is linear in displacements)
     a0 = alpha_of(ta)
     Ja = np.column_stack([alpha_of(combine_templates(ta, [d], [1.0])) - a0 for d in deltas])
     # the direction templates, each correcting every field once (the catalogues are
     # kept per template: every subset of stars reuses them)
-    dir_templates, keep = [], []
+    dir_templates, dir_eps, keep = [], [], []
     for k, d in enumerate(deltas):
         # a quarter step: small enough that bright pixels stay in the modelled range
-        t_k = combine_templates(ta, [d], [_EPS])
-        try:
-            for f in fit_fields:
-                bar(1)
-                f.corrected_catalog(t_k)
-        except InputError as exc:
+        # (a lag's step, one error of one a_ij, is usually small: a whole one, else less)
+        for eps in ((1.0, _EPS, 0.05) if dirs[k] in lag_names else (_EPS,)):
+            t_k = combine_templates(ta, [d], [eps])
+            try:
+                for f in fit_fields:
+                    f.corrected_catalog(t_k)
+            except InputError as exc:
+                failed = exc
+                continue
+            break
+        else:
             warn.append(f"direction {dirs[k]} skipped: the stars cannot be corrected with "
-                        f"it ({exc})")
+                        f"it ({failed})")
+            bar(len(fit_fields))
             continue
+        bar(len(fit_fields))
         keep.append(k)
         dir_templates.append(t_k)
+        dir_eps.append(eps)
     dirs = [dirs[k] for k in keep]
     deltas = [deltas[k] for k in keep]
     Ja = Ja[:, keep]
@@ -497,6 +574,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     t_jac = time.perf_counter() - t0 - t_dirs
     a_res0 = a0 - a_meas
     n_a = a0.size
+    is_lag = np.array([n in lag_names for n in dirs], bool)
 
     def fit(subsets):
         """The joint fit to the a-matrix and the stars ``subsets`` (field name -> mask)."""
@@ -505,20 +583,25 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                                                   seed=seed) for f in fit_fields}, fit_fields)
 
         r_s0, sig_s = vec(ta, n_boot)
-        Js = np.column_stack([(vec(t_k)[0] - r_s0) / _EPS for t_k in dir_templates])
-        # plus a Gaussian prior of PRIOR_STEPS steps per direction: keeps directions the
-        # data hardly see inside the linear range of the family
+        Js = np.column_stack([(vec(t_k)[0] - r_s0) / e for t_k, e in zip(dir_templates,
+                                                                           dir_eps)])
+        # the a-matrix rows measure the change from T_a (the flats' estimate; its
+        # residuals to the measured a_ij are the flats fit's business), plus a Gaussian
+        # prior of PRIOR_STEPS steps per model direction: keeps directions the data
+        # hardly see inside the linear range of the family (the lags' prior is the
+        # a-matrix itself)
         nd = len(dirs)
-        r0 = np.concatenate([a_res0, r_s0, np.zeros(nd)])
-        sig = np.concatenate([a_sig, sig_s, np.full(nd, PRIOR_STEPS)])
+        r0 = np.concatenate([np.zeros(n_a), r_s0, np.zeros(nd)])
+        sig = np.concatenate([a_sig, sig_s, np.where(is_lag, np.inf, PRIOR_STEPS)])
         J = np.vstack([Ja, Js, np.eye(nd)])
         n_data = n_a + r_s0.size  # ln N counts the data, not the prior rows
         # the prior rows take part in the choice: a direction that would need many
-        # steps (beyond its linear range) to lower chi2 pays for them
+        # steps (beyond its linear range) to lower chi2 pays for them; the lags are
+        # always in
         chosen, selection = _select(J, r0, sig, np.ones(J.shape[0], bool), dirs,
                                     max_params=max_directions, always_first=False,
-                                    n_points=n_data)
-        cols = [dirs.index(n) for n in chosen]
+                                    n_points=n_data, base=np.flatnonzero(is_lag))
+        cols = list(np.flatnonzero(is_lag)) + [dirs.index(n) for n in chosen]
         rows = np.r_[np.arange(n_data), n_data + np.asarray(cols, int)]
         Jc, r0c, sigc = J[rows][:, cols], r0[rows], sig[rows]
         W = 1.0 / sigc ** 2
@@ -539,7 +622,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                         "the joint template ("
                         + ", ".join(f"{n} {c:+.3g} steps" for n, c in zip(chosen, coef))
                         + f") cannot correct the star fields: {exc}") from exc
-                r = np.concatenate([alpha_of(t_joint) - a_meas, s_j, coef])
+                r = np.concatenate([alpha_of(t_joint) - a0, s_j, coef])
                 step = -cov @ (Jc.T @ (W * r))
                 if it >= iterations or np.all(np.abs(step) < 0.02 * np.sqrt(np.diag(cov))
                                               + 1e-12):
@@ -548,6 +631,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                 t_joint = combine_templates(ta, [deltas[k] for k in cols], coef)
         r_fin = np.concatenate([alpha_of(t_joint) - a_meas, s_j])
         return {"chosen": chosen, "cols": cols, "coef": coef, "cov": cov, "t": t_joint,
+                "a_change": alpha_of(t_joint) - a0,
                 "r_s0": r_s0, "sig_s": sig_s, "Js": Js, "r_fin": r_fin,
                 "selection": selection}
 
@@ -588,9 +672,10 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     chi2_s0 = float(np.sum((r_s0 / sig_s) ** 2))
     chi2_a1 = float(np.sum((r_fin[:n_a] / a_sig) ** 2))
     chi2_s1 = float(np.sum((r_fin[n_a:] / sig_s) ** 2))
-    # tension: a-matrix chi2 rise needed to null the stars, against chi2(n_star)
+    # tension: the a-matrix chi2 of the template's change plus the stars' chi2 left, the
+    # rise of the total from the flats' optimum T_a, against chi2(n_star)
     n_s = r_s0.size
-    rise = max(chi2_a1 + chi2_s1 - chi2_a0, 0.0)
+    rise = float(np.sum((final["a_change"] / a_sig) ** 2)) + chi2_s1
     tension = {"chi2_rise": rise, "dof": n_s, "p_value": float(stats.chi2.sf(rise, n_s)),
                "note": "rise of the total chi2 from the a-matrix-only optimum when the star "
                        "slopes are added; large with a small p-value means the model's "
@@ -605,19 +690,41 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         warn.append("tension between the a-matrix and the stars (p = "
                     f"{tension['p_value']:.1e}); worst: " + ", ".join(
                         f"{t['what']} pull {t['pull']:+.1f}" for t in tension["worst"]))
+    n_lag = int(is_lag.sum())  # the lags come first in cols, the chosen model directions after
     Fa = Ja[:, cols].T @ (Ja[:, cols] / a_sig[:, None] ** 2)
     Fs = Js[:, cols].T @ (Js[:, cols] / sig_s[:, None] ** 2)
     info = {n: float(Fs[k, k] / (Fa[k, k] + Fs[k, k])) if (Fa[k, k] + Fs[k, k]) > 0 else None
-            for k, n in enumerate(chosen)}
+            for k, n in enumerate(chosen, start=n_lag)}
     err = np.sqrt(np.clip(np.diag(cov), 0, None))
     coefficients = {n: {"steps": float(coef[k]), "steps_err": float(err[k]),
                         "parameter_change": float(coef[k] * steps[n]),
                         "parameter_change_err": float(abs(err[k] * steps[n])),
-                        "step": float(steps[n])} for k, n in enumerate(chosen)}
-    big = [n for n in chosen if abs(coefficients[n]["steps"]) > 5]
-    if big:
-        warn.append(f"directions {big} moved by more than 5 steps: beyond the linear range "
-                    "of the template family; check the held-out stars")
+                        "step": float(steps[n])} for k, n in enumerate(chosen, start=n_lag)}
+    uncertainty = None
+    if n_lag:
+        # the joint template's change from T_a as the a-matrix sees it (exact polygon
+        # areas; with model directions in, their a_ij change is part of it), and what
+        # the whole move does to each fitted slope (linear)
+        d_a = template_alpha(t_joint)[c:c + L + 1, c:c + L + 1].T - template_alpha(ta)[
+            c:c + L + 1, c:c + L + 1].T
+        pulls = {(f"a{i}{j}" if max(i, j) < 10 else f"a{i},{j}"): (float(d_a[i, j]),
+                                                                  float(d_a[i, j]
+                                                                        / sig_lags[i, j]))
+                 for i, j in zip(*np.nonzero(np.isfinite(sig_lags)))}
+        order = sorted(pulls, key=lambda n: -abs(pulls[n][1]))
+        moved = Js[:, cols] @ coef
+        uncertainty = {
+            "n_directions": n_lag,
+            "steps": {dirs[cols[k]]: float(coef[k]) for k in range(n_lag)},
+            "chi2": float(sum(v[1] ** 2 for v in pulls.values())),
+            "a_change": {n: v[0] for n, v in pulls.items()},
+            "largest": [{"lag": n, "a_change": pulls[n][0], "sigma": pulls[n][1]}
+                        for n in order[:3]],
+            "slope_change": {f.name: {k: float(moved[3 * m + i]) for i, k in enumerate(_SLOPES)}
+                             for m, f in enumerate(fit_fields)},
+            "note": "the joint template's change from the flats template: a_ij change per "
+                    "lag (1/e) and its chi2 with the a-matrix's errors; steps along the "
+                    "directions of those errors (sum rule kept)"}
     fit_slopes = {}
     for f in fit_fields:
         fit_slopes[f.name] = {
@@ -630,6 +737,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     calib = dict(meta.get("calibration", {}))
     calib["stars"] = {"fields": [f.name for f in fields], "holdout": mode,
                       "directions": chosen, "coefficients": coefficients,
+                      "flats_uncertainty": uncertainty,
                       "chi2_amatrix": chi2_a1, "chi2_stars": chi2_s1, "tension": tension,
                       "held_out": held}
     meta["calibration"] = calib
@@ -643,6 +751,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                     "flagged": f.flag_counts} for f in fields]
     return StarCalibrationResult(
         template=t_joint, flats_template=ta, directions=chosen, coefficients=coefficients,
+        uncertainty=uncertainty,
         covariance=cov, chi2={"flats_only": {"amatrix": chi2_a0, "stars": chi2_s0},
                               "joint": {"amatrix": chi2_a1, "stars": chi2_s1},
                               "n_amatrix": int(n_a), "n_stars": int(n_s)},

@@ -371,19 +371,25 @@ def _sum_rule(table):
                     "is zero within its error when the lags beyond the table are small"}
 
 
-def _select(J, r, sigma, mask, names, *, max_params, always_first=True, n_points=None):
+def _select(J, r, sigma, mask, names, *, max_params, always_first=True, n_points=None,
+            base=()):
     """Greedy choice of columns of J (linearised model) by chi2 drop > ln N
     (the first column without the test when ``always_first``). ``n_points``:
     N of the ln N test when some rows are priors, not data (default all rows
-    in ``mask``)."""
+    in ``mask``). ``base``: indices of columns always in the model (not
+    chosen, not returned, not counted in ``max_params``)."""
     w = 1.0 / sigma[mask]
     A = J[mask] * w[:, None]
     b = -r[mask] * w
     n_points = int(mask.sum()) if n_points is None else int(n_points)
-    chosen, steps = [], []
+    base = [int(k) for k in base]
+    chosen, steps = list(base), []
     chi2_now = float(b @ b)
+    if base:
+        x = np.linalg.lstsq(A[:, base], b, rcond=None)[0]
+        chi2_now = float(np.sum((b - A[:, base] @ x) ** 2))
     steps.append({"parameter": None, "chi2_linear": chi2_now})
-    limit = min(max_params, n_points - 1) if n_points > 1 else 1
+    limit = (min(max_params, n_points - 1) if n_points > 1 else 1) + len(base)
     while len(chosen) < limit:
         best = None
         for k in range(len(names)):
@@ -397,12 +403,13 @@ def _select(J, r, sigma, mask, names, *, max_params, always_first=True, n_points
         if best is None:
             break
         drop = chi2_now - best[1]
-        if (chosen or not always_first) and drop < max(math.log(n_points), 1.0):
+        if (len(chosen) > len(base) or not always_first) \
+                and drop < max(math.log(n_points), 1.0):
             break
         chosen.append(best[0])
         chi2_now = best[1]
         steps.append({"parameter": names[best[0]], "chi2_linear": chi2_now})
-    return [names[k] for k in chosen], steps
+    return [names[k] for k in chosen[len(base):]], steps
 
 
 def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settings=None,

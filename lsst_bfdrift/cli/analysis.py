@@ -37,6 +37,7 @@ def _cmd_calibrate(args):
         from lsst_bfdrift.calibration.star_fit import calibrate_with_stars
         joint = calibrate_with_stars(res, [os.path.abspath(x) for x in args.stars],
                                      holdout=args.holdout, gain=args.gain,
+                                     flats_uncertainty=not args.model_directions_only,
                                      progress=not args.quiet)
         joint.template.meta["calibration"]["inputs"] = \
             [os.path.abspath(x) for x in args.input + args.stars]
@@ -82,6 +83,8 @@ def _cmd_calibrate(args):
         cf = joint.coefficients[n]
         print(f"  {n:>18s} {cf['parameter_change']:+.3g} +- {cf['parameter_change_err']:.2g} "
               f"(stars give {100 * v:.0f} % of its information)")
+    if joint.uncertainty:
+        print("  " + joint.uncertainty_line())
     for w in joint.warnings:
         print(f"  warning: {w}")
     print("  " + joint.held_out_table().replace("\n", "\n  "))

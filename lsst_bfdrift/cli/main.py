@@ -432,6 +432,9 @@ def build_parser():
                          "('cross', and 'auto'); one half fitted, the other held out "
                          "('split'); the last field held out ('last') (default: %(default)s)")
     ca.add_argument("--gain", type=float, help="e/ADU of star fields in ADU without GAIN")
+    ca.add_argument("--model-directions-only", action="store_true",
+                    help="with --stars: move the template along the model's directions only, "
+                         "not within the a-matrix's errors lag by lag")
     ca.add_argument("--plot", help="write a PNG: a_ij against lag, pulls, correlations")
     ca.add_argument("--overwrite", action="store_true",
                     help="replace an existing --out or --plot")

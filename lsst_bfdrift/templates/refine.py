@@ -18,7 +18,8 @@ import numpy as np
 from lsst_bfdrift.templates.template import DistortionTemplate
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
-__all__ = ["template_alpha", "match_area_coefficients", "curl_free_template", "draw_templates"]
+__all__ = ["template_alpha", "match_area_coefficients", "curl_free_template", "draw_templates",
+           "area_response_directions"]
 
 
 def template_alpha(template):
@@ -198,6 +199,100 @@ def curl_free_template(template, a=None, *, iterations=4):
                               template.charge, meta=dict(template.meta))
     return match_area_coefficients(zero, a, max_lag=min(a.shape[0] - 1, c - 1),
                                    iterations=iterations)
+
+
+def area_response_directions(template, sigma, *, max_lag=None, sum_rule=True):
+    """The template changes the a-matrix's errors allow: the flats' uncertainty as directions.
+
+    Each direction is a set of minimum-norm (curl-free) edge shifts (the
+    solution :func:`match_area_coefficients` and :func:`draw_templates` use)
+    whose linear area response changes the measured a_ij by one standard
+    deviation of their errors along one axis, so that a template drawn from
+    the errors is ``template`` plus the directions times independent
+    standard normal numbers, and a step along a direction costs one unit of
+    the a-matrix's chi2. The star calibration
+    (:func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars`) moves
+    the template along them.
+
+    Pixel areas sum to a constant (the sum rule: sum over all lags of
+    n_ij a_ij = 0, n_ij the number of pixels at lag (i, j): 1, 2 or 4). An
+    error of one measured lag alone would push its area into the unmeasured
+    far lags, where it weighs most on star sizes. With ``sum_rule`` (and a00
+    measured) the errors are conditioned on the measured lags' area sum
+    staying fixed (covariance C - C n n^T C / n^T C n, C = diag(sigma^2)):
+    the directions are its eigenvectors times the square roots of its
+    eigenvalues, one fewer than the lags, named ``mode0``, ``mode1``, ...
+    by decreasing variance; the far lags do not move. Without it (or
+    without a00), one direction per lag, ``a{i}{j}``, changes that a_ij by
+    its error and no other measured lag.
+
+    Parameters
+    ----------
+    template : DistortionTemplate
+        Gives the grid (size, edge samples, charge); its own shifts are not
+        used (the directions are changes).
+    sigma : array_like, shape (L + 1, L + 1)
+        Error of each a_ij (1/e), [i serial, j parallel]; NaN, zero or
+        negative where the lag is not measured.
+    max_lag : int, optional
+        Lags with max(i, j) <= ``max_lag`` only (default all of ``sigma``
+        that fit in the template).
+    sum_rule : bool, optional
+        Keep the measured lags' area sum (above).
+
+    Returns
+    -------
+    dict
+        name -> ``{"delta": displacement change (corner_d, vedge_d,
+        hedge_d, vedge_t, hedge_t; pixel units at the template's charge;
+        corners and transverse shifts do not move), "a_change": the a_ij
+        change, shape (L + 1, L + 1), 1/e, NaN where not measured}``.
+    """
+    if not isinstance(template, DistortionTemplate):
+        raise InputTypeError("template must be a DistortionTemplate, "
+                             f"got {type(template).__name__}")
+    sigma = np.asarray(sigma, dtype=float)
+    if sigma.ndim != 2 or sigma.shape[0] != sigma.shape[1]:
+        raise InputError(f"sigma must be a square array, got shape {sigma.shape}")
+    c = template.center
+    L = min(sigma.shape[0] - 1, c - 1 if max_lag is None else int(max_lag))
+    good = np.isfinite(sigma) & (sigma > 0)
+    good[L + 1:, :] = good[:, L + 1:] = False
+    matched = _matched(template, np.where(good, 0.0, np.nan), L)
+    solve = _edge_solver(template, matched, 0.05)
+    jj, ii = np.mgrid[0:template.size, 0:template.size]
+    di, dj = np.abs(ii - c), np.abs(jj - c)
+    zv, zh = np.zeros_like(template.vedge_d), np.zeros_like(template.hedge_d)
+    lags = [(i, j) for i in range(L + 1) for j in range(L + 1) if good[i, j]]
+    sig = np.array([sigma[k] for k in lags])
+    # the edge shifts of a unit (1/e) change of each lag; the solver is linear
+    basis = []
+    for i, j in lags:
+        vd, hd, _ = solve(np.where(matched & (di == i) & (dj == j), 1.0, 0.0), zv, zh)
+        basis.append((vd, hd))
+    if sum_rule and (0, 0) in lags:
+        n = np.array([(1 if i == 0 else 2) * (1 if j == 0 else 2) for i, j in lags], float)
+        cn = sig ** 2 * n
+        cov = np.diag(sig ** 2) - np.outer(cn, cn) / float(n @ cn)
+        w, u = np.linalg.eigh(cov)
+        order = np.argsort(-w)
+        keep = order[w[order] > 1e-12 * w.max()]
+        modes = u[:, keep] * np.sqrt(w[keep])
+        names = [f"mode{k}" for k in range(modes.shape[1])]
+    else:
+        modes = np.diag(sig)
+        names = [f"a{i}{j}" if max(i, j) < 10 else f"a{i},{j}" for i, j in lags]
+    out = {}
+    for name, m in zip(names, modes.T):
+        vd = sum(v * b[0] for v, b in zip(m, basis))
+        hd = sum(v * b[1] for v, b in zip(m, basis))
+        da = np.full((L + 1, L + 1), np.nan)
+        for k, v in zip(lags, m):
+            da[k] = v
+        out[name] = {"delta": {"corner_d": np.zeros_like(template.corner_d), "vedge_d": vd,
+                               "hedge_d": hd, "vedge_t": None, "hedge_t": None},
+                     "a_change": da}
+    return out
 
 
 def draw_templates(template, n, *, seed=0):

@@ -7,9 +7,10 @@ Kinds:
 * detections reused on the same image give the catalogue of a fresh
   detection (consistency);
 * the joint fit on a star field drawn by galsim.SiliconSensor (independent
-  data): a flats template 40 % too weak is pulled back by the stars, and the
-  held-out stars (two-fold cross-validation: each half measured with the
-  template fitted to the other half) show it.
+  data): a flats template 40 % too weak is pulled back by the stars, by the
+  model's directions or within the a-matrix's errors, and the held-out stars
+  (two-fold cross-validation: each half measured with the template fitted to
+  the other half) show it.
 """
 
 import functools
@@ -28,8 +29,8 @@ from lsst_bfdrift.calibration.tuning import CANDIDATES, CalibrationError, Calibr
 from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 from lsst_bfdrift.simulation.skysim import scale_template
-from lsst_bfdrift.templates.refine import (curl_free_template, match_area_coefficients,
-                                          template_alpha)
+from lsst_bfdrift.templates.refine import (area_response_directions, curl_free_template,
+                                          match_area_coefficients, template_alpha)
 from lsst_bfdrift.templates.template import TemplateSettings, build_template
 
 STRENGTH = STRENGTHS[2]
@@ -79,16 +80,19 @@ def test_detections_reused_on_the_same_image_give_the_same_catalogue():
 def test_stars_pull_a_weak_template_back_and_held_out_stars_show_it():
     res = _calibration()
     img = paired_fields()["images"][2]
-    weak = scale_template(res.template, 0.6)
-    # a weak flats template, and an a-matrix too noisy to say so: only the stars can
+    weak = scale_template(res.template, 0.5)
+    # a weak flats template, and an a-matrix too noisy to say so: only the stars can (the
+    # a-matrix rows measure the change from the flats template, its own estimate)
     loose = AcoeffTable(res.table.a, 50.0 * res.table.sigma, source="loose")
     res_weak = type(res)(**{**res.__dict__, "template": weak, "table": loose})
-    joint = calibrate_with_stars(res_weak, [img], min_stars=8, seed=3)
+    # the model's directions alone (the flats' own uncertainty: the next test)
+    joint = calibrate_with_stars(res_weak, [img], min_stars=8, seed=3, flats_uncertainty=False)
     assert joint.directions[0] == "scale"
+    assert joint.uncertainty is None
     assert joint.star_information["scale"] > 0.5
-    # the scale found restores the template within its error (0.6 -> 1: +0.67)
+    # the scale found restores the template within its error (0.5 -> 1: +1)
     sc = joint.coefficients["scale"]
-    assert abs(sc["steps"] - (1 / 0.6 - 1)) < max(3 * sc["steps_err"], 0.25)
+    assert abs(sc["steps"] - (1 / 0.5 - 1)) < max(3 * sc["steps_err"], 0.25)
     held = joint.held_out["field0"]
     before, weak_s, fixed = (held[k]["size"] for k in ("before", "flats_only", "joint"))
     assert before[0] > 5 * before[1]                  # BF seen on the held-out stars
@@ -113,6 +117,56 @@ def test_stars_pull_a_weak_template_back_and_held_out_stars_show_it():
     assert fig.axes[2].get_yticklabels()[0].get_text() == "scale"
     import matplotlib.pyplot as plt
     plt.close(fig)
+
+
+def test_stars_undo_a_flats_error_within_the_a_matrix_errors():
+    """A flats template off by 3 sigma of its a-matrix (a_ij known to 100 %
+    per lag, sum rule kept), along the direction of those errors that the
+    field's size slope sees most: the stars move it back within the
+    a-matrix's errors (no model direction allowed), by about the Gaussian update's
+    share k^2 / (1 + k^2) (k: the size slope's change per step over its
+    error, about 1.3 here), and the held-out stars (two-fold
+    cross-validation) show most of the size slope the error left removed. The
+    reported a_ij change is the templates' exact polygon areas' and keeps the
+    measured lags' area (sum rule); the field is drawn by galsim.SiliconSensor."""
+    res = _calibration()
+    img = paired_fields()["images"][2]
+    table = AcoeffTable(res.table.a, 20.0 * res.table.sigma, source="100 %")
+    right = res.template
+    modes = area_response_directions(right, table.sigma[:4, :4], max_lag=3)
+    field = StarField(img)
+    s0 = field.slopes(right, field.usable)["size"][0]
+    g = np.array([field.slopes(combine_templates(right, [m["delta"]], [1.0]),
+                               field.usable)["size"][0] - s0 for m in modes.values()])
+    u = g / np.linalg.norm(g)
+    wrong = combine_templates(right, [m["delta"] for m in modes.values()], 3.0 * u)
+    # the a-matrix's directions alone (max_directions=0: no model direction)
+    joint = calibrate_with_stars(type(res)(**{**res.__dict__, "template": wrong,
+                                              "table": table}), [img], min_stars=8, seed=3,
+                                 max_directions=0)
+    assert joint.directions == []
+    unc = joint.uncertainty
+    assert unc["n_directions"] == 15                  # 16 lags (a00 too) less the sum rule
+    steps = np.array([unc["steps"][n] for n in modes])
+    # back along the error, by a good part of its 3 sigma, and less elsewhere
+    assert -3.5 < steps @ u < -1.0
+    assert np.linalg.norm(steps - (steps @ u) * u) < abs(steps @ u)
+    assert 1.0 < unc["chi2"] < 12.0
+    held = joint.held_out["field0"]
+    before, wrong_s, fixed = (held[k]["size"] for k in ("before", "flats_only", "joint"))
+    right_s = field.slopes(right, field.usable)["size"]
+    assert abs(wrong_s[0] - right_s[0]) > 2 * wrong_s[1]   # the flats error shows
+    assert abs(fixed[0] - right_s[0]) < 0.6 * abs(wrong_s[0] - right_s[0])
+    # the reported a_ij change, against the templates' exact polygon areas
+    c = right.center
+    change = (template_alpha(joint.template) - template_alpha(wrong))[c:c + 4, c:c + 4].T
+    for lag, v in unc["a_change"].items():
+        assert_allclose(change[int(lag[1]), int(lag[2])], v, rtol=1e-9,
+                        atol=1e-9 * np.abs(change).max())
+    assert_allclose(unc["chi2"], np.sum((change / table.sigma[:4, :4]) ** 2), rtol=1e-9)
+    npix = np.array([[1, 2, 2, 2]] + [[2, 4, 4, 4]] * 3)
+    assert abs(np.sum(npix * change)) < 0.02 * np.abs(npix * change).sum()
+    assert "within the a-matrix's errors (15 directions)" in joint.uncertainty_line()
 
 
 def test_bad_star_inputs_get_clear_errors():
@@ -184,7 +238,7 @@ def test_a_right_template_is_left_alone():
     img = paired_fields()["images"][2]
     loose = AcoeffTable(res.table.a, 50.0 * res.table.sigma, source="loose")
     joint = calibrate_with_stars(type(res)(**{**res.__dict__, "table": loose}), [img],
-                                 min_stars=8, seed=3, holdout="split")
+                                 min_stars=8, seed=3, holdout="split", flats_uncertainty=False)
     assert joint.directions == []
     # one seeded half fitted, the other held out
     info = joint.fields[0]

@@ -5,8 +5,8 @@ import pytest
 from numpy.testing import assert_allclose
 
 from lsst_bfdrift.physics.sensor import SensorParameters
-from lsst_bfdrift.templates.refine import (curl_free_template, match_area_coefficients,
-                                          template_alpha)
+from lsst_bfdrift.templates.refine import (area_response_directions, curl_free_template,
+                                          match_area_coefficients, template_alpha)
 from lsst_bfdrift.templates.template import TemplateSettings, build_template
 
 
@@ -87,6 +87,72 @@ def test_curl_free_template_keeps_the_areas_and_drops_the_curl(pair):
                     atol=2e-5 * np.abs(a).max())
     with pytest.raises(TypeError, match="DistortionTemplate"):
         curl_free_template("template.fits")
+
+
+def test_area_response_directions_move_the_a_ij_within_their_errors(pair):
+    """Measured on the exact polygon areas of the template plus a direction
+    (an independent reference for the solver's linearisation), for two steps:
+
+    * without the sum rule, one direction per lag changes its a_ij by its
+      error (to 2 %: one Newton step on the exact areas, as draw_templates)
+      and no other measured lag;
+    * with it (the default), one direction fewer than the lags; each
+      changes the a_ij as it reports, keeps the measured lags' area sum and
+      moves no pixel beyond them; together they have the covariance of the
+      errors conditioned on the sum rule (computed here directly), and a
+      step costs one unit of the a-matrix's chi2 (the directions are
+      orthonormal in it);
+    * unmeasured lags (NaN or zero error) get no direction.
+    """
+    from lsst_bfdrift.calibration.star_fit import combine_templates
+
+    t = pair[1]
+    c = t.center
+    a0 = template_alpha(t)
+    sigma = 0.05 * np.abs(a0[c:c + 3, c:c + 3].T)
+    sigma[2, 1] = np.nan
+    sigma[1, 2] = 0.0
+    measured = np.isfinite(sigma) & (sigma > 0)
+    lags = [(i, j) for i in range(3) for j in range(3) if measured[i, j]]
+    npix = np.array([[1, 2, 2], [2, 4, 4], [2, 4, 4]], float)
+    near = np.zeros(a0.shape, bool)
+    near[c - 2:c + 3, c - 2:c + 3] = True  # lags <= 2
+    for rule in (False, True):
+        dirs = area_response_directions(t, sigma, sum_rule=rule)
+        assert len(dirs) == len(lags) - rule
+        if not rule:
+            assert sorted(dirs) == sorted(f"a{i}{j}" for i, j in lags)
+        for name, d in dirs.items():
+            want = d["a_change"]
+            assert np.all(np.isnan(want[~measured]))
+            if not rule:
+                i, j = int(name[1]), int(name[2])
+                assert want[i, j] == sigma[i, j]
+                assert np.count_nonzero(want[measured]) == 1
+            else:
+                assert_allclose(np.sum(npix[measured] * want[measured]), 0,
+                                atol=1e-9 * np.abs(want[measured]).max())
+                assert_allclose(np.sum((want[measured] / sigma[measured]) ** 2), 1, rtol=1e-9)
+            for step in (1.0, -2.0):
+                full = template_alpha(combine_templates(t, [d["delta"]], [step])) - a0
+                moved = full[c:c + 3, c:c + 3].T
+                scale = np.abs(want[measured]).max()
+                assert_allclose(moved[measured], step * want[measured], rtol=0.02,
+                                atol=2e-3 * abs(step) * scale)
+                if rule:  # nothing pushed into the far lags
+                    assert np.abs(full[~near]).max() < 2e-3 * abs(step) * scale
+            assert_allclose(d["delta"]["corner_d"], 0, atol=0)
+        if rule:
+            m = np.array([d["a_change"][measured] for d in dirs.values()])
+            s2, n = sigma[measured] ** 2, npix[measured]
+            cond = np.diag(s2) - np.outer(s2 * n, s2 * n) / np.sum(n * n * s2)
+            assert_allclose(m.T @ m, cond, rtol=0, atol=1e-9 * s2.max())
+            assert_allclose((m / sigma[measured]) @ (m / sigma[measured]).T,
+                            np.eye(len(dirs)), atol=1e-9)
+    with pytest.raises(ValueError, match="square"):
+        area_response_directions(t, np.zeros((2, 3)))
+    with pytest.raises(TypeError, match="DistortionTemplate"):
+        area_response_directions("template.fits", sigma)
 
 
 def test_nan_lags_are_not_matched(pair):
