@@ -15,8 +15,10 @@ For each GalSim sensor model (default lsst_itl_50_8 and lsst_e2v_50_8):
 3. **validation on other stars**: GalSim stars of the same sensor with a
    paired no-BF twin (:func:`~lsst_bfdrift.validation.stars.draw_star_pairs`,
    Moffat, their own seed), corrected by drift with the flats-only, the
-   flats+stars, GalSim's own sensor file (imported with transfer- and with
-   area-matched edges) and the bundled default template.
+   flats+stars (the stars move the flats template within the a-matrix's
+   errors; ``--model-directions-only``: along the model's directions),
+   GalSim's own sensor file (imported with transfer- and with area-matched
+   edges) and the bundled default template.
 
 Prints the held-out field's slopes and the size and e1 slopes left on the
 paired stars, as % of the uncorrected slopes, and writes
@@ -111,6 +113,10 @@ def main(argv=None):
     ap.add_argument("--fields", type=int, default=3,
                     help="star fields per sensor (own seeds, the same PSF family)")
     ap.add_argument("--holdout", default="auto", help="held-out stars (calibrate_with_stars)")
+    ap.add_argument("--model-directions-only", action="store_true",
+                    help="the joint fit moves the template along the model's directions, not "
+                         "within the a-matrix's errors (calibrate_with_stars(flats_uncertainty="
+                         "False))")
     ap.add_argument("--n-stars", type=int, default=200)
     ap.add_argument("--flat-size", type=int, default=400)
     ap.add_argument("--pairs-per-level", type=int, default=2)
@@ -156,6 +162,7 @@ def main(argv=None):
         t0 = time.time()
         # the first field's seed: every field's halves stay the same whatever --fields
         joint = calibrate_with_stars(res, imgs, seed=seeds[0], holdout=args.holdout,
+                                     flats_uncertainty=not args.model_directions_only,
                                      progress=True)
         say("  flats+stars: directions "
             + (", ".join(f"{n} {c['parameter_change']:+.3g} +- {c['parameter_change_err']:.2g}"
