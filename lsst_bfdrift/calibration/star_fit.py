@@ -703,14 +703,14 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     uncertainty = None
     if n_lag:
         # the joint template's change from T_a as the a-matrix sees it (exact polygon
-        # areas; with model directions in, their a_ij change is part of it), and what
-        # the whole move does to each fitted slope (linear)
-        d_a = template_alpha(t_joint)[c:c + L + 1, c:c + L + 1].T - template_alpha(ta)[
-            c:c + L + 1, c:c + L + 1].T
+        # areas, computed by the fit; with model directions in, their a_ij change is part
+        # of it), and what the whole move does to each fitted slope (linear)
+        d_a = np.full(lag_mask.shape, np.nan)
+        d_a[lag_mask] = final["a_change"]
         pulls = {(f"a{i}{j}" if max(i, j) < 10 else f"a{i},{j}"): (float(d_a[i, j]),
                                                                   float(d_a[i, j]
                                                                         / sig_lags[i, j]))
-                 for i, j in zip(*np.nonzero(np.isfinite(sig_lags)))}
+                 for i, j in zip(*np.nonzero(lag_mask))}
         order = sorted(pulls, key=lambda n: -abs(pulls[n][1]))
         moved = Js[:, cols] @ coef
         uncertainty = {
