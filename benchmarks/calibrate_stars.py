@@ -117,6 +117,8 @@ def main(argv=None):
                     help="the joint fit moves the template along the model's directions, not "
                          "within the a-matrix's errors (calibrate_with_stars(flats_uncertainty="
                          "False))")
+    ap.add_argument("--fitted-slopes", nargs="+", default=["size"],
+                    help="star slopes the joint fit nulls (calibrate_with_stars(fitted_slopes=...))")
     ap.add_argument("--n-stars", type=int, default=200)
     ap.add_argument("--flat-size", type=int, default=400)
     ap.add_argument("--pairs-per-level", type=int, default=2)
@@ -163,6 +165,7 @@ def main(argv=None):
         # the first field's seed: every field's halves stay the same whatever --fields
         joint = calibrate_with_stars(res, imgs, seed=seeds[0], holdout=args.holdout,
                                      flats_uncertainty=not args.model_directions_only,
+                                     fitted_slopes=args.fitted_slopes,
                                      progress=True)
         say("  flats+stars: directions "
             + (", ".join(f"{n} {c['parameter_change']:+.3g} +- {c['parameter_change_err']:.2g}"
@@ -171,7 +174,7 @@ def main(argv=None):
             + f"; chi2 a-matrix {joint.chi2['flats_only']['amatrix']:.1f} -> "
             f"{joint.chi2['joint']['amatrix']:.1f} ({joint.chi2['n_amatrix']} lags), stars "
             f"{joint.chi2['flats_only']['stars']:.1f} -> {joint.chi2['joint']['stars']:.1f} "
-            f"({joint.chi2['n_stars']} slopes); tension p = {joint.tension['p_value']:.2g}; "
+            f"({joint.chi2['n_stars']} slopes); {joint.tension_line()}; "
             f"{time.time() - t0:.0f} s")
         if joint.uncertainty:
             say("  " + joint.uncertainty_line())

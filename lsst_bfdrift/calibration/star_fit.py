@@ -58,7 +58,14 @@ The chi2 is the a-matrix's, of the template's change from T_a (measured
 errors; T_a is the flats' estimate, and its residuals to the measured a_ij,
 where the refinement kept the model within their errors, are not refitted),
 plus the stars' (slopes / their bootstrap errors; a right correction leaves
-zero). Directions are added one
+zero). By default only the size slopes are fitted: a 2k x 2k field of 800
+stars measures its e1 slope no better than its size slope, while the e1
+slope is 8-30 times smaller, and the directions of the a-matrix's errors
+leave e1 nearly free (refining the model to GalSim ITL's a-matrix plus one
+draw of its flats' errors moves the stars' e1 slope by 45 % rms, their size
+by 12 %), so the fields' e1 noise would go straight into the template. The
+e1 and e2 slopes are still measured, reported and held out
+(``fitted_slopes`` adds them). Directions are added one
 at a time while the chi2 drops by more than ln N (the same rule as the
 a-matrix fit); then c is solved by weighted least squares and refined by
 Gauss-Newton steps with exact evaluations of the stars' slopes (the Jacobian
@@ -291,8 +298,9 @@ class StarCalibrationResult:
         ``amatrix`` and ``stars`` chi2 with T_a (``flats_only``) and with
         T(c) (``joint``), and the number of points of each.
     tension : dict
-        Rise of the a-matrix chi2 needed to null the star slopes, its
-        degrees of freedom and p-value.
+        Rise of the a-matrix chi2 needed to null the fitted star slopes, its
+        degrees of freedom and p-value; ``unfitted``: the chi2 of the
+        slopes measured and not fitted, after the fit, against zero.
     star_information : dict
         Per direction, the share of the Fisher information from the stars.
     fit_slopes, held_out : dict
@@ -325,6 +333,16 @@ class StarCalibrationResult:
                     f"{d['lag']} {d['sigma']:+.2f} sigma" for d in u["largest"])
                 + "; fitted size slopes moved by " + ", ".join(
                     f"{v['size']:+.2e}" for v in sc.values()) + " per 1e5 e")
+
+    def tension_line(self):
+        """The tension's p-value, and the chi2 of the slopes measured and not fitted."""
+        t = self.tension
+        line = f"tension p = {t['p_value']:.2g} ({t['dof']} fitted slopes)"
+        u = t.get("unfitted")
+        if u:
+            line += (f"; {', '.join(u['slopes'])} not fitted, after the fit chi2 "
+                     f"{u['chi2']:.1f} / {u['dof']} (p = {u['p_value']:.2g})")
+        return line
 
     def held_out_table(self):
         """Text table of the held-out slopes (the validation)."""
@@ -372,7 +390,8 @@ def _combine_folds(rows):
 
 def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_directions=6,
                          n_boot=200, iterations=2, gain=None, min_snr=30.0,
-                         min_stars=30, flats_uncertainty=True, progress=False):
+                         min_stars=30, flats_uncertainty=True, fitted_slopes=("size",),
+                         progress=False):
     """Refit a calibration jointly to its a-matrix and to star fields.
 
     Parameters
@@ -412,6 +431,13 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         directions always in the fit, their cost the a-matrix's chi2
         (module docstring); the model's directions are then left out, but
         ``curl``. False: the model's directions (tension resolved by physics).
+    fitted_slopes : sequence of {'size', 'e1', 'e2'}, optional
+        The star slopes the fit nulls (default: size). The others are
+        measured and reported (held-out stars included, and their chi2
+        after the fit in ``tension['unfitted']``) but carry no weight: a
+        field measures its e1 slope to about its own size (module
+        docstring), and the directions of the a-matrix's errors leave e1
+        free, so fitting it moves the template's e1 by the fields' noise.
     progress : bool, optional
         Progress bar on stderr.
 
@@ -429,6 +455,10 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     if result.template is None or result.built_template is None:
         raise CalibrationError("calibrate_with_stars needs a calibration with its template "
                                "built (calibrate(..., build=True))")
+    fitted_slopes = tuple(fitted_slopes)
+    if not fitted_slopes or set(fitted_slopes) - set(_SLOPES):
+        raise InputError(f"fitted_slopes must be a non-empty subset of {_SLOPES}, got "
+                         f"{fitted_slopes!r}")
     stars = list(stars) if not isinstance(stars, (str, np.ndarray, StarField)) else [stars]
     if not stars:
         raise CalibrationError("no star fields given")
@@ -582,7 +612,10 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
             return _star_vector({f.name: f.slopes(template, subsets[f.name], n_boot=n_b,
                                                   seed=seed) for f in fit_fields}, fit_fields)
 
-        r_s0, sig_s = vec(ta, n_boot)
+        r_s0, sig_u = vec(ta, n_boot)
+        # slopes not fitted: measured, no weight
+        sig_s = np.where(np.tile([k in fitted_slopes for k in _SLOPES], len(fit_fields)), sig_u,
+                         np.inf)
         Js = np.column_stack([(vec(t_k)[0] - r_s0) / e for t_k, e in zip(dir_templates,
                                                                            dir_eps)])
         # the a-matrix rows measure the change from T_a (the flats' estimate; its
@@ -594,13 +627,14 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         r0 = np.concatenate([np.zeros(n_a), r_s0, np.zeros(nd)])
         sig = np.concatenate([a_sig, sig_s, np.where(is_lag, np.inf, PRIOR_STEPS)])
         J = np.vstack([Ja, Js, np.eye(nd)])
-        n_data = n_a + r_s0.size  # ln N counts the data, not the prior rows
+        n_data = n_a + r_s0.size  # data rows (ln N counts the fitted ones), then the prior
         # the prior rows take part in the choice: a direction that would need many
         # steps (beyond its linear range) to lower chi2 pays for them; the lags are
         # always in
         chosen, selection = _select(J, r0, sig, np.ones(J.shape[0], bool), dirs,
                                     max_params=max_directions, always_first=False,
-                                    n_points=n_data, base=np.flatnonzero(is_lag))
+                                    n_points=n_a + int(np.isfinite(sig_s).sum()),
+                                    base=np.flatnonzero(is_lag))
         cols = list(np.flatnonzero(is_lag)) + [dirs.index(n) for n in chosen]
         rows = np.r_[np.arange(n_data), n_data + np.asarray(cols, int)]
         Jc, r0c, sigc = J[rows][:, cols], r0[rows], sig[rows]
@@ -632,7 +666,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         r_fin = np.concatenate([alpha_of(t_joint) - a_meas, s_j])
         return {"chosen": chosen, "cols": cols, "coef": coef, "cov": cov, "t": t_joint,
                 "a_change": alpha_of(t_joint) - a0,
-                "r_s0": r_s0, "sig_s": sig_s, "Js": Js, "r_fin": r_fin,
+                "r_s0": r_s0, "sig_s": sig_s, "sig_u": sig_u, "Js": Js, "r_fin": r_fin,
                 "selection": selection}
 
     def held_slopes(f, sub, template_of):
@@ -674,12 +708,21 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     chi2_s1 = float(np.sum((r_fin[n_a:] / sig_s) ** 2))
     # tension: the a-matrix chi2 of the template's change plus the stars' chi2 left, the
     # rise of the total from the flats' optimum T_a, against chi2(n_star)
-    n_s = r_s0.size
+    n_s = int(np.isfinite(sig_s).sum())
     rise = float(np.sum((final["a_change"] / a_sig) ** 2)) + chi2_s1
     tension = {"chi2_rise": rise, "dof": n_s, "p_value": float(stats.chi2.sf(rise, n_s)),
                "note": "rise of the total chi2 from the a-matrix-only optimum when the star "
                        "slopes are added; large with a small p-value means the model's "
                        "directions cannot satisfy both data sets"}
+    unfitted = [k for k in _SLOPES if k not in fitted_slopes]
+    if unfitted:
+        # the slopes measured and not fitted, after the fit, against zero (a check: the
+        # loop's curl term shows in e1 here first)
+        sig_u = final["sig_u"]
+        rows_u = np.tile([k in unfitted for k in _SLOPES], len(fit_fields))
+        chi2_u = float(np.sum((r_fin[n_a:][rows_u] / sig_u[rows_u]) ** 2))
+        tension["unfitted"] = {"slopes": unfitted, "chi2": chi2_u, "dof": int(rows_u.sum()),
+                               "p_value": float(stats.chi2.sf(chi2_u, int(rows_u.sum())))}
     if tension["p_value"] < 1e-3:
         sig_d = np.concatenate([a_sig, sig_s])
         worst = np.argsort(-np.abs(r_fin / sig_d))[:3]

@@ -38,6 +38,7 @@ def _cmd_calibrate(args):
         joint = calibrate_with_stars(res, [os.path.abspath(x) for x in args.stars],
                                      holdout=args.holdout, gain=args.gain,
                                      flats_uncertainty=not args.model_directions_only,
+                                     fitted_slopes=args.fit_slopes,
                                      progress=not args.quiet)
         joint.template.meta["calibration"]["inputs"] = \
             [os.path.abspath(x) for x in args.input + args.stars]
@@ -77,8 +78,8 @@ def _cmd_calibrate(args):
     c2 = joint.chi2
     print(f"  with {len(args.stars)} star field(s): directions {', '.join(joint.directions)}; "
           f"chi2 a-matrix {c2['flats_only']['amatrix']:.1f} -> {c2['joint']['amatrix']:.1f}, "
-          f"star slopes {c2['flats_only']['stars']:.1f} -> {c2['joint']['stars']:.1f}; tension "
-          f"p = {joint.tension['p_value']:.2g}")
+          f"star slopes {c2['flats_only']['stars']:.1f} -> {c2['joint']['stars']:.1f}; "
+          + joint.tension_line())
     for n, v in joint.star_information.items():
         cf = joint.coefficients[n]
         print(f"  {n:>18s} {cf['parameter_change']:+.3g} +- {cf['parameter_change_err']:.2g} "

@@ -435,6 +435,11 @@ def build_parser():
     ca.add_argument("--model-directions-only", action="store_true",
                     help="with --stars: move the template along the model's directions only, "
                          "not within the a-matrix's errors lag by lag")
+    ca.add_argument("--fit-slopes", nargs="+", choices=("size", "e1", "e2"), default=["size"],
+                    metavar="SLOPE",
+                    help="with --stars: the star slopes the fit nulls (size, e1, e2; default "
+                         "size: a field measures e1 to about its own size, so fitting it adds "
+                         "noise; the others are reported)")
     ca.add_argument("--plot", help="write a PNG: a_ij against lag, pulls, correlations")
     ca.add_argument("--overwrite", action="store_true",
                     help="replace an existing --out or --plot")

@@ -32,6 +32,7 @@ from lsst_bfdrift.simulation.skysim import scale_template
 from lsst_bfdrift.templates.refine import (area_response_directions, curl_free_template,
                                           match_area_coefficients, template_alpha)
 from lsst_bfdrift.templates.template import TemplateSettings, build_template
+from lsst_bfdrift.utils.errors import InputError
 
 STRENGTH = STRENGTHS[2]
 
@@ -119,7 +120,8 @@ def test_stars_pull_a_weak_template_back_and_held_out_stars_show_it():
     plt.close(fig)
 
 
-def test_stars_undo_a_flats_error_within_the_a_matrix_errors():
+@pytest.mark.parametrize("fitted", [("size",), ("size", "e1", "e2")])
+def test_stars_undo_a_flats_error_within_the_a_matrix_errors(fitted):
     """A flats template off by 3 sigma of its a-matrix (a_ij known to 100 %
     per lag, sum rule kept), along the direction of those errors that the
     field's size slope sees most: the stars move it back within the
@@ -128,7 +130,9 @@ def test_stars_undo_a_flats_error_within_the_a_matrix_errors():
     error, about 1.3 here), and the held-out stars (two-fold
     cross-validation) show most of the size slope the error left removed. The
     reported a_ij change is the templates' exact polygon areas' and keeps the
-    measured lags' area (sum rule); the field is drawn by galsim.SiliconSensor."""
+    measured lags' area (sum rule); the field is drawn by galsim.SiliconSensor.
+    Fitting the size slope alone (the default) or with e1 and e2 does it
+    alike; the slopes not fitted are reported as a check."""
     res = _calibration()
     img = paired_fields()["images"][2]
     table = AcoeffTable(res.table.a, 20.0 * res.table.sigma, source="100 %")
@@ -143,8 +147,16 @@ def test_stars_undo_a_flats_error_within_the_a_matrix_errors():
     # the a-matrix's directions alone (max_directions=0: no model direction)
     joint = calibrate_with_stars(type(res)(**{**res.__dict__, "template": wrong,
                                               "table": table}), [img], min_stars=8, seed=3,
-                                 max_directions=0)
+                                 max_directions=0, fitted_slopes=fitted)
     assert joint.directions == []
+    assert joint.tension["dof"] == joint.chi2["n_stars"] == len(fitted)
+    if len(fitted) == 1:
+        unfit = joint.tension["unfitted"]
+        assert unfit["slopes"] == ["e1", "e2"] and unfit["dof"] == 2
+        assert 0 <= unfit["p_value"] <= 1
+        assert "e1, e2 not fitted, after the fit chi2" in joint.tension_line()
+    else:
+        assert "unfitted" not in joint.tension
     unc = joint.uncertainty
     assert unc["n_directions"] == 15                  # 16 lags (a00 too) less the sum rule
     steps = np.array([unc["steps"][n] for n in modes])
@@ -183,6 +195,8 @@ def test_bad_star_inputs_get_clear_errors():
     nores = type(res)(**{**res.__dict__, "template": None})
     with pytest.raises(CalibrationError, match="template built"):
         calibrate_with_stars(nores, [img])
+    with pytest.raises(InputError, match="fitted_slopes must be a non-empty subset"):
+        calibrate_with_stars(res, [img], min_stars=8, fitted_slopes=("size", "e3"))
 
 
 def test_saturated_and_masked_stars_are_excluded_and_counted():

@@ -784,3 +784,21 @@ def test_diagnose_reports_the_template_change(tmp_path, capsys, monkeypatch):
     code, out, _ = _run(capsys, "diagnose", str(path), "--no-template-change")
     assert code == 0 and "charge_cloud" in out and "largest shift" not in out
     assert len(seen) == 1
+
+
+def test_calibrate_fit_slopes_option(capsys):
+    """--fit-slopes defaults to the API's fitted_slopes (size) and takes only
+    size, e1 and e2."""
+    import inspect
+
+    from lsst_bfdrift.calibration.star_fit import calibrate_with_stars
+    from lsst_bfdrift.cli.main import build_parser
+    default = inspect.signature(calibrate_with_stars).parameters["fitted_slopes"].default
+    args = build_parser().parse_args(["calibrate", "a.txt", "--out", "o.fits", "--stars", "f.fits"])
+    assert tuple(args.fit_slopes) == tuple(default) == ("size",)
+    args = build_parser().parse_args(["calibrate", "a.txt", "--out", "o.fits", "--stars", "f.fits",
+                                      "--fit-slopes", "size", "e1"])
+    assert args.fit_slopes == ["size", "e1"]
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["calibrate", "a.txt", "--out", "o.fits", "--fit-slopes", "e3"])
+    assert "invalid choice" in capsys.readouterr().err
