@@ -49,8 +49,9 @@ from scipy import stats
 
 from lsst_bfdrift.calibration.observables import (SPLITS, _pair_ratios, _pixel_variance, _wmean,
                                                   exposure_line, lag_error_factors,
-                                                  lag_multiplicity, pair_mean_errors)
+                                                  pair_mean_errors)
 from lsst_bfdrift.simulation.effects import BASE_OBSERVABLES
+from lsst_bfdrift.templates.refine import lag_multiplicity
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["CHECKS", "not_available", "linearity_finding", "sum_rule_finding",

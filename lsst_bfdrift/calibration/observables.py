@@ -18,21 +18,11 @@ import numpy as np
 from lsst_bfdrift.calibration.ptc import edge_mask, pair_covariances, ptc_turnoff
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["SPLITS", "lag_multiplicity", "lag_error_factors", "pair_observables",
+__all__ = ["SPLITS", "lag_error_factors", "pair_observables",
            "turnoff_cut", "exposure_scatter", "pair_mean_errors", "exposure_line"]
 
 #: Image halves compared: split name -> (first half, second half).
 SPLITS = {"left_right": ("left", "right"), "bottom_top": ("bottom", "top")}
-
-def lag_multiplicity(max_lag):
-    """Number of signed lags each quadrant lag stands for: 1 at (0, 0), 2 on the
-    axes, 4 off them; shape (L + 1, L + 1)."""
-    m = np.full((max_lag + 1, max_lag + 1), 4.0)
-    m[0, :] = 2.0
-    m[:, 0] = 2.0
-    m[0, 0] = 1.0
-    return m
-
 
 def lag_error_factors(max_lag):
     """Error of a sample covariance of N pixels in units of V / sqrt(N) (V the

@@ -45,10 +45,9 @@ import numpy as np
 
 from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable, electrostatic_acoeffs
 from lsst_bfdrift.calibration.fitting import FitError, fit_parameters
-from lsst_bfdrift.calibration.observables import lag_multiplicity
 from lsst_bfdrift.calibration.ptc import fit_covariance_model, fit_ptc_exponential
 from lsst_bfdrift.physics.sensor import SensorParameters
-from lsst_bfdrift.templates.refine import match_area_coefficients, template_alpha
+from lsst_bfdrift.templates.refine import lag_multiplicity, match_area_coefficients, template_alpha
 from lsst_bfdrift.templates.template import (TemplateSettings, build_template,
                                              load_default_template)
 from lsst_bfdrift.utils.progress import ProgressBar

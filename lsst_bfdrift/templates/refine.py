@@ -18,8 +18,18 @@ import numpy as np
 from lsst_bfdrift.templates.template import DistortionTemplate
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
-__all__ = ["template_alpha", "match_area_coefficients", "curl_free_template", "draw_templates",
-           "area_response_directions"]
+__all__ = ["template_alpha", "lag_multiplicity", "match_area_coefficients", "curl_free_template",
+           "draw_templates", "area_response_directions"]
+
+
+def lag_multiplicity(max_lag):
+    """Number of signed lags each quadrant lag stands for: 1 at (0, 0), 2 on the
+    axes, 4 off them; shape (L + 1, L + 1)."""
+    m = np.full((max_lag + 1, max_lag + 1), 4.0)
+    m[0, :] = 2.0
+    m[:, 0] = 2.0
+    m[0, 0] = 1.0
+    return m
 
 
 def template_alpha(template):
@@ -271,7 +281,7 @@ def area_response_directions(template, sigma, *, max_lag=None, sum_rule=True):
         vd, hd, _ = solve(np.where(matched & (di == i) & (dj == j), 1.0, 0.0), zv, zh)
         basis.append((vd, hd))
     if sum_rule and (0, 0) in lags:
-        n = np.array([(1 if i == 0 else 2) * (1 if j == 0 else 2) for i, j in lags], float)
+        n = lag_multiplicity(L)[tuple(np.array(lags).T)]
         cn = sig ** 2 * n
         cov = np.diag(sig ** 2) - np.outer(cn, cn) / float(n @ cn)
         w, u = np.linalg.eigh(cov)

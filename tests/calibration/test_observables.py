@@ -18,9 +18,10 @@ from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable, load_default_basis
 from lsst_bfdrift.calibration.diagnosis import (Observations, diagnose, load_input,
                                                 observations_from_pairs)
 from lsst_bfdrift.calibration.findings import CHECKS, assess_observables, linearity_finding
-from lsst_bfdrift.calibration.observables import (exposure_scatter, lag_multiplicity,
-                                                  pair_observables, turnoff_cut)
+from lsst_bfdrift.calibration.observables import (exposure_scatter, pair_observables,
+                                                  turnoff_cut)
 from lsst_bfdrift.calibration.report import diagnosis_markdown
+from lsst_bfdrift.templates.refine import lag_multiplicity
 from lsst_bfdrift.simulation.effects import (BASE_OBSERVABLES, OBSERVABLES, GainNonlinearity,
                                              cti_filter_covariance, effect_library)
 from lsst_bfdrift.simulation.flats import simulate_flat_pairs, write_flat_pairs
