@@ -44,8 +44,8 @@ move the template within the a-matrix's errors, along the combination that
 changes their slopes most for the least chi2: a Gaussian update of the
 flats' estimate by the stars. It matters where the flats are small: the
 flats of ``benchmarks/calibrate_noise_floor.py`` (800 x 800 px, 36 pairs)
-leave GalSim ITL's size slope uncertain by about 12 % rms, which two star
-fields measure better. Both data sets are linear in c:
+leave GalSim ITL's size slope uncertain by about 12 % rms, and a field of
+800 stars measures it to 9-13 %. Both data sets are linear in c:
 
 * the a-matrix: the template's linear area response is linear in its
   displacements, so a(c) = a(T_a) + sum_k c_k alpha(Delta T_k) exactly;
@@ -61,9 +61,10 @@ plus the stars' (slopes / their bootstrap errors; a right correction leaves
 zero). By default only the size slopes are fitted: a 2k x 2k field of 800
 stars measures its e1 slope no better than its size slope, while the e1
 slope is 8-30 times smaller, and the directions of the a-matrix's errors
-leave e1 nearly free (refining the model to GalSim ITL's a-matrix plus one
-draw of its flats' errors moves the stars' e1 slope by 45 % rms, their size
-by 12 %), so the fields' e1 noise would go straight into the template. The
+leave e1 nearly free (one draw of the flats' errors, matched lag by lag,
+moves GalSim ITL stars' e1 slope by -65 to +46 % of itself, their size by
+-10 to +20 %; ``benchmarks/calibrate_noise_floor.py``), so the fields' e1
+noise would go straight into the template. The
 e1 and e2 slopes are still measured, reported and held out
 (``fitted_slopes`` adds them). Directions are added one
 at a time while the chi2 drops by more than ln N (the same rule as the
