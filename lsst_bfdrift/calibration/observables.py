@@ -24,6 +24,7 @@ __all__ = ["SPLITS", "lag_error_factors", "pair_observables",
 #: Image halves compared: split name -> (first half, second half).
 SPLITS = {"left_right": ("left", "right"), "bottom_top": ("bottom", "top")}
 
+
 def lag_error_factors(max_lag):
     """Error of a sample covariance of N pixels in units of V / sqrt(N) (V the
     variance): sqrt(2) at lag 0, 1 on the axes, sqrt(1/2) off them, the errors
