@@ -606,6 +606,8 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     a_res0 = a0 - a_meas
     n_a = a0.size
     is_lag = np.array([n in lag_names for n in dirs], bool)
+    # the star vector's rows (_star_vector: each fitted field's size, e1, e2) that are fitted
+    fitted_rows = np.tile([k in fitted_slopes for k in _SLOPES], len(fit_fields))
 
     def fit(subsets):
         """The joint fit to the a-matrix and the stars ``subsets`` (field name -> mask)."""
@@ -614,9 +616,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                                                   seed=seed) for f in fit_fields}, fit_fields)
 
         r_s0, sig_u = vec(ta, n_boot)
-        # slopes not fitted: measured, no weight
-        sig_s = np.where(np.tile([k in fitted_slopes for k in _SLOPES], len(fit_fields)), sig_u,
-                         np.inf)
+        sig_s = np.where(fitted_rows, sig_u, np.inf)  # slopes not fitted: measured, no weight
         Js = np.column_stack([(vec(t_k)[0] - r_s0) / e for t_k, e in zip(dir_templates,
                                                                            dir_eps)])
         # the a-matrix rows measure the change from T_a (the flats' estimate; its
@@ -719,8 +719,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     if unfitted:
         # the slopes measured and not fitted, after the fit, against zero (a check: the
         # loop's curl term shows in e1 here first)
-        sig_u = final["sig_u"]
-        rows_u = np.tile([k in unfitted for k in _SLOPES], len(fit_fields))
+        sig_u, rows_u = final["sig_u"], ~fitted_rows
         chi2_u = float(np.sum((r_fin[n_a:][rows_u] / sig_u[rows_u]) ** 2))
         tension["unfitted"] = {"slopes": unfitted, "chi2": chi2_u, "dof": int(rows_u.sum()),
                                "p_value": float(stats.chi2.sf(chi2_u, int(rows_u.sum())))}
