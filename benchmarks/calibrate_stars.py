@@ -83,6 +83,13 @@ def cached_field(sensor, args, k=0):
     return f["image"], seed, time.time() - t0
 
 
+def ivw_mean(values, errors):
+    """Inverse-variance mean, its error and the chi2 about it."""
+    v, w = np.asarray(values, float), 1.0 / np.asarray(errors, float) ** 2
+    m = float(np.sum(w * v) / np.sum(w))
+    return m, float(np.sum(w) ** -0.5), float(np.sum(w * (v - m) ** 2))
+
+
 def held_out_mean(held_out):
     """Inverse-variance mean over the fields of the held-out size residual, in %
     of each field's uncorrected slope, with the chi2 about it."""
@@ -92,20 +99,17 @@ def held_out_mean(held_out):
                       for d in held_out.values()])
         e = np.array([100 * d[what]["size"][1] / abs(d["before"]["size"][0])
                       for d in held_out.values()])
-        w = 1.0 / e**2
-        m = float(np.sum(w * r) / np.sum(w))
-        cells.append(f"{what} {m:+.1f} +- {np.sum(w) ** -0.5:.1f} % (chi2 "
-                     f"{float(np.sum(w * (r - m) ** 2)):.1f} / {r.size - 1})")
+        m, m_err, chi2 = ivw_mean(r, e)
+        cells.append(f"{what} {m:+.1f} +- {m_err:.1f} % (chi2 {chi2:.1f} / {r.size - 1})")
     # what the correction removed (uncorrected minus corrected): the stars' own
     # measurement noise, common to both slopes, cancels in it
     before = np.array([d["before"]["size"][0] for d in held_out.values()])
     e_b = np.array([d["before"]["size"][1] for d in held_out.values()])
-    w = 1.0 / e_b**2
-    m_b = float(np.sum(w * before) / np.sum(w))
+    chi2_b = ivw_mean(before, e_b)[2]
     removed = before - np.array([d["flats_only"]["size"][0] for d in held_out.values()])
     return (f"held-out size residual over the {len(held_out)} fields (inverse-variance "
             "mean): " + ", ".join(cells) + f"; uncorrected slope chi2 "
-            f"{float(np.sum(w * (before - m_b) ** 2)):.1f} / {before.size - 1} about its mean; "
+            f"{chi2_b:.1f} / {before.size - 1} about its mean; "
             f"slope removed by the flats-only correction {removed.mean():.3e} per 1e5 e, "
             f"field-to-field rms {removed.std(ddof=1) / abs(removed.mean()):.1%}")
 
@@ -219,14 +223,12 @@ def main(argv=None):
         except InputError as exc:  # beyond the file's modelled range
             say(f"  fields corrected with GalSim's own template: refused ({exc})")
         else:
-            w = 1.0 / np.array(errs) ** 2
-            m = float(np.sum(w * np.array(vals)) / np.sum(w))
+            m, m_err, chi2 = ivw_mean(vals, errs)
             rec["fields_with_galsim_template"] = {"size_pct": vals, "size_pct_err": errs,
-                                                  "mean": m,
-                                                  "mean_err": float(np.sum(w) ** -0.5)}
+                                                  "mean": m, "mean_err": m_err}
             say("  fields corrected with GalSim's own template (transfers), size slope left: "
-                + ", ".join(cells) + f" %; mean {m:+.1f} +- {np.sum(w) ** -0.5:.1f} % "
-                f"(chi2 {float(np.sum(w * (np.array(vals) - m) ** 2)):.1f} / {len(vals) - 1})")
+                + ", ".join(cells) + f" %; mean {m:+.1f} +- {m_err:.1f} % "
+                f"(chi2 {chi2:.1f} / {len(vals) - 1})")
         pairs, pseed, pcost = star_pairs(sensor, "moffat", args)
         say(f"  paired validation stars: {len(pairs)} Moffat (seed {pseed})"
             + (f", drawn in {pcost:.0f} s" if pcost else ""))
