@@ -23,7 +23,6 @@ default_template.fits`` and ``default_template_config.json``::
 """
 
 import argparse
-import json
 import os
 import sys
 
@@ -34,9 +33,8 @@ ROOT = os.path.join(HERE, "..")
 sys.path.insert(0, ROOT)
 
 from lsst_bfdrift.calibration.acoeff_fit import read_acoeff_table  # noqa: E402
-from lsst_bfdrift.calibration.tuning import CHARGE, calibrate, refinement_target  # noqa: E402
+from lsst_bfdrift.calibration.tuning import CHARGE, calibrate, refine_template  # noqa: E402
 from lsst_bfdrift.physics.sensor import SensorParameters  # noqa: E402
-from lsst_bfdrift.templates.refine import match_area_coefficients  # noqa: E402
 from lsst_bfdrift.templates.template import TemplateSettings, build_template  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
@@ -82,7 +80,7 @@ def main(argv=None):
             print("note: SensorParameters() differs from the fit; update its defaults to",
                   rounded)
         tpl = build_template(params, SETTINGS)
-        tpl = match_area_coefficients(tpl, refinement_target(tpl, table))
+        tpl = refine_template(tpl, table)
         tpl.meta["calibration"] = {
             "source": table.source, "names": f.names, "values": f.values, "errors": f.errors,
             "covariance": np.asarray(f.covariance).tolist(), "chi2": f.chi2, "dof": f.dof,

@@ -50,7 +50,7 @@ sys.path.insert(0, os.path.dirname(HERE))
 
 from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable  # noqa: E402
 from lsst_bfdrift.calibration.ptc import fit_covariance_model  # noqa: E402
-from lsst_bfdrift.calibration.tuning import calibrate, refinement_target  # noqa: E402
+from lsst_bfdrift.calibration.tuning import calibrate, refine_template  # noqa: E402
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.templates.refine import draw_templates, match_area_coefficients  # noqa: E402
@@ -106,7 +106,7 @@ def main(argv=None):
         full = table.a.copy()
         full[:L + 1, :L + 1] = a
         t = AcoeffTable(full, table.sigma * scale, source="draw")
-        return match_area_coefficients(built, refinement_target(built, t), max_lag=L)
+        return refine_template(built, t)
 
     for scale, label in ((1.0, "flats' errors"), (10 ** -0.5, "errors / sqrt(10)")):
         templates[f"GalSim a_ij, kept to model within {label}"] = as_calibrate(truth, scale)

@@ -56,6 +56,7 @@ from lsst_bfdrift.utils.io import data_path, write_text
 
 __all__ = ["CANDIDATES", "CalibrationError", "CalibrationResult", "calibrate",
            "default_start", "model_acoeffs", "measured_acoeffs", "refinement_target",
+           "refine_template",
            "start_jacobian", "write_start_jacobian"]
 
 #: Candidate free parameters and their bounds: the dipole unit xi0 (e), the
@@ -282,6 +283,28 @@ def refinement_target(template, table):
     with np.errstate(divide="ignore"):
         w = np.clip(1.0 - 1.0 / pull2, 0.0, 1.0)
     return np.where(table.mask()[:L + 1, :L + 1], model + w * r, np.nan)
+
+
+def refine_template(template, table):
+    """The template refined as :func:`calibrate` refines it: its linear area
+    response matched to :func:`refinement_target` (the measured a_ij where
+    they differ significantly from the template's, its own elsewhere) over
+    the lags of ``table`` that fit in the template.
+
+    Parameters
+    ----------
+    template : DistortionTemplate
+        Template built from the fitted parameters.
+    table : AcoeffTable
+        Measured a_ij (1/e) with their errors.
+
+    Returns
+    -------
+    DistortionTemplate
+        The refined copy (``template`` is not modified).
+    """
+    return match_area_coefficients(template, refinement_target(template, table),
+                                   max_lag=min(table.max_lag, template.center - 1))
 
 
 class CalibrationResult:
@@ -542,8 +565,7 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
         seconds["build"] = time.perf_counter() - t2
         if refine:
             t3 = time.perf_counter()
-            template = match_area_coefficients(template, refinement_target(template, table),
-                                               max_lag=min(L, template.center - 1))
+            template = refine_template(template, table)
             seconds["refine"] = time.perf_counter() - t3
         c = template.center
         k = min(L, c - 1) + 1

@@ -134,6 +134,31 @@ def test_refinement_target_keeps_the_model_within_errors():
     assert_allclose(target[0, 1], data[0, 1], rtol=0, atol=0.011 * 10 * sigma[0, 1])
 
 
+def test_refine_template_is_the_refinement_of_calibrate():
+    """Consistency: refine_template matches the template's linear area
+    response to refinement_target (a lag 10 sigma off is moved, the others
+    keep the model's) and leaves its input unchanged."""
+    from lsst_bfdrift.calibration.tuning import refine_template
+    from lsst_bfdrift.templates.refine import template_alpha
+    from lsst_bfdrift.templates.template import build_template
+
+    tpl = build_template(None, SMALL)
+    edges = [tpl.corner_d.copy(), tpl.vedge_d.copy(), tpl.hedge_d.copy()]
+    c = tpl.center
+    own = template_alpha(tpl)[c:c + 3, c:c + 3].T
+    sigma = np.full((3, 3), 1e-9)
+    data = own.copy()
+    data[0, 1] = own[0, 1] + 10 * sigma[0, 1]
+    out = refine_template(tpl, AcoeffTable(data, sigma, exclude_a00=True))
+    got = template_alpha(out)[c:c + 3, c:c + 3].T
+    assert_allclose(got[0, 1], data[0, 1], rtol=0, atol=0.02 * 10 * sigma[0, 1])
+    assert_allclose(got[1, 1], own[1, 1], rtol=0, atol=0.02 * 10 * sigma[0, 1])
+    for old, new in zip(edges, (tpl.corner_d, tpl.vedge_d, tpl.hedge_d)):
+        assert_allclose(new, old, rtol=0, atol=0)
+    assert not np.allclose(out.vedge_d, tpl.vedge_d, rtol=0, atol=0) \
+        or not np.allclose(out.hedge_d, tpl.hedge_d, rtol=0, atol=0)
+
+
 def test_shipped_start_jacobian_equals_a_fresh_computation():
     """Consistency (package against itself): the package-data start Jacobian
     equals a fresh forward difference at the default start (lags <= 2, two
