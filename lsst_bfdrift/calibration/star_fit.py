@@ -108,70 +108,19 @@ from lsst_bfdrift.calibration.catalog import (FLAG_NAMES, _load_electrons, detec
                                           measure_stars)
 from lsst_bfdrift.calibration.star_slopes import FLUX_UNIT, select_stars, shape_flux_relations
 from lsst_bfdrift.calibration.tuning import CalibrationError, _select
-from lsst_bfdrift.templates.refine import (area_response_directions, curl_free_template,
-                                          template_alpha)
-from lsst_bfdrift.templates.template import DistortionTemplate, build_template
+from lsst_bfdrift.templates.refine import (area_response_directions, combine_templates,
+                                          curl_free_template, template_alpha,
+                                          template_difference)
+from lsst_bfdrift.templates.template import build_template
 from lsst_bfdrift.utils.progress import ProgressBar
 
-__all__ = ["StarField", "StarCalibrationResult", "calibrate_with_stars", "combine_templates"]
+__all__ = ["StarField", "StarCalibrationResult", "calibrate_with_stars"]
 
 _SLOPES = ("size", "e1", "e2")
 #: Finite-difference step of the star Jacobian (in units of each direction).
 _EPS = 0.25
 #: Prior width (steps) of every direction of the template family.
 PRIOR_STEPS = 3.0
-
-
-def combine_templates(base, deltas, coefficients, *, meta=None):
-    """``base`` plus ``sum_k coefficients[k] * deltas[k]`` (displacement arrays).
-
-    Parameters
-    ----------
-    base : DistortionTemplate
-    deltas : sequence of dict
-        Displacement changes: ``corner_d``, ``vedge_d``, ``hedge_d``,
-        ``vedge_t``, ``hedge_t`` arrays (pixel units at ``base.charge``).
-    coefficients : sequence of float
-    meta : dict, optional
-        Metadata of the result (default: the base's).
-
-    Returns
-    -------
-    DistortionTemplate
-    """
-    arr = {}
-    for name in ("corner_d", "vedge_d", "hedge_d", "vedge_t", "hedge_t"):
-        b = getattr(base, name)
-        has = b is not None or any(d.get(name) is not None for d in deltas)
-        if not has:
-            arr[name] = None
-            continue
-        a = np.zeros_like(base.vedge_d if name == "vedge_t" else base.hedge_d) \
-            if b is None else np.array(b, float)
-        for d, c in zip(deltas, coefficients):
-            if d.get(name) is not None and c != 0:
-                a = a + float(c) * d[name]
-        arr[name] = a
-    return DistortionTemplate(arr["corner_d"], arr["vedge_d"], arr["hedge_d"], base.fractions,
-                              base.charge, vedge_t=arr["vedge_t"], hedge_t=arr["hedge_t"],
-                              meta=dict(base.meta if meta is None else meta))
-
-
-def _delta(t1, t0):
-    """Displacement difference t1 - t0 of two templates of the same grid."""
-    if t1.size != t0.size or t1.fractions.size != t0.fractions.size \
-            or not np.isclose(t1.charge, t0.charge):
-        raise InputError("templates differ in size, edge samples or charge")
-    out = {}
-    for name in ("corner_d", "vedge_d", "hedge_d", "vedge_t", "hedge_t"):
-        a, b = getattr(t1, name), getattr(t0, name)
-        if a is None and b is None:
-            out[name] = None
-            continue
-        a = np.zeros_like(getattr(t1 if b is None else t0, name)) if a is None else a
-        b = np.zeros_like(a) if b is None else b
-        out[name] = a - b
-    return out
 
 
 class StarField:
@@ -555,12 +504,12 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
             warn.append(f"direction {n} skipped: the model fails at {n} = {x0 + h:g} ({exc})")
             continue
         dirs.append(n)
-        deltas.append(_delta(tk, base_built))
+        deltas.append(template_difference(tk, base_built))
         steps[n] = h
     # 'curl': the part of T_a's boundary shifts that the a-matrix does not see
     bar(1)
     dirs.append("curl")
-    deltas.append(_delta(ta, curl_free_template(ta)))
+    deltas.append(template_difference(ta, curl_free_template(ta)))
     steps["curl"] = 1.0
     lag_names = set()
     for name, d in lag_dirs.items():

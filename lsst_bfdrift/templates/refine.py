@@ -19,7 +19,8 @@ from lsst_bfdrift.templates.template import DistortionTemplate
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["template_alpha", "lag_multiplicity", "match_area_coefficients", "curl_free_template",
-           "draw_templates", "area_response_directions"]
+           "area_response_directions", "draw_templates", "combine_templates",
+           "template_difference"]
 
 
 def lag_multiplicity(max_lag):
@@ -302,6 +303,71 @@ def area_response_directions(template, sigma, *, max_lag=None, sum_rule=True):
         out[name] = {"delta": {"corner_d": np.zeros_like(template.corner_d), "vedge_d": vd,
                                "hedge_d": hd, "vedge_t": None, "hedge_t": None},
                      "a_change": da}
+    return out
+
+
+def combine_templates(base, deltas, coefficients, *, meta=None):
+    """``base`` plus ``sum_k coefficients[k] * deltas[k]`` (displacement arrays).
+
+    Parameters
+    ----------
+    base : DistortionTemplate
+    deltas : sequence of dict
+        Displacement changes: ``corner_d``, ``vedge_d``, ``hedge_d``,
+        ``vedge_t``, ``hedge_t`` arrays (pixel units at ``base.charge``).
+    coefficients : sequence of float
+    meta : dict, optional
+        Metadata of the result (default: the base's).
+
+    Returns
+    -------
+    DistortionTemplate
+    """
+    arr = {}
+    for name in ("corner_d", "vedge_d", "hedge_d", "vedge_t", "hedge_t"):
+        b = getattr(base, name)
+        has = b is not None or any(d.get(name) is not None for d in deltas)
+        if not has:
+            arr[name] = None
+            continue
+        a = np.zeros_like(base.vedge_d if name == "vedge_t" else base.hedge_d) \
+            if b is None else np.array(b, float)
+        for d, c in zip(deltas, coefficients):
+            if d.get(name) is not None and c != 0:
+                a = a + float(c) * d[name]
+        arr[name] = a
+    return DistortionTemplate(arr["corner_d"], arr["vedge_d"], arr["hedge_d"], base.fractions,
+                              base.charge, vedge_t=arr["vedge_t"], hedge_t=arr["hedge_t"],
+                              meta=dict(base.meta if meta is None else meta))
+
+
+def template_difference(t1, t0):
+    """Displacement difference ``t1 - t0`` of two templates of the same grid.
+
+    Parameters
+    ----------
+    t1, t0 : DistortionTemplate
+        Same size, edge samples and charge.
+
+    Returns
+    -------
+    dict
+        ``corner_d``, ``vedge_d``, ``hedge_d``, ``vedge_t``, ``hedge_t``
+        differences (pixel units at the templates' charge; None where
+        neither template has the array), as :func:`combine_templates` takes.
+    """
+    if t1.size != t0.size or t1.fractions.size != t0.fractions.size \
+            or not np.isclose(t1.charge, t0.charge):
+        raise InputError("templates differ in size, edge samples or charge")
+    out = {}
+    for name in ("corner_d", "vedge_d", "hedge_d", "vedge_t", "hedge_t"):
+        a, b = getattr(t1, name), getattr(t0, name)
+        if a is None and b is None:
+            out[name] = None
+            continue
+        a = np.zeros_like(getattr(t1 if b is None else t0, name)) if a is None else a
+        b = np.zeros_like(a) if b is None else b
+        out[name] = a - b
     return out
 
 

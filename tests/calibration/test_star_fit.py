@@ -23,14 +23,14 @@ from numpy.testing import assert_allclose
 from tests.validation._galsim_fields import STRENGTHS, paired_fields
 from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable
 from lsst_bfdrift.calibration.catalog import detect_stars, measure_stars
-from lsst_bfdrift.calibration.star_fit import (StarField, _delta, calibrate_with_stars,
-                                              combine_templates)
+from lsst_bfdrift.calibration.star_fit import StarField, calibrate_with_stars
 from lsst_bfdrift.calibration.tuning import CANDIDATES, CalibrationError, CalibrationResult
 from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 from lsst_bfdrift.simulation.skysim import scale_template
-from lsst_bfdrift.templates.refine import (area_response_directions, curl_free_template,
-                                          match_area_coefficients, template_alpha)
+from lsst_bfdrift.templates.refine import (area_response_directions, combine_templates,
+                                          curl_free_template, match_area_coefficients,
+                                          template_alpha, template_difference)
 from lsst_bfdrift.templates.template import TemplateSettings, build_template
 from lsst_bfdrift.utils.errors import InputError
 
@@ -51,19 +51,6 @@ def _calibration():
     return CalibrationResult(params=params, table=table, template=template,
                              built_template=built, settings=settings,
                              candidates=dict(CANDIDATES))
-
-
-def test_combined_template_area_response_is_linear():
-    res = _calibration()
-    ta, tb = res.template, res.built_template
-    d = _delta(tb, ta)
-    for c in (-0.7, 0.4, 2.0):
-        mixed = combine_templates(ta, [d], [c])
-        assert_allclose(mixed.corner_d, ta.corner_d + c * (tb.corner_d - ta.corner_d))
-        # alpha of the combination, computed from its polygons, is the combination of alphas
-        assert_allclose(template_alpha(mixed),
-                        (1 - c) * template_alpha(ta) + c * template_alpha(tb),
-                        atol=1e-12 * np.abs(template_alpha(ta)).max() + 1e-16)
 
 
 def test_detections_reused_on_the_same_image_give_the_same_catalogue():
@@ -230,7 +217,7 @@ def test_curl_direction_moves_e1_and_not_the_a_matrix():
     res = _calibration()
     ta = res.template
     c = ta.center
-    d = _delta(ta, curl_free_template(ta))
+    d = template_difference(ta, curl_free_template(ta))
     field = StarField(paired_fields()["images"][2])
     a0 = template_alpha(ta)[c:c + 4, c:c + 4]
     s = {}

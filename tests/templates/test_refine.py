@@ -5,9 +5,11 @@ import pytest
 from numpy.testing import assert_allclose
 
 from lsst_bfdrift.physics.sensor import SensorParameters
-from lsst_bfdrift.templates.refine import (area_response_directions, curl_free_template,
-                                          match_area_coefficients, template_alpha)
+from lsst_bfdrift.templates.refine import (area_response_directions, combine_templates,
+                                          curl_free_template, match_area_coefficients,
+                                          template_alpha, template_difference)
 from lsst_bfdrift.templates.template import TemplateSettings, build_template
+from lsst_bfdrift.utils.errors import InputError
 
 
 @pytest.fixture(scope="module")
@@ -104,8 +106,6 @@ def test_area_response_directions_move_the_a_ij_within_their_errors(pair):
       orthonormal in it);
     * unmeasured lags (NaN or zero error) get no direction.
     """
-    from lsst_bfdrift.calibration.star_fit import combine_templates
-
     t = pair[1]
     c = t.center
     a0 = template_alpha(t)
@@ -153,6 +153,30 @@ def test_area_response_directions_move_the_a_ij_within_their_errors(pair):
         area_response_directions(t, np.zeros((2, 3)))
     with pytest.raises(TypeError, match="DistortionTemplate"):
         area_response_directions("template.fits", sigma)
+
+
+def test_combined_template_area_response_is_linear(pair):
+    """Independent reference (exact polygon areas): a template plus c times
+    its difference to another has, from its own polygons, the a_ij
+    (1 - c) alpha_A + c alpha_B; c = 1 gives B's displacements back."""
+    ta, tb = pair
+    d = template_difference(tb, ta)
+    for c in (-0.7, 0.4, 2.0):
+        mixed = combine_templates(ta, [d], [c])
+        assert_allclose(mixed.corner_d, ta.corner_d + c * (tb.corner_d - ta.corner_d))
+        assert_allclose(template_alpha(mixed),
+                        (1 - c) * template_alpha(ta) + c * template_alpha(tb),
+                        atol=1e-12 * np.abs(template_alpha(ta)).max() + 1e-16)
+    back = combine_templates(ta, [d], [1.0])
+    assert_allclose(back.vedge_d, tb.vedge_d, rtol=0, atol=1e-15)
+    assert_allclose(back.hedge_d, tb.hedge_d, rtol=0, atol=1e-15)
+
+
+def test_template_difference_refuses_other_grids(pair):
+    other = build_template(SensorParameters(), TemplateSettings(size=7, edge_samples=4, tol=1e-4,
+                                                                aggressor_charge=1e4, workers=2))
+    with pytest.raises(InputError, match="differ in size"):
+        template_difference(pair[0], other)
 
 
 def test_nan_lags_are_not_matched(pair):
