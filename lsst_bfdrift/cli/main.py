@@ -63,7 +63,6 @@ with up to two tables: ``sensor`` (keys of
 """
 
 import argparse
-import json
 import os
 import sys
 
@@ -78,8 +77,7 @@ from lsst_bfdrift.cli._common import (_check_outputs, _emit, _load_template, _pr
 from lsst_bfdrift.cli.analysis import (_cmd_calibrate, _cmd_diagnose, _cmd_ptc,
                                        _cmd_reproduce, _cmd_validate_sky, _cmd_validate_stars)
 from lsst_bfdrift.utils.errors import (BfdriftError, ComputationError, FieldValidationError,
-                                       FitError, InputError,
-                                       InputFileError, InputKeyError, OutputExistsError)
+                                       FitError, InputError, OutputExistsError)
 
 __all__ = ["main", "exit_code", "EXIT_OK", "EXIT_OTHER", "EXIT_INPUT", "EXIT_EXISTS",
            "EXIT_FIT", "read_config", "sample_image_path", "make_psf", "read_image"]
