@@ -238,7 +238,13 @@ class StarCalibrationResult:
         polygon areas): ``a_change`` per lag (1/e), ``chi2`` (with the
         a-matrix's errors), ``largest`` (the three largest a_ij changes, also
         in units of their errors, ``sigma``); ``slope_change`` (per fitted
-        field, the size, e1 and e2 slope change of the whole move, per 1e5 e).
+        field, the size, e1 and e2 slope change of the whole move, per 1e5 e);
+        ``size_slope_sigma`` (per fitted field, the standard deviation of its
+        corrected size slope that the a-matrix's errors leave, ``flats``, and
+        that they and the stars leave, ``joint``: per 1e5 e, and
+        ``*_percent`` of the field's uncorrected slope; propagated linearly
+        from the steps' covariances, so the model's own error beyond the
+        a-matrix's is not in it).
     coefficients : dict
         Per direction: ``steps`` (c_k), ``parameter_change`` (c_k h_k, in the
         parameter's unit) and its error.
@@ -282,7 +288,16 @@ class StarCalibrationResult:
                 f"{u['chi2']:.2f}; largest a_ij changes " + ", ".join(
                     f"{d['lag']} {d['sigma']:+.2f} sigma" for d in u["largest"])
                 + "; fitted size slopes moved by " + ", ".join(
-                    f"{v['size']:+.2e}" for v in sc.values()) + " per 1e5 e")
+                    f"{v['size']:+.2e}" for v in sc.values()) + " per 1e5 e"
+                + self._size_sigma_text(u.get("size_slope_sigma")))
+
+    @staticmethod
+    def _size_sigma_text(ss):
+        if not ss:
+            return ""
+        f, j = (np.mean([v[k] for v in ss.values()]) for k in ("flats_percent", "joint_percent"))
+        return (f"; the corrected size slope is known to +- {f:.1f} % of the uncorrected "
+                f"from the flats' errors, +- {j:.1f} % with the stars")
 
     def tension_line(self):
         """The tension's p-value, and the chi2 of the slopes measured and not fitted."""
@@ -590,6 +605,10 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         Jc, r0c, sigc = J[rows][:, cols], r0[rows], sig[rows]
         W = 1.0 / sigc ** 2
         cov = np.linalg.pinv(Jc.T @ (Jc * W[:, None])) if cols else np.zeros((0, 0))
+        # the same without the stars: the flats' (and priors') covariance of the steps
+        no_star = (rows < n_a) | (rows >= n_data)
+        cov_flats = np.linalg.pinv(Jc[no_star].T @ (Jc[no_star] * W[no_star, None])) \
+            if cols else np.zeros((0, 0))
         coef = -cov @ (Jc.T @ (W * r0c))
         # Gauss-Newton refinement with exact star evaluations
         # no direction: T_a itself (its corrections are already made)
@@ -615,6 +634,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                 t_joint = combine_templates(ta, [deltas[k] for k in cols], coef)
         r_fin = np.concatenate([alpha_of(t_joint) - a_meas, s_j])
         return {"chosen": chosen, "cols": cols, "coef": coef, "cov": cov, "t": t_joint,
+                "cov_flats": cov_flats,
                 "a_change": alpha_of(t_joint) - a0,
                 "r_s0": r_s0, "sig_s": sig_s, "sig_u": sig_u, "Js": Js, "r_fin": r_fin,
                 "selection": selection}
@@ -705,6 +725,17 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                  for i, j in zip(*np.nonzero(lag_mask))}
         order = sorted(pulls, key=lambda n: -abs(pulls[n][1]))
         moved = Js[:, cols] @ coef
+        # how well each fitted field's size slope after correction is known: from the
+        # flats' errors alone, and with the stars (linear propagation of the steps'
+        # covariances; the directions span the a-matrix's errors, not the model's own)
+        size_sigma = {}
+        for m, f in enumerate(fit_fields):
+            g = Js[3 * m, cols]
+            before = f.slopes(None, f.fit_stars, n_boot=n_boot, seed=seed)["size"][0]
+            sf, sj = (float(np.sqrt(max(g @ cv @ g, 0.0))) for cv in (final["cov_flats"], cov))
+            size_sigma[f.name] = {"flats": sf, "joint": sj,
+                                  "flats_percent": 100.0 * sf / abs(before),
+                                  "joint_percent": 100.0 * sj / abs(before)}
         uncertainty = {
             "n_directions": n_lag,
             "steps": {dirs[cols[k]]: float(coef[k]) for k in range(n_lag)},
@@ -714,9 +745,13 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                         for n in order[:3]],
             "slope_change": {f.name: {k: float(moved[3 * m + i]) for i, k in enumerate(_SLOPES)}
                              for m, f in enumerate(fit_fields)},
+            "size_slope_sigma": size_sigma,
             "note": "the joint template's change from the flats template: a_ij change per "
                     "lag (1/e) and its chi2 with the a-matrix's errors; steps along the "
-                    "directions of those errors (sum rule kept)"}
+                    "directions of those errors (sum rule kept); size_slope_sigma: per "
+                    "fitted field, the standard deviation of its corrected size slope (per "
+                    "1e5 e, and % of its uncorrected slope) that the flats' errors leave, "
+                    "and that the flats and the stars together leave"}
     fit_slopes = {}
     for f in fit_fields:
         fit_slopes[f.name] = {

@@ -166,6 +166,18 @@ def test_stars_undo_a_flats_error_within_the_a_matrix_errors(fitted):
     npix = np.array([[1, 2, 2, 2]] + [[2, 4, 4, 4]] * 3)
     assert abs(np.sum(npix * change)) < 0.02 * np.abs(npix * change).sum()
     assert "within the a-matrix's errors (15 directions)" in joint.uncertainty_line()
+    # the size slope's uncertainty, against the direct computation: the steps are one
+    # a-matrix error each (prior covariance I), so the flats leave sigma = |g|, and one
+    # size slope of error e updates it as a scalar Gaussian: |g| e / sqrt(|g|^2 + e^2)
+    ss = unc["size_slope_sigma"]["field0"]
+    assert_allclose(ss["flats"], np.linalg.norm(g), rtol=0.2)  # g: at the right template
+    if len(fitted) == 1:
+        e = joint.fit_slopes["field0"]["flats_only"]["size"][1]
+        assert_allclose(ss["joint"], ss["flats"] * e / np.hypot(ss["flats"], e), rtol=0.05)
+    assert ss["joint"] < ss["flats"]
+    assert_allclose(ss["flats_percent"],
+                    100 * ss["flats"] / abs(joint.fit_slopes["field0"]["before"]["size"][0]))
+    assert "with the stars" in joint.uncertainty_line()
 
 
 def test_bad_star_inputs_get_clear_errors():
