@@ -18,6 +18,17 @@ error and chi^2::
 
 Writes ``benchmarks/star_slope_bias_results.txt`` / ``.json``. About 20 s
 per field on one core (the catalogues are cached in ``--cache``).
+
+``--silicon SENSOR`` draws the fields as ``benchmarks/calibrate_stars.py``
+draws its own, with galsim.SiliconSensor (its diffusion, and the sky
+collected through the sensor around each star) at zero brighter-fatter
+strength (:func:`~lsst_bfdrift.simulation.skysim.simulate_star_field`,
+``strength=0``; about 200 s per field); ``--n-boot`` gives the slope errors
+the star calibration uses (the larger of the formal error and the
+bootstrap's), whose chi^2 about the mean tests them::
+
+    python benchmarks/star_slope_bias.py --silicon lsst_itl_50_8 --fields 12 \
+        --n-boot 100 --out benchmarks/star_slope_bias_silicon_results
 """
 
 import argparse
@@ -32,7 +43,7 @@ sys.path.insert(0, os.path.dirname(HERE))
 
 from lsst_bfdrift.calibration.star_fit import StarField  # noqa: E402
 from lsst_bfdrift.calibration.star_slopes import FLUX_UNIT, fit_flux_slope, select_stars  # noqa: E402
-from lsst_bfdrift.simulation.skysim import _field_psf, _positions  # noqa: E402
+from lsst_bfdrift.simulation.skysim import _field_psf, _positions, simulate_star_field  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 
@@ -56,12 +67,22 @@ def bf_free_field(seed, *, size=2048, n_stars=800, sky=1000.0, read_noise=5.0,
     return img
 
 
-def catalogue(seed, cache):
+def silicon_field(seed, sensor):
+    """A star field of ``benchmarks/calibrate_stars.py``'s recipe drawn by
+    galsim.SiliconSensor at zero brighter-fatter strength, e."""
+    # no boundary updates: at zero strength the boundaries do not move
+    return simulate_star_field((2048, 2048), 800, sensor=sensor, strength=0.0,
+                               flux=(1e4, 1.5e6), sky=1000.0, seed=seed, updates=1,
+                               min_nrecalc=1e12)["image"]
+
+
+def catalogue(seed, cache, silicon=None):
     """The usable stars' columns (x, y, flux, snr, T, e1, e2) of field ``seed``."""
-    path = None if cache is None else os.path.join(cache, f"ssb_{seed}.npz")
+    tag = f"ssb_{silicon}_{seed}" if silicon else f"ssb_{seed}"
+    path = None if cache is None else os.path.join(cache, tag + ".npz")
     if path is not None and os.path.isfile(path):
         return dict(np.load(path))
-    sf = StarField(bf_free_field(seed))
+    sf = StarField(silicon_field(seed, silicon) if silicon else bf_free_field(seed))
     cat = sf.catalog
     ok = select_stars(cat, sf.min_snr)
     cols = {"x": cat["x"].value[ok], "y": cat["y"].value[ok], "flux": cat["flux"].value[ok],
@@ -77,26 +98,35 @@ def main(argv=None):
     ap.add_argument("--fields", type=int, default=36)
     ap.add_argument("--first-seed", type=int, default=1)
     ap.add_argument("--cache", default=None, help="directory of cached catalogues")
+    ap.add_argument("--silicon", default=None, metavar="SENSOR",
+                    help="draw with galsim.SiliconSensor of this sensor at zero BF strength")
+    ap.add_argument("--n-boot", type=int, default=0,
+                    help="bootstrap resamples of each slope error (0: the formal error)")
     ap.add_argument("--out", default=os.path.join(HERE, "star_slope_bias_results"))
     args = ap.parse_args(argv)
     if args.cache:
         os.makedirs(args.cache, exist_ok=True)
     frame = (1023.5, 1023.5, 1024.0, 1024.0)
     models = {"1/SNR^2 + 1e5/F (package)": True, "1/SNR^2 alone": "snr"}
+    how = (f"galsim.SiliconSensor {args.silicon} at zero strength, sky through the sensor"
+           if args.silicon else "photons on square pixels")
+    errs = (f"errors: larger of formal and {args.n_boot}-sample bootstrap" if args.n_boot
+            else "formal errors")
     lines = [f"{args.fields} brighter-fatter-free GalSim fields (2048^2 px, 800 Moffat stars, "
-             "photons on square pixels, sky 1000 e); slopes per 1e5 e (size: of ln T)"]
+             f"{how}, sky 1000 e); slopes per 1e5 e (size: of ln T); {errs}"]
     print(lines[0], flush=True)
     out = {"machine": "2 cores", "fields": []}
     t0 = time.time()
     for k in range(args.fields):
         seed = args.first_seed + k
-        c = catalogue(seed, args.cache)
+        c = catalogue(seed, args.cache, args.silicon)
         row = {"seed": seed, "n_stars": int(c["x"].size)}
         for name, terms in models.items():
             for q in ("size", "e1", "e2"):
                 val = np.log(c["T"]) if q == "size" else c[q]
                 r = fit_flux_slope(c["x"], c["y"], c["flux"] / FLUX_UNIT, val, c["snr"],
-                                   flux=c["flux"], noise_term=terms, n_boot=0, frame=frame)
+                                   flux=c["flux"], noise_term=terms, n_boot=args.n_boot,
+                                   seed=seed, frame=frame)
                 row[f"{name}:{q}"] = (r["slope"], r["slope_err"])
         out["fields"].append(row)
         p = row["1/SNR^2 + 1e5/F (package):size"]
