@@ -70,9 +70,14 @@ def cached_flats(sensor, args):
     return table, time.time() - t0
 
 
+def field_seed(sensor, k=0):
+    """Seed of star field k of a sensor (field 0 keeps the historical seed)."""
+    return zlib.crc32((f"field:{sensor}" + (f":{k}" if k else "")).encode()) % 100000
+
+
 def cached_field(sensor, args, k=0):
-    """Star field k of a sensor (its own seed; field 0 keeps the historical seed)."""
-    seed = zlib.crc32((f"field:{sensor}" + (f":{k}" if k else "")).encode()) % 100000
+    """Star field k of a sensor (its own seed, :func:`field_seed`)."""
+    seed = field_seed(sensor, k)
     path = os.path.join(args.cache, f"field_{sensor}_{args.field_size}_{args.field_stars}_{seed}.npy")
     if os.path.isfile(path):
         return np.load(path), seed, 0.0

@@ -37,21 +37,20 @@ Writes ``benchmarks/field_twins_results.txt`` / ``.json``. Drawing a
 """
 
 import argparse
-import copy
 import os
 import platform
 import sys
 import time
-import zlib
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
+sys.path.insert(0, HERE)
 
-from lsst_bfdrift.calibration.catalog import measure_stars  # noqa: E402
+from calibrate_stars import field_seed  # noqa: E402
 from lsst_bfdrift.calibration.star_fit import StarField  # noqa: E402
-from lsst_bfdrift.calibration.star_slopes import FLUX_UNIT, select_stars  # noqa: E402
+from lsst_bfdrift.calibration.star_slopes import FLUX_UNIT  # noqa: E402
 from lsst_bfdrift.simulation.skysim import simulate_star_field  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
@@ -59,7 +58,7 @@ from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 def twin_field(sensor, k, args):
     """Field k of ``benchmarks/calibrate_stars.py`` with its BF-free twin (cached)."""
-    seed = zlib.crc32((f"field:{sensor}" + (f":{k}" if k else "")).encode()) % 100000
+    seed = field_seed(sensor, k)
     path = os.path.join(args.cache, f"twin_{sensor}_{args.field_size}_{args.field_stars}_"
                                     f"{seed}.npz")
     if os.path.isfile(path):
@@ -125,12 +124,9 @@ def main(argv=None):
             bf_img, twin_img, seed, cost = twin_field(sensor, k, args)
             t0 = time.time()
             bf = StarField(bf_img, name=f"field{k}")
-            twin = copy.copy(bf)  # the same detections, measured on the twin image
-            twin.data = twin_img
-            twin.catalog = measure_stars(twin_img, mask=bf.bad, saturation=bf.saturation,
-                                         detections=bf.detections)
-            twin._corrected, twin._slopes = {}, {}
-            use = bf.usable & select_stars(twin.catalog, bf.min_snr)
+            # the twin measured on the same detections: the same stars, row by row
+            twin = StarField(twin_img, name=f"field{k} twin", detections=bf.detections)
+            use = bf.usable & twin.usable
             before = bf.slopes(None, use, n_boot=args.n_boot, seed=1)
             corr = bf.slopes(tpl, use, n_boot=args.n_boot, seed=1)
             free = twin.slopes(None, use, n_boot=args.n_boot, seed=1)
@@ -141,10 +137,8 @@ def main(argv=None):
             say(f"{sensor} field {k} (seed {seed}, {int(use.sum())} stars"
                 + (f", drawn in {cost:.0f} s" if cost else ", cached") + ")")
             for q, col in (("size", "T"), ("e1", "e1")):
-                qc = np.asarray(cat_c[col].value if hasattr(cat_c[col], "value")
-                                else cat_c[col], float)[use]
-                qt = np.asarray(twin.catalog[col].value if hasattr(twin.catalog[col], "value")
-                                else twin.catalog[col], float)[use]
+                qc, qt = (np.asarray(getattr(c[col], "value", c[col]), float)[use]
+                          for c in (cat_c, twin.catalog))
                 if q == "size":
                     qc, qt = np.log(qc), np.log(qt)
                 d, d_err = difference_slope(flux, qc, qt)

@@ -138,16 +138,20 @@ class StarField:
         Label in reports (default the file name or ``field<k>``).
     catalog_kwargs : dict, optional
         Options of :func:`~lsst_bfdrift.calibration.catalog.detect_stars`.
+    detections : StarDetections, optional
+        Detections to measure the stars on (e.g. another image's of the same
+        scene, so that the two catalogues hold the same stars row by row);
+        default: detected on this image.
     """
 
     def __init__(self, exposure, *, gain=None, mask=None, saturation=None, min_snr=30.0,
-                 name=None, catalog_kwargs=None):
+                 name=None, catalog_kwargs=None, detections=None):
         self.name = name or (str(exposure) if isinstance(exposure, str) else "field")
         data, bad, sat_e, g, sat_pix = _load_electrons(exposure, gain=gain, mask=mask,
                                                        saturation=saturation)
         self.data, self.bad, self.saturation, self.gain = data, bad, sat_e, g
-        self.detections = detect_stars(data, mask=bad, saturation=sat_e, saturated=sat_pix,
-                                       **dict(catalog_kwargs or {}))
+        self.detections = detections if detections is not None else detect_stars(
+            data, mask=bad, saturation=sat_e, saturated=sat_pix, **dict(catalog_kwargs or {}))
         self.catalog = measure_stars(data, mask=bad, saturation=sat_e,
                                      detections=self.detections)
         self.min_snr = float(min_snr)

@@ -65,6 +65,21 @@ def test_detections_reused_on_the_same_image_give_the_same_catalogue():
         measure_stars(img[:-1], detections=det)
 
 
+def test_star_field_measured_on_given_detections():
+    """A StarField given another field's detections (here its own) measures the
+    same stars row by row as measure_stars does on them, and refuses a
+    mismatched image."""
+    img = paired_fields()["images"][2]
+    own = StarField(img)
+    again = StarField(img.copy(), detections=own.detections)
+    assert again.detections is own.detections
+    for col in ("x", "y", "flux", "T", "e1", "e2", "flags"):
+        assert_allclose(np.asarray(again.catalog[col]), np.asarray(own.catalog[col]))
+    assert np.array_equal(again.usable, own.usable)
+    with pytest.raises(ValueError, match="differs from the detections"):
+        StarField(img[:-1], detections=own.detections)
+
+
 def test_stars_pull_a_weak_template_back_and_held_out_stars_show_it():
     res = _calibration()
     img = paired_fields()["images"][2]
