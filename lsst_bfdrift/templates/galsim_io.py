@@ -16,15 +16,18 @@ returns the per-pixel, per-edge table of the paper's portable form.
 """
 
 import os
+import warnings
 
 import numpy as np
 from astropy.table import Table
+from astropy.utils.exceptions import AstropyUserWarning
 
 from lsst_bfdrift.templates.template import DistortionTemplate
 from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
 
 __all__ = ["import_galsim_sensor", "galsim_sensor_files", "read_galsim_config",
-           "galsim_nominal_vertices", "galsim_vertex_table", "read_galsim_sensor", "match_galsim_areas", "edge_integrals",
+           "galsim_nominal_vertices", "galsim_vertex_table", "galsim_ring_offset",
+           "read_galsim_sensor", "match_galsim_areas", "edge_integrals",
            "galsim_effective_moves", "transfers_from_moves", "match_galsim_transfers"]
 
 
@@ -205,9 +208,71 @@ def galsim_vertex_table(name):
     return t, config
 
 
+#: Ring offset (fraction of the file's largest vertex displacement) above
+#: which :func:`read_galsim_sensor` warns. GalSim's lsst_*_50_* files and
+#: lsst_itl_8/32 show none (below 1e-4 px); lsst_e2v_8 and lsst_e2v_32
+#: show 0.31 of it.
+RING_OFFSET_WARN = 0.1
+
+
+def galsim_ring_offset(raw):
+    """Median displacement (px) of the boundaries of a GalSim file's outermost
+    ring of pixels, where the brighter-fatter displacements have faded.
+
+    Parameters
+    ----------
+    raw : astropy.table.Table
+        From :func:`galsim_vertex_table`.
+
+    Returns
+    -------
+    dx, dy : float
+        Median x displacement of the vertical edges' vertices and median y
+        displacement of the horizontal edges' vertices (px) of the pixels
+        farthest from the aggressor (Chebyshev distance). Both are about 0
+        when the file's distortions are due to the aggressor's charge alone;
+        a value comparable to the displacements near the aggressor is a
+        charge-independent offset of the solver's grid, which
+        galsim.SiliconSensor nevertheless scales with each pixel's charge
+        (it reads every displacement as per electron).
+    max_displacement : float
+        Largest vertex displacement of the file (px).
+    """
+    i, j = np.asarray(raw["i"]), np.asarray(raw["j"])
+    kind = np.asarray(raw["kind"])
+    dx = np.asarray(raw["x"] - raw["x_nom"], float)
+    dy = np.asarray(raw["y"] - raw["y_nom"], float)
+    cheb = np.maximum(np.abs(i), np.abs(j))
+    ring = cheb == cheb.max()
+    vert = ring & np.isin(kind, ["left", "right"])
+    horiz = ring & np.isin(kind, ["top", "bottom"])
+    return (float(np.median(dx[vert])), float(np.median(dy[horiz])),
+            float(max(np.abs(dx).max(), np.abs(dy).max())))
+
+
 def read_galsim_sensor(name):
-    """Build a :class:`~lsst_bfdrift.templates.template.DistortionTemplate` from a GalSim file."""
+    """Build a :class:`~lsst_bfdrift.templates.template.DistortionTemplate` from a GalSim file.
+
+    The file's ring offset (:func:`galsim_ring_offset`) is kept in
+    ``meta['galsim_ring_offset']`` ([dx, dy], px); when it exceeds
+    ``RING_OFFSET_WARN`` of the largest displacement an
+    ``AstropyUserWarning`` says so: the template carries the offset as
+    GalSim does (scaled by charge), which in bright stars adds up to
+    boundary shifts of tenths of a pixel.
+    """
     raw, config = galsim_vertex_table(name)
+    ring_dx, ring_dy, dmax = galsim_ring_offset(raw)
+    if max(abs(ring_dx), abs(ring_dy)) > RING_OFFSET_WARN * dmax:
+        q = float(config["CollectedCharge_0_0"])
+        warnings.warn(
+            f"GalSim sensor file {name}: the boundaries of the pixels farthest from the "
+            f"aggressor are displaced by a median dx = {ring_dx:+.4f}, dy = {ring_dy:+.4f} px "
+            f"({max(abs(ring_dx), abs(ring_dy)) / dmax:.0%} of the largest displacement, "
+            f"{dmax:.4f} px): a charge-independent offset of the solver's grid, which "
+            f"galsim.SiliconSensor and this template scale with charge as if the "
+            f"{q:.6g} e aggressor caused it (per 1e6 e within GalSim's qdist: "
+            f"{max(abs(ring_dx), abs(ring_dy)) * 1e6 / q:.2f} px); templates imported "
+            "from it are outside the linear regime for bright stars", AstropyUserWarning)
     nv = int(config["NumVertices"])
     nx, ny = int(config["PixelBoundaryNx"]), int(config["PixelBoundaryNy"])
     if nx != ny or nx % 2 != 1:
@@ -250,7 +315,8 @@ def read_galsim_sensor(name):
             rows["tangent"].append(tangent)
     table = Table({k: (np.array(v) if k not in ("normal", "tangent") else np.array(v))
                    for k, v in rows.items()})
-    meta = {"source": f"galsim:{name}", "merge": "nearest", "galsim_config": {k: v for k, v in config.items()
+    meta = {"source": f"galsim:{name}", "merge": "nearest",
+            "galsim_ring_offset": [ring_dx, ring_dy], "galsim_config": {k: v for k, v in config.items()
                                                           if isinstance(v, (int, float, str))}}
     return DistortionTemplate.from_table(table, fr, charge, meta=meta, merge="nearest")
 

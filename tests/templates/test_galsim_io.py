@@ -1,5 +1,7 @@
 """Tests of the transfer-matched import of GalSim's sensor files (lsst_bfdrift.templates.galsim_io)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
@@ -199,3 +201,34 @@ def test_import_galsim_sensor_transfers_default_is_small_charge_limit(raw):
     small = kernel_areas(tpl)[c, c] - 1.0
     at_file = kernel_areas(galsim_io.match_galsim_transfers(raw, NAME, cells=CELLS))[c, c] - 1.0
     assert -0.110 < small < -0.105 and -0.106 < at_file < -0.102 and small < at_file
+
+
+def test_ring_offset_of_galsim_files(raw):
+    """GalSim's own files (independent data): the ITL file's outermost ring is at
+    rest, the older e2v file's horizontal boundaries all sit 0.0158 px low
+    (at 8e4 e), which the import records and warns about."""
+    dx, dy = raw.meta["galsim_ring_offset"]
+    assert abs(dx) < 1e-4 and abs(dy) < 1e-4
+    with pytest.warns(UserWarning, match=r"dy = -0\.0158 px.*charge-independent offset"):
+        old = galsim_io.read_galsim_sensor("lsst_e2v_8")
+    dx, dy = old.meta["galsim_ring_offset"]
+    assert abs(dx) < 1e-4
+    assert_allclose(dy, -0.0158, atol=5e-4)
+
+
+def test_ring_offset_injected(tmp_path):
+    """A copy of the ITL file with every horizontal boundary moved up by 0.02 px:
+    the injected offset is found exactly (the ITL file's own ring is at rest)."""
+    cfg, dat = galsim_io.galsim_sensor_files(NAME)
+    table, config = galsim_io.galsim_vertex_table(NAME)
+    header = Path(dat).read_text().splitlines()[0]
+    data = np.loadtxt(dat, skiprows=1)
+    horiz = np.isin(np.asarray(table["kind"]), ["top", "bottom"])
+    data[horiz, 4] += 0.02 * float(config["PixelSizeX"])
+    (tmp_path / "moved.cfg").write_text(Path(cfg).read_text())
+    np.savetxt(tmp_path / "moved.dat", data, header=header.strip(), comments="")
+    before = galsim_io.galsim_ring_offset(table)
+    with pytest.warns(UserWarning, match="charge-independent offset"):
+        moved = galsim_io.read_galsim_sensor(str(tmp_path / "moved"))
+    assert_allclose(moved.meta["galsim_ring_offset"][1], before[1] + 0.02, atol=1e-6)
+    assert_allclose(moved.meta["galsim_ring_offset"][0], before[0], atol=1e-12)
