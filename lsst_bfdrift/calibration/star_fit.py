@@ -106,7 +106,8 @@ from scipy import stats
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.calibration.catalog import (FLAG_NAMES, _load_electrons, detect_stars,
                                           measure_stars)
-from lsst_bfdrift.calibration.star_slopes import FLUX_UNIT, select_stars, shape_flux_relations
+from lsst_bfdrift.calibration.star_slopes import (FLUX_UNIT, birge_scale, select_stars,
+                                                  shape_flux_relations)
 from lsst_bfdrift.calibration.tuning import CalibrationError, _select
 from lsst_bfdrift.templates.refine import (area_response_directions, combine_templates,
                                           curl_free_template, template_alpha,
@@ -267,6 +268,9 @@ class StarCalibrationResult:
         Slopes (value, error; per 1e5 e) of the fitted and of the held-out
         stars, per field: ``before``, ``flats_only``, ``joint``.
     selection : list of dict
+    star_error_scale : float
+        Factor applied to the fitted slopes' bootstrap errors (1: none;
+        ``scale_star_errors``).
     seconds : dict
     """
 
@@ -276,7 +280,7 @@ class StarCalibrationResult:
     def summary(self):
         """JSON-friendly summary."""
         keys = ("directions", "coefficients", "uncertainty", "chi2", "tension",
-                "star_information",
+                "star_information", "star_error_scale",
                 "fit_slopes", "held_out", "selection", "seconds", "fields", "warnings")
         out = {k: getattr(self, k) for k in keys}
         out["covariance"] = np.asarray(self.covariance).tolist()
@@ -360,7 +364,7 @@ def _combine_folds(rows):
 def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_directions=6,
                          n_boot=200, iterations=2, gain=None, min_snr=30.0,
                          min_stars=30, flats_uncertainty=True, fitted_slopes=("size",),
-                         progress=False):
+                         scale_star_errors=True, progress=False):
     """Refit a calibration jointly to its a-matrix and to star fields.
 
     Parameters
@@ -407,6 +411,17 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         field measures its e1 slope to about its own size (module
         docstring), and the directions of the a-matrix's errors leave e1
         free, so fitting it moves the template's e1 by the fields' noise.
+    scale_star_errors : bool, optional
+        With six or more fitted slopes, scale their bootstrap errors by the
+        Birge ratio of their residuals after the fit when it exceeds 1
+        (:func:`~lsst_bfdrift.calibration.star_slopes.birge_scale`; the
+        fields' own scatter, counted against the parameters the stars
+        determine) and refit; reported in ``star_error_scale`` and as a
+        warning. The bootstrap over stars misses noise common to a field's
+        stars: the brighter-fatter-free twins of ten GalSim ITL fields
+        scatter with chi2 25 for 10 (``benchmarks/field_twins.py``). The
+        chi2 and the tension keep the bootstrap errors, so fields that
+        disagree (another sensor, a missing effect) are still reported.
     progress : bool, optional
         Progress bar on stderr.
 
@@ -584,7 +599,8 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                                                   seed=seed) for f in fit_fields}, fit_fields)
 
         r_s0, sig_u = vec(ta, n_boot)
-        sig_s = np.where(fitted_rows, sig_u, np.inf)  # slopes not fitted: measured, no weight
+        # slopes not fitted: measured, no weight; fitted: bootstrap errors (x the Birge ratio)
+        sig_s = np.where(fitted_rows, sig_u * star_scale[0], np.inf)
         Js = np.column_stack([(vec(t_k)[0] - r_s0) / e for t_k, e in zip(dir_templates,
                                                                            dir_eps)])
         # the a-matrix rows measure the change from T_a (the flats' estimate; its
@@ -614,6 +630,8 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         cov_flats = np.linalg.pinv(Jc[no_star].T @ (Jc[no_star] * W[no_star, None])) \
             if cols else np.zeros((0, 0))
         coef = -cov @ (Jc.T @ (W * r0c))
+        sr = (rows >= n_a) & (rows < n_data)  # the star rows: the parameters they determine
+        lev = float(np.sum((Jc[sr] @ cov) * Jc[sr] * W[sr, None])) if cols else 0.0
         # Gauss-Newton refinement with exact star evaluations
         # no direction: T_a itself (its corrections are already made)
         t_joint = combine_templates(ta, [deltas[k] for k in cols], coef) if cols else ta
@@ -641,7 +659,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                 "cov_flats": cov_flats,
                 "a_change": alpha_of(t_joint) - a0,
                 "r_s0": r_s0, "sig_s": sig_s, "sig_u": sig_u, "Js": Js, "r_fin": r_fin,
-                "selection": selection}
+                "selection": selection, "star_leverage": lev}
 
     def held_slopes(f, sub, template_of):
         row = {}
@@ -651,7 +669,16 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         row["n_stars"] = row["before"]["n_stars"]
         return row
 
+    star_scale = [1.0]
     final = fit({f.name: f.fit_stars for f in fit_fields})
+    if scale_star_errors:
+        scale = birge_scale(final["r_fin"][n_a:], final["sig_s"], final["star_leverage"])
+        if scale > 1.0:
+            n_fit_s = int(np.isfinite(final["sig_s"]).sum())
+            warn.append(f"the {n_fit_s} fitted star slopes scatter {scale:.2f} times their "
+                        "bootstrap errors after the fit; their errors were scaled by it")
+            star_scale[0] = scale
+            final = fit({f.name: f.fit_stars for f in fit_fields})
     held = {}
     if mode == "cross":
         # two folds: each half of every field fitted alone and validated on the other half
@@ -677,6 +704,10 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     t_joint, r_s0, sig_s, Js = final["t"], final["r_s0"], final["sig_s"], final["Js"]
     r_fin, selection = final["r_fin"], final["selection"]
     chi2_a0 = float(np.sum((a_res0 / a_sig) ** 2))
+    # chi2 and tension with the bootstrap errors as measured: a scale absorbs a field of
+    # another sensor as readily as noise the bootstrap misses, so the tension stays blind
+    # to it (the fit's weights and covariance use the scaled errors)
+    sig_s = sig_s / star_scale[0]
     chi2_s0 = float(np.sum((r_s0 / sig_s) ** 2))
     chi2_a1 = float(np.sum((r_fin[:n_a] / a_sig) ** 2))
     chi2_s1 = float(np.sum((r_fin[n_a:] / sig_s) ** 2))
@@ -708,7 +739,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                         f"{t['what']} pull {t['pull']:+.1f}" for t in tension["worst"]))
     n_lag = int(is_lag.sum())  # the lags come first in cols, the chosen model directions after
     Fa = Ja[:, cols].T @ (Ja[:, cols] / a_sig[:, None] ** 2)
-    Fs = Js[:, cols].T @ (Js[:, cols] / sig_s[:, None] ** 2)
+    Fs = Js[:, cols].T @ (Js[:, cols] / (star_scale[0] * sig_s[:, None]) ** 2)
     info = {n: float(Fs[k, k] / (Fa[k, k] + Fs[k, k])) if (Fa[k, k] + Fs[k, k]) > 0 else None
             for k, n in enumerate(chosen, start=n_lag)}
     err = np.sqrt(np.clip(np.diag(cov), 0, None))
@@ -787,6 +818,6 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                               "joint": {"amatrix": chi2_a1, "stars": chi2_s1},
                               "n_amatrix": int(n_a), "n_stars": int(n_s)},
         tension=tension, star_information=info, fit_slopes=fit_slopes, held_out=held,
-        selection=selection, fields=fields_info, warnings=warn,
+        selection=selection, fields=fields_info, warnings=warn, star_error_scale=star_scale[0],
         seconds={"directions": t_dirs, "star_jacobian": t_jac,
                  "total": time.perf_counter() - t0}, flux_unit=FLUX_UNIT)

@@ -51,7 +51,7 @@ import numpy as np
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.calibration.catalog import FLAG_NAMES
 
-__all__ = ["FLUX_UNIT", "fit_flux_slope", "select_stars", "shape_flux_relations"]
+__all__ = ["FLUX_UNIT", "birge_scale", "fit_flux_slope", "select_stars", "shape_flux_relations"]
 
 #: Flux unit (e) of the slopes: slopes are per 1e5 e.
 FLUX_UNIT = 1e5
@@ -233,6 +233,35 @@ def fit_flux_slope(x, y, regressor, q, snr, *, flux=None, poly_order=2, noise_te
             "noise_bias": float(coef[names.index("noise_bias")]) if noise_term else None,
             "source_bias": float(coef[names.index("source_bias")])
             if "source_bias" in names else None}
+
+
+def birge_scale(residuals, errors, n_params, *, min_points=6):
+    """Factor by which a set of errors understates the scatter of its residuals (Birge ratio).
+
+    Parameters
+    ----------
+    residuals, errors : array_like
+        Residuals of a fit and their errors (same unit); points with an
+        infinite or non-positive error carry no weight and are not counted.
+    n_params : float
+        Parameters the fit took from these points (e.g. the trace of their
+        block of the hat matrix).
+    min_points : int, optional
+        Fewest weighted points for an estimate.
+
+    Returns
+    -------
+    float
+        ``sqrt(chi2 / (n - n_params))`` when it exceeds 1, with at least
+        ``min_points`` points and one degree of freedom; otherwise 1 (errors
+        are only ever inflated).
+    """
+    r, e = np.asarray(residuals, float), np.asarray(errors, float)
+    ok = np.isfinite(e) & (e > 0) & np.isfinite(r)
+    dof = ok.sum() - float(n_params)
+    if ok.sum() < min_points or dof < 1:
+        return 1.0
+    return float(max(1.0, np.sqrt(np.sum((r[ok] / e[ok]) ** 2) / dof)))
 
 
 def select_stars(catalog, min_snr):

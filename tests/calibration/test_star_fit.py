@@ -152,6 +152,7 @@ def test_stars_undo_a_flats_error_within_the_a_matrix_errors(fitted):
                                  max_directions=0, fitted_slopes=fitted)
     assert joint.directions == []
     assert joint.tension["dof"] == joint.chi2["n_stars"] == len(fitted)
+    assert joint.star_error_scale == 1.0  # fewer than six fitted slopes: no estimate
     if len(fitted) == 1:
         unfit = joint.tension["unfitted"]
         assert unfit["slopes"] == ["e1", "e2"] and unfit["dof"] == 2
@@ -193,6 +194,33 @@ def test_stars_undo_a_flats_error_within_the_a_matrix_errors(fitted):
     assert_allclose(ss["flats_percent"],
                     100 * ss["flats"] / abs(joint.fit_slopes["field0"]["before"]["size"][0]))
     assert "with the stars" in joint.uncertainty_line()
+
+
+@pytest.mark.slow
+def test_star_errors_scaled_by_the_fields_scatter_and_tension_kept():
+    """Two galsim.SiliconSensor fields of different brighter-fatter strength (5 and
+    10), size, e1 and e2 fitted (six slopes): no template nulls both, so they
+    scatter about the fit beyond their bootstrap errors. The fit's errors are
+    scaled by the Birge ratio (against the direct sum: the a-matrix, known to
+    5 %, leaves the stars almost no parameter, so chi2 / 6), and the warning
+    states it; the chi2 and the tension keep the bootstrap errors, so the
+    disagreement is still reported, and the scaled stars pull the template
+    less (a consistency check of the mechanism on independent fields)."""
+    res = _calibration()
+    imgs = paired_fields()["images"]
+    kw = dict(min_stars=8, seed=3, max_directions=0, fitted_slopes=("size", "e1", "e2"))
+    raw = calibrate_with_stars(res, [imgs[2], imgs[1]], scale_star_errors=False, **kw)
+    scaled = calibrate_with_stars(res, [imgs[2], imgs[1]], **kw)
+    assert raw.star_error_scale == 1.0
+    s = scaled.star_error_scale
+    assert_allclose(s ** 2, raw.chi2["joint"]["stars"] / 6.0, rtol=0.03)
+    assert s > 1.5
+    assert any(f"6 fitted star slopes scatter {s:.2f} times" in w for w in scaled.warnings)
+    assert raw.tension["p_value"] < 1e-2 and scaled.tension["p_value"] < 1e-2
+    assert_allclose(scaled.chi2["flats_only"]["stars"], raw.chi2["flats_only"]["stars"],
+                    rtol=1e-12)
+    assert scaled.chi2["joint"]["amatrix"] < 0.5 * raw.chi2["joint"]["amatrix"]
+    assert scaled.summary()["star_error_scale"] == s
 
 
 def test_bad_star_inputs_get_clear_errors():

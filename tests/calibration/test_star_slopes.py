@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from lsst_bfdrift.calibration.star_slopes import fit_flux_slope, shape_flux_relations
+from lsst_bfdrift.calibration.star_slopes import (birge_scale, fit_flux_slope,
+                                                  shape_flux_relations)
 
 
 def _synthetic(rng, n, slope, outliers=0):
@@ -104,3 +105,24 @@ def test_two_noise_bias_terms_remove_a_source_noise_bias():
     assert abs(np.mean(z1)) > 1.0  # the single term leaves a bias
     assert_allclose(np.median([r["source_bias"] for r in two]), 150.0 / 1e5, rtol=0.3)
     assert all(r["source_bias"] is None for r in one)
+
+
+def test_birge_scale_against_direct_sum_and_true_scatter():
+    """The Birge ratio: the direct sum sqrt(chi2 / (n - p)) when above 1, 1 otherwise;
+    on residuals drawn 1.5 times wider than their errors (seeded) it finds 1.5."""
+    rng = np.random.default_rng(11)
+    e = rng.uniform(0.5, 2.0, 400)
+    r = rng.normal(0.0, 1.5 * e)
+    assert_allclose(birge_scale(r, e, 2.0), np.sqrt(np.sum((r / e) ** 2) / 398.0), rtol=1e-12)
+    assert_allclose(birge_scale(r, e, 2.0), 1.5, rtol=0.08)
+    # only ever inflates
+    assert birge_scale(0.5 * e * rng.normal(size=400), e, 2.0) == 1.0
+    # unweighted points (infinite errors) are not counted
+    e2 = np.r_[e[:10], np.full(5, np.inf)]
+    r2 = np.r_[r[:10], np.full(5, 1e9)]
+    assert_allclose(birge_scale(r2, e2, 1.0),
+                    max(1.0, np.sqrt(np.sum((r[:10] / e[:10]) ** 2) / 9.0)), rtol=1e-12)
+    # too few points or no degree of freedom left: no estimate
+    assert birge_scale(10 * e[:5], e[:5], 0.0) == 1.0
+    assert birge_scale(10 * e[:8], e[:8], 7.5) == 1.0
+    assert birge_scale(10 * e[:8], e[:8], 6.5) > 1.0
