@@ -31,7 +31,12 @@ paired stars, as % of the uncorrected slopes, and writes
 
     python benchmarks/calibrate_stars.py [--sensors lsst_itl_50_8 lsst_e2v_50_8]
         [--fields 3 | --fields 4 2] [--field-stars 800] [--field-size 2048] [--n-stars 200]
-        [--cache /tmp/cst]
+        [--cache /tmp/cst] [--save-templates /tmp/cs_templates]
+
+Fields are cached in ``--cache``; a field that ``benchmarks/field_twins.py``
+drew there with its twin (the same image) is used as is.
+``--save-templates DIR`` writes the flats-only and flats+stars templates for
+``field_twins.py --templates-from DIR``.
 """
 
 import argparse
@@ -81,6 +86,11 @@ def cached_field(sensor, args, k=0):
     path = os.path.join(args.cache, f"field_{sensor}_{args.field_size}_{args.field_stars}_{seed}.npy")
     if os.path.isfile(path):
         return np.load(path), seed, 0.0
+    # the same field drawn with its twin by benchmarks/field_twins.py (identical image)
+    twin = os.path.join(args.cache, f"twin_{sensor}_{args.field_size}_{args.field_stars}_"
+                                    f"{seed}.npz")
+    if os.path.isfile(twin):
+        return np.load(twin)["bf"], seed, 0.0
     t0 = time.time()
     f = simulate_star_field((args.field_size,) * 2, args.field_stars, sensor=sensor,
                             flux=(1e4, 1.5e6), sky=1000.0, seed=seed, progress=True)
@@ -145,6 +155,10 @@ def main(argv=None):
     ap.add_argument("--cache", default="/tmp/cst")
     ap.add_argument("--pairs", default="/tmp/cs_pairs", help="cache prefix of the paired stars")
     ap.add_argument("--out", default=os.path.join(HERE, "calibrate_stars_results"))
+    ap.add_argument("--save-templates", metavar="DIR",
+                    help="write the flats-only and flats+stars templates to "
+                         "DIR/SENSOR_flats.fits and DIR/SENSOR_joint.fits "
+                         "(for benchmarks/field_twins.py --templates-from)")
     args = ap.parse_args(argv)
     os.makedirs(args.cache, exist_ok=True)
     lines, out = [], {"sensors": {}, "machine": "2 cores"}
@@ -209,6 +223,11 @@ def main(argv=None):
             say("  " + held_out_mean(joint.held_out))
         # the summary less the directions' covariance (99 x 99 on e2v: the bulk of the file)
         rec["joint"] = {k: v for k, v in joint.summary().items() if k != "covariance"}
+        if args.save_templates:
+            os.makedirs(args.save_templates, exist_ok=True)
+            for tag, tpl in (("flats", res.template), ("joint", joint.template)):
+                tpl.save(os.path.join(args.save_templates, f"{sensor}_{tag}.fits"),
+                         overwrite=True)
         templates = {"flats-only": res.template, "flats+stars": joint.template,
                      # GalSim's own sensor file, imported two ways: neither reproduces
                      # GalSim's e1 exactly (galsim_crosscheck.py: 0.88-1.13 of it)

@@ -26,10 +26,18 @@ per field, per 1e5 e:
 
 A field route that measures corrections right shows corrected minus twin
 near the paired stars' residual, whatever the corrected slope itself
-shows::
+shows. With ``--templates-from DIR`` the fields are also corrected with the
+templates that ``benchmarks/calibrate_stars.py --save-templates DIR``
+calibrated (flats-only, flats+stars): corrected minus twin is then the
+truth of what those templates leave on a field's stars, with the field's
+noise cancelled. The flats+stars template was fitted to these fields'
+noisy slopes, so this is a truth check on its training fields, not a
+held-out validation (the paired stars of ``calibrate_stars.py`` are). A
+last block gives the inverse-variance mean over fields per template::
 
     python benchmarks/field_twins.py [--sensors lsst_itl_50_8 lsst_e2v_50_8]
         [--fields 0 | --fields lsst_itl_50_8=2,3 lsst_e2v_50_8=0] [--cache /tmp/cst]
+        [--templates-from /tmp/cs_templates]
 
 Writes ``benchmarks/field_twins_results.txt`` / ``.json``. Drawing a
 2048 x 2048 field of 800 stars with its twin takes about 24 min on one core
@@ -53,6 +61,7 @@ from lsst_bfdrift.calibration.star_fit import StarField  # noqa: E402
 from lsst_bfdrift.calibration.star_slopes import FLUX_UNIT  # noqa: E402
 from lsst_bfdrift.simulation.skysim import simulate_star_field  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
+from lsst_bfdrift.templates.template import DistortionTemplate  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 
@@ -86,6 +95,18 @@ def difference_slope(flux, q_corr, q_twin):
     return float(coef[1]), float(np.sqrt(cov[1, 1]))
 
 
+def sensor_templates(sensor, directory):
+    """GalSim's own sensor file (transfer-matched edges) and, when ``directory``
+    holds them, the calibrated templates of ``benchmarks/calibrate_stars.py
+    --save-templates`` (SENSOR_flats.fits, SENSOR_joint.fits)."""
+    out = {"GalSim file": import_galsim_sensor(sensor, match="transfers")}
+    for tag, name in (("flats", "flats-only"), ("joint", "flats+stars")):
+        path = os.path.join(directory or "", f"{sensor}_{tag}.fits")
+        if directory and os.path.isfile(path):
+            out[name] = DistortionTemplate.load(path)
+    return out
+
+
 def fields_of(sensor, specs):
     """The field numbers of ``sensor`` in ``--fields`` (k, or SENSOR=k,k)."""
     out = []
@@ -94,6 +115,55 @@ def fields_of(sensor, specs):
         if name in ("", sensor):
             out += [int(k) for k in ks.split(",") if k]
     return out
+
+
+_TEMPLATES = {}
+
+
+def measure_field(job, args):
+    """One field and its twin, corrected with each template: (printed lines, JSON row,
+    [((sensor, quantity, template), (% of the effect, error))])."""
+    sensor, k = job
+    if (sensor, args.templates_from) not in _TEMPLATES:  # once per process and sensor
+        _TEMPLATES[sensor, args.templates_from] = sensor_templates(sensor, args.templates_from)
+    templates = _TEMPLATES[sensor, args.templates_from]
+    lines, entries = [], []
+    bf_img, twin_img, seed, cost = twin_field(sensor, k, args)
+    t0 = time.time()
+    bf = StarField(bf_img, name=f"field{k}")
+    # the twin measured on the same detections: the same stars, row by row
+    twin = StarField(twin_img, name=f"field{k} twin", detections=bf.detections)
+    use = bf.usable & twin.usable
+    before = bf.slopes(None, use, n_boot=args.n_boot, seed=1)
+    free = twin.slopes(None, use, n_boot=args.n_boot, seed=1)
+    flux = np.asarray(bf.catalog["flux"].value)[use]
+    row = {"sensor": sensor, "field": k, "seed": seed, "n_stars": int(use.sum()),
+           "draw_seconds": cost}
+    lines.append(f"{sensor} field {k} (seed {seed}, {int(use.sum())} stars"
+                 + (f", drawn in {cost:.0f} s" if cost else ", cached") + ")")
+    for q, col in (("size", "T"), ("e1", "e1")):
+        b = before[q][0]
+        effect = b - free[q][0]
+        row[q] = {"before": before[q], "twin": free[q], "effect": effect, "templates": {}}
+        lines.append(f"  {q:4s}: uncorrected {b:+.3e} +- {before[q][1]:.1e}; twin (no BF) "
+                     f"{free[q][0]:+.3e} ({100 * free[q][0] / b:+.1f} % of uncorrected)")
+        qt = np.asarray(getattr(twin.catalog[col], "value", twin.catalog[col]), float)[use]
+        for name, tpl in templates.items():
+            corr = bf.slopes(tpl, use, n_boot=args.n_boot, seed=1)
+            cat_c = bf.corrected_catalog(tpl)
+            qc = np.asarray(getattr(cat_c[col], "value", cat_c[col]), float)[use]
+            d, d_err = (difference_slope(flux, np.log(qc), np.log(qt)) if q == "size"
+                        else difference_slope(flux, qc, qt))
+            row[q]["templates"][name] = {"corrected": corr[q],
+                                         "corrected_minus_twin": (d, d_err)}
+            entries.append(((sensor, q, name), (100 * d / effect, 100 * d_err / abs(effect))))
+            lines.append(f"        {name:12s} corrected {corr[q][0]:+.3e} "
+                         f"({100 * corr[q][0] / b:+.1f} +- {100 * corr[q][1] / abs(b):.1f} %); "
+                         f"corrected - twin per star {d:+.2e} +- {d_err:.1e} "
+                         f"({100 * d / effect:+.1f} +- {100 * d_err / abs(effect):.1f}"
+                         " % of the effect)")
+    row["measure_seconds"] = time.time() - t0
+    return lines, row, entries
 
 
 def main(argv=None):
@@ -106,6 +176,11 @@ def main(argv=None):
     ap.add_argument("--field-size", type=int, default=2048)
     ap.add_argument("--n-boot", type=int, default=100)
     ap.add_argument("--cache", default="/tmp/cst")
+    ap.add_argument("--templates-from", metavar="DIR",
+                    help="also correct with DIR/SENSOR_flats.fits and DIR/SENSOR_joint.fits "
+                         "(benchmarks/calibrate_stars.py --save-templates)")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="fields measured (and drawn) in parallel processes")
     ap.add_argument("--out", default=os.path.join(HERE, "field_twins_results"))
     args = ap.parse_args(argv)
     os.makedirs(args.cache, exist_ok=True)
@@ -117,43 +192,43 @@ def main(argv=None):
 
     say(f"Star fields with a brighter-fatter-free twin ({args.field_size}^2 px, "
         f"{args.field_stars} stars, seeds of benchmarks/calibrate_stars.py), corrected by "
-        f"drift with GalSim's own sensor file; slopes per 1e5 e; {rec['machine']}")
-    for sensor in args.sensors:
-        tpl = import_galsim_sensor(sensor, match="transfers")
-        for k in fields_of(sensor, args.fields):
-            bf_img, twin_img, seed, cost = twin_field(sensor, k, args)
-            t0 = time.time()
-            bf = StarField(bf_img, name=f"field{k}")
-            # the twin measured on the same detections: the same stars, row by row
-            twin = StarField(twin_img, name=f"field{k} twin", detections=bf.detections)
-            use = bf.usable & twin.usable
-            before = bf.slopes(None, use, n_boot=args.n_boot, seed=1)
-            corr = bf.slopes(tpl, use, n_boot=args.n_boot, seed=1)
-            free = twin.slopes(None, use, n_boot=args.n_boot, seed=1)
-            cat_c = bf.corrected_catalog(tpl)
-            flux = np.asarray(bf.catalog["flux"].value)[use]
-            row = {"sensor": sensor, "field": k, "seed": seed, "n_stars": int(use.sum()),
-                   "draw_seconds": cost}
-            say(f"{sensor} field {k} (seed {seed}, {int(use.sum())} stars"
-                + (f", drawn in {cost:.0f} s" if cost else ", cached") + ")")
-            for q, col in (("size", "T"), ("e1", "e1")):
-                qc, qt = (np.asarray(getattr(c[col], "value", c[col]), float)[use]
-                          for c in (cat_c, twin.catalog))
-                if q == "size":
-                    qc, qt = np.log(qc), np.log(qt)
-                d, d_err = difference_slope(flux, qc, qt)
-                b = before[q][0]
-                effect = b - free[q][0]
-                row[q] = {"before": before[q], "corrected": corr[q], "twin": free[q],
-                          "corrected_minus_twin": (d, d_err), "effect": effect}
-                say(f"  {q:4s}: uncorrected {b:+.3e} +- {before[q][1]:.1e}; corrected "
-                    f"{corr[q][0]:+.3e} ({100 * corr[q][0] / b:+.1f} +- "
-                    f"{100 * corr[q][1] / abs(b):.1f} %); twin {free[q][0]:+.3e} "
-                    f"({100 * free[q][0] / b:+.1f} %); corrected - twin per star {d:+.2e} "
-                    f"+- {d_err:.1e} ({100 * d / effect:+.1f} +- {100 * d_err / abs(effect):.1f}"
-                    " % of the effect)")
-            row["measure_seconds"] = time.time() - t0
-            rec["fields"].append(row)
+        f"drift with GalSim's own sensor file"
+        + (" and the calibrated templates" if args.templates_from else "")
+        + f"; slopes per 1e5 e; {rec['machine']}")
+    jobs = [(sensor, k) for sensor in args.sensors for k in fields_of(sensor, args.fields)]
+    if args.jobs > 1 and len(jobs) > 1:
+        from concurrent.futures import ProcessPoolExecutor
+        with ProcessPoolExecutor(min(args.jobs, len(jobs))) as pool:
+            results = list(pool.map(measure_field, jobs, [args] * len(jobs)))
+    else:
+        results = [measure_field(job, args) for job in jobs]
+    summary = {}
+    for out_lines, row, entries in results:  # in the order of --sensors and --fields
+        for ln in out_lines:
+            say(ln)
+        rec["fields"].append(row)
+        for key, v in entries:
+            summary.setdefault(key, []).append(v)
+    for sensor in args.sensors:  # the twins' slopes against zero: the fields' noise
+        rows = [r for r in rec["fields"] if r["sensor"] == sensor]
+        if len(rows) > 1:
+            for q in ("size", "e1"):
+                chi2 = float(sum((r[q]["twin"][0] / r[q]["twin"][1]) ** 2 for r in rows))
+                say(f"{sensor} twins (no BF), {q} slopes against zero with their bootstrap "
+                    f"errors: chi2 {chi2:.1f} / {len(rows)}")
+    if summary:
+        say("Mean over fields (inverse-variance), corrected - twin, % of the effect:")
+    rec["means"] = []
+    for (sensor, q, name), v in summary.items():
+        pct, err = np.array(v).T
+        w = 1.0 / err ** 2
+        m, m_err = float(np.sum(w * pct) / np.sum(w)), float(1.0 / np.sqrt(np.sum(w)))
+        chi2 = float(np.sum(w * (pct - m) ** 2))
+        rec["means"].append({"sensor": sensor, "quantity": q, "template": name,
+                             "n_fields": int(pct.size), "mean": m, "mean_err": m_err,
+                             "chi2": chi2})
+        say(f"  {sensor} {q:4s} {name:12s} {m:+6.1f} +- {m_err:.1f} % ({pct.size} fields, "
+            f"chi2 {chi2:.1f} / {pct.size - 1})")
     write_text(args.out + ".txt", "\n".join(lines) + "\n")
     write_json(args.out + ".json", rec, indent=1, default=float)
     return 0

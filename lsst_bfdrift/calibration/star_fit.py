@@ -419,7 +419,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         determine) and refit; reported in ``star_error_scale`` and as a
         warning. The bootstrap over stars misses noise common to a field's
         stars: the brighter-fatter-free twins of ten GalSim ITL fields
-        scatter with chi2 25 for 10 (``benchmarks/field_twins.py``). The
+        scatter with chi2 26 for 10 (``benchmarks/field_twins.py``). The
         chi2 and the tension keep the bootstrap errors, so fields that
         disagree (another sensor, a missing effect) are still reported.
     progress : bool, optional
