@@ -80,6 +80,12 @@ def field_seed(sensor, k=0):
     return zlib.crc32((f"field:{sensor}" + (f":{k}" if k else "")).encode()) % 100000
 
 
+def twin_cache_path(sensor, args, seed):
+    """Where ``benchmarks/field_twins.py`` caches a field drawn with its twin."""
+    return os.path.join(args.cache, f"twin_{sensor}_{args.field_size}_{args.field_stars}_"
+                                    f"{seed}.npz")
+
+
 def cached_field(sensor, args, k=0):
     """Star field k of a sensor (its own seed, :func:`field_seed`)."""
     seed = field_seed(sensor, k)
@@ -87,8 +93,7 @@ def cached_field(sensor, args, k=0):
     if os.path.isfile(path):
         return np.load(path), seed, 0.0
     # the same field drawn with its twin by benchmarks/field_twins.py (identical image)
-    twin = os.path.join(args.cache, f"twin_{sensor}_{args.field_size}_{args.field_stars}_"
-                                    f"{seed}.npz")
+    twin = twin_cache_path(sensor, args, seed)
     if os.path.isfile(twin):
         return np.load(twin)["bf"], seed, 0.0
     t0 = time.time()

@@ -56,7 +56,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 sys.path.insert(0, HERE)
 
-from calibrate_stars import field_seed  # noqa: E402
+from calibrate_stars import field_seed, ivw_mean, twin_cache_path  # noqa: E402
 from lsst_bfdrift.calibration.star_fit import StarField  # noqa: E402
 from lsst_bfdrift.calibration.star_slopes import FLUX_UNIT  # noqa: E402
 from lsst_bfdrift.simulation.skysim import simulate_star_field  # noqa: E402
@@ -68,8 +68,7 @@ from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 def twin_field(sensor, k, args):
     """Field k of ``benchmarks/calibrate_stars.py`` with its BF-free twin (cached)."""
     seed = field_seed(sensor, k)
-    path = os.path.join(args.cache, f"twin_{sensor}_{args.field_size}_{args.field_stars}_"
-                                    f"{seed}.npz")
+    path = twin_cache_path(sensor, args, seed)
     if os.path.isfile(path):
         d = np.load(path)
         return d["bf"], d["truth"], seed, 0.0
@@ -221,9 +220,7 @@ def main(argv=None):
     rec["means"] = []
     for (sensor, q, name), v in summary.items():
         pct, err = np.array(v).T
-        w = 1.0 / err ** 2
-        m, m_err = float(np.sum(w * pct) / np.sum(w)), float(1.0 / np.sqrt(np.sum(w)))
-        chi2 = float(np.sum(w * (pct - m) ** 2))
+        m, m_err, chi2 = ivw_mean(pct, err)
         rec["means"].append({"sensor": sensor, "quantity": q, "template": name,
                              "n_fields": int(pct.size), "mean": m, "mean_err": m_err,
                              "chi2": chi2})
