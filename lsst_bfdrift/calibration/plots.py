@@ -79,7 +79,7 @@ def plot_calibration(result):
 
 
 def plot_star_calibration(result):
-    """Three panels of a :class:`~lsst_bfdrift.calibration.star_fit.StarCalibrationResult`.
+    """Three panels of a :class:`~lsst_bfdrift.calibration.star_result.StarCalibrationResult`.
 
     Left and middle: the size and e1 slopes against flux (per 1e5 e) of the
     **held-out** stars of each field, uncorrected and corrected with the

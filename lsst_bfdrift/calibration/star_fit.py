@@ -106,6 +106,7 @@ from scipy import stats
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.calibration.catalog import (FLAG_NAMES, _load_electrons, detect_stars,
                                           measure_stars)
+from lsst_bfdrift.calibration.star_result import _SLOPES, StarCalibrationResult
 from lsst_bfdrift.calibration.star_slopes import (FLUX_UNIT, birge_scale, select_stars,
                                                   shape_flux_relations)
 from lsst_bfdrift.calibration.tuning import CalibrationError, _select
@@ -115,9 +116,8 @@ from lsst_bfdrift.templates.refine import (area_response_directions, combine_tem
 from lsst_bfdrift.templates.template import build_template
 from lsst_bfdrift.utils.progress import ProgressBar
 
-__all__ = ["StarField", "StarCalibrationResult", "calibrate_with_stars"]
+__all__ = ["StarField", "calibrate_with_stars"]
 
-_SLOPES = ("size", "e1", "e2")
 #: Finite-difference step of the star Jacobian (in units of each direction).
 _EPS = 0.25
 #: Prior width (steps) of every direction of the template family.
@@ -221,119 +221,6 @@ class StarField:
             self._slopes[key] = {k: (rel[k]["slope"], rel[k]["slope_err"]) for k in _SLOPES} \
                 | {"n_stars": rel["n_stars"]}
         return dict(self._slopes[key])
-
-
-class StarCalibrationResult:
-    """Result of :func:`calibrate_with_stars`.
-
-    Attributes
-    ----------
-    template : DistortionTemplate
-        The jointly calibrated template T(c).
-    flats_template : DistortionTemplate
-        The a-matrix-only template T_a it started from.
-    directions : list of str
-        The model directions used (chosen by the data; the lags of the flats'
-        uncertainty are always in and are reported in ``uncertainty``).
-    uncertainty : dict or None
-        The move within the a-matrix's errors (None with
-        ``flats_uncertainty=False``): ``n_directions`` and ``steps`` along
-        each direction of those errors; the joint template's change from the
-        flats template as the a-matrix sees it (all directions, exact
-        polygon areas): ``a_change`` per lag (1/e), ``chi2`` (with the
-        a-matrix's errors), ``largest`` (the three largest a_ij changes, also
-        in units of their errors, ``sigma``); ``slope_change`` (per fitted
-        field, the size, e1 and e2 slope change of the whole move, per 1e5 e);
-        ``size_slope_sigma`` (per fitted field, the standard deviation of its
-        corrected size slope that the a-matrix's errors leave, ``flats``, and
-        that they and the stars leave, ``joint``: per 1e5 e, and
-        ``*_percent`` of the field's uncorrected slope; propagated linearly
-        from the steps' covariances, so the model's own error beyond the
-        a-matrix's is not in it).
-    coefficients : dict
-        Per direction: ``steps`` (c_k), ``parameter_change`` (c_k h_k, in the
-        parameter's unit) and its error.
-    covariance : ndarray
-        Covariance of the coefficients c.
-    chi2 : dict
-        ``amatrix`` and ``stars`` chi2 with T_a (``flats_only``) and with
-        T(c) (``joint``), and the number of points of each.
-    tension : dict
-        Rise of the a-matrix chi2 needed to null the fitted star slopes, its
-        degrees of freedom and p-value; ``unfitted``: the chi2 of the
-        slopes measured and not fitted, after the fit, against zero.
-    star_information : dict
-        Per direction, the share of the Fisher information from the stars.
-    fit_slopes, held_out : dict
-        Slopes (value, error; per 1e5 e) of the fitted and of the held-out
-        stars, per field: ``before``, ``flats_only``, ``joint``.
-    selection : list of dict
-    star_error_scale : float
-        Factor applied to the fitted slopes' bootstrap errors (1: none;
-        ``scale_star_errors``).
-    seconds : dict
-    """
-
-    def __init__(self, **kw):
-        self.__dict__.update(kw)
-
-    def summary(self):
-        """JSON-friendly summary."""
-        keys = ("directions", "coefficients", "uncertainty", "chi2", "tension",
-                "star_information", "star_error_scale",
-                "fit_slopes", "held_out", "selection", "seconds", "fields", "warnings")
-        out = {k: getattr(self, k) for k in keys}
-        out["covariance"] = np.asarray(self.covariance).tolist()
-        return out
-
-    def uncertainty_line(self):
-        """One line on the move within the a-matrix's errors ('' without it)."""
-        u = self.uncertainty
-        if not u:
-            return ""
-        sc = u["slope_change"]
-        return (f"within the a-matrix's errors ({u['n_directions']} directions): chi2 cost "
-                f"{u['chi2']:.2f}; largest a_ij changes " + ", ".join(
-                    f"{d['lag']} {d['sigma']:+.2f} sigma" for d in u["largest"])
-                + "; fitted size slopes moved by " + ", ".join(
-                    f"{v['size']:+.2e}" for v in sc.values()) + " per 1e5 e"
-                + self._size_sigma_text(u.get("size_slope_sigma")))
-
-    @staticmethod
-    def _size_sigma_text(ss):
-        if not ss:
-            return ""
-        f, j = (np.mean([v[k] for v in ss.values()]) for k in ("flats_percent", "joint_percent"))
-        return (f"; the corrected size slope is known to +- {f:.1f} % of the uncorrected "
-                f"from the flats' errors, +- {j:.1f} % with the stars")
-
-    def tension_line(self):
-        """The tension's p-value, and the chi2 of the slopes measured and not fitted."""
-        t = self.tension
-        line = f"tension p = {t['p_value']:.2g} ({t['dof']} fitted slopes)"
-        u = t.get("unfitted")
-        if u:
-            line += (f"; {', '.join(u['slopes'])} not fitted, after the fit chi2 "
-                     f"{u['chi2']:.1f} / {u['dof']} (p = {u['p_value']:.2g})")
-        return line
-
-    def held_out_table(self):
-        """Text table of the held-out slopes (the validation)."""
-        lines = []
-        for name, d in self.held_out.items():
-            b = d["before"]
-            how = " (two-fold cross-validation)" if "folds" in d else ""
-            lines.append(f"held-out stars of {name}{how} ({d['n_stars']} stars), slopes per "
-                         "1e5 e (% of before):")
-            for what in ("before", "flats_only", "joint"):
-                row = d[what]
-                cells = []
-                for k in ("size", "e1"):
-                    v, e = row[k]
-                    pct = 100 * v / b[k][0] if b[k][0] else float("nan")
-                    cells.append(f"{k} {v:+.3e} +- {e:.1e} ({pct:+6.1f} %)")
-                lines.append(f"  {what:<11s} " + "  ".join(cells))
-        return "\n".join(lines)
 
 
 def _star_vector(slopes_per_field, fields):
@@ -763,14 +650,22 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         # how well each fitted field's size slope after correction is known: from the
         # flats' errors alone, and with the stars (linear propagation of the steps'
         # covariances; the directions span the a-matrix's errors, not the model's own)
-        size_sigma = {}
+        # (e1: in % of the e1 slope the flats template removes, the correction's own e1
+        # change on the same stars; a field's uncorrected e1 slope is mostly its noise)
+        size_sigma, e1_sigma = {}, {}
         for m, f in enumerate(fit_fields):
-            g = Js[3 * m, cols]
-            before = f.slopes(None, f.fit_stars, n_boot=n_boot, seed=seed)["size"][0]
-            sf, sj = (float(np.sqrt(max(g @ cv @ g, 0.0))) for cv in (final["cov_flats"], cov))
-            size_sigma[f.name] = {"flats": sf, "joint": sj,
-                                  "flats_percent": 100.0 * sf / abs(before),
-                                  "joint_percent": 100.0 * sj / abs(before)}
+            before = f.slopes(None, f.fit_stars, n_boot=n_boot, seed=seed)
+            flats = f.slopes(ta, f.fit_stars, n_boot=n_boot, seed=seed)
+            for i, out, ref in ((0, size_sigma, abs(before["size"][0])),
+                                (1, e1_sigma, abs(before["e1"][0] - flats["e1"][0]))):
+                g = Js[3 * m + i, cols]
+                sf, sj = (float(np.sqrt(max(g @ cv @ g, 0.0)))
+                          for cv in (final["cov_flats"], cov))
+                pf, pj = ((100.0 * v / ref if ref > 0 else float("nan")) for v in (sf, sj))
+                out[f.name] = {"flats": sf, "joint": sj, "flats_percent": pf,
+                               "joint_percent": pj}
+                if i == 1:
+                    out[f.name]["removed"] = float(before["e1"][0] - flats["e1"][0])
         uncertainty = {
             "n_directions": n_lag,
             "steps": {dirs[cols[k]]: float(coef[k]) for k in range(n_lag)},
@@ -781,12 +676,15 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
             "slope_change": {f.name: {k: float(moved[3 * m + i]) for i, k in enumerate(_SLOPES)}
                              for m, f in enumerate(fit_fields)},
             "size_slope_sigma": size_sigma,
+            "e1_slope_sigma": e1_sigma,
             "note": "the joint template's change from the flats template: a_ij change per "
                     "lag (1/e) and its chi2 with the a-matrix's errors; steps along the "
                     "directions of those errors (sum rule kept); size_slope_sigma: per "
                     "fitted field, the standard deviation of its corrected size slope (per "
                     "1e5 e, and % of its uncorrected slope) that the flats' errors leave, "
-                    "and that the flats and the stars together leave"}
+                    "and that the flats and the stars together leave; e1_slope_sigma: the "
+                    "same for the e1 slope, in % of the e1 slope the flats template "
+                    "removes from the field (``removed``, per 1e5 e)"}
     fit_slopes = {}
     for f in fit_fields:
         fit_slopes[f.name] = {

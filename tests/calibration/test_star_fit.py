@@ -141,9 +141,11 @@ def test_stars_undo_a_flats_error_within_the_a_matrix_errors(fitted):
     right = res.template
     modes = area_response_directions(right, table.sigma[:4, :4], max_lag=3)
     field = StarField(img)
-    s0 = field.slopes(right, field.usable)["size"][0]
-    g = np.array([field.slopes(combine_templates(right, [m["delta"]], [1.0]),
-                               field.usable)["size"][0] - s0 for m in modes.values()])
+    s0 = field.slopes(right, field.usable)
+    moved = [field.slopes(combine_templates(right, [m["delta"]], [1.0]), field.usable)
+             for m in modes.values()]
+    g = np.array([s["size"][0] - s0["size"][0] for s in moved])
+    g1 = np.array([s["e1"][0] - s0["e1"][0] for s in moved])
     u = g / np.linalg.norm(g)
     wrong = combine_templates(right, [m["delta"] for m in modes.values()], 3.0 * u)
     # the a-matrix's directions alone (max_directions=0: no model direction)
@@ -194,6 +196,15 @@ def test_stars_undo_a_flats_error_within_the_a_matrix_errors(fitted):
     assert_allclose(ss["flats_percent"],
                     100 * ss["flats"] / abs(joint.fit_slopes["field0"]["before"]["size"][0]))
     assert "with the stars" in joint.uncertainty_line()
+    # the e1 slope's, alike (|g1|), in % of the e1 slope the flats template removes
+    s1 = unc["e1_slope_sigma"]["field0"]
+    assert_allclose(s1["flats"], np.linalg.norm(g1), rtol=0.2)
+    fs = joint.fit_slopes["field0"]
+    assert_allclose(s1["removed"], fs["before"]["e1"][0] - fs["flats_only"]["e1"][0],
+                    rtol=1e-12)
+    assert_allclose(s1["flats_percent"], 100 * s1["flats"] / abs(s1["removed"]))
+    assert s1["joint"] <= s1["flats"] * (1 + 1e-9)
+    assert "the e1 slope to +- " in joint.uncertainty_line()
 
 
 @pytest.mark.slow

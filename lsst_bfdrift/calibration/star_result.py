@@ -1,0 +1,138 @@
+"""The result of the joint star-field calibration and its text report.
+
+:class:`StarCalibrationResult` is what
+:func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars` returns: the
+jointly calibrated template, the fit's chi2, tension and coefficients, the
+move within the a-matrix's errors with the precision it leaves, and the
+held-out (cross-validated) slopes, with the one-line and table summaries the
+CLI and the benchmarks print.
+"""
+
+import numpy as np
+
+__all__ = ["StarCalibrationResult"]
+
+#: The star slopes measured on every field, in the order of the fit's star vector.
+_SLOPES = ("size", "e1", "e2")
+
+
+class StarCalibrationResult:
+    """Result of :func:`calibrate_with_stars`.
+
+    Attributes
+    ----------
+    template : DistortionTemplate
+        The jointly calibrated template T(c).
+    flats_template : DistortionTemplate
+        The a-matrix-only template T_a it started from.
+    directions : list of str
+        The model directions used (chosen by the data; the lags of the flats'
+        uncertainty are always in and are reported in ``uncertainty``).
+    uncertainty : dict or None
+        The move within the a-matrix's errors (None with
+        ``flats_uncertainty=False``): ``n_directions`` and ``steps`` along
+        each direction of those errors; the joint template's change from the
+        flats template as the a-matrix sees it (all directions, exact
+        polygon areas): ``a_change`` per lag (1/e), ``chi2`` (with the
+        a-matrix's errors), ``largest`` (the three largest a_ij changes, also
+        in units of their errors, ``sigma``); ``slope_change`` (per fitted
+        field, the size, e1 and e2 slope change of the whole move, per 1e5 e);
+        ``size_slope_sigma`` (per fitted field, the standard deviation of its
+        corrected size slope that the a-matrix's errors leave, ``flats``, and
+        that they and the stars leave, ``joint``: per 1e5 e, and
+        ``*_percent`` of the field's uncorrected slope; propagated linearly
+        from the steps' covariances, so the model's own error beyond the
+        a-matrix's is not in it); ``e1_slope_sigma``, the same for the e1
+        slope, in % of the e1 slope the flats template removes from the
+        field (``removed``, per 1e5 e: the correction's own e1 change, as a
+        field's uncorrected e1 slope is mostly its noise).
+    coefficients : dict
+        Per direction: ``steps`` (c_k), ``parameter_change`` (c_k h_k, in the
+        parameter's unit) and its error.
+    covariance : ndarray
+        Covariance of the coefficients c.
+    chi2 : dict
+        ``amatrix`` and ``stars`` chi2 with T_a (``flats_only``) and with
+        T(c) (``joint``), and the number of points of each.
+    tension : dict
+        Rise of the a-matrix chi2 needed to null the fitted star slopes, its
+        degrees of freedom and p-value; ``unfitted``: the chi2 of the
+        slopes measured and not fitted, after the fit, against zero.
+    star_information : dict
+        Per direction, the share of the Fisher information from the stars.
+    fit_slopes, held_out : dict
+        Slopes (value, error; per 1e5 e) of the fitted and of the held-out
+        stars, per field: ``before``, ``flats_only``, ``joint``.
+    selection : list of dict
+    star_error_scale : float
+        Factor applied to the fitted slopes' bootstrap errors (1: none;
+        ``scale_star_errors``).
+    seconds : dict
+    """
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+    def summary(self):
+        """JSON-friendly summary."""
+        keys = ("directions", "coefficients", "uncertainty", "chi2", "tension",
+                "star_information", "star_error_scale",
+                "fit_slopes", "held_out", "selection", "seconds", "fields", "warnings")
+        out = {k: getattr(self, k) for k in keys}
+        out["covariance"] = np.asarray(self.covariance).tolist()
+        return out
+
+    def uncertainty_line(self):
+        """One line on the move within the a-matrix's errors ('' without it)."""
+        u = self.uncertainty
+        if not u:
+            return ""
+        sc = u["slope_change"]
+        return (f"within the a-matrix's errors ({u['n_directions']} directions): chi2 cost "
+                f"{u['chi2']:.2f}; largest a_ij changes " + ", ".join(
+                    f"{d['lag']} {d['sigma']:+.2f} sigma" for d in u["largest"])
+                + "; fitted size slopes moved by " + ", ".join(
+                    f"{v['size']:+.2e}" for v in sc.values()) + " per 1e5 e"
+                + self._sigma_text(u.get("size_slope_sigma"), u.get("e1_slope_sigma")))
+
+    @staticmethod
+    def _sigma_text(ss, se):
+        if not ss:
+            return ""
+        f, j = (np.mean([v[k] for v in ss.values()]) for k in ("flats_percent", "joint_percent"))
+        text = (f"; the corrected size slope is known to +- {f:.1f} % of the uncorrected "
+                f"from the flats' errors, +- {j:.1f} % with the stars")
+        if se:
+            f, j = (np.nanmean([v[k] for v in se.values()])
+                    for k in ("flats_percent", "joint_percent"))
+            text += (f"; the e1 slope to +- {f:.1f} % and +- {j:.1f} % of the e1 slope the "
+                     "flats template removes")
+        return text
+
+    def tension_line(self):
+        """The tension's p-value, and the chi2 of the slopes measured and not fitted."""
+        t = self.tension
+        line = f"tension p = {t['p_value']:.2g} ({t['dof']} fitted slopes)"
+        u = t.get("unfitted")
+        if u:
+            line += (f"; {', '.join(u['slopes'])} not fitted, after the fit chi2 "
+                     f"{u['chi2']:.1f} / {u['dof']} (p = {u['p_value']:.2g})")
+        return line
+
+    def held_out_table(self):
+        """Text table of the held-out slopes (the validation)."""
+        lines = []
+        for name, d in self.held_out.items():
+            b = d["before"]
+            how = " (two-fold cross-validation)" if "folds" in d else ""
+            lines.append(f"held-out stars of {name}{how} ({d['n_stars']} stars), slopes per "
+                         "1e5 e (% of before):")
+            for what in ("before", "flats_only", "joint"):
+                row = d[what]
+                cells = []
+                for k in ("size", "e1"):
+                    v, e = row[k]
+                    pct = 100 * v / b[k][0] if b[k][0] else float("nan")
+                    cells.append(f"{k} {v:+.3e} +- {e:.1e} ({pct:+6.1f} %)")
+                lines.append(f"  {what:<11s} " + "  ".join(cells))
+        return "\n".join(lines)
