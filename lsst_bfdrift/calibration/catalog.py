@@ -56,8 +56,8 @@ from lsst_bfdrift.correction.checks import plateau_level, plateau_warning
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.utils.progress import ProgressBar
 
-__all__ = ["StarDetections", "detect_stars", "measure_stars", "hsm_moments", "load_electrons", "FLAG_SATURATED", "FLAG_BLENDED", "FLAG_EDGE",
-           "FLAG_MASKED", "FLAG_MOMENTS", "FLAG_NOT_STAR", "FLAG_NAMES"]
+__all__ = ["StarDetections", "detect_stars", "measure_stars", "hsm_moments", "load_electrons",
+           "FLAG_SATURATED", "FLAG_BLENDED", "FLAG_EDGE", "FLAG_MASKED", "FLAG_MOMENTS", "FLAG_NOT_STAR", "FLAG_NAMES"]
 
 FLAG_SATURATED = 1
 FLAG_BLENDED = 2
@@ -71,7 +71,8 @@ FLAG_NAMES = {FLAG_SATURATED: "flag_saturated", FLAG_BLENDED: "flag_blended",
               FLAG_MOMENTS: "flag_moments", FLAG_NOT_STAR: "flag_not_star"}
 
 
-def load_electrons(exposure, *, gain=None, mask=None, saturation=None):
+def load_electrons(exposure, *, gain=None, mask=None, saturation=None,
+                   return_sat_pixels=False):
     """An exposure as a float64 image in electrons, a bad-pixel mask and the saturation.
 
     Parameters
@@ -92,6 +93,8 @@ def load_electrons(exposure, *, gain=None, mask=None, saturation=None):
         the sky (a flat top,
         :func:`~lsst_bfdrift.correction.checks.plateau_level`:
         the image was clipped there), with a warning.
+    return_sat_pixels : bool, optional
+        Also return the pixels of the exposure's SAT plane.
 
     Returns
     -------
@@ -103,14 +106,11 @@ def load_electrons(exposure, *, gain=None, mask=None, saturation=None):
         Saturation level in electrons.
     gain : float
         The gain applied (1 for images in electrons).
+    sat_pixels : ndarray of bool or None
+        With ``return_sat_pixels``: the SAT plane's pixels of an LSST
+        exposure or its file, saturated pixels that ISR may have interpolated
+        over (None for inputs without bit planes or a SAT plane).
     """
-    return _load_electrons(exposure, gain=gain, mask=mask, saturation=saturation)[:4]
-
-
-def _load_electrons(exposure, *, gain=None, mask=None, saturation=None):
-    """:func:`load_electrons`, and the pixels of the exposure's SAT plane (an
-    LSST exposure or its file; None for inputs without bit planes or a SAT
-    plane): saturated pixels that ISR may have interpolated over."""
     import os
 
     from lsst_bfdrift.correction.task import unpack_exposure
@@ -143,7 +143,7 @@ def _load_electrons(exposure, *, gain=None, mask=None, saturation=None):
             warnings.warn(plateau_warning(data, sat_e, "taken as the saturation level (pass "
                                           "saturation= or a SATURATE keyword to set it)"),
                           AstropyUserWarning)
-    return data, bad, sat_e, g, sat_pix
+    return (data, bad, sat_e, g, sat_pix) if return_sat_pixels else (data, bad, sat_e, g)
 
 
 def _saturated_pixels(saturated, from_exposure, shape):
@@ -300,8 +300,9 @@ def detect_stars(exposure, *, gain=None, mask=None, saturation=None, saturated=N
     ValueError
         For a blank or non-finite image, an image too small, or no detection.
     """
-    data, bad, sat_e, g, sat_pix = _load_electrons(exposure, gain=gain, mask=mask,
-                                                   saturation=saturation)
+    data, bad, sat_e, g, sat_pix = load_electrons(exposure, gain=gain, mask=mask,
+                                                   saturation=saturation,
+                                                   return_sat_pixels=True)
     return _detect(data, bad, sat_e, g, threshold=threshold, n_pixels=n_pixels,
                    kernel_fwhm=kernel_fwhm, box_size=box_size, deblend=deblend,
                    saturated=_saturated_pixels(saturated, sat_pix, data.shape))
@@ -434,8 +435,9 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, saturated=
     """
     from scipy import ndimage
 
-    data, bad, sat_e, g, sat_pix = _load_electrons(exposure, gain=gain, mask=mask,
-                                                   saturation=saturation)
+    data, bad, sat_e, g, sat_pix = load_electrons(exposure, gain=gain, mask=mask,
+                                                   saturation=saturation,
+                                                   return_sat_pixels=True)
     sat_pix = _saturated_pixels(saturated, sat_pix, data.shape)
     if detections is None:
         detections = _detect(data, bad, sat_e, g, threshold=threshold, n_pixels=n_pixels,

@@ -104,7 +104,7 @@ import numpy as np
 from scipy import stats
 
 from lsst_bfdrift.utils.errors import InputError
-from lsst_bfdrift.calibration.catalog import (FLAG_NAMES, _load_electrons, detect_stars,
+from lsst_bfdrift.calibration.catalog import (FLAG_NAMES, load_electrons, detect_stars,
                                           measure_stars)
 from lsst_bfdrift.calibration.star_result import _SLOPES, StarCalibrationResult
 from lsst_bfdrift.calibration.star_slopes import (FLUX_UNIT, birge_scale, select_stars,
@@ -148,8 +148,9 @@ class StarField:
     def __init__(self, exposure, *, gain=None, mask=None, saturation=None, min_snr=30.0,
                  name=None, catalog_kwargs=None, detections=None):
         self.name = name or (str(exposure) if isinstance(exposure, str) else "field")
-        data, bad, sat_e, g, sat_pix = _load_electrons(exposure, gain=gain, mask=mask,
-                                                       saturation=saturation)
+        data, bad, sat_e, g, sat_pix = load_electrons(exposure, gain=gain, mask=mask,
+                                                       saturation=saturation,
+                                                       return_sat_pixels=True)
         self.data, self.bad, self.saturation, self.gain = data, bad, sat_e, g
         self.detections = detections if detections is not None else detect_stars(
             data, mask=bad, saturation=sat_e, saturated=sat_pix, **dict(catalog_kwargs or {}))

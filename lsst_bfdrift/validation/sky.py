@@ -105,15 +105,16 @@ def validate_sky(exposure, *, gain=None, mask=None, saturation=None, template=No
     from astropy import units as u
     from astropy.nddata import CCDData
 
-    from lsst_bfdrift.calibration.catalog import _load_electrons, measure_stars
+    from lsst_bfdrift.calibration.catalog import load_electrons, measure_stars
     from lsst_bfdrift.validation.shape_correction import correct_catalog
 
     if route not in ("catalog", "pixel", "both", "none"):
         raise InputError(f"route must be catalog, pixel, both or none, got {route!r}")
     if not z_crit > 0:
         raise InputError(f"z_crit must be positive, got {z_crit}")
-    data, bad, sat_e, g, sat_pix = _load_electrons(exposure, gain=gain, mask=mask,
-                                                   saturation=saturation)
+    data, bad, sat_e, g, sat_pix = load_electrons(exposure, gain=gain, mask=mask,
+                                                   saturation=saturation,
+                                                   return_sat_pixels=True)
     ckw = dict(catalog_kwargs or {})
     cat = measure_stars(data, mask=bad, saturation=sat_e, saturated=sat_pix, progress=progress,
                         **ckw)

@@ -152,6 +152,15 @@ def test_sat_plane_stars_are_saturated_not_masked(tmp_path):
     assert cat["flags"][k] & FLAG_MASKED and not cat["flags"][k] & FLAG_SATURATED
     with pytest.raises(ValueError, match=r"saturated shape \(3, 3\) does not match"):
         measure_stars(arr, saturated=np.zeros((3, 3), bool))
+    # the plane itself, as load_electrons gives it (None for a plain array)
+    from lsst_bfdrift.calibration.catalog import load_electrons
+
+    data, bad_e, _, gain, sat_pix = load_electrons(path, return_sat_pixels=True)
+    assert_allclose(data, arr)
+    assert gain == 1.0
+    assert np.array_equal(sat_pix, sat) and np.array_equal(bad_e, bad | sat)
+    assert len(load_electrons(path)) == 4
+    assert load_electrons(arr, return_sat_pixels=True)[4] is None
 
 
 def test_adu_with_gain_equals_electrons(tmp_path):
