@@ -686,6 +686,14 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                     "and that the flats and the stars together leave; e1_slope_sigma: the "
                     "same for the e1 slope, in % of the e1 slope the flats template "
                     "removes from the field (``removed``, per 1e5 e)"}
+        e1_pct = np.array([v["joint_percent"] for v in e1_sigma.values()], float)
+        if np.all(np.isfinite(e1_pct)) and np.mean(e1_pct) > 100.0:
+            per = np.mean([v["joint"] for v in e1_sigma.values()])
+            warn.append(f"the corrected e1 slope is uncertain by +- {np.mean(e1_pct):.0f} % of "
+                        f"the e1 slope the flats template removes (+- {per:.1e} per 1e5 e): "
+                        "the flats do not pin the sensor's serial/parallel anisotropy, so the "
+                        "correction's e1 is not known; more flat pairs (the e1 error falls as "
+                        "their square root) or e1 fitted on many fields would")
     fit_slopes = {}
     for f in fit_fields:
         fit_slopes[f.name] = {

@@ -205,6 +205,10 @@ def test_stars_undo_a_flats_error_within_the_a_matrix_errors(fitted):
     assert_allclose(s1["flats_percent"], 100 * s1["flats"] / abs(s1["removed"]))
     assert s1["joint"] <= s1["flats"] * (1 + 1e-9)
     assert "the e1 slope to +- " in joint.uncertainty_line()
+    # a-matrix errors of 100 % per lag leave the e1 correction unknown, and the report says so
+    assert s1["joint_percent"] > 100
+    assert any(w.startswith(f"the corrected e1 slope is uncertain by +- "
+                            f"{s1['joint_percent']:.0f} %") for w in joint.warnings)
 
 
 @pytest.mark.slow
@@ -232,6 +236,10 @@ def test_star_errors_scaled_by_the_fields_scatter_and_tension_kept():
                     rtol=1e-12)
     assert scaled.chi2["joint"]["amatrix"] < 0.5 * raw.chi2["joint"]["amatrix"]
     assert scaled.summary()["star_error_scale"] == s
+    # a-matrix errors of 5 % pin the e1 correction well enough: no e1 warning
+    e1 = [v["joint_percent"] for v in scaled.uncertainty["e1_slope_sigma"].values()]
+    assert np.mean(e1) < 100
+    assert not any("e1 slope is uncertain" in w for w in scaled.warnings)
 
 
 def test_bad_star_inputs_get_clear_errors():
