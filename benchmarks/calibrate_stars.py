@@ -134,6 +134,28 @@ def held_out_mean(held_out):
             f"field-to-field rms {removed.std(ddof=1) / abs(removed.mean()):.1%}")
 
 
+def stated_precision_line(joint, validation):
+    """The paired stars' flats+stars residuals against the precision the fit states
+    (``uncertainty``'s size and e1 slope sigma, means over the fitted fields), and
+    the flat data the e1 target would take at that precision ('' without them)."""
+    unc = joint.uncertainty
+    if not unc or "drift" not in validation:
+        return ""
+    ss = float(np.mean([v["joint_percent"] for v in unc["size_slope_sigma"].values()]))
+    se_f, se_j = (float(np.nanmean([v[k] for v in unc["e1_slope_sigma"].values()]))
+                  for k in ("flats_percent", "joint_percent"))
+    d, u = validation["drift"], validation["uncorrected"]
+    ps, ps_e = 100 * d["size_slope"] / u["size_slope"], 100 * d["size_slope_err"] / abs(
+        u["size_slope"])
+    pe, pe_e = 100 * d["e_slope"] / u["e_slope"], 100 * d["e_slope_err"] / abs(u["e_slope"])
+    return (f"paired flats+stars residuals against the fit's stated precision: size "
+            f"{ps:+.1f} % (+- {ss:.1f} % stated, {ps / np.hypot(ss, ps_e):+.1f} sigma), e1 "
+            f"{pe:+.1f} % (+- {se_j:.0f} % of the e1 slope the flats template removes, "
+            f"{pe / np.hypot(se_j, pe_e):+.1f} sigma); e1 known to 5 % would take the flats' "
+            f"e1 error (+- {se_f:.0f} %) {se_f / 5:.0f} times smaller: about "
+            f"{(se_f / 5) ** 2:.0f} times this flat data")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sensors", nargs="+", default=["lsst_itl_50_8", "lsst_e2v_50_8"])
@@ -276,6 +298,9 @@ def main(argv=None):
             say(f"    {name:20s} drift  size {100 * d['size_slope'] / u:+6.2f} +- "
                 f"{100 * d['size_slope_err'] / abs(u):.2f} %   e1 {100 * d['e_slope'] / ue:+6.1f}"
                 f" +- {100 * d['e_slope_err'] / abs(ue):.1f} % of uncorrected")
+        line = stated_precision_line(joint, rec["validation"].get("flats+stars", {}))
+        if line:
+            say("  " + line)
     say("target: flats+stars drift <= 3 % of the size slope and <= 5 % of e1")
     write_text(args.out + ".txt", "\n".join(lines) + "\n")
     write_json(args.out + ".json", out, indent=1, default=float)
