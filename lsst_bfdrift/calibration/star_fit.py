@@ -517,6 +517,12 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         no_star = (rows < n_a) | (rows >= n_data)
         cov_flats = np.linalg.pinv(Jc[no_star].T @ (Jc[no_star] * W[no_star, None])) \
             if cols else np.zeros((0, 0))
+        # and with every measured slope fitted (the slopes not fitted with their own errors):
+        # what fitting them would do to the precision, reported, not used
+        sig_all = np.concatenate([a_sig, sig_u * star_scale[0],
+                                  np.where(is_lag, np.inf, PRIOR_STEPS)])[rows]
+        cov_all = np.linalg.pinv(Jc.T @ (Jc / sig_all[:, None] ** 2)) if cols \
+            else np.zeros((0, 0))
         coef = -cov @ (Jc.T @ (W * r0c))
         sr = (rows >= n_a) & (rows < n_data)  # the star rows: the parameters they determine
         lev = float(np.sum((Jc[sr] @ cov) * Jc[sr] * W[sr, None])) if cols else 0.0
@@ -544,7 +550,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                 t_joint = combine_templates(ta, [deltas[k] for k in cols], coef)
         r_fin = np.concatenate([alpha_of(t_joint) - a_meas, s_j])
         return {"chosen": chosen, "cols": cols, "coef": coef, "cov": cov, "t": t_joint,
-                "cov_flats": cov_flats,
+                "cov_flats": cov_flats, "cov_all": cov_all,
                 "a_change": alpha_of(t_joint) - a0,
                 "r_s0": r_s0, "sig_s": sig_s, "sig_u": sig_u, "Js": Js, "r_fin": r_fin,
                 "selection": selection, "star_leverage": lev}
@@ -667,6 +673,11 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                                "joint_percent": pj}
                 if i == 1:
                     out[f.name]["removed"] = float(before["e1"][0] - flats["e1"][0])
+                    if "e1" not in fitted_slopes:
+                        sa = float(np.sqrt(max(g @ final["cov_all"] @ g, 0.0)))
+                        out[f.name]["all_fitted"] = sa
+                        out[f.name]["all_fitted_percent"] = 100.0 * sa / ref if ref > 0 \
+                            else float("nan")
         uncertainty = {
             "n_directions": n_lag,
             "steps": {dirs[cols[k]]: float(coef[k]) for k in range(n_lag)},
@@ -685,7 +696,8 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                     "1e5 e, and % of its uncorrected slope) that the flats' errors leave, "
                     "and that the flats and the stars together leave; e1_slope_sigma: the "
                     "same for the e1 slope, in % of the e1 slope the flats template "
-                    "removes from the field (``removed``, per 1e5 e)"}
+                    "removes from the field (``removed``, per 1e5 e), and, when e1 is not "
+                    "fitted, with every measured slope fitted (``all_fitted``)"}
         e1_pct = np.array([v["joint_percent"] for v in e1_sigma.values()], float)
         if np.all(np.isfinite(e1_pct)) and np.mean(e1_pct) > 100.0:
             per = np.mean([v["joint"] for v in e1_sigma.values()])

@@ -45,7 +45,10 @@ class StarCalibrationResult:
         a-matrix's is not in it); ``e1_slope_sigma``, the same for the e1
         slope, in % of the e1 slope the flats template removes from the
         field (``removed``, per 1e5 e: the correction's own e1 change, as a
-        field's uncorrected e1 slope is mostly its noise).
+        field's uncorrected e1 slope is mostly its noise), and, when e1 is
+        not fitted, ``all_fitted`` (and ``_percent``): the same with every
+        measured slope fitted, what ``fitted_slopes=('size', 'e1', 'e2')``
+        would give (the fit itself is not changed).
     coefficients : dict
         Per direction: ``steps`` (c_k), ``parameter_change`` (c_k h_k, in the
         parameter's unit) and its error.
@@ -107,6 +110,9 @@ class StarCalibrationResult:
                     for k in ("flats_percent", "joint_percent"))
             text += (f"; the e1 slope to +- {f:.1f} % and +- {j:.1f} % of the e1 slope the "
                      "flats template removes")
+            a = [v["all_fitted_percent"] for v in se.values() if "all_fitted_percent" in v]
+            if a:
+                text += f" (+- {np.nanmean(a):.1f} % with the e1 and e2 slopes fitted too)"
         return text
 
     def tension_line(self):

@@ -146,6 +146,7 @@ def test_stars_undo_a_flats_error_within_the_a_matrix_errors(fitted):
              for m in modes.values()]
     g = np.array([s["size"][0] - s0["size"][0] for s in moved])
     g1 = np.array([s["e1"][0] - s0["e1"][0] for s in moved])
+    g2 = np.array([s["e2"][0] - s0["e2"][0] for s in moved])
     u = g / np.linalg.norm(g)
     wrong = combine_templates(right, [m["delta"] for m in modes.values()], 3.0 * u)
     # the a-matrix's directions alone (max_directions=0: no model direction)
@@ -204,6 +205,20 @@ def test_stars_undo_a_flats_error_within_the_a_matrix_errors(fitted):
                     rtol=1e-12)
     assert_allclose(s1["flats_percent"], 100 * s1["flats"] / abs(s1["removed"]))
     assert s1["joint"] <= s1["flats"] * (1 + 1e-9)
+    # with all three slopes fitted, the Gaussian update of a unit prior by the three rows
+    # (the direct computation): what the fit gives when it fits them, and what it
+    # states it would give when it fits size alone
+    errs = [fs["flats_only"][k][1] for k in ("size", "e1", "e2")]
+    post = np.linalg.inv(np.eye(g.size) + sum(np.outer(v, v) / e ** 2
+                                              for v, e in zip((g, g1, g2), errs)))
+    s1_all = np.sqrt(g1 @ post @ g1)
+    if len(fitted) == 1:
+        assert_allclose(s1["all_fitted"], s1_all, rtol=0.1)
+        assert s1["all_fitted"] < s1["joint"]
+        assert "with the e1 and e2 slopes fitted too" in joint.uncertainty_line()
+    else:
+        assert_allclose(s1["joint"], s1_all, rtol=0.1)
+        assert "all_fitted" not in s1
     assert "the e1 slope to +- " in joint.uncertainty_line()
     # a-matrix errors of 100 % per lag leave the e1 correction unknown, and the report says so
     assert s1["joint_percent"] > 100
