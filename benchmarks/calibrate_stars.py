@@ -137,23 +137,33 @@ def held_out_mean(held_out):
 def stated_precision_line(joint, validation):
     """The paired stars' flats+stars residuals against the precision the fit states
     (``uncertainty``'s size and e1 slope sigma, means over the fitted fields), and
-    the flat data the e1 target would take at that precision ('' without them)."""
+    the flat data the e1 target would take at that precision ('' without them).
+
+    The e1 residual is compared in units of each star set's uncorrected size
+    slope (the fields' stars are broader than the paired ones, and the e1 slope
+    the flats template removes can differ from the paired stars' e1 effect, even
+    in sign, when the flats do not pin it)."""
     unc = joint.uncertainty
     if not unc or "drift" not in validation:
         return ""
-    ss = float(np.mean([v["joint_percent"] for v in unc["size_slope_sigma"].values()]))
-    se_f, se_j = (float(np.nanmean([v[k] for v in unc["e1_slope_sigma"].values()]))
-                  for k in ("flats_percent", "joint_percent"))
+    sz, e1 = unc["size_slope_sigma"].values(), unc["e1_slope_sigma"].values()
+    ss = float(np.mean([v["joint_percent"] for v in sz]))
+    field_size = float(np.mean([100 * v["flats"] / v["flats_percent"] for v in sz]))
+    se_f, se_j = (float(np.nanmean([v[k] for v in e1])) for k in ("flats_percent",
+                                                                  "joint_percent"))
+    se_size = 100 * float(np.mean([v["joint"] for v in e1])) / field_size
     d, u = validation["drift"], validation["uncorrected"]
-    ps, ps_e = 100 * d["size_slope"] / u["size_slope"], 100 * d["size_slope_err"] / abs(
-        u["size_slope"])
-    pe, pe_e = 100 * d["e_slope"] / u["e_slope"], 100 * d["e_slope_err"] / abs(u["e_slope"])
+    us = abs(u["size_slope"])
+    ps, ps_e = 100 * d["size_slope"] / u["size_slope"], 100 * d["size_slope_err"] / us
+    pe, pe_s, pe_se = (100 * d["e_slope"] / u["e_slope"], 100 * d["e_slope"] / us,
+                       100 * d["e_slope_err"] / us)
     return (f"paired flats+stars residuals against the fit's stated precision: size "
-            f"{ps:+.1f} % (+- {ss:.1f} % stated, {ps / np.hypot(ss, ps_e):+.1f} sigma), e1 "
-            f"{pe:+.1f} % (+- {se_j:.0f} % of the e1 slope the flats template removes, "
-            f"{pe / np.hypot(se_j, pe_e):+.1f} sigma); e1 known to 5 % would take the flats' "
-            f"e1 error (+- {se_f:.0f} %) {se_f / 5:.0f} times smaller: about "
-            f"{(se_f / 5) ** 2:.0f} times this flat data")
+            f"{ps:+.1f} % (+- {ss:.1f} % stated, {ps / np.hypot(ss, ps_e):+.1f} sigma); e1 "
+            f"{pe:+.1f} % of its uncorrected slope, {pe_s:+.2f} % of the uncorrected size slope "
+            f"(stated: +- {se_size:.2f} % of the size slope, +- {se_j:.0f} % of the e1 slope the "
+            f"flats template removes; {pe_s / np.hypot(se_size, pe_se):+.1f} sigma); e1 known to "
+            f"5 % would take the flats' e1 error (+- {se_f:.0f} %) {se_f / 5:.0f} times smaller: "
+            f"about {(se_f / 5) ** 2:.0f} times this flat data")
 
 
 def main(argv=None):
