@@ -705,7 +705,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                         f"the e1 slope the flats template removes (+- {per:.1e} per 1e5 e): "
                         "the flats do not pin the sensor's serial/parallel anisotropy, so the "
                         "correction's e1 is not known; more flat pairs (the e1 error falls as "
-                        "their square root) or e1 fitted on many fields would")
+                        "their square root) or e1 fitted on many fields would pin it")
     fit_slopes = {}
     for f in fit_fields:
         fit_slopes[f.name] = {
