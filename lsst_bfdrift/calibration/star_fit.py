@@ -521,8 +521,8 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         # what fitting them would do to the precision, reported, not used
         sig_all = np.concatenate([a_sig, sig_u * star_scale[0],
                                   np.where(is_lag, np.inf, PRIOR_STEPS)])[rows]
-        cov_all = np.linalg.pinv(Jc.T @ (Jc / sig_all[:, None] ** 2)) if cols \
-            else np.zeros((0, 0))
+        cov_all = np.linalg.pinv(Jc.T @ (Jc / sig_all[:, None] ** 2)) \
+            if cols and "e1" not in fitted_slopes else None
         coef = -cov @ (Jc.T @ (W * r0c))
         sr = (rows >= n_a) & (rows < n_data)  # the star rows: the parameters they determine
         lev = float(np.sum((Jc[sr] @ cov) * Jc[sr] * W[sr, None])) if cols else 0.0
@@ -663,8 +663,9 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         for m, f in enumerate(fit_fields):
             before = f.slopes(None, f.fit_stars, n_boot=n_boot, seed=seed)
             flats = f.slopes(ta, f.fit_stars, n_boot=n_boot, seed=seed)
+            removed = float(before["e1"][0] - flats["e1"][0])
             for i, out, ref in ((0, size_sigma, abs(before["size"][0])),
-                                (1, e1_sigma, abs(before["e1"][0] - flats["e1"][0]))):
+                                (1, e1_sigma, abs(removed))):
                 g = Js[3 * m + i, cols]
                 sf, sj = (float(np.sqrt(max(g @ cv @ g, 0.0)))
                           for cv in (final["cov_flats"], cov))
@@ -672,8 +673,8 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                 out[f.name] = {"flats": sf, "joint": sj, "flats_percent": pf,
                                "joint_percent": pj}
                 if i == 1:
-                    out[f.name]["removed"] = float(before["e1"][0] - flats["e1"][0])
-                    if "e1" not in fitted_slopes:
+                    out[f.name]["removed"] = removed
+                    if final["cov_all"] is not None:
                         sa = float(np.sqrt(max(g @ final["cov_all"] @ g, 0.0)))
                         out[f.name]["all_fitted"] = sa
                         out[f.name]["all_fitted_percent"] = 100.0 * sa / ref if ref > 0 \
