@@ -36,8 +36,8 @@ from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["AcoeffTable", "read_acoeff_table", "assign_axes", "sum_rule_check",
            "electrostatic_acoeffs", "AcoeffFit", "fit_acoeffs", "DEFAULT_FREE",
-           "lag_radius", "acoeff_square", "LinearBasis", "default_basis_path", "load_default_basis",
-           "linear_basis", "MAX_TABLE_LAG"]
+           "lag_radius", "acoeff_square", "LinearBasis", "default_basis_path",
+           "load_default_basis", "linear_basis", "MAX_TABLE_LAG"]
 
 #: Largest lag an a_ij table may hold (measured tables reach ~20; a larger
 #: lag is a typo, and the square arrays grow as its square).

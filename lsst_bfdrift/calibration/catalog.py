@@ -57,7 +57,8 @@ from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.utils.progress import ProgressBar
 
 __all__ = ["StarDetections", "detect_stars", "measure_stars", "hsm_moments", "load_electrons",
-           "FLAG_SATURATED", "FLAG_BLENDED", "FLAG_EDGE", "FLAG_MASKED", "FLAG_MOMENTS", "FLAG_NOT_STAR", "FLAG_NAMES"]
+           "FLAG_SATURATED", "FLAG_BLENDED", "FLAG_EDGE", "FLAG_MASKED", "FLAG_MOMENTS",
+           "FLAG_NOT_STAR", "FLAG_NAMES"]
 
 FLAG_SATURATED = 1
 FLAG_BLENDED = 2
@@ -532,8 +533,9 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, saturated=
         tab[name] = (np.asarray(tab["flags"]) & bit) != 0
     tab["use"] = np.asarray(tab["flags"]) == 0
     tab.meta.update(gain=g, saturation=sat_e, background_rms=float(np.median(rms)),
-                    threshold=detections.settings["threshold"], stamp=stamp, aperture_radius=float(aperture_radius),
-                    isolation=float(isolation), moments="galsim.hsm.FindAdaptiveMom (adaptive)",
+                    threshold=detections.settings["threshold"], stamp=stamp,
+                    aperture_radius=float(aperture_radius), isolation=float(isolation),
+                    moments="galsim.hsm.FindAdaptiveMom (adaptive)",
                     shape=[int(ny), int(nx)])
     return tab
 

@@ -600,7 +600,8 @@ def load_input(path, *, max_lag=3):
     A directory's FITS files (``*.fits``, ``*.fit``, ``*.fits.gz``), sorted by
     name, form consecutive pairs; temporary files (``.tmp-*``, see
     :func:`~lsst_bfdrift.utils.io.data_files`) are ignored. A text file with 4
-    numeric columns is an a_ij table (:func:`~lsst_bfdrift.calibration.acoeff_fit.read_acoeff_table`), with 2
+    numeric columns is an a_ij table
+    (:func:`~lsst_bfdrift.calibration.acoeff_fit.read_acoeff_table`), with 2
     columns a PTC (:func:`~lsst_bfdrift.calibration.ptc.read_ptc_text`).
 
     Returns

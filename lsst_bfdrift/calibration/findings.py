@@ -137,6 +137,8 @@ def linearity_finding(mu, exptime, sigma, *, exposure_scatter=0.0, scatter_dof=N
     detected = p < p_threshold
     bad = [float(mu[j]) for j in np.flatnonzero(np.abs(pull) > 3.0)] or [float(mu[k])]
     above = dev[k] > 0
+    noise = ("shot noise" if scatter == 0
+             else f"shot noise and {scatter * 100:.2g} % exposure scatter")
     desc = (f"linearity: the mean departs from a line in exposure time (chi2 {chi2:.1f} for "
             f"{dof} dof, p = {p:.1e}); largest at {mu[k]:.4g} ADU (t = {t[k]:.4g} s): "
             f"{abs(dev[k]) * 100:.3g} % {'above' if above else 'below'} the line "
@@ -144,7 +146,7 @@ def linearity_finding(mu, exptime, sigma, *, exposure_scatter=0.0, scatter_dof=N
             "or exposure (shutter, lamp) - BF moves no charge and cannot make it"
             ) if detected else (
         f"linearity: mean linear in exposure time within "
-        f"{'shot noise' if scatter == 0 else f'shot noise and {scatter * 100:.2g} % exposure scatter'}"
+        f"{noise}"
         f" (chi2 {chi2:.1f} for "
         f"{dof} dof, p = {p:.2f}; largest deviation {dev[k] * 100:+.2g} +- "
         f"{dev_err[k] * 100:.2g} % at {mu[k]:.4g} ADU)")
@@ -383,7 +385,8 @@ def halves_finding(mu, cov, npix, halves, gain, noise, *, p_threshold=1e-3):
                 cause = "the variances do not follow: illumination or response, not gain"
             else:
                 cause = "the variances cannot tell gain from illumination at these errors"
-            what = (f"the {nb} half is {abs(rbar) * 100:.3g} % {'brighter' if rbar > 0 else 'dimmer'}"
+            what = (f"the {nb} half is {abs(rbar) * 100:.3g} % "
+                    f"{'brighter' if rbar > 0 else 'dimmer'}"
                     f" than the {na} half (+- {s['mean_ratio_err'] * 100:.2g} %, at every level)")
         elif test == "trend":
             cause = "a non-linearity of one half (or of the illumination with the level)"

@@ -13,8 +13,8 @@ the points in ``mask`` with a bounded Levenberg-Marquardt iteration in
 scaled parameters. Bounds are handled by an active set: a parameter held on
 a bound by the gradient is taken out of the step and the others are solved
 for without it, so that strongly correlated parameters still reach the
-constrained optimum when one of them ends on a bound. Model evaluations are the expensive part (each is a set
-of drift-line bisections), so the engine
+constrained optimum when one of them ends on a bound. Model evaluations are
+the expensive part (each is a set of drift-line bisections), so the engine
 
 * accepts a starting Jacobian (``jacobian0``: e.g. from a linear basis, an
   emulator of the model) and then updates it by Broyden's rank-one rule from
@@ -362,7 +362,8 @@ def fit_parameters(model, data, sigma, start, bounds, *, mask=None, jacobian0=No
     if progress:
         bar._draw(final=True)
     near = np.isfinite(span) & ((x - lo < 1e-4 * span) | (hi - x < 1e-4 * span))
-    return ParameterFit(at_bound=[k for k, b in zip(names, near) if b],names=names, values=dict(zip(names, map(float, x))),
+    return ParameterFit(at_bound=[k for k, b in zip(names, near) if b], names=names,
+                        values=dict(zip(names, map(float, x))),
                         errors=dict(zip(names, map(float, err))),
                         start=dict(zip(names, map(float, x0))), covariance=cov,
                         correlation=corr, data=data, sigma=np.array(sigma), model=evaluate(x),

@@ -432,7 +432,8 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
         gain_source=source, turnoff=turnoff,
         pairs_used=[{k: v for k, v in r.items() if k != "_pc"} for r in used],
         pairs_dropped=dropped, notes=notes,
-        meta={"max_lag": int(max_lag), "exptime_rtol": exptime_rtol, "shape": list(first["shape"])})
+        meta={"max_lag": int(max_lag), "exptime_rtol": exptime_rtol,
+              "shape": list(first["shape"])})
 
 
 # --------------------------------------------------------------------------- PTC text

@@ -396,7 +396,8 @@ def _fit_result(res, names, ndata, *, known_sigma):
     err = np.sqrt(np.diag(cov))
     out = {n: float(v) for n, v in zip(names, res.x)}
     out.update({f"{n}_err": float(e) for n, e in zip(names, err)})
-    out.update({"chi2": chi2, "dof": dof, "covariance": cov.tolist(), "success": bool(res.success)})
+    out.update({"chi2": chi2, "dof": dof, "covariance": cov.tolist(),
+                "success": bool(res.success)})
     return out
 
 

@@ -110,7 +110,8 @@ def diagnosis_markdown(result, figures=()):
     """Markdown text of a diagnosis dictionary (``Diagnosis.as_dict()``)."""
     lines = ["# bfdrift diagnosis", "", f"Input kind: **{result['kind']}** "
              f"({result['n_points']} data points). {result.get('note', '')}", ""]
-    lines += ["| stage | chi2/dof | chi2 | dof | rms pull | rms residual | largest residual lags |",
+    lines += ["| stage | chi2/dof | chi2 | dof | rms pull | rms residual "
+              "| largest residual lags |",
               "| --- | --- | --- | --- | --- | --- | --- |"]
     for s in result["steps"]:
         worst = "; ".join(f"{w['block']}({w['i']},{w['j']})"

@@ -727,7 +727,8 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     bar.done = bar.total
     if progress:
         bar._draw(final=True)
-    fields_info = [{"name": f.name, "n_detections": len(f.catalog), "n_usable": int(f.usable.sum()),
+    fields_info = [{"name": f.name, "n_detections": len(f.catalog),
+                    "n_usable": int(f.usable.sum()),
                     "n_fit": int(f.fit_stars.sum()) if f in fit_fields else 0,
                     "n_held_out": int(f.held_out.sum()) if f in hold_fields else 0,
                     "flagged": f.flag_counts} for f in fields]

@@ -225,7 +225,7 @@ def fit_flux_slope(x, y, regressor, q, snr, *, flux=None, poly_order=2, noise_te
     detrended = q - (a @ coef - trend)
     points = {"x": x, "y": y, "regressor": g, "detrended": detrended, "trend": trend,
               "snr": snr, "huber_weight": hw, "coef": coef, "names": names, "frame": frame}
-    return {"points": points,"slope": float(coef[k]), "slope_err": err, "err_formal": err_formal,
+    return {"points": points, "slope": float(coef[k]), "slope_err": err, "err_formal": err_formal,
             "err_boot": err_boot, "z": float(coef[k] / err) if err > 0 else float("inf"),
             "n_stars": int(n), "n_downweighted": int(np.sum(hw < 1)), "tau": float(tau),
             "alpha": alpha_fit, "beta": beta_fit,

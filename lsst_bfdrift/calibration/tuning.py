@@ -539,7 +539,8 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     fit_start = {}
     for n in chosen:
         lo, hi = candidates[n]
-        fit_start[n] = x0[n] if lo < x0[n] < hi else x0[n] + (0.01 if x0[n] == lo else -0.01) * (hi - lo)
+        fit_start[n] = (x0[n] if lo < x0[n] < hi
+                        else x0[n] + (0.01 if x0[n] == lo else -0.01) * (hi - lo))
     fit = fit_parameters(model, table.a, table.sigma, fit_start,
                          {n: candidates[n] for n in chosen}, mask=mask, jacobian0=J[..., cols],
                          max_evaluations=max_evaluations)

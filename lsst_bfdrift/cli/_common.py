@@ -1,4 +1,5 @@
-"""Helpers shared by the ``bfdrift`` commands: templates in, JSON or text out, the overwrite rule."""
+"""Helpers shared by the ``bfdrift`` commands: templates in, JSON or text out,
+the overwrite rule."""
 
 import contextlib
 import json

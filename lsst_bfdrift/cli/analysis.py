@@ -4,8 +4,8 @@ validate-sky, validate-stars and reproduce (their options: :mod:`lsst_bfdrift.cl
 import json
 import os
 
-from lsst_bfdrift.cli._common import (_check_output_dir, _check_outputs, _emit, _load_template, _print_json,
-                                      _save_plot, _template_input)
+from lsst_bfdrift.cli._common import (_check_output_dir, _check_outputs, _emit, _load_template,
+                                      _print_json, _save_plot, _template_input)
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
 from lsst_bfdrift.utils.io import atomic_output, data_files

@@ -3,9 +3,10 @@
 Model of image formation (flux F per pixel with square pixels, recorded
 image I): while charge Q collects, every pixel edge has swept an area
 S_e = L_e[Q] (linear in Q: a convolution of the charge with the template's
-swept-area kernel, :func:`~lsst_bfdrift.templates.swept.swept_area_kernels`), and the collection rate of a
-pixel is its flux plus, for each edge, the flux density f_e at that edge
-times the area the edge has swept outward. With tau the exposure fraction,
+swept-area kernel, :func:`~lsst_bfdrift.templates.swept.swept_area_kernels`),
+and the collection rate of a pixel is its flux plus, for each edge, the flux
+density f_e at that edge times the area the edge has swept outward. With tau
+the exposure fraction,
 
     dQ/dtau = F + G(Q; F),   G(Q; F)_p = sum_e +-f_e(F) L_e[Q],
 
@@ -464,7 +465,8 @@ def correct_series(image, template, *, order=3, density="mean2", blocked=None, w
     workers : int, optional
         FFT threads.
     dtype : {numpy.float64, numpy.float32}, optional
-        FFT precision (:class:`~lsst_bfdrift.templates.swept.SweptAreas`); the image arithmetic stays float64.
+        FFT precision (:class:`~lsst_bfdrift.templates.swept.SweptAreas`); the
+        image arithmetic stays float64.
     strip : int, optional
         Rows per block. The result at a pixel depends on the image within
         ``2 (N + 3)`` rows (N = template size), so blocks overlapping by that
@@ -511,10 +513,11 @@ def correct_half_shift(image, template, *, blocked=None, workers=1, dtype=np.flo
 
     F = I - G(I; I) / 2: swept areas and edge flux densities (two-pixel mean)
     both from the recorded image; no iteration, as in the paper. ``dtype``
-    as for :class:`~lsst_bfdrift.templates.swept.SweptAreas`. ``strip`` (rows per block, overlapping by
-    ``(N + 1) // 2 + 2`` rows, which gives the whole-image result exactly)
-    and ``cache`` as for :func:`correct_image`; ``check_range`` refuses
-    images the model cannot describe (:func:`refuse_out_of_range`); ``maps``
+    as for :class:`~lsst_bfdrift.templates.swept.SweptAreas`. ``strip`` (rows
+    per block, overlapping by ``(N + 1) // 2 + 2`` rows, which gives the
+    whole-image result exactly) and ``cache`` as for :func:`correct_image`;
+    ``check_range`` refuses images the model cannot describe
+    (:func:`refuse_out_of_range`); ``maps``
     (:class:`~lsst_bfdrift.geometry.first_order.FirstOrderPass`) gets the
     first-order geometry maps from the same transforms.
 

@@ -564,13 +564,14 @@ class BrighterFatterDriftTask(Task):
         -------
         Struct
             ``exposure`` (corrected, same type as given; mask and uncertainty
-            carried; a MaskedArray's mask gains the blocked pixels), ``area``, ``centroid_x``, ``centroid_y`` (shift from the
-            pixel centre, px), ``e1``, ``e2`` (None if ``compute_geometry`` is
-            off), ``flux_moved`` (e; sums to zero), ``flux_moved_err`` (e; its
-            standard deviation over templates drawn from the calibration
-            uncertainty, None unless ``uncertainty_draws``), ``flags`` (uint8, bits
-            FLAG_BLOCKED, FLAG_EDGE), ``iterations``, ``converged``, ``warnings``
-            (what looks wrong with the input: :func:`input_warnings`; also logged).
+            carried; a MaskedArray's mask gains the blocked pixels), ``area``,
+            ``centroid_x``, ``centroid_y`` (shift from the pixel centre, px),
+            ``e1``, ``e2`` (None if ``compute_geometry`` is off), ``flux_moved`` (e;
+            sums to zero), ``flux_moved_err`` (e; its standard deviation over
+            templates drawn from the calibration uncertainty, None unless
+            ``uncertainty_draws``), ``flags`` (uint8, bits FLAG_BLOCKED, FLAG_EDGE),
+            ``iterations``, ``converged``, ``warnings`` (what looks wrong with the
+            input: :func:`input_warnings`; also logged).
         """
         cfg = self.config
 
@@ -725,8 +726,9 @@ class BrighterFatterDriftTask(Task):
             out = np.ma.MaskedArray(out_data, mask=mask | blocked)
         else:
             out = out_data
-        return Struct(exposure=out, warnings=warnings, flux_moved=moved, flux_moved_err=moved_err, flags=flags,
-                      iterations=iterations, converged=bool(converged), header=header, **geom)
+        return Struct(exposure=out, warnings=warnings, flux_moved=moved, flux_moved_err=moved_err,
+                      flags=flags, iterations=iterations, converged=bool(converged), header=header,
+                      **geom)
 
     def _exposure_out(self, exposure, out_data, flags, header, moved_err, gain):
         """A copy of the MaskedExposure with the corrected image, the BF plane and the

@@ -1,4 +1,5 @@
-"""Exact moments in boxes: the fallback of :func:`~lsst_bfdrift.geometry.linear.linear_moment_maps`.
+"""Exact moments in boxes: the fallback of
+:func:`~lsst_bfdrift.geometry.linear.linear_moment_maps`.
 
 The flagged bins of the a-priori bound become boxes (:func:`_boxes`); the
 boundaries are convolved on the boxes with the template's reach of charge

@@ -149,7 +149,8 @@ class LinearKernels:
         av[1:n + 1, 1:n + 2] = np.abs(e.vedge_d).max(-1)
         ah = np.zeros((n + 3, n + 2))
         ah[1:n + 2, 1:n + 1] = np.abs(e.hedge_d).max(-1)
-        sums = [np.abs(e.corner_d.sum(axis=(0, 1))).max(), np.abs(e.vedge_d.sum(axis=(0, 1))).max(),
+        sums = [np.abs(e.corner_d.sum(axis=(0, 1))).max(),
+                np.abs(e.vedge_d.sum(axis=(0, 1))).max(),
                 np.abs(e.hedge_d.sum(axis=(0, 1))).max()]
         if e.vedge_t is not None:
             av[1:n + 1, 1:n + 2] = np.maximum(av[1:n + 1, 1:n + 2], np.abs(e.vedge_t).max(-1))
@@ -432,7 +433,8 @@ def _linear_maps(lk, q, names, tile, dtype, workers, progress=None):
         h = min(th, ny - y0)
         for x0 in range(0, nx, tw):
             w = min(tw, nx - x0)
-            a0, a1, b0, b1 = max(y0 - r, 0), min(y0 + h + r, ny), max(x0 - r, 0), min(x0 + w + r, nx)
+            a0, a1, b0, b1 = (max(y0 - r, 0), min(y0 + h + r, ny),
+                              max(x0 - r, 0), min(x0 + w + r, nx))
             pad[:] = 0.0
             pad[a0 - (y0 - r):a1 - (y0 - r), b0 - (x0 - r):b1 - (x0 - r)] = q[a0:a1, b0:b1]
             f = sp_fft.rfft2(pad, workers=workers)

@@ -1,4 +1,5 @@
-"""Compiled (numba) field and drift-line integrator of :func:`lsst_bfdrift.physics.drift.drift_lines`.
+"""Compiled (numba) field and drift-line integrator of
+:func:`lsst_bfdrift.physics.drift.drift_lines`.
 
 The same algorithm as :mod:`lsst_bfdrift.physics.fields` and
 :mod:`lsst_bfdrift.physics.drift`, which remain the references the tests

@@ -108,7 +108,8 @@ def bisect_boundary(model, along, across, axis, index, *, tol=1e-4, half_width=0
                 progress(1)
         est = 0.5 * (lo + hi)
         # A bracket end that never moved means the boundary may lie outside it.
-        at_end = (np.abs(est - (guess[todo] - hw)) < tol) | (np.abs(est - (guess[todo] + hw)) < tol)
+        at_end = ((np.abs(est - (guess[todo] - hw)) < tol)
+                  | (np.abs(est - (guess[todo] + hw)) < tol))
         result[todo] = est
         if not np.any(at_end):
             break

@@ -56,8 +56,9 @@ def compile_model(model):
     Returns None when the model has a term the compiled engine does not know
     (e.g. user-supplied field terms); :func:`drift_lines` then uses numpy.
     """
-    from lsst_bfdrift.physics.fields import (BackdropField, HalfPeriodicDipoleGrid, LineDipole, PeriodicDipoleGrid,
-                         PointDipoles, TabulatedBackdrop, TruncatedLineDipole)
+    from lsst_bfdrift.physics.fields import (BackdropField, HalfPeriodicDipoleGrid, LineDipole,
+                                             PeriodicDipoleGrid, PointDipoles, TabulatedBackdrop,
+                                             TruncatedLineDipole)
 
     lines, px, py, pz, ph = [], [], [], [], []
     bd_kind, bd, bd_z, bd_ez = 0, np.zeros(3), np.zeros(2), np.ones(2)

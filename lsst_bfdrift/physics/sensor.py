@@ -17,8 +17,8 @@ import numpy as np
 from astropy import constants as const
 from astropy import units as u
 
-from lsst_bfdrift.physics.fields import (BackdropField, HalfPeriodicDipoleGrid, LineDipole, PeriodicDipoleGrid,
-                     PointDipoles, TruncatedLineDipole)
+from lsst_bfdrift.physics.fields import (BackdropField, HalfPeriodicDipoleGrid, LineDipole,
+                                         PeriodicDipoleGrid, PointDipoles, TruncatedLineDipole)
 from lsst_bfdrift.utils.errors import InputError, InputKeyError, InputTypeError
 
 __all__ = ["SensorParameters", "SensorModel", "strict_from_dict"]

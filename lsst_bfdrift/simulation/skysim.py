@@ -19,17 +19,17 @@ exposure the star's shrunken pixels collect less sky as well, and every
 correction (rightly) moves that sky flux back with the star's. Sky added
 after the BF simulation is flux the simulation never redistributed, and made
 both correction routes over-correct the size slope by 3-4 % on the field of
-``benchmarks/validate_sky.py`` (``docs/benchmarks.rst``). Each star's box covers its central (2 ``sky_radius`` + 1)^2
-pixels plus a 3-pixel margin and is accumulated in its own image, with sky
-photons spread 3 px beyond it that diffuse in (those landing outside are
-dropped), so the sky is uniform up to the box edge (without this feed,
-diffusion leaves a -20 % / +20 % ring there). The same sky photons go into
-every strength; a pixel's sky is collected once (where the boxes of close
-neighbours overlap, which needs ``min_separation`` below the box side, the
-shared part is not fed and keeps a weak ring); outside the boxes the sky is
-a Poisson image, identical in all strengths (GalSim's boundaries reach 4
-pixels from an aggressor, so no pixel moves there). GalSim recomputes its
-boundaries about ``updates`` times per star.
+``benchmarks/validate_sky.py`` (``docs/benchmarks.rst``). Each star's box
+covers its central (2 ``sky_radius`` + 1)^2 pixels plus a 3-pixel margin and is
+accumulated in its own image, with sky photons spread 3 px beyond it that
+diffuse in (those landing outside are dropped), so the sky is uniform up to the
+box edge (without this feed, diffusion leaves a -20 % / +20 % ring there). The
+same sky photons go into every strength; a pixel's sky is collected once (where
+the boxes of close neighbours overlap, which needs ``min_separation`` below the
+box side, the shared part is not fed and keeps a weak ring); outside the boxes
+the sky is a Poisson image, identical in all strengths (GalSim's boundaries
+reach 4 pixels from an aggressor, so no pixel moves there). GalSim recomputes
+its boundaries about ``updates`` times per star.
 """
 
 import numpy as np
@@ -215,7 +215,8 @@ def _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_r
     With ``collected`` (bool (ny, nx)), the sky in each star's box is collected
     through the sensor and the box is marked in ``collected``.
     """
-    from lsst_bfdrift.simulation.galsim_twins import SKY_MARGIN, accumulate_twins, shoot_stamp_photons, sky_box
+    from lsst_bfdrift.simulation.galsim_twins import (SKY_MARGIN, accumulate_twins,
+                                                      shoot_stamp_photons, sky_box)
 
     lo, hi, inner = sky_box(stamp, sky_radius)
     # the sky photons do not change the stars (positions, fluxes, photons, sensor seeds)

@@ -192,8 +192,8 @@ class StarSimulation:
             raise InputError(f"charge must have shape {(self.n, self.n)}, got {q.shape}")
         self.image = q
         if self.layout == "galsim":
-            from lsst_bfdrift.templates.galsim_rules import (add_templates_galsim, edge_boxes, galsim_boxes,
-                                        nominal_edges)
+            from lsst_bfdrift.templates.galsim_rules import (add_templates_galsim, edge_boxes,
+                                                             galsim_boxes, nominal_edges)
             self._V, self._H = nominal_edges(self.n, self.n, self._fr)
             add_templates_galsim(q, 1.0 / self.t.charge, self.t.center, self._V, self._H,
                                  self._tv, self._th)
@@ -213,8 +213,9 @@ class StarSimulation:
                     self._has_t, 0, self.n, 0, self.n, self._box)
 
     def boundaries(self):
-        """Copy of the current boundaries as a :class:`~lsst_bfdrift.physics.boundaries.BoundaryGrid`
-        (absolute positions, pixel units; ``vedge_t``/``hedge_t`` attributes)."""
+        """Copy of the current boundaries as a
+        :class:`~lsst_bfdrift.physics.boundaries.BoundaryGrid` (absolute positions,
+        pixel units; ``vedge_t``/``hedge_t`` attributes)."""
         if self.layout != "shared":
             raise InputError("boundaries() needs layout='shared'; the 'galsim' layout keeps "
                              "edge polylines (attributes _V, _H)")

@@ -316,8 +316,9 @@ def read_galsim_sensor(name):
     table = Table({k: (np.array(v) if k not in ("normal", "tangent") else np.array(v))
                    for k, v in rows.items()})
     meta = {"source": f"galsim:{name}", "merge": "nearest",
-            "galsim_ring_offset": [ring_dx, ring_dy], "galsim_config": {k: v for k, v in config.items()
-                                                          if isinstance(v, (int, float, str))}}
+            "galsim_ring_offset": [ring_dx, ring_dy],
+            "galsim_config": {k: v for k, v in config.items()
+                              if isinstance(v, (int, float, str))}}
     return DistortionTemplate.from_table(table, fr, charge, meta=meta, merge="nearest")
 
 
@@ -417,7 +418,8 @@ def edge_integrals(template):
 def _galsim_layout(template, half, pad, qdist, charge):
     """GalSim's edge polylines (:mod:`lsst_bfdrift.templates.galsim_rules`) of a stamp of
     side 2 (half + pad) + 1 with ``charge`` (e) in the central pixel."""
-    from lsst_bfdrift.templates.galsim_rules import add_templates_galsim, galsim_edge_templates, nominal_edges
+    from lsst_bfdrift.templates.galsim_rules import (add_templates_galsim, galsim_edge_templates,
+                                                     nominal_edges)
 
     big = 2 * (half + pad) + 1
     tv, th = galsim_edge_templates(template, qdist=qdist)

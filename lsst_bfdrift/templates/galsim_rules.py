@@ -351,7 +351,8 @@ def collect_batch(oi, oj, px, py, image, nominal, dq, changed):
 @numba.njit(cache=True)
 def accumulate_galsim(px, py, u, batch, image, nominal, V, H, box, scale, c, tv, th,
                       galsim_box):
-    """As :func:`lsst_bfdrift.simulation._star_kernels.accumulate`, with GalSim's layout and rule."""
+    """As :func:`lsst_bfdrift.simulation._star_kernels.accumulate`, with GalSim's layout and
+    rule."""
     nv = 4 * V.shape[2]
     xs = np.empty(nv)
     ys = np.empty(nv)

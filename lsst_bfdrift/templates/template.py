@@ -362,8 +362,9 @@ class DistortionTemplate:
         each corner from the pixel(s) nearest the aggressor (Chebyshev
         distance). With GalSim's files this reproduces GalSim's central pixel
         area exactly; GalSim keeps separate corner copies per edge, so its
-        neighbours' areas differ from any tiling by up to ~2e-3 px^2 at 1e5 e. ``meta['shared_mismatch']`` records the largest
-        difference between pixels; if ``max_mismatch`` is given and exceeded,
+        neighbours' areas differ from any tiling by up to ~2e-3 px^2 at 1e5 e.
+        ``meta['shared_mismatch']`` records the largest difference between
+        pixels; if ``max_mismatch`` is given and exceeded,
         :class:`TemplateFileError`.
         """
         if merge not in ("mean", "nearest"):

@@ -1,5 +1,6 @@
 """Shared helpers of every stage: the exception hierarchy, atomic file output,
-image and exposure input and output, bundled data, progress bars, the Config/Task framework and the plotting back end.
+image and exposure input and output, bundled data, progress bars, the Config/Task
+framework and the plotting back end.
 
 Takes nothing from the rest of the package. :mod:`~lsst_bfdrift.utils.plotting`
 (matplotlib) is imported only by the figure modules, not here.
