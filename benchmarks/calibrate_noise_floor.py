@@ -56,6 +56,7 @@ from lsst_bfdrift.calibration.tuning import calibrate, refine_template  # noqa: 
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.templates.refine import draw_templates, match_area_coefficients  # noqa: E402
+from lsst_bfdrift.utils.errors import InputError  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.validation.stars import per_star_residuals, residual_slopes  # noqa: E402
 
@@ -145,26 +146,35 @@ def main(argv=None):
         f"{platform.machine()}, {os.cpu_count()} cores")
     say(f"  flats fit: {', '.join(res.fit.names)}; chi2 {res.fit.chi2:.1f} / {res.fit.dof} dof")
     for name, tpl in templates.items():
-        fl, rows = per_star_residuals(pairs, tpl, methods=("drift",), sky=1000.0)
+        try:
+            fl, rows = per_star_residuals(pairs, tpl, methods=("drift",), sky=1000.0)
+        except InputError as exc:  # e.g. the stars' brightest pixels beyond the template's range
+            rec["templates"][name] = {"refused": str(exc)}
+            say(f"  {name:44s} refused: {exc}")
+            continue
         r = residual_slopes(fl, rows)
         u, ue = r["uncorrected"]["size_slope"], r["uncorrected"]["e_slope"]
         size, e1 = 100 * r["drift"]["size_slope"] / u, 100 * r["drift"]["e_slope"] / ue
         err = 100 * r["drift"]["size_slope_err"] / abs(u)
         rec["templates"][name] = {"size": size, "size_err": err, "e1": e1}
         say(f"  {name:44s} size {size:+6.2f} +- {err:.2f} %   e1 {e1:+6.1f} %")
-    own = np.array([v["size"] for k, v in rec["templates"].items() if "draw_templates" in k])
-    centre = rec["templates"]["calibrated (flats, refined)"]["size"]
-    rec["rms size, draw_templates about the calibrated template"] = float(
-        np.sqrt(np.mean((own - centre) ** 2)))
-    say(f"  the calibrated template's own draws (draw_templates, the Task's uncertainty_draws): "
-        f"size spread rms {np.sqrt(np.mean((own - centre) ** 2)):.1f} % about its "
-        f"{centre:+.1f} %")
+    done = {k: v for k, v in rec["templates"].items() if "size" in v}
+    own = np.array([v["size"] for k, v in done.items() if "draw_templates" in k])
+    centre = done.get("calibrated (flats, refined)", {}).get("size")
+    if own.size and centre is not None:
+        rec["rms size, draw_templates about the calibrated template"] = float(
+            np.sqrt(np.mean((own - centre) ** 2)))
+        say(f"  the calibrated template's own draws (draw_templates, the Task's "
+            f"uncertainty_draws): size spread rms {np.sqrt(np.mean((own - centre) ** 2)):.1f} % "
+            f"about its {centre:+.1f} %")
     for q in ("size", "e1"):
         for _, label in levels:
             for how, prefix in (("matched lag by lag", "GalSim a_ij + "),
                                 ("refined as calibrate does", "  same + ")):
-                s = np.array([v[q] for k, v in rec["templates"].items()
+                s = np.array([v[q] for k, v in done.items()
                               if k.startswith(prefix + label + ",")])
+                if not s.size:
+                    continue
                 rec[f"rms {q}, {label}, {how}"] = float(np.sqrt(np.mean(s**2)))
                 rec[f"mean {q}, {label}, {how}"] = float(np.mean(s))
                 say(f"  {label:18s} {how:26s}: {q:4s} left over {s.size} draws: rms "
