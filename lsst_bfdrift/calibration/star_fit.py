@@ -106,7 +106,8 @@ from scipy import stats
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.calibration.catalog import (FLAG_NAMES, load_electrons, detect_stars,
                                           measure_stars)
-from lsst_bfdrift.calibration.star_result import _SLOPES, StarCalibrationResult
+from lsst_bfdrift.calibration.star_result import (_SLOPES, StarCalibrationResult,
+                                                  fields_for_precision)
 from lsst_bfdrift.calibration.star_slopes import (FLUX_UNIT, birge_scale, select_stars,
                                                   shape_flux_relations)
 from lsst_bfdrift.calibration.tuning import CalibrationError, _select
@@ -252,7 +253,7 @@ def _combine_folds(rows):
 def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_directions=6,
                          n_boot=200, iterations=2, gain=None, min_snr=30.0,
                          min_stars=30, flats_uncertainty=True, fitted_slopes=("size",),
-                         scale_star_errors=True, progress=False):
+                         scale_star_errors=True, size_goal=3.0, progress=False):
     """Refit a calibration jointly to its a-matrix and to star fields.
 
     Parameters
@@ -305,11 +306,20 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         (:func:`~lsst_bfdrift.calibration.star_slopes.birge_scale`; the
         fields' own scatter, counted against the parameters the stars
         determine) and refit; reported in ``star_error_scale`` and as a
-        warning. The bootstrap over stars misses noise common to a field's
-        stars: the brighter-fatter-free twins of ten GalSim ITL fields
-        scatter with chi2 26 for 10 (``benchmarks/field_twins.py``). The
-        chi2 and the tension keep the bootstrap errors, so fields that
-        disagree (another sensor, a missing effect) are still reported.
+        warning. A set of fields can scatter beyond its bootstrap errors:
+        the brighter-fatter-free twins of ten GalSim ITL fields do, with
+        chi2 26 for 10 (``benchmarks/field_twins.py``), while larger sets
+        drawn alike scatter as their errors say
+        (``benchmarks/star_slope_bias.py``). The chi2 and the tension keep
+        the bootstrap errors, so fields that disagree (another sensor, a
+        missing effect) are still reported.
+    size_goal : float, optional
+        Precision (% of the uncorrected size slope) the report measures the
+        fit against: when the flats and the stars state the corrected size
+        slope less precisely, a warning says how many fields like these
+        would reach it
+        (:func:`~lsst_bfdrift.calibration.star_result.fields_for_precision`;
+        ``uncertainty['fields_for_size_goal']``).
     progress : bool, optional
         Progress bar on stderr.
 
@@ -322,6 +332,8 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     CalibrationError
         No template in ``result``, too few usable stars in a field, or no
         star fields.
+    InputError
+        ``fitted_slopes`` or ``size_goal`` not valid.
     """
     t0 = time.perf_counter()
     if result.template is None or result.built_template is None:
@@ -331,6 +343,9 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     if not fitted_slopes or set(fitted_slopes) - set(_SLOPES):
         raise InputError(f"fitted_slopes must be a non-empty subset of {_SLOPES}, got "
                          f"{fitted_slopes!r}")
+    if not (np.isfinite(size_goal) and size_goal > 0):
+        raise InputError(f"size_goal must be a finite precision > 0 (% of the uncorrected "
+                         f"size slope), got {size_goal!r}")
     stars = list(stars) if not isinstance(stars, (str, np.ndarray, StarField)) else [stars]
     if not stars:
         raise CalibrationError("no star fields given")
@@ -707,6 +722,19 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
                         "the flats do not pin the sensor's serial/parallel anisotropy, so the "
                         "correction's e1 is not known; more flat pairs (the e1 error falls as "
                         "their square root) or e1 fitted on many fields would pin it")
+        if size_sigma:
+            fp, jp = (float(np.mean([v[k] for v in size_sigma.values()]))
+                      for k in ("flats_percent", "joint_percent"))
+            need = fields_for_precision(fp, jp, len(fit_fields), size_goal)
+            uncertainty["fields_for_size_goal"] = {"goal_percent": float(size_goal),
+                                                   "fields": need}
+            if np.isfinite(jp) and jp > size_goal:
+                how = (f"about {need} fields like these would state it to +- {size_goal:g} % "
+                       "(each field's stars add alike), or more flat pairs"
+                       if need is not None else
+                       "the stars add no measurable precision; more flat pairs would")
+                warn.append(f"the corrected size slope is known to +- {jp:.1f} % of the "
+                            f"uncorrected (+- {fp:.1f} % from the flats alone): {how}")
     fit_slopes = {}
     for f in fit_fields:
         fit_slopes[f.name] = {

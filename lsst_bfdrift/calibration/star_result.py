@@ -10,10 +10,55 @@ CLI and the benchmarks print.
 
 import numpy as np
 
-__all__ = ["StarCalibrationResult"]
+__all__ = ["StarCalibrationResult", "fields_for_precision"]
 
 #: The star slopes measured on every field, in the order of the fit's star vector.
 _SLOPES = ("size", "e1", "e2")
+
+
+def fields_for_precision(flats_percent, joint_percent, n_fields, goal_percent):
+    """Number of star fields like the fitted ones that would state the size slope to a goal.
+
+    The joint fit is a Gaussian update of the flats' estimate: each field's
+    stars add the same information, ``(1 / joint^2 - 1 / flats^2) / n_fields``,
+    to the flats' ``1 / flats^2``. This inverts that for the goal.
+
+    Parameters
+    ----------
+    flats_percent, joint_percent : float
+        Standard deviation of the corrected size slope that the flats' errors
+        leave, and that the flats and the ``n_fields`` fitted fields leave
+        (% of the uncorrected slope; ``uncertainty['size_slope_sigma']``).
+    n_fields : int
+        Fields in the fit.
+    goal_percent : float
+        The standard deviation wanted (% of the uncorrected slope).
+
+    Returns
+    -------
+    int or None
+        Fields needed (``n_fields`` or fewer when the goal is met already; 0
+        when the flats alone meet it); None when the stars add no measurable
+        information (``joint_percent`` not below ``flats_percent``) or an
+        input is not finite.
+
+    Raises
+    ------
+    ValueError
+        When a precision or the goal is not positive, or ``n_fields`` < 1.
+    """
+    f, j, g = (float(v) for v in (flats_percent, joint_percent, goal_percent))
+    if not all(np.isfinite(v) for v in (f, j, g)):
+        return None
+    if min(f, j, g) <= 0 or int(n_fields) < 1:
+        raise ValueError(f"precisions and goal must be > 0 and n_fields >= 1, got flats {f}, "
+                         f"joint {j}, goal {g}, n_fields {n_fields}")
+    if f <= g:
+        return 0
+    per_field = (1.0 / j ** 2 - 1.0 / f ** 2) / int(n_fields)
+    if per_field <= 1e-12 / f ** 2:
+        return None
+    return int(np.ceil((1.0 / g ** 2 - 1.0 / f ** 2) / per_field - 1e-9))
 
 
 class StarCalibrationResult:

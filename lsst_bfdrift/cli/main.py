@@ -438,6 +438,10 @@ def build_parser():
                     help="with --stars: the star slopes the fit nulls (size, e1, e2; default "
                          "size: a field measures e1 to about its own size, so fitting it adds "
                          "noise; the others are reported)")
+    ca.add_argument("--size-goal", type=float, default=3.0, metavar="PERCENT",
+                    help="with --stars: the precision of the corrected size slope (%% of the "
+                         "uncorrected) the report measures the fit against; short of it, a "
+                         "warning says how many fields would reach it (default: %(default)s)")
     ca.add_argument("--plot", help="write a PNG: a_ij against lag, pulls, correlations")
     ca.add_argument("--overwrite", action="store_true",
                     help="replace an existing --out or --plot")

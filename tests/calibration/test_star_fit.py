@@ -197,6 +197,18 @@ def test_stars_undo_a_flats_error_within_the_a_matrix_errors(fitted):
     assert_allclose(ss["flats_percent"],
                     100 * ss["flats"] / abs(joint.fit_slopes["field0"]["before"]["size"][0]))
     assert "with the stars" in joint.uncertainty_line()
+    # the fields the 3 % goal would take, against the scalar Gaussian update of the
+    # flats' precision by fields of this field's slope error (in % of its slope)
+    goal = joint.uncertainty["fields_for_size_goal"]
+    assert goal["goal_percent"] == 3.0
+    if len(fitted) == 1:
+        assert ss["joint_percent"] > 3.0  # one small field: short of the goal
+        e_pct = 100 * e / abs(joint.fit_slopes["field0"]["before"]["size"][0])
+        direct = e_pct ** 2 * (1 / 3.0 ** 2 - 1 / ss["flats_percent"] ** 2)
+        assert abs(goal["fields"] - direct) <= 0.12 * direct + 1
+        assert any(w.startswith(f"the corrected size slope is known to +- "
+                                f"{ss['joint_percent']:.1f} %") and
+                   f"about {goal['fields']} fields like these" in w for w in joint.warnings)
     # the e1 slope's, alike (|g1|), in % of the e1 slope the flats template removes
     s1 = unc["e1_slope_sigma"]["field0"]
     assert_allclose(s1["flats"], np.linalg.norm(g1), rtol=0.2)
@@ -273,6 +285,8 @@ def test_bad_star_inputs_get_clear_errors():
         calibrate_with_stars(nores, [img])
     with pytest.raises(InputError, match="fitted_slopes must be a non-empty subset"):
         calibrate_with_stars(res, [img], min_stars=8, fitted_slopes=("size", "e3"))
+    with pytest.raises(InputError, match="size_goal must be a finite precision > 0"):
+        calibrate_with_stars(res, [img], min_stars=8, size_goal=0.0)
 
 
 def test_saturated_and_masked_stars_are_excluded_and_counted():

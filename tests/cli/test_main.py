@@ -802,3 +802,24 @@ def test_calibrate_fit_slopes_option(capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["calibrate", "a.txt", "--out", "o.fits", "--fit-slopes", "e3"])
     assert "invalid choice" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("goal", ["0", "-3", "nan"])
+def test_calibrate_size_goal_option(capsys, tmp_path, goal):
+    """--size-goal defaults to the API's size_goal (3 %), and a goal that is not
+    a positive precision is a usage error before any file is read."""
+    import inspect
+
+    from lsst_bfdrift.calibration.star_fit import calibrate_with_stars
+    from lsst_bfdrift.cli.main import build_parser
+    default = inspect.signature(calibrate_with_stars).parameters["size_goal"].default
+    args = build_parser().parse_args(["calibrate", "a.txt", "--out", "o.fits", "--stars", "f.fits"])
+    assert args.size_goal == default == 3.0
+    flats, field = tmp_path / "a.txt", tmp_path / "f.fits"
+    flats.write_text("not read\n")
+    field.write_bytes(b"not read")
+    out = tmp_path / "o.fits"
+    code, _, err = _run(capsys, "calibrate", str(flats), "--out", str(out), "--stars", str(field),
+                        "--size-goal", goal, "--quiet")
+    assert code == 2 and "--size-goal must be a finite precision > 0" in err
+    assert not out.exists()
