@@ -93,7 +93,10 @@ class StarCalibrationResult:
         field's uncorrected e1 slope is mostly its noise), and, when e1 is
         not fitted, ``all_fitted`` (and ``_percent``): the same with every
         measured slope fitted, what ``fitted_slopes=('size', 'e1', 'e2')``
-        would give (the fit itself is not changed).
+        would give (the fit itself is not changed); ``fields_for_size_goal``
+        (``goal_percent`` and ``fields``: how many fields like the fitted
+        ones would state the size slope to the goal,
+        :func:`fields_for_precision` on the fields' mean precisions).
     coefficients : dict
         Per direction: ``steps`` (c_k), ``parameter_change`` (c_k h_k, in the
         parameter's unit) and its error.
