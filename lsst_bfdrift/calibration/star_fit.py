@@ -117,7 +117,7 @@ from lsst_bfdrift.templates.refine import (area_response_directions, combine_tem
 from lsst_bfdrift.templates.template import build_template
 from lsst_bfdrift.utils.progress import ProgressBar
 
-__all__ = ["StarField", "calibrate_with_stars"]
+__all__ = ["StarField", "calibrate_with_stars", "check_size_goal"]
 
 #: Finite-difference step of the star Jacobian (in units of each direction).
 _EPS = 0.25
@@ -250,6 +250,15 @@ def _combine_folds(rows):
     return out
 
 
+def check_size_goal(value, name="size_goal"):
+    """Raise InputError unless ``value`` is a finite precision > 0 (% of the
+    uncorrected size slope); ``name`` labels it in the message (the CLI checks
+    ``--size-goal`` before it reads any file)."""
+    if not (np.isfinite(value) and value > 0):
+        raise InputError(f"{name} must be a finite precision > 0 (% of the uncorrected "
+                         f"size slope), got {value!r}")
+
+
 def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_directions=6,
                          n_boot=200, iterations=2, gain=None, min_snr=30.0,
                          min_stars=30, flats_uncertainty=True, fitted_slopes=("size",),
@@ -343,9 +352,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     if not fitted_slopes or set(fitted_slopes) - set(_SLOPES):
         raise InputError(f"fitted_slopes must be a non-empty subset of {_SLOPES}, got "
                          f"{fitted_slopes!r}")
-    if not (np.isfinite(size_goal) and size_goal > 0):
-        raise InputError(f"size_goal must be a finite precision > 0 (% of the uncorrected "
-                         f"size slope), got {size_goal!r}")
+    check_size_goal(size_goal)
     stars = list(stars) if not isinstance(stars, (str, np.ndarray, StarField)) else [stars]
     if not stars:
         raise CalibrationError("no star fields given")

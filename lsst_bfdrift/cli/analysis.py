@@ -2,7 +2,6 @@
 validate-sky, validate-stars and reproduce (their options: :mod:`lsst_bfdrift.cli.main`)."""
 
 import json
-import math
 import os
 
 from lsst_bfdrift.cli._common import (_check_output_dir, _check_outputs, _emit, _load_template,
@@ -27,9 +26,8 @@ def _cmd_calibrate(args):
     for x in args.stars or []:
         if not os.path.isfile(x):
             raise InputNotFoundError(f"--stars {x}: no such file")
-    if not (math.isfinite(args.size_goal) and args.size_goal > 0):
-        raise InputError(f"--size-goal must be a finite precision > 0 (% of the uncorrected "
-                         f"size slope), got {args.size_goal}")
+    from lsst_bfdrift.calibration.star_fit import check_size_goal
+    check_size_goal(args.size_goal, "--size-goal")  # before any file is read
     data = read_calibration_input(args.input, max_lag=args.max_lag)
     table = measured_acoeffs(data)
     res = calibrate(table, free=args.free, refine=not args.no_refine,
