@@ -414,13 +414,17 @@ def _select(J, r, sigma, mask, names, *, max_params, always_first=True, n_points
     limit = (min(max_params, n_points - 1) if n_points > 1 else 1) + len(base)
     while len(chosen) < limit:
         best = None
+        # a candidate must beat the best so far by more than rounding: columns
+        # that fit the data equally (one datum, any one parameter: chi2 ~ 1e-30)
+        # keep their order in ``names``, whatever the LAPACK build rounds to
+        tie = 1e-9 * max(chi2_now, 1.0)
         for k in range(len(names)):
             if k in chosen:
                 continue
             cols = A[:, chosen + [k]]
             x = np.linalg.lstsq(cols, b, rcond=None)[0]
             c2 = float(np.sum((b - cols @ x) ** 2))
-            if best is None or c2 < best[1]:
+            if best is None or c2 < best[1] - tie:
                 best = (k, c2)
         if best is None:
             break
