@@ -25,7 +25,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable, read_acoeff_table  # noqa: E402
+from lsst_bfdrift.ptc.acoeffs import AcoeffTable, read_acoeff_table  # noqa: E402
 from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402

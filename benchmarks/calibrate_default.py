@@ -32,7 +32,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.join(HERE, "..")
 sys.path.insert(0, ROOT)
 
-from lsst_bfdrift.calibration.acoeff_fit import read_acoeff_table  # noqa: E402
+from lsst_bfdrift.ptc.acoeffs import read_acoeff_table  # noqa: E402
 from lsst_bfdrift.calibration.tuning import CHARGE, calibrate, refine_template  # noqa: E402
 from lsst_bfdrift.physics.sensor import SensorParameters  # noqa: E402
 from lsst_bfdrift.templates.template import TemplateSettings, build_template  # noqa: E402

@@ -50,8 +50,8 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable  # noqa: E402
-from lsst_bfdrift.calibration.ptc import fit_covariance_model  # noqa: E402
+from lsst_bfdrift.ptc.acoeffs import AcoeffTable  # noqa: E402
+from lsst_bfdrift.ptc.covariances import fit_covariance_model  # noqa: E402
 from lsst_bfdrift.calibration.tuning import calibrate, refine_template  # noqa: E402
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402

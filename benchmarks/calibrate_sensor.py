@@ -43,7 +43,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable  # noqa: E402
+from lsst_bfdrift.ptc.acoeffs import AcoeffTable  # noqa: E402
 from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
@@ -89,7 +89,7 @@ def _progress(what, t0):
 def flats_table(sensor, args):
     """a_ij with errors from GalSim-made flat pairs (Astier et al. 2019 fit),
     corrected for the simulation's discrete filling (1 - 1/steps)."""
-    from lsst_bfdrift.calibration.ptc import fit_covariance_model, measure_ptc
+    from lsst_bfdrift.ptc.covariances import fit_covariance_model, measure_ptc
     from lsst_bfdrift.simulation.flats import simulate_flat_pairs
 
     steps = args.flat_steps

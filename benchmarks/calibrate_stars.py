@@ -52,7 +52,7 @@ sys.path.insert(0, os.path.dirname(HERE))
 sys.path.insert(0, HERE)
 
 from calibrate_sensor import FLAT_STEPS, flats_table, star_pairs  # noqa: E402
-from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable  # noqa: E402
+from lsst_bfdrift.ptc.acoeffs import AcoeffTable  # noqa: E402
 from lsst_bfdrift.calibration.star_fit import StarField, calibrate_with_stars  # noqa: E402
 from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
 from lsst_bfdrift.simulation.skysim import simulate_star_field  # noqa: E402

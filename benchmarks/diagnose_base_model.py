@@ -38,8 +38,8 @@ sys.path.insert(0, os.path.dirname(HERE))
 sys.path.insert(0, HERE)
 
 from galsim_flat_sets import set_config  # noqa: E402
-from lsst_bfdrift.calibration.acoeff_fit import load_default_basis  # noqa: E402
-from lsst_bfdrift.calibration.diagnosis import diagnose, observations_from_pairs  # noqa: E402
+from lsst_bfdrift.calibration.acoeff_model import load_default_basis  # noqa: E402
+from lsst_bfdrift.diagnosis.effects_fit import diagnose, observations_from_pairs  # noqa: E402
 from lsst_bfdrift.simulation.flats import simulate_flat_pairs  # noqa: E402
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402

@@ -2,7 +2,7 @@
 
 Reads the sets written by ``benchmarks/galsim_flat_sets.py`` (GalSim's own
 pixel areas; sensors, sizes, ladders and seeds varied), runs
-:func:`lsst_bfdrift.calibration.diagnosis.diagnose` with the default
+:func:`lsst_bfdrift.diagnosis.effects_fit.diagnose` with the default
 threshold and the bundled electrostatic basis on each, and counts a false
 alarm when an effect is added or the residual is called unexplained. Also
 reports the chi2/dof and p-value distribution of the base fit (a
@@ -33,8 +33,8 @@ from scipy import stats
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, ".."))
 
-from lsst_bfdrift.calibration.acoeff_fit import load_default_basis  # noqa: E402
-from lsst_bfdrift.calibration.diagnosis import diagnose, observations_from_pairs  # noqa: E402
+from lsst_bfdrift.calibration.acoeff_model import load_default_basis  # noqa: E402
+from lsst_bfdrift.diagnosis.effects_fit import diagnose, observations_from_pairs  # noqa: E402
 from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
 
 OUT = os.path.join(HERE, "diagnose_false_alarms_results")

@@ -34,13 +34,14 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, ".."))
 
-from lsst_bfdrift.calibration.acoeff_fit import (AcoeffTable, LinearBasis, default_basis_path,  # noqa: E402
-                                     electrostatic_acoeffs, fit_acoeffs, read_acoeff_table)
-from lsst_bfdrift.calibration.diagnosis import Observations, diagnose  # noqa: E402
+from lsst_bfdrift.ptc.acoeffs import AcoeffTable, read_acoeff_table
+from lsst_bfdrift.calibration.acoeff_model import (LinearBasis, default_basis_path,
+                                                   electrostatic_acoeffs, fit_acoeffs)
+from lsst_bfdrift.diagnosis.effects_fit import Observations, diagnose  # noqa: E402
 from lsst_bfdrift.simulation.flats import simulate_flat_pairs  # noqa: E402
 from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
-from lsst_bfdrift.calibration.ptc import fit_covariance_model, measure_ptc, read_ptc_text  # noqa: E402
-from lsst_bfdrift.calibration.report import write_report  # noqa: E402
+from lsst_bfdrift.ptc.covariances import fit_covariance_model, measure_ptc, read_ptc_text  # noqa: E402
+from lsst_bfdrift.diagnosis.report import write_report  # noqa: E402
 from lsst_bfdrift.physics.sensor import SensorParameters  # noqa: E402
 
 DATA = os.path.join(HERE, "..", "..", "..", "shared", "data", "measured")

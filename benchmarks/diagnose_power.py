@@ -48,10 +48,9 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, ".."))
 
-from lsst_bfdrift.calibration.acoeff_fit import load_default_basis  # noqa: E402
-from lsst_bfdrift.calibration.diagnosis import base_acoeffs  # noqa: E402
-from lsst_bfdrift.calibration.diagnosis import (diagnose, observations_from_pairs,  # noqa: E402
-                                               scaled_basis)
+from lsst_bfdrift.calibration.acoeff_model import load_default_basis  # noqa: E402
+from lsst_bfdrift.diagnosis.effects_fit import base_acoeffs  # noqa: E402
+from lsst_bfdrift.diagnosis.effects_fit import diagnose, observations_from_pairs, scaled_basis
 from lsst_bfdrift.simulation.effects import EFFECT_NAMES  # noqa: E402
 from lsst_bfdrift.simulation.flats import (READOUT_EFFECTS, apply_readout_effects,  # noqa: E402
                                            engine_acoeffs)

@@ -58,7 +58,7 @@ sys.path.insert(0, HERE)
 
 from calibrate_stars import field_seed, ivw_mean, twin_cache_path  # noqa: E402
 from lsst_bfdrift.calibration.star_fit import StarField  # noqa: E402
-from lsst_bfdrift.calibration.star_slopes import FLUX_UNIT  # noqa: E402
+from lsst_bfdrift.catalogs.slopes import FLUX_UNIT  # noqa: E402
 from lsst_bfdrift.simulation.skysim import simulate_star_field  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.templates.template import DistortionTemplate  # noqa: E402

@@ -8,7 +8,7 @@ galsim.SiliconSensor, so no brighter-fatter effect), Poisson sky of 1000 e
 and 5 e read noise, 2048 x 2048 px, 800 stars, each field its own seed. The
 catalogue is the package's (:class:`~lsst_bfdrift.calibration.star_fit.StarField`:
 photutils detection, HSM adaptive moments); the size (ln T), e1 and e2
-slopes against flux of :func:`~lsst_bfdrift.calibration.star_slopes.fit_flux_slope`
+slopes against flux of :func:`~lsst_bfdrift.catalogs.slopes.fit_flux_slope`
 must be zero. Each field is fitted with the noise-bias terms of the
 package (1/SNR^2 and 1e5/F) and with the 1/SNR^2 term alone; the script
 prints each field's slopes and the weighted mean over the fields with its
@@ -42,7 +42,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
 from lsst_bfdrift.calibration.star_fit import StarField  # noqa: E402
-from lsst_bfdrift.calibration.star_slopes import FLUX_UNIT, fit_flux_slope, select_stars  # noqa: E402
+from lsst_bfdrift.catalogs.slopes import FLUX_UNIT, fit_flux_slope, select_stars  # noqa: E402
 from lsst_bfdrift.simulation.skysim import _field_psf, _positions, simulate_star_field  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 

@@ -36,7 +36,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
-from lsst_bfdrift.calibration.catalog import measure_stars  # noqa: E402
+from lsst_bfdrift.catalogs.catalog import measure_stars  # noqa: E402
 from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
 from lsst_bfdrift.validation.shape_correction import correct_catalog  # noqa: E402
 from lsst_bfdrift.validation.sky import validate_sky  # noqa: E402

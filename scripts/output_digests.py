@@ -112,8 +112,8 @@ def main(argv=None):
     tmod = _import("lsst_bfdrift.templates.template", "lsst_bfdrift.template")
     smod = _import("lsst_bfdrift.physics.sensor", "lsst_bfdrift.sensor")
     sup = _import("lsst_bfdrift.geometry.superpose", "lsst_bfdrift.superpose")
-    ptc = _import("lsst_bfdrift.calibration.ptc", "lsst_bfdrift.ptc")
-    aco = _import("lsst_bfdrift.calibration.acoeff_fit", "lsst_bfdrift.acoeff_fit")
+    ptc = _import("lsst_bfdrift.ptc.covariances", "lsst_bfdrift.ptc")
+    aco = _import("lsst_bfdrift.calibration.acoeff_model", "lsst_bfdrift.acoeff_fit")
     sims = _import("lsst_bfdrift.simulation.flats", "lsst_bfdrift.simulations")
     inj = _import("lsst_bfdrift.simulation.injection", "lsst_bfdrift.simulation.flats",
                   "lsst_bfdrift.injection")

@@ -166,7 +166,7 @@ def test_solvers(data):
        level=st.sampled_from([-5.0, 0.0, 1.0, 1e3, 1e5]), max_lag=st.integers(-1, 12),
        nan=st.booleans())
 def test_pair_covariances(seed, ny, nx, level, max_lag, nan):
-    from lsst_bfdrift.calibration.ptc import pair_covariances
+    from lsst_bfdrift.ptc.covariances import pair_covariances
     rng = np.random.default_rng(seed)
     a = level + rng.normal(0, 1 + np.sqrt(abs(level)), (ny, nx))
     b = level + rng.normal(0, 1 + np.sqrt(abs(level)), (ny, nx))
@@ -188,7 +188,7 @@ def test_pair_covariances(seed, ny, nx, level, max_lag, nan):
        scale=st.sampled_from([0.0, 1.0, 0.5]), seed=st.integers(0, 2**16))
 @example(mu=[1.0, 1.0, 1.0, 2.0, 3.0], bad=[], scale=0.0, seed=0)  # found: numpy RankWarning
 def test_ptc_fits(mu, bad, scale, seed):
-    from lsst_bfdrift.calibration.ptc import fit_ptc_exponential
+    from lsst_bfdrift.ptc.covariances import fit_ptc_exponential
     mu = np.asarray(mu + bad, float)
     noise = 1 + 0.01 * np.random.default_rng(seed).standard_normal(mu.size)
     var = (scale * mu + 1e-7 * mu**2 + 10.0) * noise
@@ -209,9 +209,9 @@ _TEXT = st.text(alphabet=st.sampled_from(list("0123456789 .-+eE,#\tabcnaif\n")),
 @settings(suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 @given(text=_TEXT, which=st.sampled_from(["acoeff", "ptc", "diagnose"]))
 def test_text_readers(tmp_path, text, which):
-    from lsst_bfdrift.calibration.acoeff_fit import read_acoeff_table
-    from lsst_bfdrift.calibration.diagnosis import load_input
-    from lsst_bfdrift.calibration.ptc import read_ptc_text
+    from lsst_bfdrift.ptc.acoeffs import read_acoeff_table
+    from lsst_bfdrift.diagnosis.effects_fit import load_input
+    from lsst_bfdrift.ptc.covariances import read_ptc_text
     path = tmp_path / f"in_{abs(hash(text)) % 10**8}.txt"
     path.write_text(text)
     f = {"acoeff": read_acoeff_table, "ptc": read_ptc_text,

@@ -14,8 +14,8 @@ import pytest
 import lsst_bfdrift
 
 #: Stages in data-flow order: each imports only from those before it.
-LAYERS = ("utils", "physics", "templates", "geometry", "correction", "simulation",
-          "calibration", "validation", "pipeline", "cli")
+LAYERS = ("utils", "images", "physics", "templates", "geometry", "correction", "simulation",
+          "ptc", "catalogs", "calibration", "diagnosis", "validation", "pipeline", "cli")
 
 ROOT = pathlib.Path(lsst_bfdrift.__file__).parent
 
@@ -76,7 +76,10 @@ def test_imports_follow_the_data_flow():
             continue
         for dep in deps:
             dst = _stage(dep)
-            if dst is None or dst == src:
+            if dst is None:  # the package top imports every stage: an arrow up
+                wrong.append(f"{mod} -> {dep}")
+                continue
+            if dst == src:
                 continue
             if LAYERS.index(dst) > LAYERS.index(src):
                 wrong.append(f"{mod} -> {dep}")
@@ -134,7 +137,8 @@ def test_cycle_finder_sees_the_old_template_galsim_cycle():
 
 
 @pytest.mark.parametrize("bad, expected", [
-    ("physics", "templates"), ("templates", "geometry"), ("correction", "calibration")])
+    ("physics", "templates"), ("templates", "geometry"), ("correction", "calibration"),
+    ("images", "physics"), ("ptc", "catalogs"), ("calibration", "diagnosis")])
 def test_checker_sees_a_wrong_import(tmp_path, monkeypatch, bad, expected):
     """The check has power: a file of stage ``bad`` importing a later stage
     is reported."""
@@ -150,4 +154,18 @@ def test_checker_sees_a_wrong_import(tmp_path, monkeypatch, bad, expected):
     monkeypatch.setattr(__import__(__name__, fromlist=["ROOT"]), "ROOT", fake)
     with pytest.raises(AssertionError, match=f"lsst_bfdrift.{bad}.early -> "
                                              f"lsst_bfdrift.{expected}.later"):
+        test_imports_follow_the_data_flow()
+
+
+def test_checker_sees_an_import_of_the_package_top(tmp_path, monkeypatch):
+    """An import of ``lsst_bfdrift`` itself from a stage points up (the top
+    imports every stage) and is reported."""
+    fake = tmp_path / "lsst_bfdrift"
+    (fake / "correction").mkdir(parents=True)
+    (fake / "__init__.py").write_text("")
+    (fake / "correction" / "__init__.py").write_text("")
+    (fake / "correction" / "task.py").write_text(
+        "def f():\n    from lsst_bfdrift import __version__\n    return __version__\n")
+    monkeypatch.setattr(__import__(__name__, fromlist=["ROOT"]), "ROOT", fake)
+    with pytest.raises(AssertionError, match=r"lsst_bfdrift.correction.task -> lsst_bfdrift\n"):
         test_imports_follow_the_data_flow()

@@ -1,23 +1,17 @@
-"""Tuning the model to a sensor's characterization data (stage 5).
+"""Tuning the model to a sensor's characterization data.
 
-Takes flat pairs, PTC files, a-matrix tables and star fields; gives star
-catalogues and their size- and shape-flux slopes, photon-transfer
-covariances and their model fits, the electrostatic model fitted to the
-measured area coefficients a_ij, and the diagnosis of what the base model
-lacks (with a Markdown report).
+Takes measured area coefficients a_ij (from :mod:`lsst_bfdrift.ptc`) and,
+optionally, star fields (catalogs from :mod:`lsst_bfdrift.catalogs`); gives
+the electrostatic model's a_ij and its fit (:mod:`~lsst_bfdrift.calibration.acoeff_model`),
+the calibrated template with its uncertainty
+(:func:`~lsst_bfdrift.calibration.tuning.calibrate`), and the joint fit of
+flats and star fields (:func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars`).
 """
 
 
 from lsst_bfdrift.calibration.fitting import *  # noqa: F401,F403
-from lsst_bfdrift.calibration.ptc import *  # noqa: F401,F403
-from lsst_bfdrift.calibration.data import *  # noqa: F401,F403
-from lsst_bfdrift.calibration.cp_pipe import *  # noqa: F401,F403
-from lsst_bfdrift.calibration.inputs import *  # noqa: F401,F403
-from lsst_bfdrift.calibration.acoeff_fit import *  # noqa: F401,F403
+from lsst_bfdrift.calibration.acoeff_model import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.sensor_fit import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.tuning import *  # noqa: F401,F403
-from lsst_bfdrift.calibration.catalog import *  # noqa: F401,F403
-from lsst_bfdrift.calibration.star_slopes import *  # noqa: F401,F403
-from lsst_bfdrift.calibration.flat_observations import *  # noqa: F401,F403
-from lsst_bfdrift.calibration.diagnosis import *  # noqa: F401,F403
-from lsst_bfdrift.calibration.report import *  # noqa: F401,F403
+from lsst_bfdrift.calibration.star_result import *  # noqa: F401,F403
+from lsst_bfdrift.calibration.star_fit import *  # noqa: F401,F403

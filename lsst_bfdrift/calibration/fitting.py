@@ -2,10 +2,10 @@
 
 Every fit of the package's model to data goes through :func:`fit_parameters`:
 the a-matrix fit of the electrostatic model
-(:func:`~lsst_bfdrift.calibration.acoeff_fit.fit_acoeffs`), the fit of
+(:func:`~lsst_bfdrift.calibration.acoeff_model.fit_acoeffs`), the fit of
 template numbers (:func:`~lsst_bfdrift.calibration.sensor_fit.fit_sensor_parameters`),
 :func:`~lsst_bfdrift.calibration.tuning.calibrate` and the fits of base model
-plus effects in :func:`~lsst_bfdrift.calibration.diagnosis.diagnose`.
+plus effects in :func:`~lsst_bfdrift.diagnosis.effects_fit.diagnose`.
 
 The model is a callable of a parameter dict returning an array shaped like
 the data. The engine minimises chi2 = sum(((model - data) / sigma)^2) over

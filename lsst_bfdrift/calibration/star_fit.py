@@ -6,7 +6,7 @@ including the part flats cannot see (Broughton et al. 2024 found a
 flat-calibrated correction corrects flats better than stars). A star field
 carries that information without truth: after a right correction, star size
 and shape no longer depend on flux at fixed position
-(:func:`~lsst_bfdrift.calibration.star_slopes.shape_flux_relations`).
+(:func:`~lsst_bfdrift.catalogs.slopes.shape_flux_relations`).
 
 :func:`calibrate_with_stars` takes the result of
 :func:`~lsst_bfdrift.calibration.tuning.calibrate` (the a-matrix fit and its
@@ -51,7 +51,7 @@ leave GalSim ITL's size slope uncertain by about 12 % rms, and a field of
   displacements, so a(c) = a(T_a) + sum_k c_k alpha(Delta T_k) exactly;
 * the stars: each field is corrected by the Task (drift) with T_a and with
   T_a + Delta T_k, and the same stars (same detections, stamps and weights,
-  :func:`~lsst_bfdrift.calibration.catalog.detect_stars`) give the size,
+  :func:`~lsst_bfdrift.catalogs.catalog.detect_stars`) give the size,
   e1 and e2 slopes (per 1e5 e) and their finite differences.
 
 The chi2 is the a-matrix's, of the template's change from T_a (measured
@@ -90,7 +90,7 @@ kept). The result reports:
 
 How many stars: the size slope of a field is measured to about
 ``1 / sqrt(N)`` of its own scatter, the photon noise of the brightest stars'
-sizes (:mod:`~lsst_bfdrift.calibration.star_slopes`); the validate-sky
+sizes (:mod:`~lsst_bfdrift.catalogs.slopes`); the validate-sky
 benchmark measured it to 15 % (z = 6.6) with 150 stars of 1e4-1.5e6 e on a
 1k x 1k ITL field. A star field constrains the template when its
 uncorrected size slope is detected at z > 10: several hundred unsaturated,
@@ -104,12 +104,11 @@ import numpy as np
 from scipy import stats
 
 from lsst_bfdrift.utils.errors import InputError
-from lsst_bfdrift.calibration.catalog import (FLAG_NAMES, load_electrons, detect_stars,
-                                          measure_stars)
+from lsst_bfdrift.catalogs.catalog import FLAG_NAMES, detect_stars, measure_stars
+from lsst_bfdrift.images.electrons import to_electrons
 from lsst_bfdrift.calibration.star_result import (_SLOPES, StarCalibrationResult,
                                                   fields_for_precision)
-from lsst_bfdrift.calibration.star_slopes import (FLUX_UNIT, birge_scale, select_stars,
-                                                  shape_flux_relations)
+from lsst_bfdrift.catalogs.slopes import FLUX_UNIT, birge_scale, select_stars, shape_flux_relations
 from lsst_bfdrift.calibration.tuning import CalibrationError, _select
 from lsst_bfdrift.templates.refine import (area_response_directions, combine_templates,
                                           curl_free_template, template_alpha,
@@ -133,13 +132,13 @@ class StarField:
     exposure : ndarray, CCDData, NDData or path
         Image in electrons (or ADU with ``gain`` / GAIN keyword); never modified.
     gain, mask, saturation
-        See :func:`~lsst_bfdrift.calibration.catalog.load_electrons`.
+        See :func:`~lsst_bfdrift.images.electrons.to_electrons`.
     min_snr : float, optional
         Stars below this signal-to-noise ratio are not used.
     name : str, optional
         Label in reports (default the file name or ``field<k>``).
     catalog_kwargs : dict, optional
-        Options of :func:`~lsst_bfdrift.calibration.catalog.detect_stars`.
+        Options of :func:`~lsst_bfdrift.catalogs.catalog.detect_stars`.
     detections : StarDetections, optional
         Detections to measure the stars on (e.g. another image's of the same
         scene, so that the two catalogues hold the same stars row by row);
@@ -149,9 +148,10 @@ class StarField:
     def __init__(self, exposure, *, gain=None, mask=None, saturation=None, min_snr=30.0,
                  name=None, catalog_kwargs=None, detections=None):
         self.name = name or (str(exposure) if isinstance(exposure, str) else "field")
-        data, bad, sat_e, g, sat_pix = load_electrons(exposure, gain=gain, mask=mask,
-                                                       saturation=saturation,
-                                                       return_sat_pixels=True)
+        image = to_electrons(exposure, gain=gain, mask=mask, saturation=saturation)
+        image.warn()
+        data, bad, sat_e, g, sat_pix = (image.data, image.bad, image.saturation, image.gain,
+                                        image.sat_plane)
         self.data, self.bad, self.saturation, self.gain = data, bad, sat_e, g
         self.detections = detections if detections is not None else detect_stars(
             data, mask=bad, saturation=sat_e, saturated=sat_pix, **dict(catalog_kwargs or {}))
@@ -312,7 +312,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     scale_star_errors : bool, optional
         With six or more fitted slopes, scale their bootstrap errors by the
         Birge ratio of their residuals after the fit when it exceeds 1
-        (:func:`~lsst_bfdrift.calibration.star_slopes.birge_scale`; the
+        (:func:`~lsst_bfdrift.catalogs.slopes.birge_scale`; the
         fields' own scatter, counted against the parameters the stars
         determine) and refit; reported in ``star_error_scale`` and as a
         warning. A set of fields can scatter beyond its bootstrap errors:

@@ -2,7 +2,7 @@
 
 :func:`calibrate` takes a measured a-matrix (from flat pairs, a PTC, an
 a-matrix table or cp_pipe's PTC dataset; see
-:mod:`~lsst_bfdrift.calibration.inputs`) and gives the fitted sensor
+:mod:`~lsst_bfdrift.ptc.inputs`) and gives the fitted sensor
 parameters with their covariance, the per-lag measured and model a_ij with
 pulls, and the template that corrects that sensor.
 
@@ -10,7 +10,7 @@ The steps:
 
 1. **Which physics the data need.** The model's a_ij (the linear area
    response of the template, ``definition='alpha'`` of
-   :func:`~lsst_bfdrift.calibration.acoeff_fit.electrostatic_acoeffs`) are
+   :func:`~lsst_bfdrift.calibration.acoeff_model.electrostatic_acoeffs`) are
    differentiated once with respect to every candidate parameter of
    :data:`CANDIDATES` at the start. In that linear approximation, parameters
    are added one at a time, the one that lowers chi2 most first, while the
@@ -43,9 +43,10 @@ import time
 
 import numpy as np
 
-from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable, electrostatic_acoeffs
+from lsst_bfdrift.ptc.acoeffs import AcoeffTable
+from lsst_bfdrift.calibration.acoeff_model import electrostatic_acoeffs
 from lsst_bfdrift.calibration.fitting import FitError, fit_parameters
-from lsst_bfdrift.calibration.ptc import fit_covariance_model, fit_ptc_exponential
+from lsst_bfdrift.ptc.covariances import fit_covariance_model, fit_ptc_exponential
 from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.templates.refine import lag_multiplicity, match_area_coefficients, template_alpha
 from lsst_bfdrift.templates.template import (TemplateSettings, build_template,
@@ -222,16 +223,16 @@ def measured_acoeffs(data):
     * Covariances of flat pairs (flats, or cp_pipe's covariances when it
       stores no a-matrix errors): the full covariance model of Astier et al.
       (2019) fitted to them
-      (:func:`~lsst_bfdrift.calibration.ptc.fit_covariance_model`; errors
+      (:func:`~lsst_bfdrift.ptc.covariances.fit_covariance_model`; errors
       from the covariances' own errors or pixel counts), a00 measured by the
       curvature of the PTC.
     * A PTC of means and variances only: a00 alone, from the exponential
-      PTC model (:func:`~lsst_bfdrift.calibration.ptc.fit_ptc_exponential`).
+      PTC model (:func:`~lsst_bfdrift.ptc.covariances.fit_ptc_exponential`).
 
     Parameters
     ----------
     data : CalibrationData
-        From :func:`~lsst_bfdrift.calibration.inputs.read_calibration_input`.
+        From :func:`~lsst_bfdrift.ptc.inputs.read_calibration_input`.
 
     Returns
     -------
@@ -448,7 +449,7 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     table : AcoeffTable
         Measured a_ij (1/e) with errors, [i serial, j parallel]; a00 is used
         when the table measures it (``exclude_a00`` False). Read one with
-        :func:`~lsst_bfdrift.calibration.inputs.read_calibration_input`.
+        :func:`~lsst_bfdrift.ptc.inputs.read_calibration_input`.
     start : SensorParameters, optional
         Starting point; default :func:`default_start` (the bundled template's
         sensor).
@@ -486,7 +487,7 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     """
     if not isinstance(table, AcoeffTable):
         raise InputTypeError("calibrate needs an AcoeffTable (see "
-                        "lsst_bfdrift.calibration.inputs.read_calibration_input), got "
+                        "lsst_bfdrift.ptc.inputs.read_calibration_input), got "
                         f"{type(table).__name__}")
     t0 = time.perf_counter()
     seconds = {}

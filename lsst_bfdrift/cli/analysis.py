@@ -14,7 +14,7 @@ __all__ = []
 
 
 def _cmd_calibrate(args):
-    from lsst_bfdrift.calibration.inputs import read_calibration_input
+    from lsst_bfdrift.ptc.inputs import read_calibration_input
     from lsst_bfdrift.calibration.tuning import calibrate, measured_acoeffs
 
     stars_plot = None
@@ -98,7 +98,7 @@ def _cmd_calibrate(args):
 
 
 def _cmd_ptc(args):
-    from lsst_bfdrift.calibration import ptc
+    from lsst_bfdrift.ptc import covariances as ptc
     files = list(args.files)
     if len(files) == 1 and os.path.isdir(files[0]):  # its FITS flats, never a .tmp-* leftover
         files = data_files(files[0], (".fits", ".fit", ".fits.gz"))
@@ -117,7 +117,7 @@ def _cmd_ptc(args):
             raise InputError(f"--max-lag must be >= 1 for FITS flats (the model's a01 and a10 "
                              f"need lag 1), got {args.max_lag}")
         # the reader of `bfdrift calibrate`: pairs by EXPTIME, masks, turn-off
-        from lsst_bfdrift.calibration.inputs import read_calibration_input
+        from lsst_bfdrift.ptc.inputs import read_calibration_input
         data = read_calibration_input(files, max_lag=args.max_lag)
         if data.kind != "flats":
             raise InputError(f"{files[0]}: a {data.kind} input; bfdrift ptc takes one PTC text "
@@ -230,8 +230,8 @@ def _cmd_validate_sky(args):
 
 
 def _cmd_diagnose(args):
-    from lsst_bfdrift.calibration.acoeff_fit import LinearBasis, load_default_basis
-    from lsst_bfdrift.calibration.diagnosis import diagnose, load_input
+    from lsst_bfdrift.calibration.acoeff_model import LinearBasis, load_default_basis
+    from lsst_bfdrift.diagnosis.effects_fit import diagnose, load_input
 
     _check_output_dir(args, args.report, "--report", inputs=[args.input])
     obs = load_input(args.input, max_lag=args.max_lag)
@@ -243,11 +243,11 @@ def _cmd_diagnose(args):
     d = diagnose(obs, basis).as_dict()
     d["input"] = args.input
     if getattr(args, "template_change", True) and d["effects_added"]:
-        from lsst_bfdrift.calibration.consequence import template_change
+        from lsst_bfdrift.diagnosis.consequence import template_change
         d["template_change"] = template_change(d, None if obs.kind == "ptc" else basis,
                                                max_lag=min(args.max_lag, basis.max_lag))
     if args.report:
-        from lsst_bfdrift.calibration.report import write_report
+        from lsst_bfdrift.diagnosis.report import write_report
         d["report_files"] = write_report(d, args.report)
     if args.json:
         _print_json(d)
@@ -255,7 +255,7 @@ def _cmd_diagnose(args):
         for s in d["steps"]:
             print(f"{s['label']:>24s}: chi2/dof {s['chi2_dof']:.3f}, rms pull {s['rms_pull']:.3f}")
         print(f"{'effects added':>24s}: {', '.join(d['effects_added']) or 'none'}")
-        from lsst_bfdrift.calibration.report import notable_not_excluded
+        from lsst_bfdrift.diagnosis.report import notable_not_excluded
         for x in notable_not_excluded(d):
             print(f"{'not excluded':>24s}: {x['effect']} would move a00 by "
                   f"{x['a00_shift_sd']:+.1f} sigma, a01 by {x['a01_shift_sd']:+.1f} sigma "
@@ -263,6 +263,6 @@ def _cmd_diagnose(args):
         print(d["verdict"])
         tc = d.get("template_change")
         if tc:
-            from lsst_bfdrift.calibration.report import template_change_lines
+            from lsst_bfdrift.diagnosis.report import template_change_lines
             print("\n".join(template_change_lines(tc)))
     return 0

@@ -69,7 +69,9 @@ import sys
 import numpy as np
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
-from lsst_bfdrift.utils.io import atomic_output, check_output, data_path, read_image
+from lsst_bfdrift.images.electrons import to_electrons
+from lsst_bfdrift.images.exposure import read_image
+from lsst_bfdrift.utils.io import atomic_output, check_output, data_path
 from lsst_bfdrift.simulation.stars import make_psf
 from lsst_bfdrift.cli._common import (_check_outputs, _emit, _load_template, _print_json,
                                       _remove_stale_outputs, _save_and_report, _save_plot,
@@ -158,12 +160,9 @@ def _cmd_maps(args):
     path = args.image or sample_image_path()
     _check_outputs(args, [path, _template_input(args.template)],
                    {"--out": args.out, "--plot": args.plot})
-    if args.gain is not None and not (np.isfinite(args.gain) and args.gain > 0):
-        raise InputError(f"--gain must be a positive finite number (e/ADU), got {args.gain}")
-    # the package's one reading and gain rule (as bfdrift correct): --gain means ADU
-    from lsst_bfdrift.correction.task import unpack_exposure
-    image, mask, _, header, _, gain, _ = unpack_exposure(path, args.gain)
-    bad = ~np.isfinite(image) if mask is None else (mask | ~np.isfinite(image))
+    # the package's one unit, gain and saturation rule (as bfdrift correct): --gain means ADU
+    electrons = to_electrons(path, gain=args.gain, gain_name="--gain")
+    image, bad, header, gain = electrons.data, electrons.bad, electrons.meta, electrons.gain
     tpl = _load_template(args.template)
     with ProgressBar(image.shape[0], "maps", enabled=not args.quiet) as bar:
         samples = None if args.samples is None else min(args.samples, tpl.edge_samples)
@@ -353,7 +352,7 @@ def _written_by_bfdrift(path):
 
 def build_parser():
     """The argparse parser of ``bfdrift``."""
-    from lsst_bfdrift import __version__
+    from lsst_bfdrift.utils.version import __version__
     p = argparse.ArgumentParser(prog="bfdrift", description="Electrostatic brighter-fatter "
                                 "model (Rasmussen 2015): templates and pixel-geometry maps.")
     p.add_argument("--version", action="version", version=f"bfdrift {__version__}",

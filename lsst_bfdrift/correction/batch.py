@@ -110,7 +110,7 @@ def correct_file(src, dst, config=None, *, overwrite=False, progress=None):
     ----------
     src, dst : str or path
         Input image and output file. The output keeps every HDU and header of
-        the input (:func:`~lsst_bfdrift.utils.exposure.write_exposure`): the
+        the input (:func:`~lsst_bfdrift.images.exposure.write_exposure`): the
         image is corrected in place (same HDU, dtype and compression), an
         LSST ``MASK`` gains the ``BF`` plane (declared by its ``MP_BF`` card)
         for the pixels the correction flagged, ``VARIANCE`` is kept; then
@@ -137,7 +137,7 @@ def correct_file(src, dst, config=None, *, overwrite=False, progress=None):
     """
     from astropy.io import fits
 
-    from lsst_bfdrift.utils.exposure import read_exposure, write_exposure
+    from lsst_bfdrift.images.exposure import read_exposure, write_exposure
 
     def report(stage, fraction):
         if progress is not None:
@@ -187,7 +187,7 @@ def _flags_hdu(flags):
     number, ``MPD_`` description)."""
     from astropy.io import fits
 
-    from lsst_bfdrift.correction.task import FLAG_BLOCKED, FLAG_EDGE
+    from lsst_bfdrift.correction.steps import FLAG_BLOCKED, FLAG_EDGE
 
     hdu = _described(fits.ImageHDU(flags.astype(np.int16), name="BFFLAGS"), "",
                      f"bit planes of the correction: value {FLAG_BLOCKED} blocked (masked, "

@@ -52,6 +52,7 @@ import numpy as np
 from scipy import ndimage
 
 from lsst_bfdrift.correction._edge_kernels import _fused_serial, density_weight, fused_transfer
+from lsst_bfdrift.correction.settings import RECOMMENDED
 from lsst_bfdrift.correction.tiles import (bound_constants, cell_bound, halo_windows,
                                            window_sides)
 from lsst_bfdrift.utils.errors import InputError
@@ -388,8 +389,9 @@ def _ring_ok(term, box, shape, lim, fraction):
     return bool(np.all(np.abs(term[ring]) <= fraction * lim[ring]))
 
 
-def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, density="mean2",
-                  strip=512, cell=16, dilate=1, safety=20.0, ring_fraction=0.25,
+def sparse_series(img, blocked, ops, *, noise_tol=RECOMMENDED.noise_tol, rtol=RECOMMENDED.rtol,
+                  order=RECOMMENDED.order, density=RECOMMENDED.density,
+                  strip=RECOMMENDED.strip, cell=16, dilate=1, safety=20.0, ring_fraction=0.25,
                   max_fraction=0.5, second_tier=True, fraction=0.5, group=6,
                   second_max_fraction=0.75, info=None, maps=None):
     """Third-order inverse series with windowed higher-order terms.
@@ -402,8 +404,10 @@ def sparse_series(img, blocked, ops, *, noise_tol=None, rtol=1e-7, order=3, dens
         Pixels that neither give nor receive flux.
     ops : OperatorCache
         Operators of the template.
-    noise_tol : float, optional
-        Tolerance ``noise_tol * sqrt(max(I, 1))`` per pixel (e); None:
+    noise_tol : float or None, optional
+        Tolerance ``noise_tol * sqrt(max(I, 1))`` per pixel (e); None: that of
+        ``rtol``. Defaults here and below: the recommended settings
+        (:data:`~lsst_bfdrift.correction.settings.RECOMMENDED`).
     rtol : float, optional
         ``rtol * max abs(I)`` for every pixel.
     order : int, optional

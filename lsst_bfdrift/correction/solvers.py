@@ -54,6 +54,7 @@ from scipy import fft as sp_fft
 
 from lsst_bfdrift.correction._edge_kernels import density_weight, fused_transfer
 from lsst_bfdrift.correction.series import apriori_ok, first_order_terms, sparse_series, tolerance
+from lsst_bfdrift.correction.settings import RECOMMENDED
 from lsst_bfdrift.templates.swept import (MAX_SWEEP, OperatorCache, SweptAreas,  # noqa: F401
                                          refuse_out_of_range, swept_area_kernels)
 from lsst_bfdrift.utils.errors import InputError
@@ -160,11 +161,17 @@ def recorded_image(flux, swept, *, order=3, density="cubic4", blocked=None, dens
     return out
 
 
-def correct_image(image, template, *, order=3, density="cubic4", blocked=None, max_iter=10,
-                  rtol=1e-7, noise_tol=None, start="image", workers=1, dtype=np.float64,
-                  strip=None, sparse=False, cache=None, info=None, check_range=True,
-                  maps=None, progress=None):
+def correct_image(image, template, *, order=RECOMMENDED.order, density=RECOMMENDED.density,
+                  blocked=None, max_iter=RECOMMENDED.max_iter, rtol=RECOMMENDED.rtol,
+                  noise_tol=RECOMMENDED.noise_tol, start=RECOMMENDED.start,
+                  workers=RECOMMENDED.workers, dtype=RECOMMENDED.dtype,
+                  strip=RECOMMENDED.strip, sparse=RECOMMENDED.sparse, cache=None, info=None,
+                  check_range=True, maps=None, progress=None):
     """Flux that square pixels would have collected, from a recorded image.
+
+    The defaults are the recommended settings
+    (:data:`~lsst_bfdrift.correction.settings.RECOMMENDED`), which the Task
+    and ``bfdrift correct`` use too.
 
     Parameters
     ----------
@@ -185,8 +192,8 @@ def correct_image(image, template, *, order=3, density="cubic4", blocked=None, m
         Fixed-point iterations.
     rtol : float, optional
         Convergence: ``max |I - R(F)| <= rtol * max |I|``.
-    noise_tol : float, optional
-        Alternative convergence (used when given): ``|I - R(F)| <=
+    noise_tol : float or None, optional
+        Convergence used when not None: ``|I - R(F)| <=
         noise_tol * sqrt(max(I, 1))`` in every pixel, i.e. the model residual
         is a small fraction of each pixel's Poisson noise (e).
     start : {'image', 'series'}, optional

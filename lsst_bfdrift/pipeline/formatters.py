@@ -3,7 +3,7 @@
 ``BfdriftExposure`` is an exposure in the LSST Exposure FITS layout (empty
 primary, ``IMAGE``, ``MASK`` with ``MP_*`` plane cards, ``VARIANCE``, any
 further HDUs kept), held in memory as
-:class:`~lsst_bfdrift.utils.exposure.MaskedExposure`. ``BfdriftGeometryMaps``
+:class:`~lsst_bfdrift.images.exposure.MaskedExposure`. ``BfdriftGeometryMaps``
 is a dict of 2-d maps (``AREA``, ``CENTROID_X``, ...), one image HDU each.
 Both are declared in ``butler_seed.yaml``.
 """
@@ -12,7 +12,7 @@ import numpy as np
 from astropy.io import fits
 from lsst.daf.butler import FormatterV2
 
-from lsst_bfdrift.utils.exposure import MaskedExposure, read_exposure, write_exposure
+from lsst_bfdrift.images.exposure import MaskedExposure, read_exposure, write_exposure
 from lsst_bfdrift.utils.errors import InputTypeError
 from lsst_bfdrift.utils.io import open_fits
 
@@ -20,7 +20,7 @@ __all__ = ["ExposureFormatter", "GeometryMapsFormatter", "read_maps", "write_map
 
 
 class ExposureFormatter(FormatterV2):
-    """Read and write :class:`~lsst_bfdrift.utils.exposure.MaskedExposure` as FITS."""
+    """Read and write :class:`~lsst_bfdrift.images.exposure.MaskedExposure` as FITS."""
 
     default_extension = ".fits"
     supported_extensions = frozenset({".fits"})

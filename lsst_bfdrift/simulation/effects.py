@@ -3,7 +3,7 @@
 Each effect is a physical model term with its own parameters (bounds and
 typical scales) and a forward model of how it changes the predicted
 observables. Three kinds of input are distinguished (see
-:mod:`lsst_bfdrift.calibration.diagnosis`):
+:mod:`lsst_bfdrift.diagnosis.effects_fit`):
 
 ``table``
     A table of area coefficients a_ij (one signal level, unknown).
@@ -28,7 +28,7 @@ Observables
 -----------
 Each effect also states which observables of a flat set it moves (the
 class attribute ``observables``, names from :data:`OBSERVABLES`); the
-diagnosis (:mod:`lsst_bfdrift.calibration.findings`) uses it to say which
+diagnosis (:mod:`lsst_bfdrift.diagnosis.findings`) uses it to say which
 effect could produce a finding, and never credits the base BF model with
 one it cannot produce:
 
@@ -240,7 +240,7 @@ class Diffusion(Effect):
     integral of its landing probability over x, which is its area whatever
     the diffusion: diffusion of independent electrons keeps a uniform flat
     Poisson and leaves every a_ij unchanged (checked by
-    ``tests/calibration/test_diagnosis.py`` on simulated flats). Its signature is
+    ``tests/diagnosis/test_effects_fit.py`` on simulated flats). Its signature is
     therefore zero in flat-field statistics; it shows in stars and spots
     (PSF width), not here. It stays in the library so that the diagnosis can
     say so.

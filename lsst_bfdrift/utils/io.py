@@ -14,7 +14,7 @@ from lsst_bfdrift.utils.errors import (InputFileError, InputNotFoundError,
 
 __all__ = ["TMP_PREFIX", "STALE_AGE", "is_temporary", "temporary_owner", "is_stale_temporary",
            "remove_stale_temporaries", "data_files", "check_output", "atomic_output",
-           "write_text", "write_json", "open_fits", "hdu_pixels", "read_image", "data_path"]
+           "write_text", "write_json", "open_fits", "hdu_pixels", "data_path"]
 
 #: Prefix of the temporary files of :func:`atomic_output`; directory readers
 #: ignore files whose name starts with it (:func:`is_temporary`).
@@ -362,43 +362,6 @@ def hdu_pixels(hdu, path, dtype=np.float64):
         raise InputFileError(f"{path}: truncated or corrupt FITS file: HDU {hdu.name or 0!s} "
                              f"announces an image of shape {shape} but its pixels cannot be read "
                              f"({exc}); re-copy or re-write the file", path) from exc
-
-
-def read_image(path, *, hdu=None):
-    """Image (float64 copy), mask and header from a FITS file; NaN/inf are masked.
-
-    Parameters
-    ----------
-    path : str or path-like
-    hdu : int, optional
-        HDU to read; default the first one holding a 2-d image.
-
-    Returns
-    -------
-    data : ndarray
-    bad : ndarray of bool
-    header : astropy.io.fits.Header
-
-    Raises
-    ------
-    InputNotFoundError, InputFileError
-        See :func:`open_fits` and :func:`hdu_pixels` (a truncated file is
-        named as such).
-    InputError
-        No 2-d image HDU.
-    """
-    path = os.fspath(path)
-    with open_fits(path) as hdul:
-        if hdu is None:
-            hdu = next((k for k, h in enumerate(hdul) if h.is_image
-                        and h.header.get("NAXIS") == 2
-                        and all(h.header.get(f"NAXIS{n}", 0) > 0 for n in (1, 2))), None)
-            if hdu is None:
-                raise InputFileError(f"{path}: no 2-d image HDU; accepted: a FITS file with a "
-                                     "2-d image", path)
-        data = hdu_pixels(hdul[hdu], path)
-        header = hdul[hdu].header.copy()
-    return data, ~np.isfinite(data), header
 
 
 def data_path(name):

@@ -263,7 +263,7 @@ def correct_catalog(catalog, exposure, *, maps=None, template=None, gain=None, m
     Parameters
     ----------
     catalog : QTable
-        From :func:`~lsst_bfdrift.calibration.catalog.measure_stars` on ``exposure``.
+        From :func:`~lsst_bfdrift.catalogs.catalog.measure_stars` on ``exposure``.
     exposure : ndarray, CCDData, NDData or path
         The recorded image (electrons, or ADU with ``gain``).
     maps : MomentMaps, Struct or dict, optional
@@ -292,10 +292,13 @@ def correct_catalog(catalog, exposure, *, maps=None, template=None, gain=None, m
     """
     from astropy import units as u
 
-    from lsst_bfdrift.calibration.catalog import FLAG_EDGE, FLAG_MOMENTS, load_electrons
+    from lsst_bfdrift.catalogs.catalog import FLAG_EDGE, FLAG_MOMENTS
+    from lsst_bfdrift.images.electrons import to_electrons
     from lsst_bfdrift.geometry.superpose import moment_maps
 
-    data, bad, _, _ = load_electrons(exposure, gain=gain, mask=mask)
+    image = to_electrons(exposure, gain=gain, mask=mask)
+    image.warn()
+    data, bad = image.data, image.bad
     if maps is None:
         if template is None:
             raise InputError("give the geometry maps or a template to compute them")

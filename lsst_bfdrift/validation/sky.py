@@ -5,7 +5,7 @@ elongated along the parallel axis) than faint stars with the same PSF. On a
 real image there is no BF-free truth, but every star samples the same PSF
 field, so the BF signature is a dependence of star size and shape on flux at
 fixed position, fitted by
-:func:`~lsst_bfdrift.calibration.star_slopes.shape_flux_relations`.
+:func:`~lsst_bfdrift.catalogs.slopes.shape_flux_relations`.
 
 :func:`validate_sky` measures the slopes before and after correction: the
 catalogue-level correction (:func:`~lsst_bfdrift.validation.shape_correction.correct_catalog`),
@@ -21,7 +21,7 @@ import numpy as np
 from lsst_bfdrift.utils.progress import ProgressBar
 
 from lsst_bfdrift.utils.errors import InputError
-from lsst_bfdrift.calibration.star_slopes import shape_flux_relations
+from lsst_bfdrift.catalogs.slopes import shape_flux_relations
 
 __all__ = ["validate_sky", "SkyValidation"]
 
@@ -94,7 +94,7 @@ def validate_sky(exposure, *, gain=None, mask=None, saturation=None, template=No
     history : float, optional
         History factor of the catalogue-level correction.
     catalog_kwargs : dict, optional
-        Extra options of :func:`~lsst_bfdrift.calibration.catalog.measure_stars`.
+        Extra options of :func:`~lsst_bfdrift.catalogs.catalog.measure_stars`.
     progress : bool, optional
         Progress messages on stderr.
 
@@ -105,16 +105,18 @@ def validate_sky(exposure, *, gain=None, mask=None, saturation=None, template=No
     from astropy import units as u
     from astropy.nddata import CCDData
 
-    from lsst_bfdrift.calibration.catalog import load_electrons, measure_stars
+    from lsst_bfdrift.catalogs.catalog import measure_stars
+    from lsst_bfdrift.images.electrons import to_electrons
     from lsst_bfdrift.validation.shape_correction import correct_catalog
 
     if route not in ("catalog", "pixel", "both", "none"):
         raise InputError(f"route must be catalog, pixel, both or none, got {route!r}")
     if not z_crit > 0:
         raise InputError(f"z_crit must be positive, got {z_crit}")
-    data, bad, sat_e, g, sat_pix = load_electrons(exposure, gain=gain, mask=mask,
-                                                   saturation=saturation,
-                                                   return_sat_pixels=True)
+    image = to_electrons(exposure, gain=gain, mask=mask, saturation=saturation)
+    image.warn()
+    data, bad, sat_e, g, sat_pix = (image.data, image.bad, image.saturation, image.gain,
+                                    image.sat_plane)
     ckw = dict(catalog_kwargs or {})
     cat = measure_stars(data, mask=bad, saturation=sat_e, saturated=sat_pix, progress=progress,
                         **ckw)

@@ -23,7 +23,7 @@ from the scatter).
 
 import numpy as np
 
-from lsst_bfdrift.calibration.catalog import hsm_moments
+from lsst_bfdrift.catalogs.catalog import hsm_moments
 from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.utils.errors import ComputationError, InputError
 

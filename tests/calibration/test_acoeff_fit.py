@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from lsst_bfdrift.calibration.acoeff_fit import (AcoeffTable, LinearBasis, electrostatic_acoeffs,
-                                     fit_acoeffs, read_acoeff_table, sum_rule_check)
+from lsst_bfdrift.ptc.acoeffs import AcoeffTable, read_acoeff_table, sum_rule_check
+from lsst_bfdrift.calibration.acoeff_model import LinearBasis, electrostatic_acoeffs, fit_acoeffs
 from lsst_bfdrift.physics.sensor import SensorParameters
 
 ITL = "/work/shared/data/measured/itl_covariances_21oct19.txt"
@@ -172,8 +172,8 @@ def test_scales_remove_a_false_alarm_of_the_shipped_basis():
     basis, linearised about the ITL fit, lets a CTI absorb its mismatch;
     with scales for a00, a01 and a10 (the diagnosis' default base model for
     flats) no effect pays."""
-    from lsst_bfdrift.calibration.acoeff_fit import load_default_basis
-    from lsst_bfdrift.calibration.diagnosis import diagnose, observations_from_pairs
+    from lsst_bfdrift.calibration.acoeff_model import load_default_basis
+    from lsst_bfdrift.diagnosis.effects_fit import diagnose, observations_from_pairs
     from lsst_bfdrift.simulation.flats import simulate_flat_pairs
     from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 

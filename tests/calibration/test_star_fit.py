@@ -21,8 +21,8 @@ from astropy.utils.exceptions import AstropyUserWarning
 from numpy.testing import assert_allclose
 
 from tests.validation._galsim_fields import STRENGTHS, paired_fields
-from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable
-from lsst_bfdrift.calibration.catalog import detect_stars, measure_stars
+from lsst_bfdrift.ptc.acoeffs import AcoeffTable
+from lsst_bfdrift.catalogs.catalog import detect_stars, measure_stars
 from lsst_bfdrift.calibration.star_fit import StarField, calibrate_with_stars
 from lsst_bfdrift.calibration.tuning import CANDIDATES, CalibrationError, CalibrationResult
 from lsst_bfdrift.physics.sensor import SensorParameters

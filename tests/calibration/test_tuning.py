@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from lsst_bfdrift.calibration.acoeff_fit import AcoeffTable
+from lsst_bfdrift.ptc.acoeffs import AcoeffTable
 from lsst_bfdrift.calibration.tuning import CalibrationError, calibrate
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 from lsst_bfdrift.templates.template import TemplateSettings

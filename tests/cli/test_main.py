@@ -13,6 +13,10 @@ from lsst_bfdrift.cli.main import main
 from lsst_bfdrift.templates.template import DistortionTemplate, load_default_template
 
 
+#: A header that says the image is in electrons (the unit rule).
+ELECTRONS = fits.Header({"BUNIT": "electron"})
+
+
 def _run(capsys, *argv):
     code = main(list(argv))
     out, err = capsys.readouterr()
@@ -92,7 +96,7 @@ def test_maps_masks_nan_pixels(capsys, tmp_path):
     img[10, 10] = 5e4
     img[3, 4] = np.nan
     path = tmp_path / "img.fits"
-    fits.PrimaryHDU(img).writeto(path)
+    fits.PrimaryHDU(img, header=ELECTRONS).writeto(path)
     code, out, _ = _run(capsys, "maps", str(path), "--json", "--quiet")
     assert code == 0 and json.loads(out)["masked_pixels"] == 1
     with fits.open(path) as hdul:
@@ -270,7 +274,7 @@ def test_correct_many_files_on_dask_cluster(capsys, tmp_path):
         img = rng.poisson(500.0, (48, 48)).astype(np.float32)
         img[20:25, 18:23] += np.float32(3e4 * (k + 1))
         path = src / f"img{k}.fits"
-        fits.PrimaryHDU(img).writeto(path)
+        fits.PrimaryHDU(img, header=ELECTRONS).writeto(path)
         names.append(str(path))
     bad = src / "bad.fits"
     bad.write_bytes(b"SIMPLE  = not a fits file")
@@ -320,7 +324,7 @@ def test_correct_files_through_a_scheduler_address(capsys, tmp_path, monkeypatch
         img = rng.poisson(800.0, (40, 40)).astype(np.float32)
         img[15:20, 15:20] += np.float32(5e4)
         path = tmp_path / f"star{k}.fits"
-        fits.PrimaryHDU(img).writeto(path)
+        fits.PrimaryHDU(img, header=ELECTRONS).writeto(path)
         names.append(str(path))
     serial = correct_files(output_pairs(names, tmp_path / "serial"))
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, protocol="tcp",
@@ -568,13 +572,15 @@ def test_version(capsys):
 def test_one_meaning_of_gain(capsys, tmp_path):
     """Issue 19 rows 2-3: --gain means the image is in ADU in every command. An ADU
     image without BUNIT is converted (not silently taken as electrons); an image whose
-    BUNIT says electron with a --gain is an error in correct, maps and validate-sky."""
+    BUNIT says electron with a --gain is an error in correct, maps and validate-sky;
+    one that states neither a unit nor a gain is refused by all three, with the same
+    words (the unit rule)."""
     from lsst_bfdrift.cli.main import sample_image_path
     with fits.open(sample_image_path()) as h:
         electrons = np.array(h[0].data, dtype=np.float64)
     gain = 2.27
     fits.PrimaryHDU(electrons / gain).writeto(tmp_path / "adu.fits")  # no BUNIT
-    fits.PrimaryHDU(electrons).writeto(tmp_path / "e.fits")
+    fits.PrimaryHDU(electrons, header=ELECTRONS).writeto(tmp_path / "e.fits")
     assert _run(capsys, "correct", str(tmp_path / "adu.fits"), str(tmp_path / "adu_out.fits"),
                 "--gain", str(gain), "--quiet")[0] == 0
     assert _run(capsys, "correct", str(tmp_path / "e.fits"), str(tmp_path / "e_out.fits"),
@@ -595,18 +601,12 @@ def test_one_meaning_of_gain(capsys, tmp_path):
                  ["validate-sky", str(tmp_path / "stated.fits")]):
         code, _, err = _run(capsys, *argv, "--gain", "2.0", "--quiet")
         assert code in (1, 2) and "states it is in electrons" in err, (argv, err)
-
-
-def test_gain_as_quantity():
-    import astropy.units as u
-
-    from lsst_bfdrift.correction.task import gain_value
-    assert gain_value(2.0 * u.electron / u.adu) == 2.0
-    assert gain_value(None) is None
-    with pytest.raises(ValueError, match="not in electron/adu"):
-        gain_value(2.0 * u.m)
-    with pytest.raises(ValueError, match="not a number"):
-        gain_value("abc")
+    for argv in (["correct", str(tmp_path / "adu.fits"), str(tmp_path / "y.fits")],
+                 ["maps", str(tmp_path / "adu.fits")],
+                 ["validate-sky", str(tmp_path / "adu.fits")]):
+        code, _, err = _run(capsys, *argv, "--quiet")
+        assert code in (1, 2) and "adu.fits: the image states no unit (no BUNIT or LSST ISR " \
+            "UNITS) and no gain" in err and "BUNIT = 'electron'" in err, (argv, err)
 
 
 def test_correct_saturation_and_template_options(capsys, tmp_path):
@@ -643,7 +643,8 @@ def test_correct_skip_existing_resumes(capsys, tmp_path):
     names = []
     for k in range(3):
         path = tmp_path / f"in{k}.fits"
-        fits.PrimaryHDU(rng.poisson(600.0, (32, 32)).astype(np.float32)).writeto(path)
+        fits.PrimaryHDU(rng.poisson(600.0, (32, 32)).astype(np.float32),
+                        header=ELECTRONS).writeto(path)
         names.append(str(path))
     out = tmp_path / "out"
     assert _run(capsys, "correct", names[0], "--out-dir", str(out), "--quiet",
@@ -752,10 +753,10 @@ def test_diagnose_reports_the_template_change(tmp_path, capsys, monkeypatch):
     """An a_ij table with a charge cloud injected through the basis (the
     package's own effect model): diagnose adds it and hands the result to
     template_change (stubbed here; its calibrations take minutes and are
-    tested in tests/calibration/test_consequence.py); --no-template-change
+    tested in tests/diagnosis/test_consequence.py); --no-template-change
     skips it."""
-    from lsst_bfdrift.calibration import consequence
-    from lsst_bfdrift.calibration.acoeff_fit import load_default_basis
+    from lsst_bfdrift.diagnosis import consequence
+    from lsst_bfdrift.calibration.acoeff_model import load_default_basis
     from lsst_bfdrift.simulation.effects import effect_library
 
     basis = load_default_basis()

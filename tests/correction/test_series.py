@@ -11,6 +11,7 @@ from lsst_bfdrift.correction import solvers as C
 from lsst_bfdrift.correction import series as S
 from lsst_bfdrift.templates.swept import OperatorCache, SweptAreas, swept_area_kernels
 from lsst_bfdrift.templates.template import load_default_template
+from lsst_bfdrift.correction.settings import REFERENCE
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +73,8 @@ def test_operator_cache_reuses_and_checks():
     kv, kh = swept_area_kernels(t)
     assert ops.kernel_abs_sum == pytest.approx(max(np.abs(kv).sum(), np.abs(kh).sum()) / t.charge)
     with pytest.raises(ValueError, match="OperatorCache"):
-        C.correct_image(np.ones((20, 20)), t, cache=ops, dtype=np.float64)
+        C.correct_image(np.ones((20, 20)), t, **REFERENCE.solver_kwargs(cache=ops,
+                                                                        dtype=np.float64))
 
 
 def test_active_cells_match_numpy_reference(rng):
@@ -153,9 +155,10 @@ def test_sparse_equals_dense_series_within_the_bound(sky_field, density):
     t = load_default_template()
     keep = img.copy()
     kw = dict(density=density, noise_tol=0.05, start="series", blocked=blocked, strip=64)
-    dense, it_d, _ = C.correct_image(img, t, **kw)
+    dense, it_d, _ = C.correct_image(img, t, **REFERENCE.solver_kwargs(**kw))
     info = {}
-    sparse, it, conv = C.correct_image(img, t, sparse=True, info=info, **kw)
+    sparse, it, conv = C.correct_image(img, t, **REFERENCE.solver_kwargs(sparse=True, info=info,
+                                                                         **kw))
     assert info["solver"] == "sparse" and it == 0 and conv
     assert 0.0 < info["window_fraction"] < 0.5
     ok = np.isfinite(img) & ~blocked
@@ -175,12 +178,15 @@ def test_sparse_against_iterated_reference(sky_field):
     img, blocked = sky_field
     t = load_default_template()
     ok = np.isfinite(img) & ~blocked
-    ref, _, conv = C.correct_image(img, t, density="mean2", start="image", rtol=1e-12,
-                                   max_iter=60, blocked=blocked)
+    ref, _, conv = C.correct_image(img, t, **REFERENCE.solver_kwargs(density="mean2",
+                                                                     start="image", rtol=1e-12,
+                                                                     max_iter=60, blocked=blocked))
     assert conv
     info = {}
-    fast, _, _ = C.correct_image(img, t, density="mean2", noise_tol=0.05, start="series",
-                                 sparse=True, blocked=blocked, dtype=np.float32, info=info)
+    fast, _, _ = C.correct_image(img, t, **REFERENCE.solver_kwargs(density="mean2", noise_tol=0.05,
+                                                                   start="series", sparse=True,
+                                                                   blocked=blocked,
+                                                                   dtype=np.float32, info=info))
     assert info["solver"] == "sparse", info
     assert np.max(np.abs(fast - ref)[ok] / np.sqrt(img[ok])) < 0.02
 
@@ -192,14 +198,17 @@ def test_sparse_falls_back_to_dense_on_flats():
     flat = rng.poisson(1e5, (96, 96)).astype(float)
     t = load_default_template()
     info = {}
-    a, _, _ = C.correct_image(flat, t, density="mean2", noise_tol=0.05, start="series",
-                              sparse=True, info=info)
-    b, _, _ = C.correct_image(flat, t, density="mean2", noise_tol=0.05, start="series")
+    a, _, _ = C.correct_image(flat, t, **REFERENCE.solver_kwargs(density="mean2", noise_tol=0.05,
+                                                                 start="series", sparse=True,
+                                                                 info=info))
+    b, _, _ = C.correct_image(flat, t, **REFERENCE.solver_kwargs(density="mean2", noise_tol=0.05,
+                                                                 start="series"))
     assert info["solver"] == "dense" and "windows cover" in info["reason"]
     # in strips, the attempt stops after a quarter of the rows
     info = {}
-    c, _, _ = C.correct_image(flat, t, density="mean2", noise_tol=0.05, start="series",
-                              sparse=True, info=info, strip=16)
+    c, _, _ = C.correct_image(flat, t, **REFERENCE.solver_kwargs(density="mean2", noise_tol=0.05,
+                                                                 start="series", sparse=True,
+                                                                 info=info, strip=16))
     assert info["solver"] == "dense" and "cells need" in info["reason"]
     assert_allclose(c, b, rtol=0, atol=1e-9 * flat.max())
     assert_allclose(a, b, rtol=0, atol=0)
@@ -212,9 +221,10 @@ def test_sparse_rtol_and_bad_cell(sky_field):
     blk = blocked | ~np.isfinite(img)
     ops = OperatorCache(t)
     info = {}
-    out = S.sparse_series(eff, blk, ops, rtol=1e-5, info=info)
-    dense, _, _ = C.correct_image(img, t, density="mean2", rtol=1e-5, start="series",
-                                  blocked=blocked)
+    out = S.sparse_series(eff, blk, ops, rtol=1e-5, noise_tol=None, density="mean2", info=info)
+    dense, _, _ = C.correct_image(img, t, **REFERENCE.solver_kwargs(density="mean2", rtol=1e-5,
+                                                                    start="series",
+                                                                    blocked=blocked))
     assert out is not None, info
     ok = ~blk
     assert np.max(np.abs(out - dense)[ok]) < 0.1 * 1e-5 * np.abs(eff).max()

@@ -10,6 +10,7 @@ from lsst_bfdrift.correction.solvers import (MAX_SWEEP, correct_half_shift, corr
                                              correct_series)
 from lsst_bfdrift.templates.swept import OperatorCache
 from lsst_bfdrift.templates.template import load_default_template
+from lsst_bfdrift.correction.settings import REFERENCE
 
 SOLVERS = (correct_image, correct_series, correct_half_shift)
 
@@ -48,8 +49,9 @@ def test_progress_is_reported_and_changes_nothing(limit, kw):
     img = rng.poisson(1000.0, (48, 40)).astype(float)
     img[20:23, 18:21] += 2e5
     seen = []
-    with_p = correct_image(img, tpl, noise_tol=0.05, progress=seen.append, **kw)
-    plain = correct_image(img, tpl, noise_tol=0.05, **kw)
+    with_p = correct_image(img, tpl, **REFERENCE.solver_kwargs(noise_tol=0.05,
+                                                               progress=seen.append, **kw))
+    plain = correct_image(img, tpl, **REFERENCE.solver_kwargs(noise_tol=0.05, **kw))
     assert np.array_equal(with_p[0], plain[0]) and with_p[1:] == plain[1:]
     assert seen[-1] == 1.0 and all(0 <= f <= 1 for f in seen)
     assert seen == sorted(seen)

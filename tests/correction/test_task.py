@@ -12,6 +12,7 @@ from lsst_bfdrift.utils.config import FieldValidationError
 from lsst_bfdrift.correction.solvers import edge_flux_density, edge_transfer, swept_area_kernels
 from lsst_bfdrift.simulation.stars import StarSimulation, image_moments, shoot_photons
 from lsst_bfdrift.correction.task import FLAG_BLOCKED, FLAG_EDGE
+from lsst_bfdrift.correction.settings import REFERENCE
 
 
 @pytest.fixture(scope="module")
@@ -310,17 +311,20 @@ def test_solver_options_agree(field):
     t = load_default_template()
     ok = np.isfinite(field)
     sig = np.sqrt(np.maximum(field[ok], 1.0))
-    ref, it, conv = correct_image(field, t, density="mean2", rtol=1e-12, max_iter=40)
+    ref, it, conv = correct_image(field, t, **REFERENCE.solver_kwargs(density="mean2", rtol=1e-12,
+                                                                      max_iter=40))
     assert conv
-    fast, it, conv = correct_image(field, t, density="mean2", noise_tol=0.05, start="series",
-                                   dtype=np.float32, strip=40)
+    fast, it, conv = correct_image(field, t, **REFERENCE.solver_kwargs(density="mean2",
+                                                                       noise_tol=0.05,
+                                                                       start="series",
+                                                                       dtype=np.float32, strip=40))
     assert conv and it <= 4
     assert np.max(np.abs(fast - ref)[ok] / sig) < 0.05
     a, _, _ = correct_series(field, t)
     b, _, _ = correct_series(field, t, strip=17)
     assert_allclose(a[ok], b[ok], rtol=0, atol=1e-8 * np.nanmax(field))  # exact halo
     with pytest.raises(ValueError, match="start"):
-        correct_image(field, t, start="guess")
+        correct_image(field, t, **REFERENCE.solver_kwargs(start="guess"))
     with pytest.raises(ValueError, match="dtype"):
         correct_series(field, t, dtype=np.int32)
 
@@ -366,20 +370,28 @@ def test_third_order_series_against_tight_reference(field, monkeypatch):
     errs3, errs2, abs3 = [], [], []
     for k in (1.0, 2.0):
         t = _scaled_template(k)
-        ref, it, conv = C.correct_image(field, t, density="mean2", start="image", rtol=1e-12,
-                                        max_iter=60)
+        ref, it, conv = C.correct_image(field, t, **REFERENCE.solver_kwargs(density="mean2",
+                                                                            start="image",
+                                                                            rtol=1e-12,
+                                                                            max_iter=60))
         assert conv and it > 3
         calls.clear()
-        fast, it, conv = C.correct_image(field, t, density="mean2", noise_tol=0.05,
-                                         start="series", dtype=np.float32, strip=40)
+        fast, it, conv = C.correct_image(field, t, **REFERENCE.solver_kwargs(density="mean2",
+                                                                             noise_tol=0.05,
+                                                                             start="series",
+                                                                             dtype=np.float32,
+                                                                             strip=40))
         assert conv and it == 0  # the a-priori bound made the check unnecessary
         assert len(calls) == 3 * 3  # 3 strips of 40 rows, 3 applications each
         errs3.append(np.max(np.abs(fast - ref)[ok] / sig))
         ser2, _, _ = C.correct_series(field, t)
         errs2.append(np.max(np.abs(ser2 - ref)[ok]))
-        e64, _, _ = C.correct_image(field, t, density="mean2", noise_tol=0.05, start="series")
-        s64, _, _ = C.correct_image(field, t, density="mean2", noise_tol=0.05, start="series",
-                                    strip=40)
+        e64, _, _ = C.correct_image(field, t, **REFERENCE.solver_kwargs(density="mean2",
+                                                                        noise_tol=0.05,
+                                                                        start="series"))
+        s64, _, _ = C.correct_image(field, t, **REFERENCE.solver_kwargs(density="mean2",
+                                                                        noise_tol=0.05,
+                                                                        start="series", strip=40))
         assert_allclose(s64[ok], e64[ok], rtol=0, atol=1e-12 * np.nanmax(field))  # exact halo
         abs3.append(np.max(np.abs(e64 - ref)[ok]))
         assert np.isnan(fast[50, 10])
@@ -388,10 +400,10 @@ def test_third_order_series_against_tight_reference(field, monkeypatch):
     assert 5.0 < errs2[1] / errs2[0] < 12.0  # ~2^3: the 2nd-order series' error is 3rd order
     assert 11.0 < abs3[1] / abs3[0] < 24.0  # ~2^4: the 3rd-order series' error is 4th order
     # a tolerance the series cannot meet a priori falls back to the iteration
-    tight, it, conv = C.correct_image(field, _scaled_template(1.0), density="mean2",
-                                      noise_tol=1e-4, strip=40, max_iter=20)
-    ref1, _, _ = C.correct_image(field, _scaled_template(1.0), density="mean2",
-                                 start="image", rtol=1e-12, max_iter=60)
+    tight, it, conv = C.correct_image(field, _scaled_template(1.0), **REFERENCE.solver_kwargs(
+        density="mean2", noise_tol=1e-4, strip=40, max_iter=20))
+    ref1, _, _ = C.correct_image(field, _scaled_template(1.0), **REFERENCE.solver_kwargs(
+        density="mean2", start="image", rtol=1e-12, max_iter=60))
     assert conv and it >= 1
     assert np.max(np.abs(tight - ref1)[ok] / sig) < 1e-3
 

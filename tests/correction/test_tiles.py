@@ -13,6 +13,7 @@ from lsst_bfdrift.correction._edge_kernels import fused_transfer
 from lsst_bfdrift.templates.swept import OperatorCache, SweptAreas
 from lsst_bfdrift.templates.template import load_default_template
 from lsst_bfdrift.utils.errors import InputError
+from lsst_bfdrift.correction.settings import REFERENCE
 
 CELL = 16
 MARGINS = (4, 11, 22)  # the default template's reach: 11 px
@@ -240,8 +241,11 @@ def test_second_tier_within_half_the_tolerance(field, template, monkeypatch):
     img = flat(512) if field == "flat" else crowded(512)
     blocked = np.zeros(img.shape, bool)
     blocked[200:260, 300] = True
-    dense, _, _ = C.correct_image(img, template, density="fv4", noise_tol=NOISE_TOL,
-                                  start="series", dtype=np.float32, blocked=blocked)
+    dense, _, _ = C.correct_image(img, template, **REFERENCE.solver_kwargs(density="fv4",
+                                                                           noise_tol=NOISE_TOL,
+                                                                           start="series",
+                                                                           dtype=np.float32,
+                                                                           blocked=blocked))
     out, info = _forced_second_tier(img, blocked, template, monkeypatch)
     assert info["tier"] == 2 and info["reason"] is None, info
     assert 0.0 < info["active_fraction"] < 1.0
@@ -259,8 +263,10 @@ def test_second_tier_with_one_tolerance(template, monkeypatch):
     img = crowded(512)
     blk = np.zeros(img.shape, bool)
     rtol = 1e-5
-    dense, _, _ = C.correct_image(img, template, density="fv4", rtol=rtol, start="series",
-                                  dtype=np.float32)
+    dense, _, _ = C.correct_image(img, template, **REFERENCE.solver_kwargs(density="fv4",
+                                                                           rtol=rtol,
+                                                                           start="series",
+                                                                           dtype=np.float32))
     out, info = _forced_second_tier(img, blk, template, monkeypatch, rtol=rtol,
                                     noise_tol=None)
     assert info["tier"] == 2 and info["reason"] is None, info
@@ -275,7 +281,7 @@ def test_second_tier_declines_what_it_cannot_bound(template, monkeypatch):
     ops = OperatorCache(template, dtype=np.float32)
     info = {}
     assert S.sparse_series(flat(96), np.zeros((96, 96), bool), ops, noise_tol=NOISE_TOL,
-                           info=info) is None
+                           density="mean2", info=info) is None
     assert info["tier"] == 2 and "second-tier windows" in info["reason"]
 
 
@@ -287,9 +293,10 @@ def test_flat_uses_the_second_tier(template):
     img = flat(2048)
     kw = dict(density="fv4", noise_tol=NOISE_TOL, start="series", dtype=np.float32,
               strip=512)
-    dense, _, _ = C.correct_image(img, template, **kw)
+    dense, _, _ = C.correct_image(img, template, **REFERENCE.solver_kwargs(**kw))
     info = {}
-    out, it, conv = C.correct_image(img, template, sparse=True, info=info, **kw)
+    out, it, conv = C.correct_image(img, template, **REFERENCE.solver_kwargs(sparse=True,
+                                                                             info=info, **kw))
     assert info["solver"] == "sparse" and info["tier"] == 2, info
     assert info["window_fraction"] < 0.5 and it == 0 and conv
     assert np.max(np.abs(out - dense) / S.tolerance(img, NOISE_TOL)) <= 0.5

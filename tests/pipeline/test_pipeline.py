@@ -24,7 +24,7 @@ from lsst.daf.butler import Butler, Config, DatasetType  # noqa: E402
 
 import lsst_bfdrift.pipeline as bfpipe  # noqa: E402
 from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402,E501
-from lsst_bfdrift.utils.exposure import read_exposure  # noqa: E402
+from lsst_bfdrift.images.exposure import read_exposure  # noqa: E402
 
 DIMS = ("instrument", "exposure", "detector")
 EXPOSURES = (1, 2, 3)

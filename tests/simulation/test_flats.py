@@ -95,7 +95,7 @@ def test_ptc_levels_are_unbiased_without_bf(small_template):
 def test_ptc_fit_closes_on_the_template(small_template):
     """Closure: the full-model fit of independent simulated flat levels returns
     the template's linear response a_ij within its errors."""
-    from lsst_bfdrift.calibration.ptc import fit_covariance_model
+    from lsst_bfdrift.ptc.covariances import fit_covariance_model
     t = small_template
     tab = simulate_ptc_levels(t, np.linspace(4e3, 3.2e4, 8), steps_per_level=20, n_images=128,
                               shape=(12, 12), max_lag=2, seed=7)
@@ -134,7 +134,7 @@ def test_galsim_engine_flats_carry_galsims_a00(tmp_path):
     for the PTC readers."""
     from astropy.io import fits
 
-    from lsst_bfdrift.calibration.ptc import pair_covariances
+    from lsst_bfdrift.ptc.covariances import pair_covariances
     from lsst_bfdrift.simulation.flats import simulate_flat_pairs, write_flat_pairs
     from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 
@@ -171,7 +171,7 @@ def test_template_lag_order_matches_the_measured_itl_table():
 
     from numpy.testing import assert_allclose
 
-    from lsst_bfdrift.calibration.acoeff_fit import read_acoeff_table
+    from lsst_bfdrift.ptc.acoeffs import read_acoeff_table
     from lsst_bfdrift.correction.solvers import area_coefficients
     from lsst_bfdrift.simulation.flats import template_area_coefficients
     from lsst_bfdrift.templates.refine import template_alpha
@@ -249,7 +249,7 @@ def test_engine_acoeffs_diffusion_matches_the_simulated_covariances():
     0.5 px diffusion: the measured C_ij / mu^2 follow engine_acoeffs, which differs
     from the undiffused a-matrix by many errors (a00 -2.2e-6 -> -0.93e-6, a10 changes
     sign), and the lag-0 noise is Poisson (C00 - mu carries no term linear in mu)."""
-    from lsst_bfdrift.calibration.ptc import pair_covariances
+    from lsst_bfdrift.ptc.covariances import pair_covariances
     from lsst_bfdrift.simulation.flats import engine_acoeffs
 
     a = galsim_acoeffs("lsst_e2v_50_8", 4)

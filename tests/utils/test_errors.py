@@ -3,6 +3,7 @@
 import pytest
 
 import lsst_bfdrift
+import lsst_bfdrift.utils
 from lsst_bfdrift.utils import errors
 
 
@@ -16,7 +17,8 @@ def test_every_error_is_a_bfdrift_error_and_its_builtin():
              (e.ComputationError, RuntimeError)]
     for cls, builtin in pairs:
         assert issubclass(cls, e.BfdriftError) and issubclass(cls, builtin), cls
-        assert getattr(lsst_bfdrift, cls.__name__) is cls
+        assert getattr(lsst_bfdrift.utils, cls.__name__) is cls  # from the subpackage
+    assert lsst_bfdrift.BfdriftError is e.BfdriftError  # the one catch-all at the top
     # config errors are lsst.pex.config's own (a ValueError, exit status 2)
     import lsst.pex.config as pexConfig
     assert e.FieldValidationError is pexConfig.FieldValidationError

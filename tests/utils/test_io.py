@@ -91,33 +91,6 @@ def test_data_files_skip_temporaries(tmp_path):
     assert data_files(tmp_path, (".fits",)) == [str(tmp_path / "a.FITS"),
                                                  str(tmp_path / "b.fits")]
 
-
-def test_truncated_fits_is_named(tmp_path):
-    """A truncated FITS gives an error naming the file and saying so (was
-    numpy's 'cannot reshape array'), in every shared image loader."""
-    import numpy as np
-    from astropy.io import fits
-
-    from lsst_bfdrift.correction.task import unpack_exposure
-    from lsst_bfdrift.utils.errors import InputFileError
-    from lsst_bfdrift.utils.io import read_image
-    full = tmp_path / "full.fits"
-    fits.PrimaryHDU(np.random.default_rng(3).normal(size=(64, 64))).writeto(full)
-    cut = tmp_path / "cut.fits"
-    cut.write_bytes(full.read_bytes()[:2880 + 3600])
-    with pytest.warns(Warning, match="truncated"):
-        with pytest.raises(InputFileError, match="cut.fits: truncated"):
-            read_image(cut)
-    with pytest.warns(Warning, match="truncated"):
-        with pytest.raises(InputFileError, match="cut.fits: truncated"):
-            unpack_exposure(str(cut), None)
-    (tmp_path / "empty.fits").write_bytes(b"")
-    with pytest.raises(InputFileError, match="empty.fits: not a readable FITS"):
-        read_image(tmp_path / "empty.fits")
-    with pytest.raises(FileNotFoundError, match="nope.fits"):
-        read_image(tmp_path / "nope.fits")
-
-
 def _dead_pid():
     """The PID of a process that has ended (a child waited for)."""
     import subprocess

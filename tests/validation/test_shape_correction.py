@@ -6,7 +6,7 @@ import pytest
 from numpy.testing import assert_allclose
 
 from tests.validation._galsim_fields import STRENGTHS, galsim_template, paired_fields
-from lsst_bfdrift.calibration.catalog import measure_stars
+from lsst_bfdrift.catalogs.catalog import measure_stars
 from lsst_bfdrift.validation.shape_correction import adaptive_moments, correct_catalog, \
     correct_star_moments, footprint_moments
 from lsst_bfdrift.simulation.skysim import scale_template

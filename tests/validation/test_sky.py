@@ -9,7 +9,7 @@ from numpy.testing import assert_allclose
 
 from tests.validation._galsim_fields import STRENGTHS, galsim_template, paired_fields
 from lsst_bfdrift.cli.main import main
-from lsst_bfdrift.calibration.star_slopes import shape_flux_relations
+from lsst_bfdrift.catalogs.slopes import shape_flux_relations
 from lsst_bfdrift.validation.sky import validate_sky
 from lsst_bfdrift.simulation.skysim import scale_template
 
@@ -18,7 +18,7 @@ def test_too_few_stars_and_all_saturated_get_clear_messages():
     rng = np.random.default_rng(3)
     import galsim
 
-    from lsst_bfdrift.calibration.catalog import measure_stars
+    from lsst_bfdrift.catalogs.catalog import measure_stars
     img = galsim.ImageD(160, 160, xmin=0, ymin=0)
     for k in range(9):
         galsim.Gaussian(sigma=1.8, flux=2e5).drawImage(

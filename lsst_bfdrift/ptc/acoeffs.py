@@ -1,0 +1,249 @@
+"""Tables of measured area coefficients a_ij: reading, orientation, the sum rule.
+
+Measured area coefficients a_ij (per electron; Astier et al. 2019) are the
+relative area change of the pixel at lag (i, j) = (serial, parallel) per
+electron collected in the aggressor pixel, a_ij = d ln A_ij / dQ. This module
+
+* holds them with their errors (:class:`AcoeffTable`) and reads tables of
+  them (:func:`read_acoeff_table`, :func:`acoeff_square`),
+* establishes which file axis is parallel from the data
+  (:func:`assign_axes`: the larger nearest neighbour is the parallel one,
+  because the clock barriers are weaker than the channel stops) and whether
+  a00 was set by the area sum rule (:func:`sum_rule_check`).
+
+The model's a_ij and its fit to a table are in
+:mod:`lsst_bfdrift.calibration.acoeff_model`.
+
+Arrays of coefficients are indexed ``a[i, j]`` with i the serial lag and j
+the parallel lag, 0 <= i, j <= L (the model is symmetric in the sign of each).
+"""
+
+import math
+
+import numpy as np
+
+from lsst_bfdrift.utils.errors import InputError
+
+__all__ = ["AcoeffTable", "read_acoeff_table", "assign_axes", "sum_rule_check",
+           "lag_radius", "acoeff_square", "MAX_TABLE_LAG"]
+
+#: Largest lag an a_ij table may hold (measured tables reach ~20; a larger
+#: lag is a typo, and the square arrays grow as its square).
+MAX_TABLE_LAG = 64
+
+
+def lag_radius(max_lag):
+    """Array r[i, j] = sqrt(i^2 + j^2) for 0 <= i, j <= max_lag."""
+    i, j = np.meshgrid(np.arange(max_lag + 1), np.arange(max_lag + 1), indexing="ij")
+    return np.hypot(i, j)
+
+
+class AcoeffTable:
+    """Measured a_ij (per e) with 1-sigma errors, indexed [serial, parallel].
+
+    Attributes
+    ----------
+    a, sigma : ndarray, shape (L + 1, L + 1)
+        Coefficients and errors (per e).
+    max_lag : int
+    source : str
+        Where the table came from.
+    axis_note : str
+        How the axis assignment was established.
+    exclude_a00 : bool
+        True when a00 must be left out of chi2 (set by the sum rule).
+    """
+
+    def __init__(self, a, sigma, *, source="", axis_note="", exclude_a00=False):
+        a = np.array(a, dtype=np.float64)
+        sigma = np.array(sigma, dtype=np.float64)
+        if a.ndim != 2 or a.shape[0] != a.shape[1]:
+            raise InputError(f"a_ij must be a square 2-d array, got shape {a.shape}")
+        if sigma.shape != a.shape:
+            raise InputError(f"errors have shape {sigma.shape}, coefficients {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise InputError("a_ij table holds non-finite coefficients")
+        if not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
+            raise InputError("a_ij errors must be finite and positive (found NaN, inf, zero "
+                             "or negative errors)")
+        self.a, self.sigma = a, sigma
+        self.max_lag = a.shape[0] - 1
+        self.source, self.axis_note, self.exclude_a00 = source, axis_note, bool(exclude_a00)
+
+    def mask(self):
+        """Boolean array of the lags that enter chi2."""
+        m = np.ones(self.a.shape, dtype=bool)
+        if self.exclude_a00:
+            m[0, 0] = False
+        return m
+
+    def transposed(self):
+        """The table with the two axes exchanged."""
+        return AcoeffTable(self.a.T, self.sigma.T, source=self.source,
+                           axis_note=self.axis_note, exclude_a00=self.exclude_a00)
+
+    def truncated(self, max_lag):
+        """The table restricted to lags <= ``max_lag``."""
+        k = int(max_lag) + 1
+        return AcoeffTable(self.a[:k, :k], self.sigma[:k, :k], source=self.source,
+                           axis_note=self.axis_note, exclude_a00=self.exclude_a00)
+
+
+def acoeff_square(path, i, j, a, s):
+    """Checked square arrays a[i, j], sigma[i, j] from row values."""
+    i = np.asarray(i, dtype=float)
+    j = np.asarray(j, dtype=float)
+    a = np.asarray(a, dtype=float)
+    s = np.asarray(s, dtype=float)
+    if i.size == 0:
+        raise InputError(f"{path}: no a_ij rows found; accepted: rows of i j value sigma")
+    lags = np.column_stack([i, j])
+    badlag = ~np.isfinite(lags).all(axis=1) | np.any(lags != np.round(lags), axis=1) | np.any(
+        lags < 0, axis=1)
+    if badlag.any():
+        bad = [(float(x), float(y)) for x, y in lags[badlag][:3]]
+        raise InputError(f"{path}: lags must be non-negative integers (i serial, j parallel); "
+                         f"found {bad}")
+    if not np.all(np.isfinite(a)):
+        k = int(np.flatnonzero(~np.isfinite(a))[0])
+        raise InputError(f"{path}: coefficient at lag ({int(i[k])}, {int(j[k])}) is {a[k]}; "
+                         "accepted: finite a_ij (per electron)")
+    badsig = ~(np.isfinite(s) & (s > 0))
+    if badsig.any():
+        ks = np.flatnonzero(badsig)[:3]
+        found = ", ".join(f"({int(i[k])}, {int(j[k])}): {s[k]:g}" for k in ks)
+        raise InputError(f"{path}: {int(badsig.sum())} a_ij error(s) not positive and finite "
+                         f"(lag: error {found}); accepted: positive 1-sigma errors per electron")
+    if max(i.max(), j.max()) > MAX_TABLE_LAG:
+        k = int(np.argmax(np.maximum(i, j)))
+        raise InputError(f"{path}: lag ({int(i[k])}, {int(j[k])}) is beyond {MAX_TABLE_LAG}; "
+                         f"accepted: lags 0..{MAX_TABLE_LAG} (measured tables reach ~20)")
+    ii, jj = i.astype(int), j.astype(int)
+    if not np.any((ii == 0) & (jj == 0)):
+        raise InputError(f"{path}: no a00 (lag 0, 0) row; the table must include a00, measured "
+                         "or set by the area sum rule")
+    L = int(max(ii.max(), jj.max()))
+    A = np.full((L + 1, L + 1), np.nan)
+    S = np.full((L + 1, L + 1), np.nan)
+    for x, y, v, e in zip(ii, jj, a, s):
+        if not np.isnan(A[x, y]):
+            raise InputError(f"{path}: lag ({x}, {y}) appears twice; each lag once")
+        A[x, y], S[x, y] = v, e
+    if np.isnan(A).any():
+        miss = [tuple(m) for m in np.argwhere(np.isnan(A))[:3].tolist()]
+        raise InputError(f"{path}: incomplete table, missing lags e.g. {miss}; accepted: every "
+                         f"lag 0 <= i, j <= {L} once")
+    return A, S
+
+
+def _text_rows(path):
+    rows = []
+    with open(path, encoding="utf-8") as fh:
+        for n, line in enumerate(fh, 1):
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            parts = s.replace(",", " ").split()
+            try:
+                vals = [float(p) for p in parts]
+            except ValueError:
+                if rows:
+                    raise InputError(f"{path}:{n}: non-numeric row {s!r}; accepted: i j value "
+                                     "sigma") from None
+                continue
+            if len(vals) != 4:
+                raise InputError(f"{path}:{n}: {len(vals)} columns; accepted: 4 (i j value "
+                                 "sigma)")
+            rows.append(vals)
+    d = np.array(rows).reshape(-1, 4)
+    return d[:, 0], d[:, 1], d[:, 2], d[:, 3]
+
+
+def read_acoeff_table(path, *, orient=True):
+    """Read a text table ``i j value sigma`` (one lag per row, header allowed).
+
+    Parameters
+    ----------
+    path : str
+        File name. Rows hold integer lags i, j >= 0, the coefficient (per e)
+        and its 1-sigma error; a first non-numeric line is a header.
+    orient : bool, optional
+        Establish the axis assignment from the data (:func:`assign_axes`)
+        and detect a sum-rule a00 (:func:`sum_rule_check`).
+
+    Returns
+    -------
+    AcoeffTable
+        Indexed [serial, parallel] when ``orient`` is true, else in the file's
+        (i, j) order.
+    """
+    a, s = acoeff_square(path, *_text_rows(path))
+    table = AcoeffTable(a, s, source=str(path))
+    if orient:
+        table = assign_axes(table)
+        ok, note = sum_rule_check(table)
+        table.exclude_a00 = ok
+        table.axis_note += "; " + note
+    return table
+
+
+def assign_axes(table):
+    """Orient a table as [serial, parallel] from the data itself.
+
+    The clock barriers between rows are weaker than the channel stops, so a
+    collected charge pushes the row boundaries further: the parallel nearest
+    neighbour has the larger coefficient (the paper's A01 > A10; every
+    measured LSST sensor). The axis of the larger of the file's a[0, 1] and
+    a[1, 0] is taken as parallel; the significance of the difference is
+    reported in ``axis_note``.
+
+    Parameters
+    ----------
+    table : AcoeffTable
+        In the file's (i, j) order.
+
+    Returns
+    -------
+    AcoeffTable
+        [serial, parallel] order.
+    """
+    a01, a10 = table.a[0, 1], table.a[1, 0]
+    s = math.hypot(table.sigma[0, 1], table.sigma[1, 0])
+    z = abs(a01 - a10) / s
+    if a01 >= a10:
+        out = AcoeffTable(table.a, table.sigma, source=table.source,
+                          exclude_a00=table.exclude_a00)
+        which = "file (i, j) = (serial, parallel): a[0,1] > a[1,0]"
+    else:
+        out = table.transposed()
+        which = "file (i, j) = (parallel, serial): a[1,0] > a[0,1], axes swapped"
+    out.axis_note = (f"{which} by {z:.1f} sigma ({max(a01, a10):.3g} vs {min(a01, a10):.3g}; "
+                     "the larger nearest neighbour is the parallel one)")
+    return out
+
+
+def sum_rule_check(table, *, nsigma=1.0):
+    """Whether a00 equals minus the sum of all other lags (area sum rule).
+
+    Sums a_ij over all signed lags except (0, 0) (weights 2 on the axes, 4
+    off them) and compares with -a00. When they agree to better than
+    ``nsigma`` times the error of a00 *divided by 10*, a00 was evidently set
+    by the rule, not measured, and must stay out of chi2.
+
+    Returns
+    -------
+    (bool, str)
+        The verdict and a sentence with the numbers.
+    """
+    a = table.a
+    w = np.full(a.shape, 4.0)
+    w[0, :] = 2.0
+    w[:, 0] = 2.0
+    w[0, 0] = 0.0
+    s = float(np.sum(w * a))
+    gap = a[0, 0] + s
+    ok = abs(gap) < nsigma * table.sigma[0, 0] / 10.0
+    note = (f"a00 = {a[0, 0]:.4g}, minus the sum of the other lags = {-s:.4g} (gap {gap:.2g}, "
+            f"a00 error {table.sigma[0, 0]:.2g}): "
+            + ("a00 set by the sum rule, left out of chi2" if ok else "a00 measured, kept"))
+    return ok, note
