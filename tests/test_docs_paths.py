@@ -73,20 +73,20 @@ def test_paths_in_the_docs_exist(doc):
 
 
 def test_the_scan_finds_repository_paths_and_skips_placeholders():
-    text = ("$ python benchmarks/bench_task.py --size 64\n"
+    text = ("$ python benchmarks/performance/bench_task.py --size 64\n"
             "$ bfdrift correct in.fits out.fits --out-dir /tmp/x/tests/y\n"
             "see https://example.org/docs/z.html and flat_*.fits, my.fits\n"
             "``lsst_bfdrift/data/default_template.fits``. tests/test_layers.py,\n"
             ".. image:: _static/flat_sim.png\n"
-            ".. literalinclude:: ../benchmarks/results.txt\n")
+            ".. literalinclude:: ../benchmarks/performance/bench_engine_results.txt\n")
     got = [(n, rel) for n, _, rel in mentioned_paths(text, "docs/x.rst")]
-    assert got == [(1, "benchmarks/bench_task.py"),
+    assert got == [(1, "benchmarks/performance/bench_task.py"),
                    (4, "lsst_bfdrift/data/default_template.fits"),
                    (4, "tests/test_layers.py"),
                    (5, "docs/_static/flat_sim.png"),
-                   (6, "benchmarks/results.txt")]
+                   (6, "benchmarks/performance/bench_engine_results.txt")]
     assert all(exists(rel) for _, rel in got)
     assert not exists("benchmarks/no_such_script.py")
-    assert exists("benchmarks/validate_stars_400_results")  # an output prefix
+    assert exists("benchmarks/correction/validate_stars_400_results")  # an output prefix
     assert exists("tests/*/test_*.py")
     assert mentioned_paths("_static/a.png ../benchmarks/b.txt", "README.md") == []

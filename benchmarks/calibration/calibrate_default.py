@@ -15,22 +15,22 @@ the defaults of :class:`~lsst_bfdrift.physics.sensor.SensorParameters`
 with the bundled settings and its areas refined to the measured a_ij where
 they differ from the model significantly.
 
-Prints the fit, writes ``benchmarks/default_calibration_results.txt`` /
+Prints the fit, writes ``benchmarks/calibration/calibrate_default_results.txt`` /
 ``.json``; with ``--write`` it also writes ``lsst_bfdrift/data/
 default_template.fits`` and ``default_template_config.json``::
 
-    python benchmarks/calibrate_default.py [--write]
+    python benchmarks/calibration/calibrate_default.py [--write]
 """
 
 import argparse
 import os
+import shlex
 import sys
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.join(HERE, "..")
-sys.path.insert(0, ROOT)
+ROOT = os.path.join(HERE, "..", "..")
 
 from lsst_bfdrift.ptc.acoeffs import read_acoeff_table  # noqa: E402
 from lsst_bfdrift.calibration.tuning import CHARGE, calibrate, refine_template  # noqa: E402
@@ -45,6 +45,12 @@ START = SensorParameters.paper().replace(xi0=2952.0, channel_depth=0.368,
                                          clock_separation=0.52, collection_height=0.5)
 #: settings of the shipped default template
 SETTINGS = TemplateSettings(size=21, edge_samples=32, aggressor_charge=CHARGE, tol=1e-5)
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def main(argv=None):
@@ -72,9 +78,11 @@ def main(argv=None):
              "  correlation: " + np.array2string(np.asarray(f.correlation), precision=3),
              f"  SensorParameters() defaults: {rounded}"]
     print("\n".join(lines))
-    write_text(os.path.join(HERE, "default_calibration_results.txt"), "\n".join(lines) + "\n")
-    write_json(os.path.join(HERE, "default_calibration_results.json"),
-               {**res.summary(), "rounded": rounded}, indent=1, default=float)
+    write_text(os.path.join(HERE, "calibrate_default_results.txt"),
+               f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
+    write_json(os.path.join(HERE, "calibrate_default_results.json"),
+               {"command": command_line(), **res.summary(), "rounded": rounded}, indent=1,
+               default=float)
     if args.write:
         if params != SensorParameters():
             print("note: SensorParameters() differs from the fit; update its defaults to",
@@ -85,7 +93,7 @@ def main(argv=None):
             "source": table.source, "names": f.names, "values": f.values, "errors": f.errors,
             "covariance": np.asarray(f.covariance).tolist(), "chi2": f.chi2, "dof": f.dof,
             "p_value": f.p_value, "refined": True, "a00_in_fit": True, "max_lag": 8,
-            "fit": "benchmarks/calibrate_default.py", "defaults": rounded,
+            "fit": "benchmarks/calibration/calibrate_default.py", "defaults": rounded,
             "uncertainty": {"kind": "data", "sigma": table.sigma.tolist()}}
         tpl.save(os.path.join(DATA, "default_template.fits"), overwrite=True)
         write_json(os.path.join(DATA, "default_template_config.json"),

@@ -1,6 +1,6 @@
 """How well flats of a given size can calibrate the star correction: the noise floor.
 
-The flats route of ``benchmarks/calibrate_sensor.py`` leaves 6-9 % of the
+The flats route of ``benchmarks/calibration/calibrate_sensor.py`` leaves 6-9 % of the
 size slope on GalSim ITL stars (depending on the flat set), where the
 a-matrix route leaves -2.5 %. This script separates the model from the
 statistics. It builds the template that
@@ -30,17 +30,18 @@ as far as the flats route misses, the miss is the flats' statistics; if the
 noise-free a_ij refined as ``calibrate`` refines miss too, it is the model's
 error that the refinement keeps at those errors::
 
-    python benchmarks/calibrate_sensor.py --sensors lsst_itl_50_8 --flats \\
+    python benchmarks/calibration/calibrate_sensor.py --sensors lsst_itl_50_8 --flats \\
         --skip-amatrix --flat-size 800 --pairs-per-level 4 --flat-steps 20 \\
         --pairs /tmp/cs_pairs          # draws and caches the flats and stars
-    python benchmarks/calibrate_noise_floor.py --pairs /tmp/cs_pairs
+    python benchmarks/calibration/calibrate_noise_floor.py --pairs /tmp/cs_pairs
 
-Writes ``benchmarks/calibrate_noise_floor_results.txt`` and ``.json``.
+Writes ``benchmarks/calibration/calibrate_noise_floor_results.txt`` and ``.json``.
 """
 
 import argparse
 import os
 import platform
+import shlex
 import sys
 import time
 import zlib
@@ -48,7 +49,6 @@ import zlib
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
 
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable  # noqa: E402
 from lsst_bfdrift.ptc.covariances import fit_covariance_model  # noqa: E402
@@ -59,6 +59,12 @@ from lsst_bfdrift.templates.refine import draw_templates, match_area_coefficient
 from lsst_bfdrift.utils.errors import InputError  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.validation.stars import per_star_residuals, residual_slopes  # noqa: E402
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def main(argv=None):
@@ -85,7 +91,8 @@ def main(argv=None):
     stars = f"{args.pairs}_{sensor}_{args.psf}_{args.n_stars}_{seed}.npz"
     for p in (flats, stars):
         if not os.path.isfile(p):
-            sys.exit(f"{p} is missing: run benchmarks/calibrate_sensor.py first (docstring)")
+            sys.exit(f"{p} is missing: run benchmarks/calibration/calibrate_sensor.py first "
+                     "(docstring)")
     tab = dict(np.load(flats))
     fit = fit_covariance_model(tab["mu"], tab["cov"], npix=tab["npix"])
     factor = 1.0 - 1.0 / steps
@@ -181,8 +188,8 @@ def main(argv=None):
                     f"{np.sqrt(np.mean(s**2)):5.1f} %, mean {s.mean():+6.1f} %, range "
                     f"{s.min():+6.1f} to {s.max():+6.1f} %")
     say(f"target: <= 3 % of the size slope, <= 5 % of e1. ({time.time() - t_start:.0f} s)")
-    write_text(args.out + ".txt", "\n".join(lines) + "\n")
-    write_json(args.out + ".json", rec, indent=1, default=float)
+    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
+    write_json(args.out + ".json", {"command": command_line(), **rec}, indent=1, default=float)
     return 0
 
 

@@ -13,17 +13,17 @@
 Both start from the paper's nominal sensor (:meth:`SensorParameters.paper`),
 not from the bundled sensor that ``SensorParameters()`` describes.
 
-Prints both fits and writes ``benchmarks/calibration_results.txt`` / ``.json``.
+Prints both fits and writes ``benchmarks/calibration/calibrate_paper_results.txt`` / ``.json``.
 
-    python benchmarks/calibrate.py
+    python benchmarks/calibration/calibrate_paper.py
 """
 
 import os
+import shlex
 import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.calibration.sensor_fit import fit_sensor_parameters  # noqa: E402
@@ -31,10 +31,17 @@ from lsst_bfdrift.physics.sensor import SensorParameters  # noqa: E402
 from lsst_bfdrift.templates.template import TemplateSettings, build_template  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-ITL = os.path.join(HERE, "..", "..", "shared", "data", "measured", "itl_covariances_21oct19.txt")
+ITL = os.path.join(HERE, "..", "..", "..", "shared", "data", "measured",
+                   "itl_covariances_21oct19.txt")
 
 
 LINES = []
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def say(line):
@@ -92,8 +99,10 @@ def main():
     say(f"    model dlnA00 per e {np.log(r.model['A00']) / q:.3e} "
           f"(measured a00 {a[(0, 0)][0]:.3e}, set by the sum rule)")
     out["itl"] = r.as_dict()
-    write_json(os.path.join(HERE, "calibration_results.json"), out, indent=2, default=float)
-    write_text(os.path.join(HERE, "calibration_results.txt"), "\n".join(LINES) + "\n")
+    write_json(os.path.join(HERE, "calibrate_paper_results.json"),
+               {"command": command_line(), **out}, indent=2, default=float)
+    write_text(os.path.join(HERE, "calibrate_paper_results.txt"),
+               f"# command: {command_line()}\n" + "\n".join(LINES) + "\n")
 
 
 if __name__ == "__main__":

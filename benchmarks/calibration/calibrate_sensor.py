@@ -26,14 +26,15 @@ For each GalSim sensor model (default lsst_itl_50_8 and lsst_e2v_50_8):
    GalSim's a_ij: no model of how the area change is shared between edges).
 
 Prints the size and e1 slopes left, as % of the uncorrected slopes, and
-writes ``benchmarks/calibrate_sensor_results.txt`` / ``.json``::
+writes ``benchmarks/calibration/calibrate_sensor_results.txt`` / ``.json``::
 
-    python benchmarks/calibrate_sensor.py [--sensors lsst_itl_50_8 lsst_e2v_50_8]
+    python benchmarks/calibration/calibrate_sensor.py [--sensors lsst_itl_50_8 lsst_e2v_50_8]
         [--n-stars 200] [--pairs /tmp/cs_pairs] [--flats]
 """
 
 import argparse
 import os
+import shlex
 import sys
 import time
 import zlib
@@ -41,7 +42,6 @@ import zlib
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
 
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable  # noqa: E402
 from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
@@ -54,6 +54,12 @@ from lsst_bfdrift.validation.stars import (_slope, draw_star_pairs,  # noqa: E40
                                            per_star_residuals, residual_slopes)
 
 METHODS = ("astier23", "drift")
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def star_pairs(sensor, psf, args):
@@ -75,7 +81,7 @@ def star_pairs(sensor, psf, args):
 
 #: Fill steps of each simulated flat. Discrete filling gives C_ij = a_ij mu^2
 #: (1 - 1/n) to first order (the charge of a step sees only the earlier
-#: steps' boundaries; ``benchmarks/flat_closure.py`` checks it), so the fitted
+#: steps' boundaries; ``benchmarks/simulation/flat_closure.py`` checks it), so the fitted
 #: a_ij are divided by 1 - 1/steps to be those of a continuous exposure.
 FLAT_STEPS = 40
 
@@ -201,8 +207,8 @@ def main(argv=None):
                 say(f"  paired {name} minus true, drift: size {d['size'][0]:+.2f} +- "
                     f"{d['size'][1]:.2f} %, e1 {d['e1'][0]:+.1f} +- {d['e1'][1]:.1f} %")
     say("target: calibrated drift <= 3 % of the size slope and <= 5 % of e1")
-    write_text(args.out + ".txt", "\n".join(lines) + "\n")
-    write_json(args.out + ".json", out, indent=1, default=float)
+    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
+    write_json(args.out + ".json", {"command": command_line(), **out}, indent=1, default=float)
     return 0
 
 

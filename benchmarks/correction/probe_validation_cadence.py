@@ -1,7 +1,7 @@
 r"""Probe: do validate-stars residuals depend on GalSim's boundary-update cadence?
 
 Investigation script (no library change). Re-draws the bright Moffat stars of
-``benchmarks/validate_stars.py`` (same seed 20151, same 200-star random
+``benchmarks/correction/validate_stars.py`` (same seed 20151, same 200-star random
 sequence, same per-star seeds; only stars with flux >= ``--fmin`` are
 simulated) through ``galsim.SiliconSensor`` (BF twin strength 1 and BF-free
 twin strength 1e-9, same photons and sensor seed) with
@@ -21,9 +21,9 @@ and measures the residual size and e1 slopes of every correction method with
 the area-matched GalSim template, plus (same pairs, no redraw) the template
 imported with ``match="none"``. Run from the repository root::
 
-    python benchmarks/probe_validation_cadence.py --cadences \
+    python benchmarks/correction/probe_validation_cadence.py --cadences \
         100:1e4 1000:100 3000:30 1000:100:4 100:1e4:4
-    python benchmarks/probe_validation_cadence.py --qdist-templates --cadences \
+    python benchmarks/correction/probe_validation_cadence.py --qdist-templates --cadences \
         1000:100:4 100:1e4:4
 
 (the second call re-reads the pairs saved in /tmp by the first, and corrects
@@ -31,7 +31,7 @@ the qdist=4 pairs with the template area-matched to GalSim qdist=4). The
 "paired" lines are slopes of per-star differences between two runs of the
 same stars (or two methods on the same images), which cancel the star-to-star
 scatter that dominates the single-run errors. Writes
-``benchmarks/probe_validation_cadence_results.txt`` / ``.json``.
+``benchmarks/correction/probe_validation_cadence_results.txt`` / ``.json``.
 """
 
 import argparse
@@ -39,13 +39,13 @@ import contextlib
 import functools
 import json
 import os
+import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
@@ -54,6 +54,12 @@ from lsst_bfdrift.simulation.stars import make_psf  # noqa: E402
 from lsst_bfdrift.validation.stars import _slope, per_star_residuals, residual_slopes  # noqa: E402
 
 METHODS = ("coulton18", "astier23", "drift")
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 @contextlib.contextmanager
@@ -170,6 +176,10 @@ def qdist_templates(args):
         out["runs"][cad][f"paired_template_qdist{qd}"] = paired(
             per_star_rows(pairs, tpl_m), rows_q,
             f"template qdist={qd}-matched minus qdist=3-matched, {cad}", lines)
+    # the files now come from the previous run's command(s) and this one
+    heads = [ln for ln in lines if ln.startswith("# command: ")] + [f"# command: {command_line()}"]
+    lines = heads + [ln for ln in lines if not ln.startswith("# command: ")]
+    out["command"] = " && ".join(h[len("# command: "):] for h in heads)
     write_json(args.out + ".json", out, indent=2)
     write_text(args.out + ".txt", "\n".join(lines) + "\n")
 
@@ -242,8 +252,8 @@ def main():
                             bf=np.array([p["bf"] for p in pairs]),
                             truth=np.array([p["truth"] for p in pairs]),
                             flux=np.array([p["flux"] for p in pairs]))
-        write_json(args.out + ".json", out, indent=2)
-        write_text(args.out + ".txt", "\n".join(lines) + "\n")
+        write_json(args.out + ".json", {"command": command_line(), **out}, indent=2)
+        write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

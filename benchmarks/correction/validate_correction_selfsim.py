@@ -9,20 +9,21 @@ error over the stars), with two size measures: adaptive moments (HSM, the
 measure of ``bfdrift validate-stars``) and fixed Gaussian-weight moments
 (sigma = 3 px). The "paired" lines give the per-star differences between
 two methods on the same images, free of the star-to-star scatter. Writes
-``benchmarks/selfsim_results.txt``::
+``benchmarks/correction/validate_correction_selfsim_results.txt``::
 
-    python benchmarks/validate_correction_selfsim.py [--grid 4] [--flux 1e6] \
+    python benchmarks/correction/validate_correction_selfsim.py [--grid 4] [--flux 1e6] \
         [--fwhm 0.6 0.7 0.9] [--psf moffat kolmogorov]
 """
 
 import argparse
 import os
+import shlex
 import sys
 
 import galsim
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+HERE = os.path.dirname(os.path.abspath(__file__))
 
 from lsst_bfdrift.utils.io import write_text  # noqa: E402
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
@@ -37,6 +38,12 @@ VARIANTS = {"drift": dict(method="drift"),  # default density 'fv4'
             "coulton18": dict(method="coulton18")}
 MEASURES = {"adaptive": lambda a: _moments(a, 0.0)[0],
             "fixed s=3": lambda a: image_moments(a, weight_sigma=3)["T"]}
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def main():
@@ -88,8 +95,8 @@ def main():
                              f"{100 * d.std(ddof=1) / np.sqrt(len(d)):.2f} %")
         print("\n".join(lines[-(2 * (len(VARIANTS) + 3)):]), flush=True)
     text = "\n".join(lines) + "\n"
-    write_text(os.path.join(os.path.dirname(os.path.abspath(__file__)), "selfsim_results.txt"),
-               text)
+    write_text(os.path.join(HERE, "validate_correction_selfsim_results.txt"),
+               f"# command: {command_line()}\n" + text)
 
 
 if __name__ == "__main__":

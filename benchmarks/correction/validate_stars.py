@@ -4,7 +4,7 @@ Runs the equivalent of ``bfdrift validate-stars --json`` for Moffat and
 Kolmogorov PSFs (lsst_itl_50_8, FWHM 0.6-0.9", |e| <= 0.05, random sub-pixel
 centres, 1e4 to 1.5e6 e, sky 1000 e collected through the sensor with the
 star, about 1000 GalSim boundary updates per exposure) and writes
-``benchmarks/validate_stars_results.json`` / ``.txt``.
+``benchmarks/correction/validate_stars_results.json`` / ``.txt``.
 
 The same drawn stars are corrected with two imports of GalSim's sensor file
 (``DistortionTemplate.import_galsim_sensor``): ``match='transfers'`` (the default of
@@ -19,7 +19,7 @@ with the Task's default edge density ('fv4'); the line "drift with
 density='mean2'" isolates the time history (same density as astier23). Run from the
 repository root::
 
-    python benchmarks/validate_stars.py [--n-stars 200] [--pairs /tmp/vs_pairs]
+    python benchmarks/correction/validate_stars.py [--n-stars 200] [--pairs /tmp/vs_pairs]
 
 ``--pairs PREFIX`` saves the drawn stars to ``PREFIX_<psf>.npz`` (or re-reads
 them when that file exists, with the same options), so the templates can be
@@ -29,13 +29,13 @@ re-evaluated without re-drawing.
 import argparse
 import json
 import os
+import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
@@ -43,6 +43,12 @@ from lsst_bfdrift.validation.stars import (_slope, draw_star_pairs,  # noqa: E40
                                      per_star_residuals, residual_slopes)
 
 METHODS = ("coulton18", "astier23", "drift")
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def load_or_draw(psf, args):
@@ -171,8 +177,8 @@ def main():
                              f"{100 * dee / abs(ue1):.1f} %")
             out["psfs"][psf]["transfers_minus_areas"] = change
         print("\n".join(lines[n0:]), flush=True)
-        write_json(args.out + ".json", out, indent=2)
-        write_text(args.out + ".txt", "\n".join(lines) + "\n")
+        write_json(args.out + ".json", {"command": command_line(), **out}, indent=2)
+        write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

@@ -2,7 +2,7 @@
 
 Flat sets made with the linear engine (FFT areas,
 :func:`~lsst_bfdrift.simulation.flats.simulate_flat_pairs`) in the
-configurations of the 240 px sets of ``benchmarks/galsim_flat_sets.py``
+configurations of the 240 px sets of ``benchmarks/diagnosis/galsim_flat_sets.py``
 (levels, pairs, seeds; 20 fill steps), diagnosed with three base models:
 
 * ``default``: the shipped basis (electrostatic a_ij linearised about the
@@ -18,24 +18,23 @@ GalSim's a-matrix with effects injected at large amplitudes into the first
 three configurations: the power each base model keeps. The linear engine is
 the package's own forward model with another simulator's a-matrix, so
 these runs locate the cause; the false-alarm rate itself is measured on
-GalSim's pixel areas (``benchmarks/diagnose_false_alarms.py``)::
+GalSim's pixel areas (``benchmarks/diagnosis/diagnose_false_alarms.py``)::
 
-    python benchmarks/diagnose_base_model.py
+    python benchmarks/diagnosis/diagnose_base_model.py
 
-Writes ``benchmarks/diagnose_base_model_results.txt`` and ``.json``.
+Writes ``benchmarks/diagnosis/diagnose_base_model_results.txt`` and ``.json``.
 """
 
 import argparse
 import os
 import platform
+import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
-sys.path.insert(0, HERE)
 
 from galsim_flat_sets import set_config  # noqa: E402
 from lsst_bfdrift.calibration.acoeff_model import load_default_basis  # noqa: E402
@@ -47,6 +46,12 @@ from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 INJECTIONS = (("cti_parallel", (1e-2,)), ("cti_serial", (1e-2,)),
               ("gain_nonlinearity", (6e-7,)), ("gain_nonlinearity", (2e-7,)),
               ("echo", (1e-2, 3)))
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def run(a, cfg, bases, *, steps=20, inject=None):
@@ -113,8 +118,8 @@ def main(argv=None):
         say(f"    {name:18s} {str(amp):12s} " + "   ".join(
             f"{b}: {sum(name in r[b]['added'] for r in rows)}/{len(rows)}" for b in bases))
     say(f"({time.time() - t0:.0f} s)")
-    write_text(args.out + ".txt", "\n".join(lines) + "\n")
-    write_json(args.out + ".json", rec, indent=1, default=float)
+    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
+    write_json(args.out + ".json", {"command": command_line(), **rec}, indent=1, default=float)
     return 0
 
 

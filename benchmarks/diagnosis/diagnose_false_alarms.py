@@ -1,6 +1,6 @@
 """False-alarm rate of the diagnosis on effect-free GalSim flat sets (issue 15).
 
-Reads the sets written by ``benchmarks/galsim_flat_sets.py`` (GalSim's own
+Reads the sets written by ``benchmarks/diagnosis/galsim_flat_sets.py`` (GalSim's own
 pixel areas; sensors, sizes, ladders and seeds varied), runs
 :func:`lsst_bfdrift.diagnosis.effects_fit.diagnose` with the default
 threshold and the bundled electrostatic basis on each, and counts a false
@@ -9,13 +9,14 @@ reports the chi2/dof and p-value distribution of the base fit (a
 Kolmogorov-Smirnov test of the p-values against uniform: calibrated errors
 give uniform p-values) and how often the edge signature is named.
 
-    python benchmarks/galsim_flat_sets.py --n-sets 50   # first (about 1 h on 2 cores)
-    python benchmarks/diagnose_false_alarms.py [--cache /work/flatcache] [--append]
+    python benchmarks/diagnosis/galsim_flat_sets.py --n-sets 50   # first (about 1 h on 2 cores)
+    python benchmarks/diagnosis/diagnose_false_alarms.py [--cache /work/flatcache] [--append]
 
 ``--append`` keeps the rows of the existing results file and diagnoses only
 the sets it does not hold (for adding sets without redrawing the old ones;
 rows whose set is also in the cache are checked against a fresh run of the
-first ``--check`` of them, so a changed diagnosis shows). Writes ``benchmarks/diagnose_false_alarms_results.txt`` and ``.json``.
+first ``--check`` of them, so a changed diagnosis shows). Writes
+``benchmarks/diagnosis/diagnose_false_alarms_results.txt`` and ``.json``.
 """
 
 import argparse
@@ -24,6 +25,7 @@ import io
 import json
 import os
 import platform
+import shlex
 import sys
 import time
 
@@ -31,13 +33,18 @@ import numpy as np
 from scipy import stats
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.join(HERE, ".."))
 
 from lsst_bfdrift.calibration.acoeff_model import load_default_basis  # noqa: E402
 from lsst_bfdrift.diagnosis.effects_fit import diagnose, observations_from_pairs  # noqa: E402
 from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
 
 OUT = os.path.join(HERE, "diagnose_false_alarms_results")
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def run_set(path, basis):
@@ -67,7 +74,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     paths = sorted(glob.glob(os.path.join(args.cache, "set_*.npz")))
     if not paths:
-        raise SystemExit(f"no sets in {args.cache}: run benchmarks/galsim_flat_sets.py first")
+        raise SystemExit(f"no sets in {args.cache}: run benchmarks/diagnosis/galsim_flat_sets.py "
+                         "first")
     basis = load_default_basis()
     kept = {}
     if args.append and os.path.isfile(OUT + ".json"):
@@ -133,9 +141,10 @@ def main(argv=None):
         f"against uniform: KS p = {ks.pvalue:.2f}")
     say(f"edge signature named in {summary['edge_named']} of {n} sets (GalSim's open edges)")
     with atomic_output(OUT + ".txt") as tmp, open(tmp, "w") as fh:
-        fh.write(out.getvalue())
+        fh.write(f"# command: {command_line()}\n" + out.getvalue())
     with atomic_output(OUT + ".json") as tmp, open(tmp, "w") as fh:
-        json.dump({"summary": summary, "checks": checks, "sets": rows}, fh, indent=1)
+        json.dump({"command": command_line(), "summary": summary, "checks": checks,
+                   "sets": rows}, fh, indent=1)
 
 
 if __name__ == "__main__":

@@ -13,10 +13,10 @@
    with the fitted ITL pattern, a_ij measured by ``fit_covariance_model``,
    the (linearised) electrostatic fit of those a_ij against the truth.
 
-Prints everything and writes ``benchmarks/diagnose_itl_results.txt`` and
+Prints everything and writes ``benchmarks/diagnosis/diagnose_itl_results.txt`` and
 ``.json``.
 
-    python benchmarks/diagnose_itl.py [--reuse-fit]
+    python benchmarks/diagnosis/diagnose_itl.py [--reuse-fit]
 
 ``--reuse-fit`` takes the electrostatic fit from the previous results JSON
 (the fit is the slow part: ~10 template evaluations per iteration).
@@ -26,13 +26,13 @@ import argparse
 import io
 import json
 import os
+import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.join(HERE, ".."))
 
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable, read_acoeff_table
 from lsst_bfdrift.calibration.acoeff_model import (LinearBasis, default_basis_path,
@@ -51,7 +51,13 @@ ITL = os.path.join(DATA, "itl_covariances_21oct19.txt")
 E2V = os.path.join(DATA, "eotest_e2v_ptc_amp05.txt")
 OUT_JSON = os.path.join(HERE, "diagnose_itl_results.json")
 OUT_TXT = os.path.join(HERE, "diagnose_itl_results.txt")
-FIG_DIR = os.path.join(HERE, "..", "docs", "_static", "diagnose_itl")
+FIG_DIR = os.path.join(HERE, "..", "..", "docs", "_static", "diagnose_itl")
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 class Tee(io.StringIO):
@@ -101,7 +107,7 @@ def main():
         p0 = SensorParameters(xi0=4722.4, channel_depth=0.56159, collection_height=0.5)
         fit = fit_acoeffs(table, p0, progress=True)
         basis = LinearBasis.from_fit(fit, note="electrostatic fit to the ITL a_ij, lags <= 8 "
-                                     "(benchmarks/diagnose_itl.py)")
+                                     "(benchmarks/diagnosis/diagnose_itl.py)")
         fit_d = fit.as_dict()
         fit_d["basis"] = basis.to_dict()
         fit_d["params"] = fit.params.to_dict()
@@ -134,7 +140,7 @@ def main():
           f"{m[0, 1] / m[1, 0]:.3f}; model a00 {m[0, 0]:.4g} (measured {a[0, 0]:.4g}, "
           "set by the sum rule)", file=out)
     # 2b: the previous calibration (xi0 and channel depth fitted to a01, a10, a11
-    # only; benchmarks/calibrate.py) evaluated on all 80 lags
+    # only; benchmarks/calibration/calibrate_paper.py) evaluated on all 80 lags
     # (on the paper's nominal sensor, the base of that fit)
     prev = electrostatic_acoeffs(SensorParameters.paper().replace(
         xi0=4722.4, channel_depth=0.56159, collection_height=0.5), max_lag=8)
@@ -153,7 +159,7 @@ def main():
     if not args.reuse_fit:  # keep the slow part even if a later step fails
         with atomic_output(OUT_JSON) as tmp:
             with open(tmp, "w") as fh:
-                json.dump(results, fh, indent=1, default=float)
+                json.dump({"command": command_line(), **results}, fh, indent=1, default=float)
 
     # 3: diagnosis on the table
     t = time.perf_counter()
@@ -202,10 +208,10 @@ def main():
 
     with atomic_output(OUT_JSON) as tmp:
         with open(tmp, "w") as fh:
-            json.dump(results, fh, indent=1, default=float)
+            json.dump({"command": command_line(), **results}, fh, indent=1, default=float)
     with atomic_output(OUT_TXT) as tmp:
         with open(tmp, "w") as fh:
-            fh.write(out.getvalue())
+            fh.write(f"# command: {command_line()}\n" + out.getvalue())
 
 
 if __name__ == "__main__":

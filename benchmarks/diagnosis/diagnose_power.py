@@ -1,7 +1,7 @@
 """Power of the diagnosis on GalSim flats with one injected effect (issue 15).
 
 Two kinds of injection, both on flats drawn with GalSim's own pixel areas
-(``benchmarks/galsim_flat_sets.py``):
+(``benchmarks/diagnosis/galsim_flat_sets.py``):
 
 * **read-out effects** (CTI on either axis, an echo at serial lag 3, a gain
   non-linearity; :data:`~lsst_bfdrift.simulation.flats.READOUT_EFFECTS`)
@@ -27,11 +27,11 @@ the move with that change, computed from GalSim's noise-free areas
 (:func:`~lsst_bfdrift.simulation.flats.engine_acoeffs`), so that the fit is
 judged against what the flats hold.
 
-    python benchmarks/galsim_flat_sets.py --n-sets 50
-    python benchmarks/galsim_flat_sets.py --injections
-    python benchmarks/diagnose_power.py [--cache /work/flatcache] [--per-size 8]
+    python benchmarks/diagnosis/galsim_flat_sets.py --n-sets 50
+    python benchmarks/diagnosis/galsim_flat_sets.py --injections
+    python benchmarks/diagnosis/diagnose_power.py [--cache /work/flatcache] [--per-size 8]
 
-Writes ``benchmarks/diagnose_power_results.txt`` and ``.json``.
+Writes ``benchmarks/diagnosis/diagnose_power_results.txt`` and ``.json``.
 """
 
 import argparse
@@ -40,13 +40,13 @@ import io
 import json
 import os
 import platform
+import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.join(HERE, ".."))
 
 from lsst_bfdrift.calibration.acoeff_model import load_default_basis  # noqa: E402
 from lsst_bfdrift.diagnosis.effects_fit import base_acoeffs  # noqa: E402
@@ -61,6 +61,12 @@ from galsim_flat_sets import INJECTIONS  # noqa: E402
 OUT = os.path.join(HERE, "diagnose_power_results")
 #: The echo's lag (serial): where an undeclared echo must be named.
 ECHO_LAG = "C3,0"
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def _load(path):
@@ -228,9 +234,9 @@ def main(argv=None):
         "(engine_acoeffs: GalSim's noise-free areas with a charge cloud or diffusion; zero "
         f"for the other effects). {len(rows)} diagnoses in {time.time() - t_start:.0f} s.")
     with atomic_output(OUT + ".txt") as tmp, open(tmp, "w") as fh:
-        fh.write(out.getvalue())
+        fh.write(f"# command: {command_line()}\n" + out.getvalue())
     with atomic_output(OUT + ".json") as tmp, open(tmp, "w") as fh:
-        json.dump({"table": table, "sets": rows}, fh, indent=1)
+        json.dump({"command": command_line(), "table": table, "sets": rows}, fh, indent=1)
 
 
 if __name__ == "__main__":

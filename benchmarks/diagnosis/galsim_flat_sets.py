@@ -8,8 +8,8 @@ package's library is present). Sets differ in sensor, size, level ladder,
 pairs per level and seed, drawn from a seeded generator, so that nothing is
 tuned to one configuration.
 
-    python benchmarks/galsim_flat_sets.py --n-sets 50 --out /work/flatcache
-    python benchmarks/galsim_flat_sets.py --injections --out /work/flatcache
+    python benchmarks/diagnosis/galsim_flat_sets.py --n-sets 50 --out /work/flatcache
+    python benchmarks/diagnosis/galsim_flat_sets.py --injections --out /work/flatcache
 
 ``--injections`` draws the power sets of the effects that act while a flat
 fills (a static response pattern, diffusion, a charge cloud, well filling) at two or three
@@ -23,7 +23,7 @@ seeds and sensors).
 The effects that act on the read-out of the collected charge (CTI on either
 axis, an echo, gain non-linearity;
 :data:`~lsst_bfdrift.simulation.flats.READOUT_EFFECTS`) need no drawing:
-``benchmarks/diagnose_power.py`` applies them to the effect-free sets, which
+``benchmarks/diagnosis/diagnose_power.py`` applies them to the effect-free sets, which
 are then their exact twins.
 
 Writes one ``set_NNN.npz`` per set (flats as float32 electrons, the levels,
@@ -34,15 +34,11 @@ stopped and resumed. Prints the time per set.
 import argparse
 import json
 import os
-import sys
 import time
 
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.join(HERE, ".."))
-
-from lsst_bfdrift.simulation.flats import simulate_flat_pairs  # noqa: E402
+from lsst_bfdrift.simulation.flats import simulate_flat_pairs
 
 SENSORS = ("lsst_itl_50_8", "lsst_e2v_50_8")
 

@@ -9,28 +9,35 @@ Two inputs, alternated, ``--repeat`` times each, medians reported:
 Each run: the candidates' Jacobian at the start (package data for the default start), the parameter choice, the
 fit, the exact template build (21 x 21 pixels, 32 samples per edge) and the
 area refinement. Prints the machine and writes
-``benchmarks/bench_calibrate_results.txt`` / ``.json``::
+``benchmarks/performance/bench_calibrate_results.txt`` / ``.json``::
 
-    python benchmarks/bench_calibrate.py [--repeat 3]
+    python benchmarks/performance/bench_calibrate.py [--repeat 3]
 """
 
 import argparse
 import os
 import platform
+import shlex
 import statistics
 import sys
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
 
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable, read_acoeff_table  # noqa: E402
 from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
-ITL = os.path.join(HERE, "..", "..", "shared", "data", "measured", "itl_covariances_21oct19.txt")
+ITL = os.path.join(HERE, "..", "..", "..", "shared", "data", "measured",
+                   "itl_covariances_21oct19.txt")
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def inputs():
@@ -78,8 +85,8 @@ def main(argv=None):
                  "(2 = both cores busy)")
     text = "\n".join(lines)
     print(text)
-    write_text(args.out + ".txt", text + "\n")
-    write_json(args.out + ".json", out, indent=2, default=float)
+    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text + "\n")
+    write_json(args.out + ".json", {"command": command_line(), **out}, indent=2, default=float)
     return 0
 
 

@@ -2,7 +2,8 @@
 
 Run from the repository root::
 
-    python benchmarks/run_benchmarks.py [--size 4096] [--out benchmarks/results]
+    python benchmarks/performance/bench_engine.py [--size 4096]
+        [--out benchmarks/performance/bench_engine_results]
                                         [--sections template,superpose,flat,star]
 
 Prints the figures and writes ``<out>.json`` and ``<out>.txt`` (quoted by
@@ -18,17 +19,24 @@ import json
 import os
 import platform
 import resource
+import shlex
 import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+HERE = os.path.dirname(os.path.abspath(__file__))
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.geometry.superpose import moment_maps  # noqa: E402
 from lsst_bfdrift.templates.template import TemplateSettings, build_template, load_default_template  # noqa: E402,E501
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def _timed(fn, *a, **k):
@@ -40,7 +48,7 @@ def _timed(fn, *a, **k):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=4096, help="side of the charge image")
-    ap.add_argument("--out", default=os.path.join("benchmarks", "results"))
+    ap.add_argument("--out", default=os.path.join(HERE, "bench_engine_results"))
     ap.add_argument("--sections", default="template,superpose,flat,star",
                     help="comma-separated subset of template,superpose,flat,star")
     args = ap.parse_args()
@@ -170,7 +178,9 @@ _PREFIXES = {"template": "template build", "superpose": "superposition",
 
 
 def _write(out, rows, lines, sections):
-    """Write the results, keeping the other sections' lines and rows."""
+    """Write the results, keeping the other sections' lines and rows (and the
+    commands that wrote them, before this run's)."""
+    commands = [command_line()]
     if sections != set(_PREFIXES) and os.path.exists(out + ".json"):
         with open(out + ".json") as fh:
             old_rows = json.load(fh)
@@ -178,6 +188,8 @@ def _write(out, rows, lines, sections):
         rows = old_rows
         with open(out + ".txt") as fh:
             old = fh.read().splitlines()
+        commands = [ln[len("# command: "):] for ln in old
+                    if ln.startswith("# command: ")] + commands
         new = {k: ln for k, p in _PREFIXES.items() for ln in lines if ln.startswith(p)}
         kept = [lines[0]]
         for k, p in _PREFIXES.items():
@@ -188,8 +200,9 @@ def _write(out, rows, lines, sections):
         lines = kept
     text = "\n".join(lines) + "\n"
     print(text, end="")
+    rows = {"command": " && ".join(commands), **{k: v for k, v in rows.items() if k != "command"}}
     write_json(out + ".json", rows, indent=2)
-    write_text(out + ".txt", text)
+    write_text(out + ".txt", "".join(f"# command: {c}\n" for c in commands) + text)
 
 
 if __name__ == "__main__":

@@ -18,29 +18,27 @@ by the max and rms of the map's brighter-fatter signal (``area - 1``,
 stars of 1e4 to 1.5e6 e (sigma 1.5 px, peak up to ~1.1e5 e per pixel), and a
 Poisson flat of 1e5 e. Run from the repository root::
 
-    python benchmarks/bench_geometry.py [--size 4096]
+    python benchmarks/performance/bench_geometry.py [--size 4096]
 
-Prints a table and writes ``benchmarks/geometry_results.json`` / ``.txt``.
+Prints a table and writes ``benchmarks/performance/bench_geometry_results.json`` / ``.txt``.
 """
 
 import argparse
 import json
 import os
+import shlex
 import shutil
 import subprocess
 import sys
 import tempfile
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
 
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
-ROOT = os.path.dirname(HERE)
 
 CHILD = r"""
 import json, os, resource, sys, time
 import numpy as np
-sys.path.insert(0, {root!r})
 from lsst_bfdrift.templates.template import load_default_template
 import lsst_bfdrift.geometry.superpose as S
 n, kind, samples, dtype, tmp = {size}, {kind!r}, {samples!r}, {dtype!r}, {tmp!r}
@@ -84,10 +82,16 @@ print(json.dumps(dict(seconds=dt, cpu_seconds=cpu, peak_rss_mb=peak - base, imag
 """
 
 
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=4096)
-    ap.add_argument("--out", default=os.path.join(HERE, "geometry_results"))
+    ap.add_argument("--out", default=os.path.join(HERE, "bench_geometry_results"))
     args = ap.parse_args()
     tmp = tempfile.mkdtemp(prefix="bench_geometry_")
     # (label, image, samples, dtype); the full float64 run of each image comes
@@ -105,7 +109,7 @@ def main():
     rows = []
     try:
         for label, kind, samples, dtype in runs:
-            code = CHILD.format(root=ROOT, size=args.size, kind=kind, samples=samples,
+            code = CHILD.format(size=args.size, kind=kind, samples=samples,
                                 dtype=dtype, tmp=tmp)
             proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
             if proc.returncode:
@@ -140,9 +144,10 @@ def main():
                                                       for k, v in sig.items()))
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    write_json(args.out + ".json", {"size": args.size, "cores": os.cpu_count(),
+    write_json(args.out + ".json", {"command": command_line(), "size": args.size,
+                                    "cores": os.cpu_count(),
                                     "load_average": load, "runs": rows}, indent=2)
-    write_text(args.out + ".txt", text)
+    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text)
 
 
 if __name__ == "__main__":

@@ -29,15 +29,16 @@ root. ``warm`` is the median of seven more calls on the same image in the same
 process (operators and work arrays kept by the Task, memory pools warm),
 with their spread (min-max); ``drift+geometry`` is the Task's default::
 
-    python benchmarks/bench_task.py [--size 4096] [--repeat 5]
+    python benchmarks/performance/bench_task.py [--size 4096] [--repeat 5]
 
-Prints the tables and writes ``benchmarks/task_results.json`` / ``.txt``.
+Prints the tables and writes ``benchmarks/performance/bench_task_results.json`` / ``.txt``.
 """
 
 import argparse
 import json
 import os
 import platform
+import shlex
 import subprocess
 import sys
 import time
@@ -46,14 +47,12 @@ import tracemalloc
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
 
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 CHILD = r"""
 import json, os, resource, sys, time
 import numpy as np
-sys.path.insert(0, {root!r})
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask
 from lsst_bfdrift.correction import solvers as C
 count = dict(ops=0, ffts=0)
@@ -110,6 +109,12 @@ print(json.dumps({{"seconds": dt, "peak_rss_mb": peak - base, "baseline_rss_mb":
                   "warm_min": min(warm) if warm else None, "warm_max": max(warm) if warm else None,
                   "solver": res.header.get("BFSOLVER", "n/a")}}))
 """
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def star_field(n, n_stars, seed=1):
@@ -298,9 +303,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=4096)
     ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--out", default=os.path.join(HERE, "task_results"))
+    ap.add_argument("--out", default=os.path.join(HERE, "bench_task_results"))
     args = ap.parse_args()
-    root = os.path.dirname(HERE)
     rows = {}
     load = os.getloadavg()
     runs = (("astier23", "astier23", False, {}),
@@ -315,7 +319,7 @@ def main():
                                                   "sparse": False}),
             ("drift+geometry", "drift", True, {}))
     for name, method, geometry, extra in runs:
-        code = CHILD.format(root=root, size=args.size, method=method, geometry=geometry,
+        code = CHILD.format(size=args.size, method=method, geometry=geometry,
                             extra=extra, repeat=7)
         out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
                              text=True).stdout.strip().splitlines()[-1]
@@ -341,11 +345,12 @@ def main():
                  f"call, {rows['drift']['warm_seconds'] / ns['warm_seconds']:.2f}x warm")
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    write_json(args.out + ".json", {"size": args.size, "cores": os.cpu_count(),
+    write_json(args.out + ".json", {"command": command_line(), "size": args.size,
+                                    "cores": os.cpu_count(),
                                     "load_average_before": load[0],
                                     "load_average_after": os.getloadavg()[0],
                                     "alternated": alt, "runs": rows}, indent=2)
-    write_text(args.out + ".txt", text)
+    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """How much of the crowded field's second tier an exact activity test would save.
 
-On the crowded field of ``benchmarks/bench_task.py`` (4096 x 4096, 4000
+On the crowded field of ``benchmarks/performance/bench_task.py`` (4096 x 4096, 4000
 stars), the second tier of the windowed series
 (:mod:`lsst_bfdrift.correction.tiles`) computes the higher-order terms in
 windows around the cells its a-priori bound marks. This script computes the
@@ -9,14 +9,15 @@ half the tolerance (an oracle no solver has), and runs the second tier with
 the bound's cells and with the oracle's, calls alternated, medians of
 ``--repeat``: the windows' area and the second tier's time for each::
 
-    python benchmarks/crowded_windows.py [--repeat 3]
+    python benchmarks/performance/crowded_windows.py [--repeat 3]
 
-Writes ``benchmarks/crowded_windows_results.txt`` and ``.json``.
+Writes ``benchmarks/performance/crowded_windows_results.txt`` and ``.json``.
 """
 
 import argparse
 import os
 import platform
+import shlex
 import sys
 import time
 
@@ -24,8 +25,6 @@ import numpy as np
 from scipy import ndimage
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
-sys.path.insert(0, HERE)
 
 from bench_task import star_field  # noqa: E402
 from lsst_bfdrift.correction import series as S  # noqa: E402
@@ -36,6 +35,12 @@ from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 NOISE_TOL = 0.05
 CELL = 16
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def main(argv=None):
@@ -89,8 +94,8 @@ def main(argv=None):
     lines.append(f"  oracle / bound time: {res['oracle']['median_seconds'] / res['bound']['median_seconds']:.2f}")
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    write_text(args.out + ".txt", text)
-    write_json(args.out + ".json", res, indent=1)
+    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text)
+    write_json(args.out + ".json", {"command": command_line(), **res}, indent=1)
     return 0
 
 

@@ -19,20 +19,19 @@ in-process figures on the same 4096 x 4096 field (sky 1200 e, 400 stars):
 
 Run from the repository root::
 
-    python benchmarks/profile_drift.py
+    python benchmarks/performance/profile_drift.py
 
-Prints and writes ``benchmarks/profile_drift_results.txt``.
+Prints and writes ``benchmarks/performance/profile_drift_results.txt``.
 """
 
 import os
+import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
-sys.path.insert(0, HERE)
 
 from lsst_bfdrift.utils.io import write_text  # noqa: E402
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
@@ -41,6 +40,12 @@ from lsst_bfdrift.correction import solvers as C
 from lsst_bfdrift.correction import series as S
 from lsst_bfdrift.templates.swept import OperatorCache  # noqa: E402
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def star_field(n=4096, seed=1):
@@ -194,7 +199,8 @@ def main():
     lines.append(f"load average {load:.1f} at the end")
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    write_text(os.path.join(HERE, "profile_drift_results.txt"), text)
+    write_text(os.path.join(HERE, "profile_drift_results.txt"),
+               f"# command: {command_line()}\n" + text)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Time of each stage of ``correct_file`` on a 4096 x 4096 FITS file: the
 measurement behind :func:`lsst_bfdrift.correction.batch.stage_weights`.
 
-The field of ``benchmarks/bench_task.py`` (sky 1200 e, 400 stars) written
+The field of ``benchmarks/performance/bench_task.py`` (sky 1200 e, 400 stars) written
 as a float32 FITS image in electrons; :func:`~lsst_bfdrift.correction.batch.correct_file`
 run with a progress callback that notes when each stage (read, correct,
 maps, write) reports last (a stage's time runs from the previous stage's
@@ -10,14 +10,15 @@ last report); the Task is warmed up first on the same file
 configuration (default, ``compute_geometry=False``, ``geometry_method='exact'``),
 alternated; medians in seconds. Run from the repository root::
 
-    python benchmarks/stage_timings.py [--repeat 3]
+    python benchmarks/performance/stage_timings.py [--repeat 3]
 
-Prints and writes ``benchmarks/stage_timings_results.txt`` / ``.json``.
+Prints and writes ``benchmarks/performance/stage_timings_results.txt`` / ``.json``.
 """
 
 import argparse
 import os
 import platform
+import shlex
 import sys
 import tempfile
 import time
@@ -25,14 +26,18 @@ import time
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
-sys.path.insert(0, HERE)
 
 from bench_task import star_field  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 CONFIGS = {"default": {}, "no maps": {"compute_geometry": False},
            "exact maps": {"geometry_method": "exact"}}
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def timed_run(src, dst, config):
@@ -86,8 +91,9 @@ def main():
                      + f"  total {sum(st.values()):6.2f} s")
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    write_json(args.out + ".json", {"repeat": args.repeat, "medians": med}, indent=2)
-    write_text(args.out + ".txt", text)
+    write_json(args.out + ".json", {"command": command_line(), "repeat": args.repeat,
+                                    "medians": med}, indent=2)
+    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text)
 
 
 if __name__ == "__main__":

@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    python benchmarks/flat_closure.py [--out benchmarks/flat_closure_results]
+    python benchmarks/simulation/flat_closure.py [--out benchmarks/simulation/flat_closure_results]
 
 For each responsivity (the paper's -1e-5 and -3.3e-5 per e, as d ln A00 / Q
 of the bundled template, rescaled), independent stacks of periodic flats are
@@ -19,12 +19,13 @@ for the record, with (A_ij - 1)/Q and ln A_ij / Q). Prints and writes
 
 import argparse
 import os
+import shlex
 import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+HERE = os.path.dirname(os.path.abspath(__file__))
 
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.ptc.covariances import fit_covariance_model  # noqa: E402
@@ -33,6 +34,12 @@ from lsst_bfdrift.simulation.flats import (simulate_ptc_levels,  # noqa: E402
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
 
 LAGS = [(0, 0), (1, 0), (0, 1), (1, 1), (2, 0), (0, 2), (2, 1), (1, 2), (2, 2)]
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def closure(template, levels, *, steps_per_level=40, n_images=1024, shape=(16, 16), max_lag=3,
@@ -60,7 +67,7 @@ def closure(template, levels, *, steps_per_level=40, n_images=1024, shape=(16, 1
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out", default=os.path.join("benchmarks", "flat_closure_results"))
+    ap.add_argument("--out", default=os.path.join(HERE, "flat_closure_results"))
     ap.add_argument("--n-images", type=int, default=1024)
     ap.add_argument("--seed", type=int, default=2015)
     args = ap.parse_args()
@@ -111,8 +118,8 @@ def main():
                                              "pull_alpha": rf["pull"]["alpha"].tolist()}}
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    write_json(args.out + ".json", rows, indent=2, default=float)
-    write_text(args.out + ".txt", text)
+    write_json(args.out + ".json", {"command": command_line(), **rows}, indent=2, default=float)
+    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text)
 
 
 if __name__ == "__main__":

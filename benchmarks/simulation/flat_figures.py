@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    python benchmarks/flat_figures.py [--n-images 1024] [--steps 250]
+    python benchmarks/simulation/flat_figures.py [--n-images 1024] [--steps 250]
 
 For the paper's two responsivities (d ln A00 / Q = -1e-5 and -3.3e-5 per e,
 the bundled template's displacements attributed to the matching charge,
@@ -15,17 +15,18 @@ order, gain 1) evaluated with the template's linear response alpha_ij
 effective signal of the discrete filling. Writes
 ``docs/_static/simulations/flat_cov_resp1e-5.png`` and ``flat_cov_resp3.3e-5.png``
 and a text summary
-``benchmarks/flat_figures_results.txt``.
+``benchmarks/simulation/flat_figures_results.txt``.
 """
 
 import argparse
 import os
+import shlex
 import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+HERE = os.path.dirname(os.path.abspath(__file__))
 
 import matplotlib  # noqa: E402
 
@@ -39,6 +40,12 @@ from lsst_bfdrift.simulation.flats import (simulate_flats, template_area_coeffic
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
 
 LAGS = [((0, 1), "C0"), ((1, 0), "C1"), ((1, 1), "C2"), ((0, 2), "C3"), ((2, 0), "C4")]
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def figure(tab, alpha, resp, step):
@@ -89,8 +96,9 @@ def main():
     ap.add_argument("--steps", type=int, default=250)
     ap.add_argument("--step", type=float, default=1000.0)
     ap.add_argument("--seed", type=int, default=6)
-    ap.add_argument("--outdir", default=os.path.join("docs", "_static", "simulations"))
-    ap.add_argument("--results", default=os.path.join("benchmarks", "flat_figures_results.txt"))
+    ap.add_argument("--outdir", default=os.path.relpath(
+        os.path.join(HERE, "..", "..", "docs", "_static", "simulations")))
+    ap.add_argument("--results", default=os.path.join(HERE, "flat_figures_results.txt"))
     args = ap.parse_args()
     os.makedirs(args.outdir, exist_ok=True)
     base = load_default_template()
@@ -121,7 +129,7 @@ def main():
     print(text, end="")
     with atomic_output(args.results) as tmp:
         with open(tmp, "w") as fh:
-            fh.write(text)
+            fh.write(f"# command: {command_line()}\n" + text)
 
 
 if __name__ == "__main__":

@@ -2,9 +2,10 @@
 
 Run from the repository root::
 
-    python benchmarks/galsim_crosscheck.py [--n-stars 24] [--out PREFIX]
-    python benchmarks/galsim_crosscheck.py --sensor lsst_e2v_50_8 \
-        --variants match_areas match_transfers --out benchmarks/galsim_crosscheck_e2v_results
+    python benchmarks/simulation/galsim_crosscheck.py [--n-stars 24] [--out PREFIX]
+    python benchmarks/simulation/galsim_crosscheck.py --sensor lsst_e2v_50_8 \
+        --variants match_areas match_transfers \
+        --out benchmarks/simulation/galsim_crosscheck_e2v_results
 
 For each star the same photons (GalSim photon shooting, Gaussian PSF) are
 accumulated three ways, in the same order and with the boundaries updated
@@ -41,12 +42,13 @@ Prints and writes ``<out>.txt`` and ``<out>.json``.
 
 import argparse
 import os
+import shlex
 import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+HERE = os.path.dirname(os.path.abspath(__file__))
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
@@ -54,6 +56,12 @@ from lsst_bfdrift.simulation.stars import StarSimulation, image_moments  # noqa:
 from lsst_bfdrift.geometry.superpose import moment_maps  # noqa: E402
 
 SENSOR = "lsst_itl_50_8"
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def _slope(x, y):
@@ -236,7 +244,7 @@ def main():
     ap.add_argument("--sensor", default=SENSOR, help="GalSim sensor name")
     ap.add_argument("--variants", nargs="+", default=None,
                     help="our variants to run (default: all)")
-    ap.add_argument("--out", default=os.path.join("benchmarks", "galsim_crosscheck_results"))
+    ap.add_argument("--out", default=os.path.join(HERE, "galsim_crosscheck_results"))
     args = ap.parse_args()
     variants = default_variants(args.sensor, args.variants)
     fluxes = np.geomspace(args.fmin, args.fmax, args.n_stars)
@@ -274,8 +282,8 @@ def main():
     lines.append("  seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in res["seconds"].items()))
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    write_json(args.out + ".json", res, indent=2, default=float)
-    write_text(args.out + ".txt", text)
+    write_json(args.out + ".json", {"command": command_line(), **res}, indent=2, default=float)
+    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text)
 
 
 if __name__ == "__main__":

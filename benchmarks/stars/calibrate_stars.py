@@ -27,20 +27,22 @@ For each GalSim sensor model (default lsst_itl_50_8 and lsst_e2v_50_8):
 
 Prints the held-out field's slopes and the size and e1 slopes left on the
 paired stars, as % of the uncorrected slopes, and writes
-``benchmarks/calibrate_stars_results.txt`` / ``.json``::
+``benchmarks/stars/calibrate_stars_results.txt`` / ``.json``::
 
-    python benchmarks/calibrate_stars.py [--sensors lsst_itl_50_8 lsst_e2v_50_8]
+    python benchmarks/stars/calibrate_stars.py [--sensors lsst_itl_50_8 lsst_e2v_50_8]
         [--fields 3 | --fields 4 2] [--field-stars 800] [--field-size 2048] [--n-stars 200]
         [--cache /tmp/cst] [--save-templates /tmp/cs_templates]
 
-Fields are cached in ``--cache``; a field that ``benchmarks/field_twins.py``
+Fields are cached in ``--cache``; a field that ``benchmarks/stars/field_twins.py``
 drew there with its twin (the same image) is used as is.
 ``--save-templates DIR`` writes the flats-only and flats+stars templates for
 ``field_twins.py --templates-from DIR``.
 """
 
 import argparse
+import importlib.util
 import os
+import shlex
 import sys
 import time
 import zlib
@@ -48,10 +50,7 @@ import zlib
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
-sys.path.insert(0, HERE)
 
-from calibrate_sensor import FLAT_STEPS, flats_table, star_pairs  # noqa: E402
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable  # noqa: E402
 from lsst_bfdrift.calibration.star_fit import StarField, calibrate_with_stars  # noqa: E402
 from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
@@ -61,6 +60,28 @@ from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
 from lsst_bfdrift.utils.errors import InputError  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.validation.stars import per_star_residuals, residual_slopes  # noqa: E402
+
+
+def _script(folder, name):
+    """Another benchmark script, ``benchmarks/FOLDER/NAME.py``, imported by its path
+    (the package itself comes from the installed lsst_bfdrift)."""
+    spec = importlib.util.spec_from_file_location(name, os.path.join(HERE, "..", folder,
+                                                                     name + ".py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+# the flats and the paired stars of the sensor calibration (same caches, same seeds)
+_calibrate_sensor = _script("calibration", "calibrate_sensor")
+FLAT_STEPS = _calibrate_sensor.FLAT_STEPS
+flats_table, star_pairs = _calibrate_sensor.flats_table, _calibrate_sensor.star_pairs
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def cached_flats(sensor, args):
@@ -81,7 +102,7 @@ def field_seed(sensor, k=0):
 
 
 def twin_cache_path(sensor, args, seed):
-    """Where ``benchmarks/field_twins.py`` caches a field drawn with its twin."""
+    """Where ``benchmarks/stars/field_twins.py`` caches a field drawn with its twin."""
     return os.path.join(args.cache, f"twin_{sensor}_{args.field_size}_{args.field_stars}_"
                                     f"{seed}.npz")
 
@@ -92,7 +113,7 @@ def cached_field(sensor, args, k=0):
     path = os.path.join(args.cache, f"field_{sensor}_{args.field_size}_{args.field_stars}_{seed}.npy")
     if os.path.isfile(path):
         return np.load(path), seed, 0.0
-    # the same field drawn with its twin by benchmarks/field_twins.py (identical image)
+    # the same field drawn with its twin by benchmarks/stars/field_twins.py (identical image)
     twin = twin_cache_path(sensor, args, seed)
     if os.path.isfile(twin):
         return np.load(twin)["bf"], seed, 0.0
@@ -195,7 +216,7 @@ def main(argv=None):
     ap.add_argument("--save-templates", metavar="DIR",
                     help="write the flats-only and flats+stars templates to "
                          "DIR/SENSOR_flats.fits and DIR/SENSOR_joint.fits "
-                         "(for benchmarks/field_twins.py --templates-from)")
+                         "(for benchmarks/stars/field_twins.py --templates-from)")
     args = ap.parse_args(argv)
     os.makedirs(args.cache, exist_ok=True)
     lines, out = [], {"sensors": {}, "machine": "2 cores"}
@@ -312,8 +333,8 @@ def main(argv=None):
         if line:
             say("  " + line)
     say("target: flats+stars drift <= 3 % of the size slope and <= 5 % of e1")
-    write_text(args.out + ".txt", "\n".join(lines) + "\n")
-    write_json(args.out + ".json", out, indent=1, default=float)
+    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
+    write_json(args.out + ".json", {"command": command_line(), **out}, indent=1, default=float)
     return 0
 
 

@@ -3,7 +3,7 @@
 The star route (:func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars`)
 trusts the size-flux slope that a field shows after a drift correction. This
 script checks that slope against truth. It redraws the star fields of
-``benchmarks/calibrate_stars.py`` (same seeds, so the brighter-fatter image
+``benchmarks/stars/calibrate_stars.py`` (same seeds, so the brighter-fatter image
 is identical to that script's cached field) with their twin: the same
 photons, diffusion, sky and read noise, collected by galsim.SiliconSensor
 with no brighter-fatter effect
@@ -27,7 +27,7 @@ per field, per 1e5 e:
 A field route that measures corrections right shows corrected minus twin
 near the paired stars' residual, whatever the corrected slope itself
 shows. With ``--templates-from DIR`` the fields are also corrected with the
-templates that ``benchmarks/calibrate_stars.py --save-templates DIR``
+templates that ``benchmarks/stars/calibrate_stars.py --save-templates DIR``
 calibrated (flats-only, flats+stars): corrected minus twin is then the
 truth of what those templates leave on a field's stars, with the field's
 noise cancelled. The flats+stars template was fitted to these fields'
@@ -35,11 +35,11 @@ noisy slopes, so this is a truth check on its training fields, not a
 held-out validation (the paired stars of ``calibrate_stars.py`` are). A
 last block gives the inverse-variance mean over fields per template::
 
-    python benchmarks/field_twins.py [--sensors lsst_itl_50_8 lsst_e2v_50_8]
+    python benchmarks/stars/field_twins.py [--sensors lsst_itl_50_8 lsst_e2v_50_8]
         [--fields 0 | --fields lsst_itl_50_8=2,3 lsst_e2v_50_8=0] [--cache /tmp/cst]
         [--templates-from /tmp/cs_templates]
 
-Writes ``benchmarks/field_twins_results.txt`` / ``.json``. Drawing a
+Writes ``benchmarks/stars/field_twins_results.txt`` / ``.json``. Drawing a
 2048 x 2048 field of 800 stars with its twin takes about 24 min on one core
 (cached in ``--cache``).
 """
@@ -47,14 +47,13 @@ Writes ``benchmarks/field_twins_results.txt`` / ``.json``. Drawing a
 import argparse
 import os
 import platform
+import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
-sys.path.insert(0, HERE)
 
 from calibrate_stars import field_seed, ivw_mean, twin_cache_path  # noqa: E402
 from lsst_bfdrift.calibration.star_fit import StarField  # noqa: E402
@@ -65,8 +64,14 @@ from lsst_bfdrift.templates.template import DistortionTemplate  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
+
+
 def twin_field(sensor, k, args):
-    """Field k of ``benchmarks/calibrate_stars.py`` with its BF-free twin (cached)."""
+    """Field k of ``benchmarks/stars/calibrate_stars.py`` with its BF-free twin (cached)."""
     seed = field_seed(sensor, k)
     path = twin_cache_path(sensor, args, seed)
     if os.path.isfile(path):
@@ -96,7 +101,7 @@ def difference_slope(flux, q_corr, q_twin):
 
 def sensor_templates(sensor, directory):
     """GalSim's own sensor file (transfer-matched edges) and, when ``directory``
-    holds them, the calibrated templates of ``benchmarks/calibrate_stars.py
+    holds them, the calibrated templates of ``benchmarks/stars/calibrate_stars.py
     --save-templates`` (SENSOR_flats.fits, SENSOR_joint.fits)."""
     out = {"GalSim file": import_galsim_sensor(sensor, match="transfers")}
     for tag, name in (("flats", "flats-only"), ("joint", "flats+stars")):
@@ -169,7 +174,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sensors", nargs="+", default=["lsst_itl_50_8", "lsst_e2v_50_8"])
     ap.add_argument("--fields", nargs="+", default=["0"],
-                    help="field numbers of benchmarks/calibrate_stars.py: k (every sensor) or "
+                    help="field numbers of benchmarks/stars/calibrate_stars.py: k (every sensor) "
+                         "or "
                          "SENSOR=k,k (that sensor)")
     ap.add_argument("--field-stars", type=int, default=800)
     ap.add_argument("--field-size", type=int, default=2048)
@@ -177,7 +183,7 @@ def main(argv=None):
     ap.add_argument("--cache", default="/tmp/cst")
     ap.add_argument("--templates-from", metavar="DIR",
                     help="also correct with DIR/SENSOR_flats.fits and DIR/SENSOR_joint.fits "
-                         "(benchmarks/calibrate_stars.py --save-templates)")
+                         "(benchmarks/stars/calibrate_stars.py --save-templates)")
     ap.add_argument("--jobs", type=int, default=1,
                     help="fields measured (and drawn) in parallel processes")
     ap.add_argument("--out", default=os.path.join(HERE, "field_twins_results"))
@@ -190,7 +196,7 @@ def main(argv=None):
         lines.append(s)
 
     say(f"Star fields with a brighter-fatter-free twin ({args.field_size}^2 px, "
-        f"{args.field_stars} stars, seeds of benchmarks/calibrate_stars.py), corrected by "
+        f"{args.field_stars} stars, seeds of benchmarks/stars/calibrate_stars.py), corrected by "
         f"drift with GalSim's own sensor file"
         + (" and the calibrated templates" if args.templates_from else "")
         + f"; slopes per 1e5 e; {rec['machine']}")
@@ -226,8 +232,8 @@ def main(argv=None):
                              "chi2": chi2})
         say(f"  {sensor} {q:4s} {name:12s} {m:+6.1f} +- {m_err:.1f} % ({pct.size} fields, "
             f"chi2 {chi2:.1f} / {pct.size - 1})")
-    write_text(args.out + ".txt", "\n".join(lines) + "\n")
-    write_json(args.out + ".json", rec, indent=1, default=float)
+    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
+    write_json(args.out + ".json", {"command": command_line(), **rec}, indent=1, default=float)
     return 0
 
 

@@ -14,12 +14,12 @@ package (1/SNR^2 and 1e5/F) and with the 1/SNR^2 term alone; the script
 prints each field's slopes and the weighted mean over the fields with its
 error and chi^2::
 
-    python benchmarks/star_slope_bias.py [--fields 36] [--cache /tmp/ssb]
+    python benchmarks/stars/star_slope_bias.py [--fields 36] [--cache /tmp/ssb]
 
-Writes ``benchmarks/star_slope_bias_results.txt`` / ``.json``. About 20 s
+Writes ``benchmarks/stars/star_slope_bias_results.txt`` / ``.json``. About 20 s
 per field on one core (the catalogues are cached in ``--cache``).
 
-``--silicon SENSOR`` draws the fields as ``benchmarks/calibrate_stars.py``
+``--silicon SENSOR`` draws the fields as ``benchmarks/stars/calibrate_stars.py``
 draws its own, with galsim.SiliconSensor (its diffusion, and the sky
 collected through the sensor around each star) at zero brighter-fatter
 strength (:func:`~lsst_bfdrift.simulation.skysim.simulate_star_field`,
@@ -27,24 +27,30 @@ strength (:func:`~lsst_bfdrift.simulation.skysim.simulate_star_field`,
 the star calibration uses (the larger of the formal error and the
 bootstrap's), whose chi^2 about the mean tests them::
 
-    python benchmarks/star_slope_bias.py --silicon lsst_itl_50_8 --fields 12 \
-        --n-boot 100 --out benchmarks/star_slope_bias_silicon_results
+    python benchmarks/stars/star_slope_bias.py --silicon lsst_itl_50_8 --fields 12 \
+        --n-boot 100 --out benchmarks/stars/star_slope_bias_silicon_results
 """
 
 import argparse
 import os
+import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
 
 from lsst_bfdrift.calibration.star_fit import StarField  # noqa: E402
 from lsst_bfdrift.catalogs.slopes import FLUX_UNIT, fit_flux_slope, select_stars  # noqa: E402
 from lsst_bfdrift.simulation.skysim import _field_psf, _positions, simulate_star_field  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
+
+
+def command_line():
+    """This run's command as typed from the repository root (the results' first line)."""
+    root = os.path.dirname(os.path.dirname(HERE))
+    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def bf_free_field(seed, *, size=2048, n_stars=800, sky=1000.0, read_noise=5.0,
@@ -68,7 +74,7 @@ def bf_free_field(seed, *, size=2048, n_stars=800, sky=1000.0, read_noise=5.0,
 
 
 def silicon_field(seed, sensor):
-    """A star field of ``benchmarks/calibrate_stars.py``'s recipe drawn by
+    """A star field of ``benchmarks/stars/calibrate_stars.py``'s recipe drawn by
     galsim.SiliconSensor at zero brighter-fatter strength, e."""
     # no boundary updates: at zero strength the boundaries do not move
     return simulate_star_field((2048, 2048), 800, sensor=sensor, strength=0.0,
@@ -148,8 +154,8 @@ def main(argv=None):
             lines.append(f"  {name:27s} {q:4s} mean {mean:+.2e} +- {err:.1e} "
                          f"({mean / err:+.1f} sigma), chi2 about the mean {chi2:.1f} / {len(v) - 1}")
             print(lines[-1], flush=True)
-    write_text(args.out + ".txt", "\n".join(lines) + "\n")
-    write_json(args.out + ".json", out, indent=1)
+    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
+    write_json(args.out + ".json", {"command": command_line(), **out}, indent=1)
     return 0
 
 
