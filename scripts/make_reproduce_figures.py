@@ -4,8 +4,9 @@ Runs :func:`lsst_bfdrift.validation.paper_figures.reproduce` at full resolution 
 calibrated template with 32 samples per edge, the 5 x 5 V_BSS / xi_CK ratio
 scan and every fixed-pattern feature), then writes
 
-* ``benchmarks/reproduce_results.json`` (the same content as
-  ``bfdrift reproduce --json``) and ``benchmarks/reproduce_results.txt``
+* ``benchmarks/reproduce/make_reproduce_figures_results.json`` (the same content as
+  ``bfdrift reproduce --json``, plus the ``command`` that wrote it) and
+  ``benchmarks/reproduce/make_reproduce_figures_results.txt``
   (one ``key: value`` line each, plus the run time);
 * every figure of ``docs/simulations.rst`` into ``docs/_static/reproduce/``.
 
@@ -39,16 +40,18 @@ def main():
     seconds = time.perf_counter() - t0
     out = os.path.join(ROOT, "docs", "_static", "reproduce")
     files = write_figures(numbers, tpl, scan, tables, out)
-    bench = os.path.join(ROOT, "benchmarks")
-    with atomic_output(os.path.join(bench, "reproduce_results.json")) as tmp:
+    # the results files start with the command that wrote them (benchmarks/README.md)
+    command = " ".join(["python", "scripts/make_reproduce_figures.py"] + sys.argv[1:])
+    bench = os.path.join(ROOT, "benchmarks", "reproduce")
+    with atomic_output(os.path.join(bench, "make_reproduce_figures_results.json")) as tmp:
         with open(tmp, "w") as fh:
-            json.dump(numbers, fh, indent=2, default=float)
+            json.dump({"command": command, **numbers}, fh, indent=2, default=float)
     lines = [f"{k:>20s}: {v}" for k, v in numbers.items()]
     lines.append(f"{'seconds':>20s}: {seconds:.0f} (computation, 2-core machine shared with "
                  "other jobs)")
-    with atomic_output(os.path.join(bench, "reproduce_results.txt")) as tmp:
+    with atomic_output(os.path.join(bench, "make_reproduce_figures_results.txt")) as tmp:
         with open(tmp, "w") as fh:
-            fh.write("\n".join(lines) + "\n")
+            fh.write(f"# command: {command}\n" + "\n".join(lines) + "\n")
     print("\n".join(lines))
     print("figures:", ", ".join(os.path.basename(f) for f in files))
 

@@ -3,7 +3,7 @@
 * ``lsst_bfdrift/data/sample_star.fits``: a 64 x 64 image in electrons of a
   bright Moffat star (FWHM 0.7 arcsec at 0.2 arcsec/px, flux 1.5e6 e, centre
   offset (0.25, 0.25) px) on a 1000 e sky, Poisson noise, seed 20151.
-The default template is made by ``python benchmarks/calibrate_default.py
+The default template is made by ``python benchmarks/calibration/calibrate_default.py
 --write`` (the model calibrated to the measured ITL a-matrix).
 
 Usage: ``python scripts/make_sample_data.py``

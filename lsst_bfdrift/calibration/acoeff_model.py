@@ -273,7 +273,7 @@ class LinearBasis:
         Scale ``scale{k}`` (1 at the expansion point) multiplies the a_ij of
         group k: a_ij += (s_k - 1) a0_ij for (i, j) in the group. It lets
         a base model follow a sensor's a-matrix beyond what the linearised
-        electrostatics can (``benchmarks/diagnose_base_model.py``: the
+        electrostatics can (``benchmarks/diagnosis/diagnose_base_model.py``: the
         diagnosis' false alarms on large flat sets of other sensors vanish
         with scales for a00, a01 and a10).
 
@@ -334,7 +334,7 @@ def default_basis_path():
 
 
 def load_default_basis():
-    """The shipped :class:`LinearBasis` (written by ``benchmarks/diagnose_itl.py``)."""
+    """The shipped :class:`LinearBasis` (written by ``benchmarks/diagnosis/diagnose_itl.py``)."""
     import json
     with open(default_basis_path()) as fh:
         return LinearBasis.from_dict(json.load(fh))

@@ -43,7 +43,7 @@ which physics resolves a tension). So the stars
 move the template within the a-matrix's errors, along the combination that
 changes their slopes most for the least chi2: a Gaussian update of the
 flats' estimate by the stars. It matters where the flats are small: the
-flats of ``benchmarks/calibrate_noise_floor.py`` (800 x 800 px, 36 pairs)
+flats of ``benchmarks/calibration/calibrate_noise_floor.py`` (800 x 800 px, 36 pairs)
 leave GalSim ITL's size slope uncertain by about 12 % rms, and a field of
 800 stars measures it to 9-13 %. Both data sets are linear in c:
 
@@ -63,7 +63,7 @@ stars measures its e1 slope no better than its size slope, while the e1
 slope is 8-30 times smaller, and the directions of the a-matrix's errors
 leave e1 nearly free (one draw of the flats' errors, matched lag by lag,
 moves GalSim ITL stars' e1 slope by -65 to +46 % of itself, their size by
--10 to +20 %; ``benchmarks/calibrate_noise_floor.py``), so the fields' e1
+-10 to +20 %; ``benchmarks/calibration/calibrate_noise_floor.py``), so the fields' e1
 noise would go straight into the template. The
 e1 and e2 slopes are still measured, reported and held out
 (``fitted_slopes`` adds them). Directions are added one
@@ -317,9 +317,9 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         determine) and refit; reported in ``star_error_scale`` and as a
         warning. A set of fields can scatter beyond its bootstrap errors:
         the brighter-fatter-free twins of ten GalSim ITL fields do, with
-        chi2 26 for 10 (``benchmarks/field_twins.py``), while larger sets
+        chi2 26 for 10 (``benchmarks/stars/field_twins.py``), while larger sets
         drawn alike scatter as their errors say
-        (``benchmarks/star_slope_bias.py``). The chi2 and the tension keep
+        (``benchmarks/stars/star_slope_bias.py``). The chi2 and the tension keep
         the bootstrap errors, so fields that disagree (another sensor, a
         missing effect) are still reported.
     size_goal : float, optional

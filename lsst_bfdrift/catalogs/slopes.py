@@ -22,14 +22,14 @@ are fitted when the fluxes are given. With the 1 / nu^2 term alone, 36
 BF-free GalSim fields of 800 stars (photons binned on square pixels, sky
 1000 e) gave a size slope of +3.9e-5 +- 0.6e-5 per 1e5 e (6 sigma; 5 % of
 GalSim ITL's brighter-fatter slope); with both, +0.2e-5 +- 0.9e-5
-(``benchmarks/star_slope_bias.py``). The price is a slope error 1.4 times
+(``benchmarks/stars/star_slope_bias.py``). The price is a slope error 1.4 times
 larger. Stars are weighted by
 ``1 / (alpha^2 / nu_i^2 + beta^2 / F_i + tau^2)``: measurement noise of
 adaptive moments falling as 1 / SNR, an extra term of the star's own photon
 noise (it sits in the core, where the moment weight is largest, so at the
 same SNR a source-dominated star measures its size less well than a
 sky-dominated one: 1.0 / SNR against 1.7 / SNR on the GalSim ITL field of
-``benchmarks/calibrate_stars.py``), and an intrinsic scatter tau
+``benchmarks/stars/calibrate_stars.py``), and an intrinsic scatter tau
 (PSF-model residuals), with alpha, beta and tau fitted to the squared
 residuals (non-negative least squares; beta only when the fluxes are given);
 outliers are down-weighted by Huber iteratively reweighted least squares

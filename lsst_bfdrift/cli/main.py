@@ -34,7 +34,7 @@ Subcommands
     astier23 and drift, with errors. Defaults: the sensor's template imported
     with ``--match transfers``, about 1000 GalSim boundary updates per
     exposure (``--updates 1000 --min-nrecalc 100``; converged, see
-    ``benchmarks/probe_validation_cadence_results.txt``).
+    ``benchmarks/correction/probe_validation_cadence_results.txt``).
 ``bfdrift reproduce [--json] [--out DIR] [--quick]``
     The paper's numbers next to the calibrated model's (A00..A11, ratio,
     radial slopes, neighbour recovery, fall-off), the V_BSS ratio scan, and

@@ -122,7 +122,7 @@ _fused = numba.njit(parallel=True, cache=True)(_named(_fused_py, "_fused_paralle
 # One thread for small arrays (the windows of the windowed series): a parallel
 # region needs the other thread awake, which on a busy machine can take a
 # scheduler time slice, far more than the work (on a quiet one the two are
-# alike: benchmarks/profile_drift_results.txt).
+# alike: benchmarks/performance/profile_drift_results.txt).
 _fused_serial = numba.njit(cache=True)(_named(_fused_py, "_fused_serial"))
 
 #: Outer weight w of the four-point densities (w, 1/2 - w, 1/2 - w, w).

@@ -40,8 +40,8 @@ def output_pairs(inputs, out_dir):
 
 #: Seconds per stage of :func:`correct_file` on a 4096 x 4096 field with 400
 #: stars, without maps, with the linear maps and with the exact ones (2 shared
-#: cores; ``python benchmarks/stage_timings.py``,
-#: ``benchmarks/stage_timings_results.txt``). Each stage runs from the previous
+#: cores; ``python benchmarks/performance/stage_timings.py``,
+#: ``benchmarks/performance/stage_timings_results.txt``). Each stage runs from the previous
 #: stage's end: ``correct`` (or ``maps`` for the exact ones) includes the Task's
 #: input checks, ``correct`` with the linear maps their first-order part.
 STAGE_SECONDS = {

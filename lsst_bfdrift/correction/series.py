@@ -432,7 +432,7 @@ def sparse_series(img, blocked, ops, *, noise_tol=RECOMMENDED.noise_tol, rtol=RE
         fraction of the image's; beyond it the dense solver is used.
         Windows over the whole image would cost about two to three
         first-order passes, the dense series about four (on the crowded field
-        of ``benchmarks/profile_drift.py``), hence a larger limit than the
+        of ``benchmarks/performance/profile_drift.py``), hence a larger limit than the
         first tier's.
     info : dict, optional
         Filled with ``windows`` (number), ``window_fraction`` (of the image

@@ -15,7 +15,7 @@ through one template with the package's forward model
 another (:func:`~lsst_bfdrift.correction.solvers.correct_image`) and gives the
 size-flux and e1-flux slopes left as fractions of the uncorrected slopes. It
 is the package's own model on both sides: an estimate of the consequence, not
-a measurement on independent stars (``benchmarks/calibrate_sensor.py`` is
+a measurement on independent stars (``benchmarks/calibration/calibrate_sensor.py`` is
 that).
 """
 

@@ -92,7 +92,7 @@ class SensorParameters:
 
     The defaults describe the sensor of the bundled default template: an
     LSST ITL sensor, Rasmussen 2015's structure calibrated to its measured
-    a-matrix (``benchmarks/calibrate_default.py``: the charge dipole, the
+    a-matrix (``benchmarks/calibration/calibrate_default.py``: the charge dipole, the
     backside bias and the clock-pair separation). :meth:`paper` gives the
     paper's nominal values.
 

@@ -19,7 +19,7 @@ exposure the star's shrunken pixels collect less sky as well, and every
 correction (rightly) moves that sky flux back with the star's. Sky added
 after the BF simulation is flux the simulation never redistributed, and made
 both correction routes over-correct the size slope by 3-4 % on the field of
-``benchmarks/validate_sky.py`` (``docs/benchmarks.rst``). Each star's box
+``benchmarks/stars/validate_sky.py`` (``docs/benchmarks.rst``). Each star's box
 covers its central (2 ``sky_radius`` + 1)^2 pixels plus a 3-pixel margin and is
 accumulated in its own image, with sky photons spread 3 px beyond it that
 diffuse in (those landing outside are dropped), so the sky is uniform up to the
@@ -129,7 +129,7 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
         GalSim recomputes the boundaries every ``nrecalc = max(min_nrecalc,
         N / updates)`` photons (N: a star's photons plus its sky photons).
         The default, about 1000 updates per star, is converged
-        (``benchmarks/probe_validation_cadence_results.txt``: 100 updates
+        (``benchmarks/correction/probe_validation_cadence_results.txt``: 100 updates
         weaken the simulated effect by about 1 %).
     min_nrecalc : float, optional
         Smallest ``nrecalc`` (photons).

@@ -1,6 +1,6 @@
 """Reproduce the numbers of Rasmussen 2015 with the calibrated model.
 
-The calibrated parameters come from ``benchmarks/calibrate.py`` (fit of
+The calibrated parameters come from ``benchmarks/calibration/calibrate_paper.py`` (fit of
 xi0, channel depth and clock-pair separation to the paper's A00..A11, with
 collection 1 um above the gates; see ``docs/calibration.rst``).
 """
@@ -19,7 +19,7 @@ PAPER = {"A00": 0.9033, "A01": 1.0077, "A10": 1.0027, "A11": 1.0033, "ratio_01_1
          "slope_area": -1.288, "slope_shift": -1.033, "slope_ellipticity": -1.410,
          "neighbour_recovery": 0.35}
 
-#: Fitted by benchmarks/calibrate.py (values +- 1 sigma: 8299 +- 130 e,
+#: Fitted by benchmarks/calibration/calibrate_paper.py (values +- 1 sigma: 8299 +- 130 e,
 #: 4.203 +- 0.025 um, 2.62 +- 0.10 um).
 _CALIBRATED = {"xi0": 8299.2, "channel_depth": 4.2026, "clock_separation": 2.6164,
                "collection_height": 1.0}

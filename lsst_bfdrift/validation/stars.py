@@ -75,7 +75,7 @@ def draw_star_pairs(n_stars, *, sensor="lsst_itl_50_8", psf="moffat", fwhm=(0.6,
         (with ``min_nrecalc=100``) is converged: going from 100 to 1000
         updates per exposure shifts every method's residual size slope by
         +0.92 +- 0.04 % of the uncorrected slope, from 1000 to 3000 by only
-        +0.05 % more (``benchmarks/probe_validation_cadence_results.txt``).
+        +0.05 % more (``benchmarks/correction/probe_validation_cadence_results.txt``).
         It costs about 2.4 times the drawing time of 100 updates.
     min_nrecalc : float, optional
         Smallest ``nrecalc`` (photons). GalSim's own default, 1e4, would

@@ -165,7 +165,7 @@ def test_with_scales_multiplies_its_lags_only(basis):
 
 def test_scales_remove_a_false_alarm_of_the_shipped_basis():
     """The cause of the diagnosis' false alarms on large sets
-    (benchmarks/diagnose_base_model.py): flats of the e2v set 43
+    (benchmarks/diagnosis/diagnose_base_model.py): flats of the e2v set 43
     configuration (240 px, 48 pairs) made by the linear engine with GalSim's
     own e2v a-matrix and no effect (the package's forward model with another
     simulator's a-matrix: a consistency test of the mechanism). The shipped

@@ -349,7 +349,7 @@ def test_correct_files_through_a_scheduler_address(capsys, tmp_path, monkeypatch
 
 def test_validate_stars_defaults(capsys):
     """validate-stars defaults to converged GalSim updates and the transfer-matched
-    import (benchmarks/probe_validation_cadence_results.txt, docs/benchmarks.rst)."""
+    import (benchmarks/correction/probe_validation_cadence_results.txt, docs/benchmarks.rst)."""
     import inspect
 
     from lsst_bfdrift.cli.main import build_parser

@@ -80,7 +80,7 @@ def test_recovers_square_pixel_image(star):
         t_m = image_moments(task.run(image).exposure, weight_sigma=3)["T"]
         residuals[method] = abs(t_m - t_true)
         # every method removes most of the effect (their ranking needs many stars:
-        # benchmarks/validate_correction_selfsim.py)
+        # benchmarks/correction/validate_correction_selfsim.py)
         assert residuals[method] < 0.2 * (t_rec - t_true)
     # central pixel recovered much better than uncorrected
     assert abs(corr[15, 15] - truth[15, 15]) < 0.2 * abs(image[15, 15] - truth[15, 15])

@@ -27,7 +27,7 @@ def template():
 
 def crowded(n, *, seed=2, density=4000 / 4096**2):
     """Sky of 1200 e with stars of 1e4 to 1.5e6 e (sigma 1.5 px) at the
-    density of the crowded field of benchmarks/bench_task.py (4000 stars on
+    density of the crowded field of benchmarks/performance/bench_task.py (4000 stars on
     4096 x 4096)."""
     rng = np.random.default_rng(seed)
     img = rng.poisson(1200.0, (n, n)).astype(float)
@@ -304,7 +304,7 @@ def test_flat_uses_the_second_tier(template):
 
 def test_first_tier_fields_are_unchanged(template):
     """Where the first tier's windows pass, the second tier changes nothing,
-    bit for bit (the 400-star density of benchmarks/bench_task.py)."""
+    bit for bit (the 400-star density of benchmarks/performance/bench_task.py)."""
     img = crowded(512, seed=7, density=400 / 4096**2)
     img[100:117, 100:117] += 3e4  # and one bright source
     blk = np.zeros(img.shape, bool)

@@ -376,7 +376,7 @@ def test_cti_on_galsim_flats_is_named_on_its_axis(galsim_pairs, basis, name, eps
     exact effect-free twin): named on its axis with eps within 3 sigma, nothing
     else added, and a00 within 1 sigma of the twin's. Amplitudes where these
     small data (10 pairs of 100 x 100 px) find it; the detection thresholds at
-    larger sizes are in benchmarks/diagnose_power_results.txt."""
+    larger sizes are in benchmarks/diagnosis/diagnose_power_results.txt."""
     from lsst_bfdrift.simulation.flats import apply_readout_effects
 
     inj = {name: (eps,)}

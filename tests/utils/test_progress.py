@@ -81,13 +81,13 @@ def test_stage_weights_follow_the_tasks_order():
 
 
 def test_stage_weights_are_the_measured_seconds():
-    """The weights are benchmarks/stage_timings_results.json's medians."""
+    """The weights are benchmarks/performance/stage_timings_results.json's medians."""
     import json
     import os
 
     from lsst_bfdrift.correction.batch import STAGE_SECONDS, stage_weights
     path = os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks",
-                        "stage_timings_results.json")
+                        "performance", "stage_timings_results.json")
     with open(path) as fh:
         med = json.load(fh)["medians"]
     for mode, name in (("none", "no maps"), ("linear", "default"), ("exact", "exact maps")):
