@@ -8,13 +8,15 @@ likewise, in the signal's unit squared.
 
 import dataclasses
 import math
+import os
 
 import numpy as np
 
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["CalibrationData", "INPUT_KINDS", "require_levels", "truncate_lags"]
+__all__ = ["CalibrationData", "INPUT_KINDS", "require_levels", "truncate_lags",
+           "describe_paths"]
 
 
 #: The input kinds, in the order of :data:`CalibrationData.kind`.
@@ -166,16 +168,64 @@ def _jsonable(x):
     return str(x)
 
 
+def describe_paths(paths, *, limit=4):
+    """Files named for a message: all of a few; the directory and the count of many.
+
+    Parameters
+    ----------
+    paths : sequence of str
+    limit : int, optional
+        Most paths named one by one.
+
+    Returns
+    -------
+    str
+        ``'a.fits, b.fits'``; ``'flats/ (80 files)'`` when more than ``limit``
+        share a directory; ``'flats/a.fits ... (80 files in 3 directories)'``
+        otherwise.
+    """
+    paths = [os.fspath(p) for p in paths]
+    if len(paths) <= limit:
+        return ", ".join(paths)
+    dirs = sorted({os.path.dirname(p) or "." for p in paths})
+    if len(dirs) == 1:
+        return f"{os.path.join(dirs[0], '')} ({len(paths)} files)"
+    return f"{paths[0]} ... ({len(paths)} files in {len(dirs)} directories)"
+
+
+def _dropped_summary(dropped, limit=4):
+    """The dropped pairs or points, grouped by reason; a few named, the rest counted."""
+    groups = {}
+    for d in dropped:
+        # reasons that name a level or value differ only in it: group by the text before
+        reason = d["reason"]
+        key = reason.split(":")[0] if "files" in d else reason
+        groups.setdefault(key, []).append(d)
+    parts = []
+    for key, items in groups.items():
+        if len(items) <= 2:
+            for d in items:
+                what = describe_paths(d["files"]) if "files" in d else f"point {d['index']}"
+                parts.append(f"dropped {what}: {d['reason']}")
+            continue
+        files = [f for d in items for f in d.get("files", [])]
+        what = (describe_paths(files, limit=limit) if files
+                else f"points {', '.join(str(d['index']) for d in items[:limit])}"
+                + (" ..." if len(items) > limit else ""))
+        parts.append(f"dropped {len(items)} for the same reason ({what}): {items[0]['reason']}"
+                     + (" (first of them)" if len(items) > 1 else ""))
+    return "".join(f"; {p}" for p in parts)
+
+
 def require_levels(nlev, min_levels, what, files, dropped):
+    """Refuse a PTC with fewer than ``min_levels`` signal levels ``what``, naming the
+    files (:func:`describe_paths`) and why points were dropped (grouped by
+    reason, a few named)."""
     if nlev >= min_levels:
         return
-    why = ""
-    for d in dropped:
-        what_ = ", ".join(d["files"]) if "files" in d else f"point {d['index']}"
-        why += f"; dropped {what_}: {d['reason']}"
     raise InputError(f"{files}: {nlev} distinct signal level(s) {what}, fewer than "
                      f"min_levels={min_levels}; a photon transfer curve needs at least "
-                     f"{min_levels} levels below the turn-off{why}")
+                     f"{min_levels} levels below the turn-off{_dropped_summary(dropped)}")
 
 
 def truncate_lags(out, max_lag):

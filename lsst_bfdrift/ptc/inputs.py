@@ -59,7 +59,7 @@ import numpy as np
 from lsst_bfdrift.ptc.acoeffs import (AcoeffTable, acoeff_square, assign_axes, read_acoeff_table,
                                       sum_rule_check)
 from lsst_bfdrift.ptc.cp_pipe import read_cp_pipe_ptc
-from lsst_bfdrift.ptc.data import INPUT_KINDS, CalibrationData, require_levels
+from lsst_bfdrift.ptc.data import INPUT_KINDS, CalibrationData, describe_paths, require_levels
 from lsst_bfdrift.ptc.covariances import pair_covariances, ptc_turnoff, read_ptc_text
 from lsst_bfdrift.images.electrons import image_unit
 from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
@@ -365,7 +365,7 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
             dropped.append({"files": [odd["path"]], "exptime": odd["exptime"],
                             "reason": f"odd file out: {len(level)} flats at EXPTIME = "
                                       f"{odd['exptime']:g} s, paired in file-name order"})
-    files = ", ".join(paths) if len(paths) <= 4 else f"{paths[0]} ... ({len(paths)} flats)"
+    files = describe_paths(paths)
     require_levels(len({k for k, _, _ in pairs}), min_levels, "with a pair of flats", files,
                     dropped)
     rows = []

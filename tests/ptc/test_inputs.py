@@ -499,3 +499,29 @@ def test_unrecognised_files(tmp_path):
     fits.PrimaryHDU().writeto(empty)
     with pytest.raises(ValueError, match=r"empty\.fits: FITS file with neither a 2-d image HDU"):
         read_calibration_input(empty)
+
+
+def test_a_refusal_on_many_flats_names_the_directory_and_the_count(tmp_path):
+    """Issue 41: a refusal on 80 flats names their directory and count, and groups
+    the dropped files by reason, instead of printing 80 paths."""
+    from lsst_bfdrift.ptc.data import describe_paths
+    from lsst_bfdrift.ptc.inputs import read_flat_pairs
+
+    rng = np.random.default_rng(2)
+    d = tmp_path / "flats"
+    d.mkdir()
+    paths = []
+    for k in range(80):  # every flat at its own EXPTIME: no pair anywhere
+        hdr = fits.Header({"EXPTIME": 1.0 + k, "BUNIT": "adu"})
+        p = d / f"flat_{k:03d}.fits"
+        fits.PrimaryHDU(rng.poisson(1000.0, (16, 16)).astype(np.float32), header=hdr).writeto(p)
+        paths.append(str(p))
+    with pytest.raises(ValueError) as info:
+        read_flat_pairs(paths, drop_single=True)
+    msg = str(info.value)
+    assert msg.startswith(f"{d}/ (80 files): 0 distinct signal level(s) with a pair of flats")
+    assert "dropped 80 for the same reason (" in msg and "(80 files)" in msg
+    assert msg.count("flat_0") <= 2 and len(msg) < 700
+    assert describe_paths(paths[:3]) == ", ".join(paths[:3])
+    other = [str(tmp_path / "x.fits")] + paths[:5]
+    assert describe_paths(other) == f"{other[0]} ... (6 files in 2 directories)"
