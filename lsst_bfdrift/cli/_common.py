@@ -1,45 +1,125 @@
 """Helpers shared by the ``bfdrift`` commands: templates in, JSON or text out,
-the overwrite rule."""
+the overwrite rule, the defaults taken from the library, SIGTERM.
+
+A private module of :mod:`lsst_bfdrift.cli` whose names are public within it:
+the command modules import them; nothing outside the ``cli`` package should.
+"""
 
 import contextlib
+import inspect
 import json
 import os
 import signal
 import sys
 import threading
 
+from lsst_bfdrift.templates.template import (DistortionTemplate, default_template_path,
+                                             load_default_template)
 from lsst_bfdrift.utils.errors import OutputExistsError
 from lsst_bfdrift.utils.io import check_output, remove_stale_temporaries
 
-__all__ = []
+__all__ = ["library_default", "load_template", "print_json", "emit", "check_outputs",
+           "template_input", "save_and_report", "save_plot", "check_output_dir",
+           "OUTPUT_OPTIONS", "output_dirs", "remove_stale_outputs", "Terminated",
+           "sigterm_raises"]
 
 
-def _load_template(path):
-    from lsst_bfdrift.templates.template import DistortionTemplate, load_default_template
+def library_default(func, name):
+    """The default of the keyword ``name`` of ``func``: the one source of a
+    command-line option's default that feeds it.
+
+    Parameters
+    ----------
+    func : callable
+        The library function the option is passed to.
+    name : str
+        Its parameter.
+
+    Returns
+    -------
+    default : object
+        ``inspect.signature(func).parameters[name].default``.
+
+    Raises
+    ------
+    KeyError
+        ``func`` has no parameter ``name``.
+    ValueError
+        The parameter has no default.
+    """
+    default = inspect.signature(func).parameters[name].default
+    if default is inspect.Parameter.empty:
+        raise ValueError(f"{func.__qualname__}({name}=...) has no default")
+    return default
+
+
+def load_template(path):
+    """The template of ``--template FILE`` (the bundled default when ``path`` is None).
+
+    Parameters
+    ----------
+    path : str or None
+        Template FITS file.
+
+    Returns
+    -------
+    template : DistortionTemplate
+    """
     return load_default_template() if path is None else DistortionTemplate.load(path)
 
 
-def _print_json(obj):
+def print_json(obj):
+    """Print ``obj`` as indented JSON with sorted keys (numpy scalars as floats).
+
+    Parameters
+    ----------
+    obj : dict
+        The command's result.
+    """
     print(json.dumps(obj, indent=2, sort_keys=True, default=float))
 
 
-def _emit(obj, as_json, width=18):
-    """Print ``obj`` as JSON, or as aligned ``key: value`` lines."""
+def emit(obj, as_json, width=18):
+    """Print ``obj`` as JSON, or as aligned ``key: value`` lines.
+
+    Parameters
+    ----------
+    obj : dict
+        The command's result.
+    as_json : bool
+        JSON (``--json``) or text.
+    width : int, optional
+        Width of the right-aligned keys of the text.
+
+    Returns
+    -------
+    code : int
+        0, the command's exit status.
+    """
     if as_json:
-        _print_json(obj)
+        print_json(obj)
     else:
         for k, v in obj.items():
             print(f"{k:>{width}s}: {v}")
     return 0
 
 
-def _check_outputs(args, inputs, outputs):
+def check_outputs(args, inputs, outputs):
     """The overwrite rule for every output of a command, checked before any work.
 
     Each output in ``outputs`` (option name -> path or None) goes through
     :func:`~lsst_bfdrift.utils.io.check_output`: never one of ``inputs``,
     an existing file only with ``--overwrite``; two options may not name one
     file.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The command's arguments (``overwrite``).
+    inputs : sequence of str or None
+        The command's inputs (None entries ignored).
+    outputs : dict
+        Option name -> output path or None.
 
     Raises
     ------
@@ -60,37 +140,83 @@ def _check_outputs(args, inputs, outputs):
         seen[real] = option
 
 
-def _template_input(path):
-    """The template file a command reads (the bundled one when ``path`` is None)."""
-    from lsst_bfdrift.templates.template import default_template_path
+def template_input(path):
+    """The template file a command reads (the bundled one when ``path`` is None).
+
+    Parameters
+    ----------
+    path : str or None
+        ``--template FILE``.
+
+    Returns
+    -------
+    path : str
+    """
     return default_template_path() if path is None else path
 
 
-def _save_and_report(tpl, args):
+def save_and_report(tpl, args):
+    """Write the template to ``--out`` and print its summary (``--json``) or the path.
+
+    Parameters
+    ----------
+    tpl : DistortionTemplate
+        The template made by the command.
+    args : argparse.Namespace
+        The command's arguments (``out``, ``json``).
+
+    Returns
+    -------
+    code : int
+        0, the command's exit status.
+    """
     tpl.save(args.out, overwrite=True)
     if args.json:
-        _print_json(tpl.summary())
+        print_json(tpl.summary())
     else:
         print(f"wrote {args.out}")
     return 0
 
 
-def _save_plot(fig, path, summary=None):
-    """Write the figure of ``--plot``; its absolute path in ``summary['plot']``."""
+def save_plot(fig, path, summary=None):
+    """Write the figure of ``--plot``; its absolute path in ``summary['plot']``.
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+        The figure.
+    path : str
+        The PNG file.
+    summary : dict, optional
+        The command's result, given the key ``plot``.
+    """
+    # matplotlib: only when --plot is given
     from lsst_bfdrift.utils.plotting import save_figure
     save_figure(fig, path)
     if summary is not None:
         summary["plot"] = os.path.abspath(path)
 
 
-def _check_output_dir(args, path, option, inputs=()):
+def check_output_dir(args, path, option, inputs=()):
     """The overwrite rule for a directory output (``--report DIR``, ``reproduce --out``):
     a directory holding files is replaced only with ``--overwrite``, and it may never be
     an input (a directory of flats given as the input too).
 
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The command's arguments (``overwrite``).
+    path : str or None
+        The directory; None: nothing to check.
+    option : str
+        The option naming it, for the message.
+    inputs : sequence of str, optional
+        The command's inputs.
+
     Raises
     ------
     OutputExistsError
+        The directory breaks the rule.
     """
     if path is None:
         return
@@ -107,19 +233,27 @@ def _check_output_dir(args, path, option, inputs=()):
         raise OutputExistsError(f"{option} {path}: exists and is not a directory")
 
 
-
 #: Options naming an output file or directory (the directories written into).
-_OUTPUT_OPTIONS = ("out", "out_dir", "plot", "catalog", "report", "prefix")
+OUTPUT_OPTIONS = ("out", "out_dir", "plot", "catalog", "report", "prefix")
 
 
-def _output_dirs(args):
+def output_dirs(args):
     """The directories a command writes into (absolute, without repeats).
 
     The directory of each output option's path, and the path itself when it is
     a directory (``--out-dir``, ``--report``, ``reproduce --out``); for
     ``correct IN OUT`` the directory of OUT.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The command's arguments.
+
+    Returns
+    -------
+    dirs : list of str
     """
-    paths = [getattr(args, name, None) for name in _OUTPUT_OPTIONS]
+    paths = [getattr(args, name, None) for name in OUTPUT_OPTIONS]
     inputs = getattr(args, "inputs", None)
     if hasattr(args, "out_dir") and not args.out_dir and inputs and len(inputs) == 2:
         paths.append(inputs[1])  # correct IN OUT
@@ -134,11 +268,18 @@ def _output_dirs(args):
     return dirs
 
 
-def _remove_stale_outputs(args, stream=None):
+def remove_stale_outputs(args, stream=None):
     """Remove the partial files of killed runs (``.tmp-*`` of
     :func:`~lsst_bfdrift.utils.io.atomic_output` whose process is gone) from
     the directories the command writes into, and say so on ``stream``
     (stderr).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The command's arguments.
+    stream : file, optional
+        Where the removal is reported (default: stderr).
 
     Returns
     -------
@@ -146,7 +287,7 @@ def _remove_stale_outputs(args, stream=None):
         The files removed.
     """
     removed = []
-    for d in _output_dirs(args):
+    for d in output_dirs(args):
         try:
             removed += remove_stale_temporaries(d)
         except OSError as exc:  # e.g. a directory we may not list: not this run's concern
@@ -159,14 +300,14 @@ def _remove_stale_outputs(args, stream=None):
     return removed
 
 
-class _Terminated(SystemExit):
+class Terminated(SystemExit):
     """SIGTERM received: raised in the main thread so that ``finally`` blocks
     (the removal of a partial output) run; exit status 128 + 15."""
 
 
 @contextlib.contextmanager
-def _sigterm_raises():
-    """Within the block, SIGTERM raises ``_Terminated`` (a SystemExit) instead
+def sigterm_raises():
+    """Within the block, SIGTERM raises ``Terminated`` (a SystemExit) instead
     of ending the process at once, so that temporary files are removed. The
     previous handler comes back after; outside the main thread nothing changes.
     """
@@ -175,7 +316,7 @@ def _sigterm_raises():
         return
 
     def _raise(signum, frame):
-        raise _Terminated(128 + signum)
+        raise Terminated(128 + signum)
 
     previous = signal.signal(signal.SIGTERM, _raise)
     try:

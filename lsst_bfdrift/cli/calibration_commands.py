@@ -1,0 +1,361 @@
+"""``bfdrift calibrate``, ``bfdrift ptc`` and ``bfdrift diagnose``: the commands
+on flats and a-matrices (options and commands).
+
+The options' defaults are those of the functions they feed
+(:func:`~lsst_bfdrift.ptc.inputs.read_calibration_input`,
+:func:`~lsst_bfdrift.calibration.tuning.calibrate`,
+:func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars`,
+:func:`~lsst_bfdrift.diagnosis.effects_fit.load_input`), except where a
+comment says why not.
+"""
+
+import argparse
+import json
+import os
+
+from lsst_bfdrift.calibration.acoeff_model import LinearBasis, load_default_basis
+from lsst_bfdrift.calibration.star_fit import calibrate_with_stars, check_size_goal
+from lsst_bfdrift.calibration.tuning import calibrate, measured_acoeffs
+from lsst_bfdrift.cli._common import (check_output_dir, check_outputs, emit, library_default,
+                                      print_json, save_plot)
+from lsst_bfdrift.diagnosis import consequence
+from lsst_bfdrift.diagnosis.effects_fit import diagnose, load_input
+from lsst_bfdrift.diagnosis.report import (notable_not_excluded, template_change_lines,
+                                           write_report)
+from lsst_bfdrift.ptc import covariances as ptc
+from lsst_bfdrift.ptc.inputs import read_calibration_input
+from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
+from lsst_bfdrift.utils.io import data_files
+
+__all__ = ["add_calibrate_parser", "add_ptc_parser", "add_diagnose_parser", "cmd_calibrate",
+           "cmd_ptc", "cmd_diagnose", "PTC_MAX_LAG"]
+
+#: Largest lag of ``bfdrift ptc`` on FITS flats unless ``--max-lag`` is given:
+#: the command reports a00..a11 and the full model's fit to these lags, not the
+#: lags to 8 that ``calibrate`` reads (read_calibration_input's default).
+PTC_MAX_LAG = 3
+
+
+def _dropped_text(dropped):
+    """One line per dropped pair or file: which and why."""
+    return "; ".join(f"{', '.join(os.path.basename(f) for f in d.get('files', []))} "
+                     f"({d['reason']})" if d.get("files") else d["reason"] for d in dropped)
+
+
+def _print_calibration(args, res, joint, data, table):
+    """The text report of ``calibrate`` (without ``--json``)."""
+    f = res.fit
+    print(f"calibrated {table.source}: {len(f.names)} parameters chosen by the data")
+    for n in f.names:
+        print(f"  {n:>18s} = {f.values[n]:.6g} +- {f.errors[n]:.2g}"
+              + ("  (at its bound)" if n in f.at_bound else ""))
+    print(f"  chi2 = {f.chi2:.2f} for {f.dof} dof (p = {f.p_value:.3g}); worst lags: "
+          + ", ".join(f"a{i}{j} {p:+.1f} sigma" for (i, j), p in f.worst(3)))
+    sr = res.sum_rule
+    print(f"  sum rule: sum a_ij = {sr['sum']:+.3e} +- {sr['error']:.1e} per e")
+    if data.kind == "flats":
+        print(f"  input: {len(data.pairs_used)} flat pair(s) used at {data.n_levels} level(s); "
+              f"dropped: {_dropped_text(data.pairs_dropped) or 'none'}")
+    if joint is None:
+        print(f"  template: {args.out} ({'areas refined to the data' if res.refined else 'model'})"
+              f" in {res.seconds['total']:.1f} s")
+        return
+    c2 = joint.chi2
+    print(f"  with {len(args.stars)} star field(s): directions {', '.join(joint.directions)}; "
+          f"chi2 a-matrix {c2['flats_only']['amatrix']:.1f} -> {c2['joint']['amatrix']:.1f}, "
+          f"star slopes {c2['flats_only']['stars']:.1f} -> {c2['joint']['stars']:.1f}; "
+          + joint.tension_line())
+    for n, v in joint.star_information.items():
+        cf = joint.coefficients[n]
+        print(f"  {n:>18s} {cf['parameter_change']:+.3g} +- {cf['parameter_change_err']:.2g} "
+              f"(stars give {100 * v:.0f} % of its information)")
+    if joint.uncertainty:
+        print("  " + joint.uncertainty_line())
+    for w in joint.warnings:
+        print(f"  warning: {w}")
+    print("  " + joint.held_out_table().replace("\n", "\n  "))
+    print(f"  template: {args.out} (a-matrix and stars) in "
+          f"{res.seconds['total'] + joint.seconds['total']:.1f} s")
+
+
+def cmd_calibrate(args):
+    """``bfdrift calibrate``: the model tuned to a sensor's flats (and star fields).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+
+    Returns
+    -------
+    code : int
+        The exit status.
+    """
+    stars_plot = None
+    if args.plot and args.stars:
+        root, ext = os.path.splitext(args.plot)
+        stars_plot = root + "_stars" + (ext or ".png")
+    check_outputs(args, args.input + (args.stars or []),
+                  {"--out": args.out, "--plot": args.plot, "--plot (stars)": stars_plot})
+    for x in args.stars or []:
+        if not os.path.isfile(x):
+            raise InputNotFoundError(f"--stars {x}: no such file")
+    check_size_goal(args.size_goal, "--size-goal")  # before any file is read
+    data = read_calibration_input(args.input, max_lag=args.max_lag)
+    table = measured_acoeffs(data)
+    res = calibrate(table, free=args.free, refine=not args.no_refine,
+                    allow_poor_fit=args.allow_poor_fit, max_chi2_dof=args.max_chi2_dof,
+                    progress=not args.quiet)
+    res.template.meta["calibration"]["inputs"] = [os.path.abspath(x) for x in args.input]
+    joint = None
+    if args.stars:
+        joint = calibrate_with_stars(res, [os.path.abspath(x) for x in args.stars],
+                                     holdout=args.holdout, gain=args.gain,
+                                     flats_uncertainty=not args.model_directions_only,
+                                     fitted_slopes=args.fit_slopes,
+                                     size_goal=args.size_goal,
+                                     progress=not args.quiet)
+        joint.template.meta["calibration"]["inputs"] = \
+            [os.path.abspath(x) for x in args.input + args.stars]
+        joint.template.save(args.out, overwrite=args.overwrite)
+    else:
+        res.template.save(args.out, overwrite=args.overwrite)
+    summary = res.summary()
+    if joint is not None:
+        summary["stars"] = joint.summary()
+    summary["input"] = data.summary()
+    summary["out"] = os.path.abspath(args.out)
+    if args.plot:
+        # matplotlib: calibration.plots imports it; only when --plot is given
+        from lsst_bfdrift.calibration.plots import plot_calibration, plot_star_calibration
+        save_plot(plot_calibration(res), args.plot, summary)
+        if joint is not None:  # a second figure next to the first: NAME_stars.png
+            save_plot(plot_star_calibration(joint), stars_plot)
+            summary["plot_stars"] = os.path.abspath(stars_plot)
+    if args.json:
+        print_json(summary)
+    else:
+        _print_calibration(args, res, joint, data, table)
+    return 0
+
+
+def cmd_ptc(args):
+    """``bfdrift ptc``: photon transfer fit of a PTC text file or of FITS flat pairs.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+
+    Returns
+    -------
+    code : int
+        The exit status.
+    """
+    files = list(args.files)
+    if len(files) == 1 and os.path.isdir(files[0]):  # its FITS flats, never a .tmp-* leftover
+        files = data_files(files[0], (".fits", ".fit", ".fits.gz"))
+    if len(files) == 1 and not files[0].lower().endswith((".fits", ".fit", ".fits.gz")):
+        mu, var = ptc.read_ptc_text(files[0])
+        fit = ptc.fit_ptc_exponential(mu, var)
+        out = {"input": files[0], "model": "exponential C00 (Astier et al. 2019 eq. 16)",
+               "gain": fit["gain"], "gain_err": fit["gain_err"], "a00": fit["a00"],
+               "a00_err": fit["a00_err"], "noise_e2": fit["noise"],
+               "noise_e2_err": fit["noise_err"], "npoints": fit["npoints"],
+               "mu_max": fit["mu_max"], "chi2": fit["chi2"], "dof": fit["dof"]}
+        for k in ("a01", "a10", "a11"):
+            out[k] = out[k + "_err"] = None  # a variance-only PTC does not constrain them
+    else:
+        if args.max_lag < 1:
+            raise InputError(f"--max-lag must be >= 1 for FITS flats (the model's a01 and a10 "
+                             f"need lag 1), got {args.max_lag}")
+        # the reader of `bfdrift calibrate`: pairs by EXPTIME, masks, turn-off
+        data = read_calibration_input(files, max_lag=args.max_lag)
+        if data.kind != "flats":
+            raise InputError(f"{files[0]}: a {data.kind} input; bfdrift ptc takes one PTC text "
+                             "file or FITS flat pairs")
+        table = {"mu": data.mu, "cov": data.cov, "npix": data.npix}
+        fit = ptc.fit_covariance_model(table["mu"], table["cov"], npix=table["npix"])
+        out = {"input": files, "model": "full covariance model (Astier et al. 2019 eq. 20)",
+               "gain": fit["gain"], "gain_err": fit["gain_err"], "npairs": int(data.mu.size),
+               "chi2": fit["chi2"], "dof": fit["dof"], "units": data.units,
+               "pairs_used": data.summary()["pairs_used"],
+               "pairs_dropped": data.summary()["pairs_dropped"], "notes": data.notes}
+        for name, (i, j) in (("a00", (0, 0)), ("a01", (0, 1)), ("a10", (1, 0)),
+                             ("a11", (1, 1))):
+            out[name] = float(fit["a"][i, j])
+            out[name + "_err"] = float(fit["a_err"][i, j])
+        out["a"] = fit["a"].tolist()
+        if not args.json:
+            out = dict(out, pairs_used=f"{len(out['pairs_used'])} pair(s) at "
+                       f"{data.n_levels} level(s)",
+                       pairs_dropped=_dropped_text(out["pairs_dropped"]) or "none",
+                       notes="; ".join(out["notes"]) or "none")
+    return emit(out, args.json, 14)
+
+
+def cmd_diagnose(args):
+    """``bfdrift diagnose``: where the electrostatic model is wrong, and which effect
+    explains it.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+
+    Returns
+    -------
+    code : int
+        The exit status.
+    """
+    check_output_dir(args, args.report, "--report", inputs=[args.input])
+    obs = load_input(args.input, max_lag=args.max_lag)
+    if args.basis:
+        with open(args.basis) as fh:
+            basis = LinearBasis.from_dict(json.load(fh))
+    else:
+        basis = load_default_basis()
+    d = diagnose(obs, basis).as_dict()
+    d["input"] = args.input
+    if getattr(args, "template_change", True) and d["effects_added"]:
+        d["template_change"] = consequence.template_change(
+            d, None if obs.kind == "ptc" else basis, max_lag=min(args.max_lag, basis.max_lag))
+    if args.report:
+        d["report_files"] = write_report(d, args.report)
+    if args.json:
+        print_json(d)
+        return 0
+    for s in d["steps"]:
+        print(f"{s['label']:>24s}: chi2/dof {s['chi2_dof']:.3f}, rms pull {s['rms_pull']:.3f}")
+    print(f"{'effects added':>24s}: {', '.join(d['effects_added']) or 'none'}")
+    for x in notable_not_excluded(d):
+        print(f"{'not excluded':>24s}: {x['effect']} would move a00 by "
+              f"{x['a00_shift_sd']:+.1f} sigma, a01 by {x['a01_shift_sd']:+.1f} sigma "
+              f"(a00 {x['a00'][0]:.4g} +- {x['a00'][1]:.2g} with it free)")
+    print(d["verdict"])
+    tc = d.get("template_change")
+    if tc:
+        print("\n".join(template_change_lines(tc)))
+    return 0
+
+
+def add_calibrate_parser(subparsers):
+    """Add ``calibrate`` to the subcommands of ``bfdrift``.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``add_subparsers()`` of the top-level parser.
+
+    Returns
+    -------
+    parser : argparse.ArgumentParser
+    """
+    def stars_default(name):
+        return library_default(calibrate_with_stars, name)
+
+    ca = subparsers.add_parser("calibrate", help="tune the model to a sensor's data: "
+                               "template out")
+    ca.add_argument("input", nargs="+", help="flat-pair FITS files (EXPTIME in the header), a "
+                    "PTC text file, an a-matrix table (i j a sigma, or ECSV i, j, a, a_err) or "
+                    "cp_pipe's PTC dataset FITS")
+    ca.add_argument("--out", required=True, help="calibrated template FITS file")
+    ca.add_argument("--free", nargs="+", metavar="NAME",
+                    default=library_default(calibrate, "free"),
+                    help="free parameters (default: chosen by the data from channel_depth, "
+                         "xi0, collection_height, clock_separation, v_bss, acceptor_density, "
+                         "xi_ck, xi_cs)")
+    ca.add_argument("--max-lag", type=int,
+                    default=library_default(read_calibration_input, "max_lag"),
+                    help="largest lag measured from flat pairs (default: %(default)s)")
+    ca.add_argument("--no-refine", action="store_true",
+                    help="keep the model's areas (default: match them to the measured a_ij)")
+    ca.add_argument("--max-chi2-dof", type=float,
+                    default=library_default(calibrate, "max_chi2_dof"),
+                    help="a fit above this chi2/dof (and p < 1e-3) is an error "
+                         "(default: %(default)s)")
+    ca.add_argument("--allow-poor-fit", action="store_true",
+                    help="write the template even when the fit is poor")
+    ca.add_argument("--stars", nargs="+", metavar="EXPOSURE",
+                    help="star fields (FITS, electrons or ADU with GAIN) fitted jointly with "
+                         "the a-matrix: corrected star size and shape must not depend on flux")
+    ca.add_argument("--holdout", choices=("auto", "cross", "split", "last"),
+                    default=stars_default("holdout"),
+                    help="stars held out for validation: two-fold cross-validation over "
+                         "seeded halves of every field, the template fitted to all stars "
+                         "('cross', and 'auto'); one half fitted, the other held out "
+                         "('split'); the last field held out ('last') (default: %(default)s)")
+    ca.add_argument("--gain", type=float, default=stars_default("gain"),
+                    help="e/ADU of star fields in ADU without GAIN")
+    ca.add_argument("--model-directions-only", action="store_true",
+                    help="with --stars: move the template along the model's directions only, "
+                         "not within the a-matrix's errors lag by lag")
+    ca.add_argument("--fit-slopes", nargs="+", choices=("size", "e1", "e2"),
+                    default=list(stars_default("fitted_slopes")), metavar="SLOPE",
+                    help="with --stars: the star slopes the fit nulls (size, e1, e2; default "
+                         "size: a field measures e1 to about its own size, so fitting it adds "
+                         "noise; the others are reported)")
+    ca.add_argument("--size-goal", type=float, default=stars_default("size_goal"),
+                    metavar="PERCENT",
+                    help="with --stars: the precision of the corrected size slope (%% of the "
+                         "uncorrected) the report measures the fit against; short of it, a "
+                         "warning says how many fields would reach it (default: %(default)s)")
+    ca.add_argument("--plot", help="write a PNG: a_ij against lag, pulls, correlations")
+    ca.add_argument("--overwrite", action="store_true",
+                    help="replace an existing --out or --plot")
+    ca.add_argument("--json", action="store_true")
+    ca.add_argument("--quiet", action="store_true", help="no progress bar")
+    ca.set_defaults(func=cmd_calibrate)
+    return ca
+
+
+def add_ptc_parser(subparsers):
+    """Add ``ptc`` to the subcommands of ``bfdrift``.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``add_subparsers()`` of the top-level parser.
+
+    Returns
+    -------
+    parser : argparse.ArgumentParser
+    """
+    pt = subparsers.add_parser("ptc", help="photon transfer curve fit (gain, a_ij)")
+    pt.add_argument("files", nargs="+", help="PTC text file, or FITS flats in pairs (files, or "
+                    "one directory: its FITS files sorted by name)")
+    # not read_calibration_input's 8 (calibrate's): see PTC_MAX_LAG
+    pt.add_argument("--max-lag", type=int, default=PTC_MAX_LAG, help="largest covariance lag")
+    pt.add_argument("--json", action="store_true")
+    pt.set_defaults(func=cmd_ptc)
+    return pt
+
+
+def add_diagnose_parser(subparsers):
+    """Add ``diagnose`` to the subcommands of ``bfdrift``.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``add_subparsers()`` of the top-level parser.
+
+    Returns
+    -------
+    parser : argparse.ArgumentParser
+    """
+    dg = subparsers.add_parser("diagnose", help="residual of the model and the effects "
+                               "explaining it")
+    dg.add_argument("input", help="a_ij table, PTC text file or directory of flat pairs")
+    dg.add_argument("--json", action="store_true")
+    dg.add_argument("--report", help="write report.md, diagnosis.json and figures here")
+    dg.add_argument("--overwrite", action="store_true")
+    dg.add_argument("--basis", help="linearised electrostatic model (JSON; default: the "
+                    "shipped fit to the ITL a_ij)")
+    dg.add_argument("--max-lag", type=int, default=library_default(load_input, "max_lag"),
+                    help="largest lag for flat pairs")
+    dg.add_argument("--template-change", action=argparse.BooleanOptionalAction, default=True,
+                    help="when an added effect moves the base a_ij by more than 1 sigma, "
+                    "calibrate templates without and with it and give what the first would "
+                    "leave of the star size and e1 slopes (about a minute; default on)")
+    dg.set_defaults(func=cmd_diagnose)
+    return dg

@@ -1,0 +1,297 @@
+"""``bfdrift correct`` and ``bfdrift maps``: the commands on images (options and
+commands).
+
+``correct`` takes its defaults from
+:class:`~lsst_bfdrift.correction.task.BrighterFatterDriftConfig` (an option
+not given leaves the config's field) and from
+:func:`~lsst_bfdrift.correction.batch.correct_files`; ``maps`` from
+:func:`~lsst_bfdrift.geometry.superpose.moment_maps`.
+"""
+
+import argparse
+import os
+import sys
+
+import numpy as np
+from astropy.io import fits
+
+from lsst_bfdrift.cli._common import (check_outputs, emit, library_default, load_template,
+                                      print_json, save_plot, template_input)
+from lsst_bfdrift.correction.batch import correct_files, output_pairs
+from lsst_bfdrift.correction.task import BrighterFatterDriftConfig
+from lsst_bfdrift.geometry.superpose import moment_maps
+from lsst_bfdrift.images.electrons import to_electrons
+from lsst_bfdrift.utils.config import load_config
+from lsst_bfdrift.utils.errors import InputError, OutputExistsError
+from lsst_bfdrift.utils.io import atomic_output, check_output, data_path
+from lsst_bfdrift.utils.progress import ProgressBar
+
+__all__ = ["sample_image_path", "add_correct_parser", "add_maps_parser", "cmd_correct",
+           "cmd_maps"]
+
+
+def sample_image_path():
+    """Path of the bundled sample image (a bright star on sky, electrons).
+
+    Returns
+    -------
+    path : str
+    """
+    return data_path("sample_star.fits")
+
+
+def _write_maps(path, maps, header):
+    hdus = [fits.PrimaryHDU(header=header)]
+    for name, arr in maps.as_dict().items():
+        hdus.append(fits.ImageHDU(arr.astype(np.float64), name=name.upper()))
+    with atomic_output(path) as tmp:
+        fits.HDUList(hdus).writeto(tmp, overwrite=True, checksum=True)
+
+
+def cmd_maps(args):
+    """``bfdrift maps``: the final pixel geometry of an image in electrons.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+
+    Returns
+    -------
+    code : int
+        The exit status.
+    """
+    path = args.image or sample_image_path()
+    check_outputs(args, [path, template_input(args.template)],
+                  {"--out": args.out, "--plot": args.plot})
+    # the package's one unit, gain and saturation rule (as bfdrift correct): --gain means ADU
+    electrons = to_electrons(path, gain=args.gain, gain_name="--gain")
+    image, bad, header, gain = electrons.data, electrons.bad, electrons.meta, electrons.gain
+    tpl = load_template(args.template)
+    with ProgressBar(image.shape[0], "maps", enabled=not args.quiet) as bar:
+        samples = None if args.samples is None else min(args.samples, tpl.edge_samples)
+        maps = moment_maps(tpl, image, mask=bad, workers=2, progress=bar, samples=samples)
+    summary = {
+        "image": os.path.abspath(path), "shape": list(image.shape),
+        "template": args.template or "default",
+        "template_charge": tpl.charge,
+        "edge_samples": tpl.edge_samples if samples is None else samples,
+        "masked_pixels": int(bad.sum()), "gain": gain,
+        "max_charge": float(np.nanmax(np.where(bad, np.nan, image))),
+        "area_min": float(maps.area.min()), "area_max": float(maps.area.max()),
+        "area_sum_minus_npix": float(maps.area.sum() - maps.area.size),
+        "max_abs_shift": float(max(np.abs(maps.dx).max(), np.abs(maps.dy).max())),
+        "max_abs_e": float(np.hypot(maps.e1, maps.e2).max()),
+    }
+    if args.out:
+        header["BFTEMPL"] = (str(args.template or "default")[-60:], "lsst_bfdrift template")
+        header["BFGSAMP"] = (summary["edge_samples"], "edge samples of the geometry")
+        _write_maps(args.out, maps, header)
+        summary["out"] = os.path.abspath(args.out)
+    if args.plot:
+        # matplotlib: geometry.plots imports it; only when --plot is given
+        from lsst_bfdrift.geometry.plots import plot_moment_maps
+        save_plot(plot_moment_maps(maps, image=np.where(bad, np.nan, image),
+                                   title=os.path.basename(path)), args.plot, summary)
+    return emit(summary, args.json, 20)
+
+
+def _correct_config(args):
+    """The Task config of ``correct``: ``--config``, then the options given."""
+    cfg = BrighterFatterDriftConfig() if args.config is None else \
+        load_config(BrighterFatterDriftConfig, args.config)
+    if args.method:
+        cfg.method = args.method
+    if args.gain is not None:
+        cfg.gain = args.gain
+    if args.geometry is not None:
+        cfg.compute_geometry = bool(args.geometry)
+    if args.template is not None:
+        cfg.template = os.path.abspath(args.template)
+    if args.saturation is not None:
+        cfg.saturation = args.saturation
+    if args.blocking_planes is not None:
+        cfg.blocking_mask_planes = [p.strip() for p in args.blocking_planes.split(",")
+                                    if p.strip()]
+    if args.strict:
+        cfg.on_input_warning = "raise"
+    cfg.validate()  # a bad --gain or --method is a usage error, not one failure per file
+    return cfg
+
+
+def _correct_pairs(args):
+    """The (input, output) pairs of ``correct``, checked against the overwrite rule."""
+    files = list(args.inputs)
+    if args.out_dir:
+        os.makedirs(args.out_dir, exist_ok=True)
+        pairs = output_pairs(files, args.out_dir)
+    else:
+        if len(files) != 2:
+            raise InputError(f"{len(files)} paths without --out-dir: give IN.fits OUT.fits, or "
+                             "several inputs with --out-dir DIR")
+        pairs = [(files[0], files[1])]
+    for src, dst in pairs:  # an existing output is one file's failure; an input, a usage error
+        check_output(dst, [s for s, _ in pairs], overwrite=True, what="output")
+    if not args.out_dir and args.overwrite and os.path.exists(files[1]) and \
+            not _written_by_bfdrift(files[1]):
+        # `correct a.fits b.fits --overwrite` meant as two inputs would replace b.fits
+        raise OutputExistsError(
+            f"refusing to overwrite {files[1]}: it exists and was not written by bfdrift "
+            "correct (no BFDRIFT card); was it meant as a second input? Use --out-dir DIR "
+            "for several inputs, or remove the file")
+    if args.skip_existing and args.overwrite:
+        raise InputError("--skip-existing and --overwrite contradict each other; give one")
+    return pairs
+
+
+def _print_correct_results(results, failed, method, as_json):
+    """The report of ``correct``: one line per file (or JSON) on stdout, the
+    warnings and failures on stderr."""
+    if as_json:
+        print_json({"method": method, "files": results, "failed": len(failed)})
+    else:
+        for r in results:
+            if r["error"]:
+                print(f"{r['input']}: FAILED: {r['error']}")
+            elif r.get("skipped"):
+                print(f"{r['input']} -> {r['output']}: skipped (the output exists)")
+            else:
+                # say what happened: the flux moved, and how the solver got there
+                how = ("the series solution was within tolerance (no iteration needed)"
+                       if r["iterations"] == 0 else f"{r['iterations']} iteration(s)")
+                nw = len(r.get("warnings") or [])
+                print(f"{r['input']} -> {r['output']}: moved {r['flux_moved_abs_sum'] / 2:.4g} e "
+                      f"between pixels; {how}; "
+                      + ("converged" if r["converged"] else "NOT converged (see the log)")
+                      + (f"; {nw} input warning(s) (BFWARN; printed below, --strict refuses "
+                         "such inputs)" if nw else ""))
+    for r in results:
+        for w in r.get("warnings") or []:
+            print(f"bfdrift correct: {r['input']}: warning: {w}", file=sys.stderr)
+    for r in failed:
+        print(f"bfdrift correct: {r['input']}: {r['error']}", file=sys.stderr)
+
+
+def cmd_correct(args):
+    """``bfdrift correct``: BrighterFatterDriftTask on FITS images.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+
+    Returns
+    -------
+    code : int
+        The exit status: 1 when a file failed (the others are done).
+    """
+    cfg = _correct_config(args)
+    pairs = _correct_pairs(args)
+    skipped = [(s_, d) for s_, d in pairs if args.skip_existing and os.path.exists(d)]
+    todo = [p_ for p_ in pairs if p_ not in skipped]
+    done = correct_files(todo, cfg, scheduler=args.scheduler, overwrite=args.overwrite,
+                         n_workers=args.n_workers, processes=args.processes,
+                         progress=not args.quiet) if todo else []
+    by_pair = dict(zip(todo, done))
+    results = [by_pair.get(p_) or {"input": p_[0], "output": p_[1], "error": None,
+                                   "skipped": True, "iterations": None, "converged": None}
+               for p_ in pairs]
+    failed = [r for r in results if r["error"]]
+    _print_correct_results(results, failed, cfg.method, args.json)
+    return 1 if failed else 0
+
+
+def _written_by_bfdrift(path):
+    """Whether a FITS file carries the BFDRIFT card that ``bfdrift correct`` writes."""
+    try:
+        with fits.open(path) as hdul:
+            return any(h.header.get("BFDRIFT") is True for h in hdul)
+    except (OSError, ValueError, TypeError):
+        return False
+
+
+def add_correct_parser(subparsers):
+    """Add ``correct`` to the subcommands of ``bfdrift``.
+
+    The Task's options are None by default: the config's field stays (its
+    value, from :class:`~lsst_bfdrift.correction.task.BrighterFatterDriftConfig`,
+    is quoted in the help); the dask options default to
+    :func:`~lsst_bfdrift.correction.batch.correct_files`'s.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``add_subparsers()`` of the top-level parser.
+
+    Returns
+    -------
+    parser : argparse.ArgumentParser
+    """
+    cfg = BrighterFatterDriftConfig()
+    co = subparsers.add_parser("correct", help="brighter-fatter correction of FITS images")
+    co.add_argument("inputs", nargs="+", help="IN.fits OUT.fits, or inputs with --out-dir")
+    co.add_argument("--out-dir", help="directory for the corrected files (same names)")
+    co.add_argument("--config", help="BrighterFatterDriftConfig: a pex_config override file "
+                    "(config.method = 'astier23'), or a JSON/TOML table of field values")
+    co.add_argument("--method", choices=tuple(BrighterFatterDriftConfig.method.allowed),
+                    help=f"correction method (default: the config's, {cfg.method})")
+    co.add_argument("--gain", type=float, help="e/ADU: the images are in ADU (one rule "
+                    "everywhere; an image stating electrons is refused)")
+    co.add_argument("--template", help="template FITS file (default: the config's, else the "
+                    "bundled default)")
+    co.add_argument("--saturation", type=float, help="level at and above which pixels are "
+                    "blocked, in the image's units (default: the config's, else the SATURATE "
+                    "keyword)")
+    co.add_argument("--geometry", action=argparse.BooleanOptionalAction, default=None,
+                    help="write the geometry maps (default: the config's compute_geometry, "
+                    f"{cfg.compute_geometry}, as in the API)")
+    co.add_argument("--overwrite", action="store_true",
+                    help="replace existing outputs (with IN OUT, only a file bfdrift wrote)")
+    co.add_argument("--strict", action="store_true",
+                    help="refuse inputs that look wrong (bias pedestal, mask over the sources, "
+                    "undeclared mask bits) instead of warning (config on_input_warning)")
+    co.add_argument("--blocking-planes", help="comma-separated mask planes that block the "
+                    "flux exchange (default: the config's, "
+                    f"{','.join(cfg.blocking_mask_planes)}); DETECTED and other planes never "
+                    "block unless named")
+    co.add_argument("--skip-existing", action="store_true",
+                    help="leave inputs whose output exists (resume an interrupted run)")
+    co.add_argument("--scheduler", default=library_default(correct_files, "scheduler"),
+                    help="dask: 'local' (LocalCluster) or a scheduler address "
+                    "(tcp://host:8786); default: serial")
+    co.add_argument("--n-workers", type=int, default=library_default(correct_files, "n_workers"),
+                    help="LocalCluster workers")
+    co.add_argument("--processes", action="store_true",
+                    help="LocalCluster workers as processes (default: threads)")
+    co.add_argument("--json", action="store_true")
+    co.add_argument("--quiet", action="store_true")
+    co.set_defaults(func=cmd_correct)
+    return co
+
+
+def add_maps_parser(subparsers):
+    """Add ``maps`` to the subcommands of ``bfdrift``.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``add_subparsers()`` of the top-level parser.
+
+    Returns
+    -------
+    parser : argparse.ArgumentParser
+    """
+    m = subparsers.add_parser("maps", help="pixel geometry maps of an image (main job)")
+    m.add_argument("image", nargs="?", help="FITS image in electrons (default: bundled sample)")
+    m.add_argument("--template", help="template FITS file (default: bundled)")
+    m.add_argument("--gain", type=float, help="e/ADU if the image is in ADU")
+    m.add_argument("--out", help="write the maps to this FITS file")
+    m.add_argument("--plot", help="write a PNG of the maps")
+    m.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    m.add_argument("--samples", type=int, default=library_default(moment_maps, "samples"),
+                   help="resample the template's edges to this many samples (faster; 8 "
+                        "keeps the maps within ~1e-5 of the full ones); default: all")
+    m.add_argument("--json", action="store_true")
+    m.add_argument("--quiet", action="store_true")
+    m.set_defaults(func=cmd_maps)
+    return m

@@ -1,0 +1,208 @@
+"""``bfdrift flat-sim`` and ``bfdrift star-sim``: simulations with moving
+boundaries (options and commands).
+
+The options' defaults are those of the functions they feed
+(:func:`~lsst_bfdrift.simulation.flats.simulate_flats`,
+:func:`~lsst_bfdrift.simulation.stars.simulate_star`), except where a comment
+says why not.
+"""
+
+from lsst_bfdrift.cli._common import (check_outputs, library_default, load_template,
+                                      print_json, save_plot, template_input)
+from lsst_bfdrift.simulation.flats import simulate_flats, with_responsivity
+from lsst_bfdrift.simulation.stars import make_psf, simulate_star
+from lsst_bfdrift.utils.io import atomic_output
+
+__all__ = ["add_flat_sim_parser", "add_star_sim_parser", "cmd_flat_sim", "cmd_star_sim",
+           "CLI_SEED"]
+
+#: Seed of the simulations when ``--seed`` is not given: a run is repeatable
+#: by default (the library's ``seed=None`` draws a fresh one each time); the
+#: package's usual seed (that of ``validate-stars`` and ``calibrate --stars``).
+CLI_SEED = 20151
+
+
+def cmd_flat_sim(args):
+    """``bfdrift flat-sim``: flats with moving boundaries, covariances per step.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+
+    Returns
+    -------
+    code : int
+        The exit status.
+    """
+    check_outputs(args, [template_input(args.template)],
+                  {"--out": args.out, "--plot": args.plot})
+    tpl = load_template(args.template)
+    if args.responsivity is not None:
+        # same displacements, attributed to the charge giving dlnA00/Q = responsivity
+        tpl = with_responsivity(tpl, args.responsivity)
+    tab = simulate_flats(tpl, n_images=args.n_images, shape=(args.size, args.size),
+                         step=args.step, n_steps=args.steps, max_lag=args.max_lag,
+                         seed=args.seed, progress=not args.quiet)
+    if args.out:
+        with atomic_output(args.out) as tmp:
+            tab.write(tmp, format="ascii.ecsv", overwrite=True)
+    if args.plot:
+        # matplotlib: simulation.plots imports it; only when --plot is given
+        from lsst_bfdrift.simulation.plots import plot_flat_simulation
+        save_plot(plot_flat_simulation(tab, tpl), args.plot)
+    steps = [{"mu": float(r["mu"]),
+              **{f"C{i}{j}_paper": float(r["paper"][i, j] * r["mu"]) for i in range(2)
+                 for j in range(2)},
+              **{f"C{i}{j}_pairs": float(r["pairs"][i, j]) for i in range(2) for j in range(2)},
+              **{f"C{i}{j}_pairs_err": float(r["pairs_err"][i, j]) for i in range(2)
+                 for j in range(2)}} for r in tab]
+    out = {"template_charge": tpl.charge, "n_images": args.n_images,
+           "shape": [args.size, args.size], "step": args.step, "steps": steps,
+           "units": "covariances in e^2, mean in e"}
+    if args.json:
+        print_json(out)
+    else:
+        last = steps[-1]
+        print(f"final mean {last['mu']:.1f} e: C00 {last['C00_paper']:.1f}, C01 "
+              f"{last['C01_paper']:.2f}, C10 {last['C10_paper']:.2f} e^2 (all pairs)")
+    return 0
+
+
+def cmd_star_sim(args):
+    """``bfdrift star-sim``: one star shot photon by photon with moving boundaries.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+
+    Returns
+    -------
+    code : int
+        The exit status.
+    """
+    check_outputs(args, [template_input(args.template)],
+                  {"--out": args.out, "--plot": args.plot})
+    tpl = load_template(args.template)
+    psf = make_psf(args.psf, args.fwhm, e=args.e, beta=args.beta)
+    hist, final = simulate_star(tpl, psf, args.flux, stamp_size=args.stamp,
+                                update_every=args.update_every, pixel_scale=args.pixel_scale,
+                                center=(args.dx, args.dy), seed=args.seed,
+                                progress=not args.quiet)
+    if args.out:
+        with atomic_output(args.out) as tmp:
+            hist.write(tmp, format="ascii.ecsv", overwrite=True)
+    if args.plot:
+        # matplotlib: simulation.plots imports it; only when --plot is given
+        from lsst_bfdrift.simulation.plots import plot_star_history
+        save_plot(plot_star_history(hist), args.plot)
+    last = hist[-1]
+    out = {"psf": args.psf, "fwhm_arcsec": args.fwhm, "flux": args.flux,
+           "template_charge": tpl.charge, "lost": final["lost"],
+           "T_growth": float(last["T"] / last["T_nominal"] - 1),
+           "central_counts": float(last["central"]),
+           "central_counts_square_pixels": float(final["nominal_image"][args.stamp // 2,
+                                                                         args.stamp // 2]),
+           "min_area": float(final["maps"].area.min()),
+           "steps": [{k: float(r[k]) for k in hist.colnames} for r in hist]}
+    if args.json:
+        print_json(out)
+    else:
+        print(f"T grew by {100 * out['T_growth']:.3f} % relative to square pixels; "
+              f"central pixel {out['central_counts']:.0f} e "
+              f"({out['central_counts_square_pixels']:.0f} with square pixels)")
+    return 0
+
+
+def add_flat_sim_parser(subparsers):
+    """Add ``flat-sim`` to the subcommands of ``bfdrift``.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``add_subparsers()`` of the top-level parser.
+
+    Returns
+    -------
+    parser : argparse.ArgumentParser
+    """
+    def default(name):
+        return library_default(simulate_flats, name)
+
+    fs = subparsers.add_parser("flat-sim", help="flat-field simulation with moving boundaries")
+    fs.add_argument("--template", help="template FITS file (default: bundled)")
+    fs.add_argument("--responsivity", type=float,
+                    help="rescale the template to this dlnA00 per electron; write it "
+                    "as --responsivity=-1e-5 (a leading minus needs the = form)")
+    fs.add_argument("--n-images", type=int, default=default("n_images"),
+                    help="periodic images simulated")
+    # square images: the side of simulate_flats' default shape
+    fs.add_argument("--size", type=int, default=default("shape")[0],
+                    help="side of each periodic image")
+    fs.add_argument("--step", type=float, default=default("step"),
+                    help="electrons per pixel per step")
+    fs.add_argument("--steps", type=int, default=default("n_steps"),
+                    help="exposure steps per image")
+    fs.add_argument("--max-lag", type=int, default=default("max_lag"),
+                    help="largest covariance lag (px)")
+    # not simulate_flats' seed=None: a run is repeatable unless --seed changes it
+    fs.add_argument("--seed", type=int, default=CLI_SEED, help="random seed")
+    fs.add_argument("--out", help="write the per-step table (ECSV)")
+    fs.add_argument("--plot", help="write a PNG of covariances against mean")
+    fs.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    fs.add_argument("--json", action="store_true")
+    fs.add_argument("--quiet", action="store_true")
+    fs.set_defaults(func=cmd_flat_sim)
+    return fs
+
+
+def add_star_sim_parser(subparsers):
+    """Add ``star-sim`` to the subcommands of ``bfdrift``.
+
+    The PSF options (``--psf``, ``--fwhm``, ``--flux``) have no library
+    default; ``--e`` and ``--beta`` differ from
+    :func:`~lsst_bfdrift.simulation.stars.make_psf`'s round PSF on purpose
+    (see the comments).
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``add_subparsers()`` of the top-level parser.
+
+    Returns
+    -------
+    parser : argparse.ArgumentParser
+    """
+    def default(name):
+        return library_default(simulate_star, name)
+
+    ss = subparsers.add_parser("star-sim", help="star simulation with moving boundaries")
+    ss.add_argument("--template", help="template FITS file (default: bundled)")
+    ss.add_argument("--psf", default="gaussian", choices=("gaussian", "moffat", "kolmogorov"),
+                    help="PSF profile")
+    ss.add_argument("--fwhm", type=float, default=0.6, help="arcsec")
+    # not make_psf's round PSF (e=0, beta=0): the demonstration star is the slightly
+    # elliptical one of docs/simulations.rst ("Running it")
+    ss.add_argument("--e", type=float, default=0.05, help="PSF ellipticity")
+    ss.add_argument("--beta", type=float, default=30.0, help="PSF position angle (deg)")
+    ss.add_argument("--flux", type=float, default=2e6, help="conversions (e)")
+    ss.add_argument("--stamp", type=int, default=default("stamp_size"),
+                    help="stamp side (px)")
+    ss.add_argument("--update-every", type=int, default=default("update_every"),
+                    help="electrons between boundary updates")
+    ss.add_argument("--pixel-scale", type=float, default=default("pixel_scale"),
+                    help="arcsec per px")
+    ss.add_argument("--dx", type=float, default=default("center")[0],
+                    help="centre offset (px)")
+    ss.add_argument("--dy", type=float, default=default("center")[1],
+                    help="centre offset (px)")
+    # not simulate_star's seed=None: a run is repeatable unless --seed changes it
+    ss.add_argument("--seed", type=int, default=CLI_SEED, help="random seed")
+    ss.add_argument("--out", help="write the per-step table (ECSV)")
+    ss.add_argument("--plot", help="write a PNG like the paper's Fig. 7")
+    ss.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    ss.add_argument("--json", action="store_true")
+    ss.add_argument("--quiet", action="store_true")
+    ss.set_defaults(func=cmd_star_sim)
+    return ss

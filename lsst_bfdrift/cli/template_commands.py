@@ -1,0 +1,202 @@
+"""``bfdrift template``: build, summarise, draw and convert templates (options and
+commands).
+
+``template build``, ``template summary``, ``template plot``,
+``template export-galsim`` and ``template import-galsim``; the parser of each is
+made by :func:`add_template_parser`.
+"""
+
+import os
+
+from lsst_bfdrift.cli._common import (check_outputs, emit, library_default, load_template,
+                                      save_and_report, save_plot, template_input)
+from lsst_bfdrift.templates.build_config import read_build_config
+from lsst_bfdrift.templates.galsim_export import export_galsim_sensor
+from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
+from lsst_bfdrift.templates.template import build_template
+
+__all__ = ["read_config", "add_template_parser", "cmd_template_build", "cmd_template_summary",
+           "cmd_template_plot", "cmd_template_export", "cmd_template_import"]
+
+
+def read_config(path):
+    """Read a build configuration (:func:`~lsst_bfdrift.templates.build_config.read_build_config`).
+
+    Parameters
+    ----------
+    path : str or None
+        A pex_config override file of ``TemplateBuildConfig``, or JSON/TOML
+        with ``sensor`` and ``template`` tables; None: the package defaults.
+
+    Returns
+    -------
+    params : SensorParameters
+    settings : TemplateSettings
+    """
+    return read_build_config(path)
+
+
+def cmd_template_build(args):
+    """``bfdrift template build``: compute a template from the model, write ``--out``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+
+    Returns
+    -------
+    code : int
+        The exit status.
+    """
+    params, settings = read_config(args.config)
+    overrides = {k: v for k, v in (("size", args.size), ("aggressor_charge", args.charge),
+                                   ("edge_samples", args.samples), ("tol", args.tol),
+                                   ("workers", args.workers)) if v is not None}
+    if overrides:
+        settings = type(settings).from_dict({**settings.to_dict(), **overrides})
+    check_outputs(args, [args.config], {"--out": args.out})
+    return save_and_report(build_template(params, settings, progress=not args.quiet), args)
+
+
+def cmd_template_summary(args):
+    """``bfdrift template summary``: the key numbers of a template.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+
+    Returns
+    -------
+    code : int
+        The exit status.
+    """
+    tpl = load_template(args.file)
+    return emit(tpl.summary(), args.json)
+
+
+def cmd_template_plot(args):
+    """``bfdrift template plot``: boundaries and area map as a PNG.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+
+    Returns
+    -------
+    code : int
+        The exit status.
+    """
+    # matplotlib: templates.plots imports it; only this command draws
+    from lsst_bfdrift.templates.plots import plot_template
+    check_outputs(args, [template_input(args.file)], {"--out": args.out})
+    tpl = load_template(args.file)
+    save_plot(plot_template(tpl, exaggerate=args.exaggerate, half_width=args.half_width),
+              args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_template_export(args):
+    """``bfdrift template export-galsim``: GalSim sensor files (.cfg, .dat).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+
+    Returns
+    -------
+    code : int
+        The exit status.
+    """
+    tpl = load_template(args.file)
+    cfg, dat = export_galsim_sensor(tpl, args.prefix, num_vertices=args.vertices,
+                                    overwrite=args.overwrite)
+    return emit({"cfg": os.path.abspath(cfg), "dat": os.path.abspath(dat),
+                 "pixels": f"{tpl.size} x {tpl.size}",
+                 "num_vertices": tpl.edge_samples if args.vertices is None else args.vertices,
+                 "charge": tpl.charge}, args.json)
+
+
+def cmd_template_import(args):
+    """``bfdrift template import-galsim``: a GalSim sensor file as a template.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+
+    Returns
+    -------
+    code : int
+        The exit status.
+    """
+    check_outputs(args, [], {"--out": args.out})
+    return save_and_report(import_galsim_sensor(args.name), args)
+
+
+def add_template_parser(subparsers):
+    """Add ``template`` and its actions to the subcommands of ``bfdrift``.
+
+    Options that are None by default leave the value to the build
+    configuration (``build``) or to the function they feed
+    (:func:`~lsst_bfdrift.templates.plots.plot_template`,
+    :func:`~lsst_bfdrift.templates.galsim_export.export_galsim_sensor`).
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``add_subparsers()`` of the top-level parser.
+
+    Returns
+    -------
+    parser : argparse.ArgumentParser
+        The parser of ``template``.
+    """
+    tp = subparsers.add_parser("template", help="build, inspect and convert templates")
+    tsub = tp.add_subparsers(dest="action", required=True)
+    b = tsub.add_parser("build", help="compute a template from the model")
+    b.add_argument("--out", required=True, help="output FITS file")
+    b.add_argument("--config", help="TemplateBuildConfig: a pex_config override file "
+                   "(config.sensor.v_bss = -60.0), or JSON/TOML with 'sensor' and 'template' "
+                   "tables")
+    b.add_argument("--size", type=int, help="neighbourhood side N (odd)")
+    b.add_argument("--charge", type=float, help="aggressor charge (e)")
+    b.add_argument("--samples", type=int, help="samples per edge")
+    b.add_argument("--tol", type=float, help="bisection tolerance (px)")
+    b.add_argument("--workers", type=int, help="threads")
+    b.add_argument("--overwrite", action="store_true")
+    b.add_argument("--quiet", action="store_true", help="no progress bar")
+    b.add_argument("--json", action="store_true", help="print the summary as JSON")
+    b.set_defaults(func=cmd_template_build)
+    s = tsub.add_parser("summary", help="key numbers of a template")
+    s.add_argument("file", nargs="?", help="template FITS file (default: bundled)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_template_summary)
+    pl = tsub.add_parser("plot", help="draw boundaries and area map")
+    pl.add_argument("file", nargs="?", help="template FITS file (default: bundled)")
+    pl.add_argument("--out", required=True, help="output PNG")
+    pl.add_argument("--exaggerate", type=float, help="displacement factor")
+    pl.add_argument("--half-width", type=int, help="pixels shown each side")
+    pl.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    pl.set_defaults(func=cmd_template_plot)
+    ex = tsub.add_parser("export-galsim", help="write GalSim sensor files (.cfg, .dat) that "
+                         "galsim.SiliconSensor(name=PREFIX) reads")
+    ex.add_argument("file", nargs="?", help="template FITS file (default: bundled)")
+    ex.add_argument("prefix", help="output path without extension")
+    ex.add_argument("--vertices", type=int,
+                    default=library_default(export_galsim_sensor, "num_vertices"),
+                    help="vertices per edge (default: the template's edge samples)")
+    ex.add_argument("--overwrite", action="store_true", help="replace existing files")
+    ex.add_argument("--json", action="store_true")
+    ex.set_defaults(func=cmd_template_export)
+    g = tsub.add_parser("import-galsim", help="convert a GalSim sensor file")
+    g.add_argument("name", help="sensor name (e.g. lsst_itl_50_8) or path prefix")
+    g.add_argument("--out", required=True, help="output template FITS file")
+    g.add_argument("--overwrite", action="store_true")
+    g.add_argument("--json", action="store_true")
+    g.set_defaults(func=cmd_template_import)
+    return tp
