@@ -56,6 +56,11 @@ _CLASS = {DISTORTION_OBSTYPE: "lsst.ip.isr.electrostaticBrighterFatter."
           BFK_OBSTYPE: "lsst.ip.isr.brighterFatterKernel.BrighterFatterKernel"}
 
 
+def _float(value):
+    """A table value as float (a masked one, as astropy reads a NaN, is NaN)."""
+    return float(np.ma.filled(np.ma.asarray(value, dtype=float), np.nan))
+
+
 def _text(values):
     return [v.decode() if isinstance(v, bytes) else str(v) for v in np.atleast_1d(values)]
 
@@ -219,7 +224,7 @@ def read_distortion_matrix(path):
             reduced_chi2=float(r["FIT_REDUCED_CHI2"]),
             covariance=cov.reshape(len(free), len(free)) if cov.size == len(free) ** 2
             else cov, used=arr("USED_PIXELS", n_in).astype(bool),
-            gain=dict(zip(amps, (float(g) for g in np.atleast_1d(r["GAIN"])))),
+            gain=dict(zip(amps, (_float(g) for g in np.atleast_1d(r["GAIN"])))),
             bad_amps=_text(r["BAD_AMPS"]) if len(r["BAD_AMPS"]) else [],
             normalization=[float(v) for v in r["MODEL_NORMALIZATION"]], filters=filters,
             meta=meta)
@@ -320,9 +325,10 @@ def read_bfk(path):
         amp_kernels, valid, gain = {}, {}, {}
         for row in amps:
             name = _text(row["AMPLIFIER"])[0]
-            amp_kernels[name] = np.asarray(row["KERNEL"], dtype=float).reshape(shape)
+            amp_kernels[name] = np.ma.filled(np.ma.asarray(row["KERNEL"], dtype=float),
+                                             np.nan).reshape(shape)
             valid[name] = bool(row["VALID"])
-            gain[name] = float(row["GAIN"])
+            gain[name] = _float(row["GAIN"])
         det = None
         if len(tables) > 1 and len(tables[1]):
             det = np.asarray(tables[1][0]["KERNEL"], dtype=float).reshape(shape)

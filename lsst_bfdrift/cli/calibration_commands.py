@@ -14,6 +14,8 @@ import json
 import os
 
 from lsst_bfdrift.calibration.acoeff_model import LinearBasis, load_default_basis
+from lsst_bfdrift.calibration.lsst_products import write_bfk, write_distortion_matrix
+from lsst_bfdrift.calibration.routes import MODELS, calibrate_route
 from lsst_bfdrift.calibration.star_fit import calibrate_with_stars, check_size_goal
 from lsst_bfdrift.calibration.tuning import calibrate, measured_acoeffs
 from lsst_bfdrift.cli._common import (check_output_dir, check_outputs, emit, library_default,
@@ -101,8 +103,11 @@ def cmd_calibrate(args):
         if not os.path.isfile(x):
             raise InputNotFoundError(f"--stars {x}: no such file")
     check_size_goal(args.size_goal, "--size-goal")  # before any file is read
+    _check_model_options(args)
     data = read_calibration_input(args.input, max_lag=args.max_lag)
     table = measured_acoeffs(data)
+    if args.model != "electrostatic":
+        return _lsst_route(args, data, table)
     res = calibrate(table, free=args.free, refine=not args.no_refine,
                     allow_poor_fit=args.allow_poor_fit, max_chi2_dof=args.max_chi2_dof,
                     progress=not args.quiet)
@@ -136,6 +141,63 @@ def cmd_calibrate(args):
         print_json(summary)
     else:
         _print_calibration(args, res, joint, data, table)
+    return 0
+
+
+def _check_model_options(args):
+    """Refuse options that ``--model`` astier23 or coulton18 would ignore (before any
+    file is read), and ``--product`` with the package's own route."""
+    if args.model == "electrostatic":
+        if args.product:
+            raise InputError("--product writes LSST's product of --model astier23 "
+                             "(electroBfDistortionMatrix) or coulton18 (bfk); --model "
+                             "electrostatic writes its template only (--out)")
+        return
+    given = [opt for opt, on in (("--stars", bool(args.stars)), ("--free", bool(args.free)),
+                                 ("--no-refine", args.no_refine),
+                                 ("--allow-poor-fit", args.allow_poor_fit)) if on]
+    if given:
+        raise InputError(f"{', '.join(given)}: options of --model electrostatic (this "
+                         f"package's model); --model {args.model} is LSST's route and has none "
+                         "of them")
+    if args.product:
+        check_outputs(args, args.input, {"--product": args.product})
+
+
+def _lsst_route(args, data, table):
+    """``calibrate --model astier23|coulton18``: LSST's route from the same a-matrix."""
+    route = calibrate_route(table, args.model)
+    tpl = route.template
+    tpl.meta["calibration"] = {"source": table.source, "route": args.model,
+                               "chi2": float(route.chi2), "dof": int(route.dof),
+                               "inputs": [os.path.abspath(x) for x in args.input]}
+    tpl.save(args.out, overwrite=args.overwrite)
+    if args.product:
+        if args.model == "astier23":
+            write_distortion_matrix(args.product, route.product, overwrite=args.overwrite,
+                                    inputs=args.input)
+        else:
+            write_bfk(args.product, route.product.kernel, overwrite=args.overwrite,
+                      inputs=args.input)
+    summary = {"model": args.model, **route.summary(), "input": data.summary(),
+               "out": os.path.abspath(args.out),
+               "product": None if not args.product else os.path.abspath(args.product)}
+    if args.model == "astier23":
+        m = route.product
+        summary["parameters"] = {k: {"value": m.fit_params[k],
+                                     "error": m.fit_errors.get(k, 0.0)} for k in m.free_params}
+    if args.json:
+        print_json(summary)
+        return 0
+    what = {"astier23": "the Astier & Regnault 2023 model (LSST's DP2 route)",
+            "coulton18": "the kernel of the measured a-matrix (LSST's DP1 route)"}[args.model]
+    print(f"calibrated {table.source} with {what}")
+    if args.model == "astier23":
+        for k, v in summary["parameters"].items():
+            print(f"  {k:>8s} = {v['value']:.6g} +- {v['error']:.2g}")
+        print(f"  chi2 = {route.chi2:.2f} for {route.dof} dof")
+    print(f"  template: {args.out} (correct with --method {route.method})"
+          + (f"; LSST product: {args.product}" if args.product else ""))
     return 0
 
 
@@ -260,6 +322,14 @@ def add_calibrate_parser(subparsers):
                     "PTC text file, an a-matrix table (i j a sigma, or ECSV i, j, a, a_err) or "
                     "cp_pipe's PTC dataset FITS")
     ca.add_argument("--out", required=True, help="calibrated template FITS file")
+    ca.add_argument("--model", choices=MODELS, default=library_default(calibrate_route, "model"),
+                    help="electrostatic: this package's model (corrected with --method "
+                         "drift); astier23: the Astier & Regnault 2023 model, LSST's DP2 route "
+                         "(--method astier23); coulton18: the kernel of the a-matrix, LSST's "
+                         "DP1 route (--method coulton18) (default: %(default)s)")
+    ca.add_argument("--product", metavar="FILE",
+                    help="with --model astier23 or coulton18: also write LSST's product, an "
+                         "electroBfDistortionMatrix or a bfk FITS file")
     ca.add_argument("--free", nargs="+", metavar="NAME",
                     default=library_default(calibrate, "free"),
                     help="free parameters (default: chosen by the data from channel_depth, "

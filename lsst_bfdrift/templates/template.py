@@ -411,7 +411,10 @@ class DistortionTemplate:
                 mismatch = max(mismatch, float(np.ptp(vals[:, :2], axis=0).max()))
                 if merge == "nearest":
                     vals = vals[vals[:, 2] == vals[:, 2].min()]
-                corner_d[a, b] = vals[:, :2].mean(axis=0)
+                # equal values are taken as they are: a mean of 3 or 5 equal numbers
+                # can round away from them (and the file's SHA-256 would not match)
+                corner_d[a, b] = vals[0, :2] if not np.ptp(vals[:, :2], axis=0).any() \
+                    else vals[:, :2].mean(axis=0)
         vedge = np.zeros((n, n + 1, ns))
         hedge = np.zeros((n + 1, n, ns))
         vt = np.zeros(vedge.shape)
@@ -425,10 +428,12 @@ class DistortionTemplate:
                 dist = np.array([v[2] for v in vals])
                 near = dist == dist.min()
                 nv, tv = nv[near], tv[near]
+            nm = nv[0] if not np.ptp(nv, axis=0).any() else nv.mean(axis=0)
+            tm = tv[0] if not np.ptp(tv, axis=0).any() else tv.mean(axis=0)
             if kind == "v":
-                vedge[a, b], vt[a, b] = nv.mean(axis=0), tv.mean(axis=0)
+                vedge[a, b], vt[a, b] = nm, tm
             else:
-                hedge[a, b], ht[a, b] = nv.mean(axis=0), tv.mean(axis=0)
+                hedge[a, b], ht[a, b] = nm, tm
         if max_mismatch is not None and mismatch > max_mismatch:
             raise TemplateFileError(
                 f"template table is inconsistent: shared corners/edges differ by up to "

@@ -15,6 +15,7 @@ import re
 
 import pytest
 
+from lsst_bfdrift.calibration.routes import calibrate_route
 from lsst_bfdrift.calibration.star_fit import calibrate_with_stars
 from lsst_bfdrift.calibration.tuning import calibrate
 from lsst_bfdrift.cli.main import build_parser, main
@@ -67,6 +68,7 @@ SOURCES = [
     ("validate-sky", "poly_order", validate_sky, "poly_order", _same, 3),
     ("validate-sky", "n_boot", validate_sky, "n_boot", _same, 99),
     ("calibrate", "max_lag", read_calibration_input, "max_lag", _same, 5),
+    ("calibrate", "model", calibrate_route, "model", _same, "astier23"),
     ("calibrate", "free", calibrate, "free", _same, ["xi0"]),
     ("calibrate", "max_chi2_dof", calibrate, "max_chi2_dof", _same, 5.0),
     ("calibrate", "holdout", calibrate_with_stars, "holdout", _same, "cross"),

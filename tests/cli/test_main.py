@@ -823,3 +823,37 @@ def test_calibrate_size_goal_option(capsys, tmp_path, goal):
                         "--size-goal", goal, "--quiet")
     assert code == 2 and "--size-goal must be a finite precision > 0" in err
     assert not out.exists()
+
+
+def test_calibrate_with_lsst_routes(capsys, tmp_path):
+    """bfdrift calibrate --model astier23 / coulton18 on the measured ITL a-matrix:
+    a template meant for that method and LSST's product, read back; options of the
+    package's own model and a PTC's a00 alone are refused with nothing written."""
+    from lsst_bfdrift.calibration.lsst_products import read_bfk, read_distortion_matrix
+    from lsst_bfdrift.templates.template import DistortionTemplate
+
+    itl = "/work/shared/data/measured/itl_covariances_21oct19.txt"
+    out, prod = tmp_path / "k.fits", tmp_path / "bfk.fits"
+    code, text, _ = _run(capsys, "calibrate", itl, "--model", "coulton18", "--out", str(out),
+                         "--product", str(prod), "--json")
+    assert code == 0 and json.loads(text)["method"] == "coulton18"
+    assert DistortionTemplate.load(out).meta["method"] == "coulton18"
+    assert read_bfk(prod).kernel.shape == (17, 17)
+    out, prod = tmp_path / "ar.fits", tmp_path / "dm.fits"
+    code, text, _ = _run(capsys, "calibrate", itl, "--model", "astier23", "--out", str(out),
+                         "--product", str(prod))
+    assert code == 0 and "correct with --method astier23" in text
+    assert read_distortion_matrix(prod).free_params[0] == "alpha"
+    for extra, match in ((["--free", "xi0"], "--free: options of --model electrostatic"),
+                         (["--stars", itl], "--stars: options of --model electrostatic")):
+        code, _, err = _run(capsys, "calibrate", itl, "--model", "astier23", "--out",
+                            str(tmp_path / "no.fits"), *extra)
+        assert code == 2 and match in err
+    code, _, err = _run(capsys, "calibrate", itl, "--out", str(tmp_path / "no.fits"),
+                        "--product", str(tmp_path / "p.fits"))
+    assert code == 2 and "--product writes LSST's product" in err
+    ptc = "/work/shared/data/measured/eotest_e2v_ptc_amp05.txt"
+    code, _, err = _run(capsys, "calibrate", ptc, "--model", "astier23", "--out",
+                        str(tmp_path / "no.fits"))
+    assert code == 4 and "this input has 1" in err
+    assert not (tmp_path / "no.fits").exists() and not (tmp_path / "p.fits").exists()
