@@ -188,7 +188,7 @@ def main():
     sv = rng.normal(size=(64, 65)).astype(np.float32)
     sh = rng.normal(size=(65, 64)).astype(np.float32)
     res = {}
-    for name, kern in (("one thread", E._fused_serial), ("parallel", E._fused)):
+    for name, kern in (("one thread", E.fused_serial), ("parallel", E.fused_parallel)):
         out = np.empty(f.shape)
         kern(sv, sh, f, b, b.any(axis=1), E.density_weight("fv4"), out)
         res[name] = np.median([timed(kern, sv, sh, f, b, b.any(axis=1),

@@ -14,7 +14,8 @@ import numba
 import numpy as np
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["fused_transfer", "density_weight", "DENSITY_WEIGHTS"]
+__all__ = ["fused_transfer", "fused_parallel", "fused_serial", "density_weight",
+           "DENSITY_WEIGHTS", "SERIAL_BELOW"]
 
 
 @numba.njit(cache=True, inline="always")
@@ -83,6 +84,10 @@ def _hrow(f, sh, k, ny, nx, cubic, th):
 
 
 def _fused_py(sv, sh, f, blk, rowblk, cubic, out):
+    """``out`` = the charge gained by every pixel through its edges, as
+    :func:`fused_transfer` (``f`` float64 and ``blk`` bool, contiguous;
+    ``rowblk`` the rows with a blocked pixel; ``cubic`` the outer weight of
+    :func:`density_weight`); no check of the inputs."""
     ny, nx = f.shape
     for j in numba.prange(ny):
         near = False
@@ -118,12 +123,14 @@ def _named(fn, name):
     return g
 
 
-_fused = numba.njit(parallel=True, cache=True)(_named(_fused_py, "_fused_parallel"))
+#: The kernel of :func:`fused_transfer` on all threads (arguments: see ``_fused_py``).
+fused_parallel = numba.njit(parallel=True, cache=True)(_named(_fused_py, "_fused_parallel"))
 # One thread for small arrays (the windows of the windowed series): a parallel
 # region needs the other thread awake, which on a busy machine can take a
 # scheduler time slice, far more than the work (on a quiet one the two are
 # alike: benchmarks/performance/profile_drift_results.txt).
-_fused_serial = numba.njit(cache=True)(_named(_fused_py, "_fused_serial"))
+#: The kernel of :func:`fused_transfer` on one thread (the same arithmetic).
+fused_serial = numba.njit(cache=True)(_named(_fused_py, "_fused_serial"))
 
 #: Outer weight w of the four-point densities (w, 1/2 - w, 1/2 - w, w).
 DENSITY_WEIGHTS = {"mean2": 0.0, "cubic4": -1.0 / 16.0, "fv4": -1.0 / 12.0}
@@ -177,6 +184,6 @@ def fused_transfer(sv, sh, flux, blocked, *, cubic=False, out=None):
                          f"blocked {b.shape}")
     if out is None:
         out = np.empty((ny, nx))
-    kernel = _fused_serial if ny * nx < SERIAL_BELOW else _fused
+    kernel = fused_serial if ny * nx < SERIAL_BELOW else fused_parallel
     kernel(sv, sh, f, b, b.any(axis=1), density_weight(cubic), out)
     return out

@@ -16,8 +16,14 @@ import os
 import sys
 import threading
 
+import numba
 import numpy as np
+from astropy.io import fits
 
+from lsst_bfdrift.correction.steps import FLAG_BLOCKED, FLAG_EDGE
+from lsst_bfdrift.correction.task import (BrighterFatterDriftConfig, BrighterFatterDriftTask,
+                                          stage_order)
+from lsst_bfdrift.images.exposure import read_exposure, write_exposure
 from lsst_bfdrift.utils.io import atomic_output, check_output
 from lsst_bfdrift.utils.config import config_from_dict
 from lsst_bfdrift.utils.progress import ProgressBar, StageProgress
@@ -71,7 +77,6 @@ def stage_weights(config=None):
         :class:`~lsst_bfdrift.utils.progress.StageProgress` (which takes the
         stages in the dict's order).
     """
-    from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, stage_order
     cfg = json.loads(_config_json(config))
     defaults = BrighterFatterDriftConfig()
     geometry = cfg.get("compute_geometry", defaults.compute_geometry)
@@ -88,13 +93,11 @@ def stage_weights(config=None):
 @functools.lru_cache(maxsize=4)
 def _task(config_json):
     """One Task per configuration and process (the template is loaded once)."""
-    from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
     cfg = config_from_dict(BrighterFatterDriftConfig, json.loads(config_json))
     return BrighterFatterDriftTask(config=cfg)
 
 
 def _config_json(config):
-    from lsst_bfdrift.correction.task import BrighterFatterDriftConfig
     if config is None:
         config = BrighterFatterDriftConfig()
     if isinstance(config, BrighterFatterDriftConfig):
@@ -135,10 +138,6 @@ def correct_file(src, dst, config=None, *, overwrite=False, progress=None):
         :func:`~lsst_bfdrift.correction.checks.input_warnings`),
         ``flux_moved_sum`` and ``flux_moved_abs_sum`` (e).
     """
-    from astropy.io import fits
-
-    from lsst_bfdrift.images.exposure import read_exposure, write_exposure
-
     def report(stage, fraction):
         if progress is not None:
             progress(stage, fraction)
@@ -185,10 +184,6 @@ def _described(hdu, unit, what):
 def _flags_hdu(flags):
     """The BFFLAGS extension: its bits declared as mask planes, afw's way (``MP_`` bit
     number, ``MPD_`` description)."""
-    from astropy.io import fits
-
-    from lsst_bfdrift.correction.steps import FLAG_BLOCKED, FLAG_EDGE
-
     hdu = _described(fits.ImageHDU(flags.astype(np.int16), name="BFFLAGS"), "",
                      f"bit planes of the correction: value {FLAG_BLOCKED} blocked (masked, "
                      f"saturated or non-finite: no flux exchanged), value {FLAG_EDGE} within "
@@ -213,9 +208,8 @@ def _numba_guard():
     parallel kernel has run the layer is unknown, so that run is locked too.
     """
     try:
-        import numba
         layer = numba.threading_layer()
-    except (ImportError, ValueError):
+    except ValueError:  # no parallel kernel has run yet
         layer = "unknown"
     return _NUMBA_LOCK if layer in ("workqueue", "unknown") else contextlib.nullcontext()
 
@@ -287,7 +281,7 @@ def correct_files(pairs, config=None, *, scheduler=None, overwrite=False, n_work
                 results[k] = _safe(src, dst, cfg, overwrite)
                 bar(1)
             return results
-        try:
+        try:  # distributed: optional (the [dask] extra), starts workers
             from distributed import Client, LocalCluster, as_completed
         except ImportError as exc:  # pragma: no cover - depends on the environment
             raise ImportError("the dask scheduler needs dask[distributed]: "

@@ -51,7 +51,7 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-from lsst_bfdrift.correction._edge_kernels import _fused_serial, density_weight, fused_transfer
+from lsst_bfdrift.correction._edge_kernels import density_weight, fused_serial, fused_transfer
 from lsst_bfdrift.correction.settings import RECOMMENDED
 from lsst_bfdrift.correction.tiles import (bound_constants, cell_bound, halo_windows,
                                            window_sides)
@@ -297,7 +297,7 @@ def _window_terms(ops, boxes, img, blk, first, sv, sh, a3, a4, cubic, *, pad=Non
         # fused_transfer's one-thread kernel called directly: the windows are
         # small, their inputs contiguous and checked once per window
         out = np.empty(f.shape)
-        _fused_serial(sv_, sh_, f, kw, rows, w, out)
+        fused_serial(sv_, sh_, f, kw, rows, w, out)
         return out
 
     for shape, ks in groups.items():

@@ -1,11 +1,11 @@
 """Exact moments in boxes: the fallback of
 :func:`~lsst_bfdrift.geometry.linear.linear_moment_maps`.
 
-The flagged bins of the a-priori bound become boxes (:func:`_boxes`); the
+The flagged bins of the a-priori bound become boxes (:func:`exact_boxes`); the
 boundaries are convolved on the boxes with the template's reach of charge
 around them (one packed canvas, or the image itself for the strips along
 its border) and the polygons' moments taken only in the boxes
-(:func:`_exact_windows`).
+(:func:`exact_windows`).
 """
 
 import math
@@ -13,12 +13,14 @@ import math
 import numpy as np
 from scipy import ndimage
 
+from lsst_bfdrift.geometry._convolve import Convolver, block_stack
+from lsst_bfdrift.geometry._moment_kernels import stack_moments, stack_moments_serial
 from lsst_bfdrift.geometry.superpose import MomentMaps, resample_template
 
-__all__ = ["_boxes", "_exact_windows"]
+__all__ = ["exact_boxes", "exact_windows"]
 
 
-def _boxes(flag, b, shape, *, band, block=32):
+def exact_boxes(flag, b, shape, *, band, block=32):
     """Pixel boxes (y0, y1, x0, x1) covering the flagged bins.
 
     Flagged bins within ``band`` bins of the image border (where the
@@ -67,7 +69,7 @@ def _boxes(flag, b, shape, *, band, block=32):
     return out
 
 
-def _exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtype, strip,
+def exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtype, strip,
                    progress=None):
     """Exact moments of the pixels in ``boxes``; returns the area (px) whose
     boundaries were convolved. ``progress`` is called with the fraction of
@@ -119,11 +121,8 @@ def _box_moments(template, canvas, place, outs, names, *, samples, workers, dtyp
     (one kernel transform), the polygons' moments taken only in the boxes.
     ``progress`` is called with the pixels (rows x width) of each block done.
     Returns the canvas's area (px)."""
-    from lsst_bfdrift.geometry._moment_kernels import stack_moments, stack_moments_serial
-    from lsst_bfdrift.geometry.superpose import _block_stack, _Convolver
-
     t = template if samples is None else resample_template(template, samples)
-    conv = _Convolver(t, dtype=dtype)
+    conv = Convolver(t, dtype=dtype)
     fr = np.ascontiguousarray(t.fractions)
     ns, has_t, c = t.edge_samples, t.vedge_t is not None, t.center
     h = canvas.shape[0]
@@ -134,7 +133,7 @@ def _box_moments(template, canvas, place, outs, names, *, samples, workers, dtyp
     keep = [MomentMaps._names.index(name) for name in names]
     for r0 in range(0, h, rows):
         r1 = r0 + rows
-        st, ro = _block_stack(conv, canvas, r0, r1, workers)
+        st, ro = block_stack(conv, canvas, r0, r1, workers)
         for cy, cx, (y0, y1, x0, x1) in place:
             j0, j1 = max(cy, r0), min(cy + y1 - y0, r1)
             if j0 >= j1:

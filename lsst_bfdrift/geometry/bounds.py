@@ -9,13 +9,15 @@ combines them.
 """
 
 import math
-import threading
 
 import numpy as np
 from scipy import fft as sp_fft
-from scipy import ndimage
 
-__all__ = ["second_order_bounds", "displacement_bound", "pixel_displacement_bound"]
+from lsst_bfdrift.geometry._linear_kernels import abs_dev_bins, pixel_abs_dev_sums
+
+__all__ = ["second_order_bounds", "displacement_bound", "pixel_displacement_bound",
+           "reference_level"]
+
 
 def second_order_bounds(eps, chi=4.0):
     """Bounds of abs(exact - linear) per map for boundary displacements up to ``eps``.
@@ -79,22 +81,22 @@ def second_order_bounds(eps, chi=4.0):
     return dict(area=ra, dx=dxb, dy=dxb.copy(), e1=e1b, e2=e2b)
 
 
-def _reference_level(q):
-    """A typical charge level: the median of at most ~65000 pixels on a grid."""
+def reference_level(q):
+    """A typical charge level of an image: the median of at most ~65000 pixels on a grid.
+
+    Parameters
+    ----------
+    q : ndarray, shape (ny, nx)
+        Charge (e).
+
+    Returns
+    -------
+    float
+        The default reference level ``qbar`` (e) of :func:`displacement_bound`
+        and :func:`~lsst_bfdrift.geometry.linear.error_bounds`.
+    """
     step = max(1, int(math.sqrt(q.size / 65536.0)))
     return float(np.median(q[::step, ::step]))
-
-
-def _bin_kernel(disp, b):
-    """``Kb[D]`` = max of ``disp`` over the pixel offsets between bins D apart."""
-    r = disp.shape[0] // 2
-    rb = -(-(r + b - 1) // b)
-    pad = np.zeros((2 * (rb * b + b) + 1,) * 2)
-    o = rb * b + b
-    pad[o - r:o + r + 1, o - r:o + r + 1] = disp
-    full = ndimage.maximum_filter(pad, size=2 * b - 1, mode="constant")
-    idx = o + b * np.arange(-rb, rb + 1)
-    return full[np.ix_(idx, idx)]
 
 
 def displacement_bound(lk, q, *, bin=2, workers=1, qbar=None, outside=None):
@@ -133,11 +135,9 @@ def displacement_bound(lk, q, *, bin=2, workers=1, qbar=None, outside=None):
     of two bins that far apart (a single-precision FFT convolution, with a
     margin of 1e-5 of the largest value for its rounding).
     """
-    from lsst_bfdrift.geometry._linear_kernels import abs_dev_bins
-
     b = int(bin)
     ny, nx = q.shape
-    qbar = _reference_level(q) if qbar is None else float(qbar)
+    qbar = reference_level(q) if qbar is None else float(qbar)
     rb = lk.bin_kernel(b).shape[0] // 2
     nby, nbx = -(-ny // b), -(-nx // b)
     out_level = abs(qbar) if outside is None else float(outside)
@@ -189,8 +189,6 @@ def pixel_displacement_bound(lk, q, rows, cols, *, qbar, outside=0.0):
     where the bins' largest kernel (``Kb``) is loosest: next to bright
     sources, whose displacement kernel falls steeply with the offset.
     """
-    from lsst_bfdrift.geometry._linear_kernels import pixel_abs_dev_sums
-
     out = np.empty(len(rows))
     pixel_abs_dev_sums(np.ascontiguousarray(q, dtype=np.float64), float(qbar), lk.disp,
                        float(outside), np.asarray(rows, np.int64), np.asarray(cols, np.int64),
@@ -199,44 +197,3 @@ def pixel_displacement_bound(lk, q, rows, cols, *, qbar, outside=0.0):
     if outside != 0.0:
         out += abs(qbar) * lk.net
     return out
-
-
-def _index_map(size, n):
-    """Pixel index in the n-pixel uniform image (``linear._uniform_response``) of
-    every pixel along an axis of ``size`` >= n pixels."""
-    r = n // 2
-    m = np.full(size, r)
-    m[:r] = np.arange(r)
-    m[size - r:] = np.arange(r + 1, n)
-    return m
-
-
-_CLASSES = {}
-_CLASSES_LOCK = threading.Lock()
-
-
-def _bin_classes(m, b, nb):
-    """The distinct sets of indices of ``m`` held by its ``nb`` bins of ``b``
-    (a list of tuples) and each bin's set; kept for the last few maps (the
-    same for every image of a shape)."""
-    key = (m.tobytes(), int(b), int(nb))
-    with _CLASSES_LOCK:  # shared by the threads of a dask worker
-        if key not in _CLASSES:
-            if len(_CLASSES) >= 8:
-                _CLASSES.pop(next(iter(_CLASSES)))
-            keys, idx = {}, np.empty(nb, np.int64)
-            for k in range(nb):
-                idx[k] = keys.setdefault(tuple(np.unique(m[k * b:(k + 1) * b])), len(keys))
-            _CLASSES[key] = (list(keys), idx)
-        return _CLASSES[key]
-
-
-def _binned_eps(eps, rowmap, colmap, b, nby, nbx):
-    """Largest ``eps[rowmap[j], colmap[i]]`` over every b x b bin (the bins
-    classed by the indices they hold: a few near the borders, one inside)."""
-    ky, iy = _bin_classes(rowmap, b, nby)
-    kx, ix = _bin_classes(colmap, b, nbx)
-    table = np.array([[eps[np.ix_(a, c)].max() for c in kx] for a in ky])
-    # C order (``table[iy][:, ix]`` is Fortran-ordered: the callers' in-place
-    # arithmetic with C-ordered arrays then ran 15 times slower)
-    return np.take(table[iy], ix, axis=1)

@@ -29,12 +29,15 @@ import weakref
 
 import numpy as np
 from scipy import fft as sp_fft
+from scipy import ndimage
 
-from lsst_bfdrift.geometry.bounds import _bin_kernel
+from lsst_bfdrift.geometry._linear_kernels import combine_rows, store_tile
 from lsst_bfdrift.geometry.superpose import resample_template
+from lsst_bfdrift.templates.swept import swept_area_kernels
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["LINEAR_MAPS", "LinearKernels", "linear_kernels", "FirstOrderPass"]
+__all__ = ["LINEAR_MAPS", "LinearKernels", "linear_kernels", "FirstOrderPass",
+           "convolved_first_order_maps"]
 
 #: Maps that :func:`linear_moment_maps` computes, in the order of
 #: :attr:`LinearKernels.kernels`.
@@ -55,6 +58,19 @@ def _hat_moments(fractions):
                 w[m, k] += wt * x**m * (b - x) / h
                 w[m, k + 1] += wt * x**m * (x - a) / h
     return w
+
+
+def _bin_kernel(disp, b):
+    """``Kb[D]`` = max of ``disp`` over the pixel offsets between bins D apart."""
+    r = disp.shape[0] // 2
+    rb = -(-(r + b - 1) // b)
+    pad = np.zeros((2 * (rb * b + b) + 1,) * 2)
+    o = rb * b + b
+    pad[o - r:o + r + 1, o - r:o + r + 1] = disp
+    full = ndimage.maximum_filter(pad, size=2 * b - 1, mode="constant")
+    idx = o + b * np.arange(-rb, rb + 1)
+    return full[np.ix_(idx, idx)]
+
 
 
 class LinearKernels:
@@ -137,7 +153,6 @@ class LinearKernels:
         # the swept-area kernels leave out the edges beyond the template whose
         # one end is a displaced corner of its outer boundary; where those
         # are not zero the maps are convolved directly (five kernels)
-        from lsst_bfdrift.templates.swept import swept_area_kernels
         kv, kh = (k / t.charge for k in swept_area_kernels(t))
         self.decomposed = bool(np.abs(self._recombined(kv, kh) - self.kernels).max()
                                <= 1e-12 * np.abs(self.kernels).max())
@@ -378,8 +393,6 @@ class FirstOrderPass:
             Image rows: the block's first, and the rows to fill (within
             the block, at least the template's reach from its cut sides).
         """
-        from lsst_bfdrift.geometry._linear_kernels import combine_rows, store_tile
-
         if r0 != self.rows:
             raise InputError(f"blocks must come in order: expected row {self.rows}, got {r0}")
         c = self.lk.reach - 1
@@ -415,12 +428,40 @@ class FirstOrderPass:
         return self
 
 
-def _linear_maps(lk, q, names, tile, dtype, workers, progress=None):
-    """The first-order maps (float64, in ``names`` order) by tiled FFTs, and
-    max abs(map - nominal) of all five; ``progress`` is called with the
-    fraction of the rows done after each row of tiles."""
-    from lsst_bfdrift.geometry._linear_kernels import store_tile
+def convolved_first_order_maps(lk, q, names, *, tile, dtype, workers=1, progress=None):
+    """The first-order maps by direct FFT convolution with the five map kernels.
 
+    The reference of :class:`FirstOrderPass` (which gets the same maps from
+    the swept-area operator's transforms); also the first-order maps of the
+    small uniform image from which
+    :func:`~lsst_bfdrift.geometry.linear.linear_moment_maps` takes the exact
+    second-order terms near the image border.
+
+    Parameters
+    ----------
+    lk : LinearKernels
+        The kernels (:attr:`LinearKernels.kernels`).
+    q : ndarray, shape (ny, nx), float64
+        Charge (e).
+    names : sequence of str
+        Maps to keep, of :data:`LINEAR_MAPS`.
+    tile : (int, int)
+        Tile shape (rows, columns) of the convolutions (each with a halo of
+        the template's reach).
+    dtype : {numpy.float64, numpy.float32}
+        Precision of the transforms.
+    workers : int, optional
+        FFT threads.
+    progress : callable, optional
+        Called with the fraction of the rows done after each row of tiles.
+
+    Returns
+    -------
+    maps : list of ndarray
+        The maps (float64), in ``names`` order.
+    smax : ndarray, shape (5,)
+        max abs(map - nominal) per map of :data:`LINEAR_MAPS` (all five).
+    """
     ny, nx = q.shape
     r = lk.reach
     th, tw = min(tile[0], ny), min(tile[1], nx)

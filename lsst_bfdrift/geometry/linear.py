@@ -8,17 +8,28 @@ are computed there instead, on windows chosen by an a-priori bound
 :func:`linear_moment_maps` differ from the exact ``moment_maps`` (same
 ``samples``) by at most ``rtol`` times each map's signal in every pixel
 (signal: the largest abs(map - nominal) over the image).
+
+:func:`linear_moment_maps` wires these steps: the options and the charge
+checked (:func:`_checked_names`, :func:`_checked_charge`); the first-order
+maps (:func:`_first_order_pass`, :func:`_complete_first_order`); the exact
+second-order terms of the image's uniform level near its border
+(:func:`_add_border_terms`); the a-priori bound and the bins where it
+exceeds the tolerance (:func:`_exact_flags`); the exact moments there
+(:func:`_add_exact_moments`: in windows, or on the whole image when the
+windows would cover most of it); the maps assembled
+(:func:`_assembled`).
 """
+
+import threading
 
 import numpy as np
 
 from lsst_bfdrift.templates.swept import OperatorCache, kernel_abs_sum, refuse_out_of_range
-from lsst_bfdrift.geometry.bounds import (_binned_eps, _index_map, _reference_level,
-                                          displacement_bound, pixel_displacement_bound,
-                                          second_order_bounds)
-from lsst_bfdrift.geometry.first_order import (LINEAR_MAPS, FirstOrderPass, _linear_maps,
-                                               linear_kernels)
-from lsst_bfdrift.geometry._exact import _boxes, _exact_windows
+from lsst_bfdrift.geometry._exact import exact_boxes, exact_windows
+from lsst_bfdrift.geometry.bounds import (displacement_bound, pixel_displacement_bound,
+                                          reference_level, second_order_bounds)
+from lsst_bfdrift.geometry.first_order import (LINEAR_MAPS, FirstOrderPass,
+                                               convolved_first_order_maps, linear_kernels)
 from lsst_bfdrift.geometry.superpose import (MomentMaps, check_charge_image, moment_maps,
                                              resample_template, superpose_boundaries)
 from lsst_bfdrift.utils.errors import InputError
@@ -35,6 +46,47 @@ __all__ = ["MEASURED_CONSTANTS", "error_bounds", "linear_moment_maps"]
 MEASURED_CONSTANTS = dict(area=4.0, dx=1.6, dy=1.6, e1=4.0, e2=21.0)
 
 
+def _index_map(size, n):
+    """Pixel index in the n-pixel uniform image (:func:`_uniform_response`) of
+    every pixel along an axis of ``size`` >= n pixels."""
+    r = n // 2
+    m = np.full(size, r)
+    m[:r] = np.arange(r)
+    m[size - r:] = np.arange(r + 1, n)
+    return m
+
+
+_CLASSES = {}
+_CLASSES_LOCK = threading.Lock()
+
+
+def _bin_classes(m, b, nb):
+    """The distinct sets of indices of ``m`` held by its ``nb`` bins of ``b``
+    (a list of tuples) and each bin's set; kept for the last few maps (the
+    same for every image of a shape)."""
+    key = (m.tobytes(), int(b), int(nb))
+    with _CLASSES_LOCK:  # shared by the threads of a dask worker
+        if key not in _CLASSES:
+            if len(_CLASSES) >= 8:
+                _CLASSES.pop(next(iter(_CLASSES)))
+            keys, idx = {}, np.empty(nb, np.int64)
+            for k in range(nb):
+                idx[k] = keys.setdefault(tuple(np.unique(m[k * b:(k + 1) * b])), len(keys))
+            _CLASSES[key] = (list(keys), idx)
+        return _CLASSES[key]
+
+
+def _binned_eps(eps, rowmap, colmap, b, nby, nbx):
+    """Largest ``eps[rowmap[j], colmap[i]]`` over every b x b bin (the bins
+    classed by the indices they hold: a few near the borders, one inside)."""
+    ky, iy = _bin_classes(rowmap, b, nby)
+    kx, ix = _bin_classes(colmap, b, nbx)
+    table = np.array([[eps[np.ix_(a, c)].max() for c in kx] for a in ky])
+    # C order (``table[iy][:, ix]`` is Fortran-ordered: the callers' in-place
+    # arithmetic with C-ordered arrays then ran 15 times slower)
+    return np.take(table[iy], ix, axis=1)
+
+
 def _uniform_response(template, lk, qbar, samples):
     """Exact minus linear maps (5, n, n) and the largest boundary displacement
     (n, n) of the pixels of a uniform image of level ``qbar`` (e), n = 2 reach + 1.
@@ -46,7 +98,8 @@ def _uniform_response(template, lk, qbar, samples):
     n = 2 * lk.reach + 1
     qs = np.full((n, n), float(qbar))
     ex = moment_maps(template, qs, samples=samples, maps=LINEAR_MAPS)
-    lin, _ = _linear_maps(lk, qs, LINEAR_MAPS, (n, n), np.float64, 1)
+    lin, _ = convolved_first_order_maps(lk, qs, LINEAR_MAPS, tile=(n, n),
+                                        dtype=np.float64)
     corr = np.stack([getattr(ex, k) - v for k, v in zip(LINEAR_MAPS, lin)])
     t = resample_template(template, lk.samples)
     g = superpose_boundaries(t, qs)
@@ -66,7 +119,7 @@ def _bound_terms(template, lk, q, *, bin, samples, workers, qbar, uniform=None):
     """``D`` and ``eps_u`` per bin (px) of :func:`error_bounds` (``uniform``:
     :func:`_uniform_response`'s result if already computed)."""
     b = int(bin)
-    qbar = _reference_level(q) if qbar is None else float(qbar)
+    qbar = reference_level(q) if qbar is None else float(qbar)
     ny, nx = q.shape
     n = 2 * lk.reach + 1
     nby, nbx = -(-ny // b), -(-nx // b)
@@ -281,6 +334,54 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
     ...  for k in ("area", "dx", "dy", "e1", "e2")]
     [True, True, True, True, True]
     """
+    names = _checked_names(maps, dtype=dtype, bound=bound, rtol=rtol, strip=strip, bin=bin)
+    info = {} if info is None else info
+    q = _checked_charge(template, charge, mask=mask, check_range=check_range)
+    lk = linear_kernels(template, samples=samples)
+    first_order = _first_order_pass(template, q, first_order, names=names, samples=samples,
+                                    map_dtype=map_dtype)
+    report = _reporter(progress)
+    # rough shares of the time: the first-order pass (when it runs here), the
+    # bound, then the exact moments
+    first_share = 0.0 if first_order.complete else 0.4 if fallback else 1.0
+    bound_share = first_share + 0.3 * (1.0 - first_share)
+    report(0.0)
+    # 1. the first-order maps
+    _complete_first_order(template, q, first_order, ops, workers=workers, dtype=dtype,
+                          strip=strip, report=report, share=first_share)
+    out = _assembled(names, first_order.outs)
+    signal = dict(zip(LINEAR_MAPS, first_order.smax.tolist()))
+    tol = {k: 0.9 * rtol * v for k, v in signal.items()}
+    info.update(method="linear", signal=signal, tolerance=tol, windows=0,
+                exact_fraction=0.0, canvas_fraction=0.0)
+    # 2. the exact second-order terms of the uniform level near the border
+    qbar = reference_level(q)
+    uniform = _add_border_terms(template, lk, q, qbar, first_order.outs, names, samples=samples)
+    if not fallback:
+        report(1.0)
+        return out
+    # 3. the a-priori bound: where the exact moments are needed
+    flag = _exact_flags(template, lk, q, qbar, tol, uniform, bound=bound, bin=bin,
+                        samples=samples, workers=workers, refine=refine)
+    report(bound_share)
+    if not flag.any():
+        report(1.0)
+        return out
+
+    def exact(fraction):
+        report(bound_share + (1.0 - bound_share) * min(fraction, 1.0))
+
+    # 4. the exact moments there, in windows (or on the whole image)
+    _add_exact_moments(template, q, flag, first_order.outs, names, info, reach=lk.reach,
+                       bin=bin, max_fraction=max_fraction, samples=samples, workers=workers,
+                       dtype=dtype, strip=strip, progress=None if progress is None else exact)
+    report(1.0)
+    return out
+
+
+def _checked_names(maps, *, dtype, bound, rtol, strip, bin):
+    """The maps to keep (``maps``, default all of :data:`LINEAR_MAPS`), once
+    the options of :func:`linear_moment_maps` are checked."""
     names = LINEAR_MAPS if maps is None else tuple(maps)
     unknown = sorted(set(names) - set(LINEAR_MAPS))
     if unknown:
@@ -293,117 +394,165 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
         raise InputError(f"rtol must be between 0 and 1, got {rtol!r}")
     if int(strip) < 1 or int(bin) < 1:
         raise InputError(f"strip and bin must be positive, got {strip!r}, {bin!r}")
-    info = {} if info is None else info
+    return names
+
+
+def _checked_charge(template, charge, *, mask, check_range):
+    """The charge image (float64): ``charge`` itself when it is a finite,
+    unmasked float64 image (refused beyond the model's range if
+    ``check_range``), else a checked copy (:func:`~.check_charge_image`)."""
     q = np.asarray(charge)
     if mask is not None or q.dtype != np.float64 or q.ndim != 2 or q.size == 0 \
             or not np.isfinite(q).all():
-        q = check_charge_image(charge, mask=mask, template=template)
-    elif check_range:
+        return check_charge_image(charge, mask=mask, template=template)
+    if check_range:
         refuse_out_of_range(q, kernel_abs_sum(template))  # the package's one range check
-    ny, nx = q.shape
-    lk = linear_kernels(template, samples=samples)
-    r = lk.reach
-    out = MomentMaps((0, 0), ())
-    if first_order is None:
-        first_order = FirstOrderPass(template, q.shape, maps=names, samples=samples,
-                                     dtype=map_dtype)
-    elif first_order.shape != q.shape or first_order.names != names:
-        raise InputError("first_order must be a FirstOrderPass of this image's shape and maps")
+    return q
 
+
+def _reporter(progress):
+    """A function reporting a fraction of the work done to ``progress`` (None:
+    to nobody)."""
     def report(fraction):
         if progress is not None:
             progress(fraction)
 
-    # rough shares of the time: the first-order pass (when it runs here), the
-    # bound, then the exact moments
-    first_share = 0.0 if first_order.complete else 0.4 if fallback else 1.0
-    bound_share = first_share + 0.3 * (1.0 - first_share)
-    report(0.0)
-    if not first_order.complete:
-        if ops is None:
-            ops = OperatorCache(template, workers=workers, dtype=dtype)
-        elif not ops.matches(template, ops.workers, dtype):
-            raise InputError("ops must be an OperatorCache made for this template and dtype")
-        done = first_order.rows / ny
-        first_order.run(q, ops, rows=int(strip),
-                        progress=lambda f: report(first_share * (f - done) / (1.0 - done)))
-    outs, smax = first_order.outs, first_order.smax
+    return report
+
+
+def _first_order_pass(template, q, first_order, *, names, samples, map_dtype):
+    """``first_order`` (checked against the image's shape and the maps), or a
+    new :class:`~.FirstOrderPass` with no row done."""
+    if first_order is None:
+        return FirstOrderPass(template, q.shape, maps=names, samples=samples, dtype=map_dtype)
+    if first_order.shape != q.shape or first_order.names != names:
+        raise InputError("first_order must be a FirstOrderPass of this image's shape and maps")
+    return first_order
+
+
+def _complete_first_order(template, q, first_order, ops, *, workers, dtype, strip, report,
+                          share):
+    """Run the rows of ``first_order`` not yet done, ``strip`` rows per block,
+    with the operators ``ops`` (checked; None: made here); the rows' progress
+    is reported as ``share`` of the whole."""
+    if first_order.complete:
+        return
+    if ops is None:
+        ops = OperatorCache(template, workers=workers, dtype=dtype)
+    elif not ops.matches(template, ops.workers, dtype):
+        raise InputError("ops must be an OperatorCache made for this template and dtype")
+    done = first_order.rows / q.shape[0]
+    first_order.run(q, ops, rows=int(strip),
+                    progress=lambda f: report(share * (f - done) / (1.0 - done)))
+
+
+def _assembled(names, outs):
+    """The :class:`~.MomentMaps` whose maps ``names`` are the arrays ``outs``
+    (the others None); the steps after it fill the arrays in place."""
+    out = MomentMaps((0, 0), ())
     for name, arr in zip(names, outs):
         setattr(out, name, arr)
-    signal = dict(zip(LINEAR_MAPS, smax.tolist()))
-    tol = {k: 0.9 * rtol * v for k, v in signal.items()}
-    info.update(method="linear", signal=signal, tolerance=tol, windows=0,
-                exact_fraction=0.0, canvas_fraction=0.0)
-    qbar = _reference_level(q)
+    return out
+
+
+def _add_border_terms(template, lk, q, qbar, outs, names, *, samples):
+    """Add to the maps ``outs`` (``names`` order), within the template's reach
+    of the image border, the exact second-order terms of the uniform level
+    ``qbar`` (:func:`_uniform_response`).
+
+    Returns :func:`_uniform_response`'s result, or None for an image smaller
+    than the uniform one (2 reach + 1 pixels a side), left unchanged.
+    """
+    ny, nx = q.shape
+    r = lk.reach
     n = 2 * r + 1
-    uniform = None
-    if ny >= n and nx >= n:
-        # exact second-order terms of the uniform level near the image border
-        uniform = _uniform_response(template, lk, qbar, samples)
-        corr = uniform[0]
-        rm, cm = _index_map(ny, n), _index_map(nx, n)
-        for k, name in enumerate(LINEAR_MAPS):
-            if name not in names:
-                continue
-            o = outs[names.index(name)]
-            c = corr[k]
-            for rows in (slice(0, r), slice(ny - r, ny)):
-                o[rows] += c[rm[rows]][:, cm]
-            for cols in (slice(0, r), slice(nx - r, nx)):
-                o[r:ny - r, cols] += c[r, cm[cols]]
-    if not fallback:
-        report(1.0)
-        return out
-    if bound == "measured":
-        # error_bounds' C_k x > tol_k for some map k, x = D (4 eps_u + D): one
-        # threshold on x; and everywhere eps_u + D > 0.05
-        d, eps_u = _bound_terms(template, lk, q, bin=bin, samples=samples, workers=workers,
-                                qbar=qbar, uniform=uniform)
-        threshold = min(tol[k] / MEASURED_CONSTANTS[k] for k in LINEAR_MAPS)
-        flag = eps_u + d > 0.05
-        eps_u *= 4.0
-        eps_u += d
-        eps_u *= d
-        flag |= eps_u > threshold
-        del d, eps_u
-        if refine and uniform is not None and flag.any():
-            flag = _refined_flag(lk, q, flag, int(bin), qbar, uniform[1], threshold)
-    else:
+    if ny < n or nx < n:
+        return None
+    uniform = _uniform_response(template, lk, qbar, samples)
+    corr = uniform[0]
+    rm, cm = _index_map(ny, n), _index_map(nx, n)
+    for k, name in enumerate(LINEAR_MAPS):
+        if name not in names:
+            continue
+        o = outs[names.index(name)]
+        c = corr[k]
+        for rows in (slice(0, r), slice(ny - r, ny)):
+            o[rows] += c[rm[rows]][:, cm]
+        for cols in (slice(0, r), slice(nx - r, nx)):
+            o[r:ny - r, cols] += c[r, cm[cols]]
+    return uniform
+
+
+def _exact_flags(template, lk, q, qbar, tol, uniform, *, bound, bin, samples, workers, refine):
+    """The ``bin`` x ``bin`` bins where the a-priori bound (:func:`error_bounds`)
+    exceeds the tolerance ``tol`` of some map: where the exact moments are
+    needed (bool, shape (ceil(ny / bin), ceil(nx / bin))).
+
+    With ``bound='measured'`` the bound is computed once for all maps (one
+    threshold) and, with ``refine``, the flagged bins are bounded again pixel
+    by pixel (:func:`_refined_flag`); ``uniform`` is the border terms'
+    :func:`_uniform_response` (None: an image smaller than the uniform one).
+    """
+    if bound != "measured":
         bounds = error_bounds(template, q, samples=samples, bin=bin, bound=bound,
                               workers=workers, qbar=qbar)
         flag = np.zeros(bounds["area"].shape, bool)
         for k in LINEAR_MAPS:
             flag |= bounds[k] > tol[k]
-    report(bound_share)
-    if not flag.any():
-        report(1.0)
-        return out
+        return flag
+    # error_bounds' C_k x > tol_k for some map k, x = D (4 eps_u + D): one
+    # threshold on x; and everywhere eps_u + D > 0.05
+    d, eps_u = _bound_terms(template, lk, q, bin=bin, samples=samples, workers=workers,
+                            qbar=qbar, uniform=uniform)
+    threshold = min(tol[k] / MEASURED_CONSTANTS[k] for k in LINEAR_MAPS)
+    flag = eps_u + d > 0.05
+    eps_u *= 4.0
+    eps_u += d
+    eps_u *= d
+    flag |= eps_u > threshold
+    del d, eps_u
+    if refine and uniform is not None and flag.any():
+        flag = _refined_flag(lk, q, flag, int(bin), qbar, uniform[1], threshold)
+    return flag
 
-    def exact(fraction):
-        report(bound_share + (1.0 - bound_share) * min(fraction, 1.0))
 
+def _add_exact_moments(template, q, flag, outs, names, info, *, reach, bin, max_fraction,
+                       samples, workers, dtype, strip, progress):
+    """Replace the maps ``outs`` (``names`` order) by the exact moments in the
+    flagged bins (:func:`~._exact.exact_boxes`, :func:`~._exact.exact_windows`),
+    or everywhere when the windows with their margins would cover more than
+    ``max_fraction`` of the image (:func:`_exact_everywhere`); ``info`` gets
+    the method, windows and fractions. ``progress`` (optional) is called with
+    the fraction of the exact work done."""
     b = int(bin)
+    r = reach
     info["exact_fraction"] = float(flag.sum()) * b * b / q.size
-    boxes = _boxes(flag, b, q.shape, band=-(-r // b))
+    boxes = exact_boxes(flag, b, q.shape, band=-(-r // b))
     canvas = sum((y1 - y0 + 2 * r) * (x1 - x0 + 2 * r) for y0, y1, x0, x1 in boxes)
     if canvas > max_fraction * q.size:
+        _exact_everywhere(template, q, outs, names, samples=samples, workers=workers,
+                          dtype=dtype, strip=strip, progress=progress)
+        info.update(method="exact", windows=1, canvas_fraction=1.0)
+        return
+    area = exact_windows(template, q, boxes, r, outs, names, samples=samples, workers=workers,
+                         dtype=dtype, strip=strip, progress=progress)
+    info.update(method="linear+exact", windows=len(boxes), canvas_fraction=area / q.size)
+
+
+def _exact_everywhere(template, q, outs, names, *, samples, workers, dtype, strip, progress):
+    """Replace the maps ``outs`` (``names`` order) by the exact moments of the
+    whole image (:func:`~.moment_maps`); ``progress`` (optional) is called
+    with the fraction of the rows done."""
+    ny = q.shape[0]
+    row_progress = None
+    if progress is not None:
         rows = [0]
 
         def row_progress(n):
             rows[0] += n
-            exact(rows[0] / ny)
+            progress(rows[0] / ny)
 
-        mm = moment_maps(template, q, samples=samples, workers=workers, dtype=dtype,
-                         strip=strip, maps=names,
-                         progress=None if progress is None else row_progress)
-        for k, name in enumerate(names):
-            outs[k][:] = getattr(mm, name)
-        info.update(method="exact", windows=1, canvas_fraction=1.0)
-        report(1.0)
-        return out
-    area = _exact_windows(template, q, boxes, r, outs, names, samples=samples,
-                          workers=workers, dtype=dtype, strip=strip,
-                          progress=None if progress is None else exact)
-    info.update(method="linear+exact", windows=len(boxes), canvas_fraction=area / q.size)
-    report(1.0)
-    return out
+    mm = moment_maps(template, q, samples=samples, workers=workers, dtype=dtype, strip=strip,
+                     maps=names, progress=row_progress)
+    for k, name in enumerate(names):
+        outs[k][:] = getattr(mm, name)

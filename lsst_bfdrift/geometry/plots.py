@@ -1,6 +1,7 @@
 """Figure of the moment maps of a charge image."""
 
 import numpy as np
+from matplotlib.colors import AsinhNorm
 
 from lsst_bfdrift.utils.plotting import plt  # Agg backend set there
 
@@ -40,8 +41,6 @@ def plot_moment_maps(maps, *, image=None, title=None, percentile=99.5):
     -------
     matplotlib.figure.Figure
     """
-    from matplotlib.colors import AsinhNorm
-
     panels = [("area - 1", "px$^2$", maps.area - 1.0), ("centroid shift x", "px", maps.dx),
               ("centroid shift y", "px", maps.dy), ("e1", "dimensionless", maps.e1),
               ("e2", "dimensionless", maps.e2)]

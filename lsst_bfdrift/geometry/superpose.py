@@ -11,8 +11,9 @@ Image frame: ``charge[j, i]`` is pixel (i, j), centred on (i, j) in pixel units.
 """
 
 import numpy as np
-from scipy import fft as sp_fft
 
+from lsst_bfdrift.geometry._convolve import Convolver, block_stack
+from lsst_bfdrift.geometry._moment_kernels import stack_moments
 from lsst_bfdrift.physics.boundaries import BoundaryGrid
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
 from lsst_bfdrift.templates.swept import kernel_abs_sum, refuse_out_of_range
@@ -196,68 +197,6 @@ def resample_template(template, samples):
     return type(template)(cd, v, h, new, template.charge, vedge_t=vt, hedge_t=ht, meta=meta)
 
 
-class _Convolver:
-    """FFT convolution of one image block with the template's kernels.
-
-    The kernels (every boundary channel, divided by the template charge) are
-    transformed once per padded block shape and kept as one stacked array;
-    the block's transform is multiplied by all of them and transformed back
-    in one batched call.
-    """
-
-    def __init__(self, template, *, dtype=np.float64):
-        self.t = template
-        self.dtype = np.dtype(dtype)
-        n1 = template.size + 1
-        ns = template.edge_samples
-        tang = template.vedge_t is not None
-        nch = 2 + 2 * ns * (2 if tang else 1)
-        k = np.zeros((nch, n1, n1))
-        k[0], k[1] = template.corner_d[..., 0], template.corner_d[..., 1]
-        k[2:2 + ns, :-1, :] = np.moveaxis(template.vedge_d, -1, 0)
-        k[2 + ns:2 + 2 * ns, :, :-1] = np.moveaxis(template.hedge_d, -1, 0)
-        if tang:
-            o = 2 + 2 * ns
-            k[o:o + ns, :-1, :] = np.moveaxis(template.vedge_t, -1, 0)
-            k[o + ns:o + 2 * ns, :, :-1] = np.moveaxis(template.hedge_t, -1, 0)
-        self.kernels = (k / template.charge).astype(self.dtype)
-        self._cache = {}
-
-    def kernel_ffts(self, shape, workers=1):
-        if shape not in self._cache:
-            self._cache.clear()
-            self._cache[shape] = sp_fft.rfft2(self.kernels, shape, axes=(-2, -1),
-                                              workers=workers)
-        return self._cache[shape]
-
-    def stack(self, block, workers=1):
-        """Full convolutions of ``block`` with every kernel, shape (nch, rows, cols)."""
-        n1 = self.t.size + 1
-        shape = (sp_fft.next_fast_len(block.shape[0] + n1 - 1, real=True),
-                 sp_fft.next_fast_len(block.shape[1] + n1 - 1, real=True))
-        fk = self.kernel_ffts(shape, workers)
-        fb = sp_fft.rfft2(block.astype(self.dtype, copy=False), shape, workers=workers)
-        prod = fk * fb
-        del fb
-        return sp_fft.irfft2(prod, shape, axes=(-2, -1), workers=workers, overwrite_x=True)
-
-
-def _block_stack(conv, charge, r0, r1, workers=1):
-    """Displacement channels reaching pixel rows r0..r1-1, and the row offset.
-
-    Corner (r0 + J, I) (the lower left one of pixel (r0 + J, I)) and the
-    edges of pixel (r0 + J, I) are at ``stack[:, J + ro, I + c]`` (c the
-    template's centre), in the channel order of :class:`_Convolver`.
-    """
-    c = conv.t.center
-    ny = charge.shape[0]
-    # Aggressor rows that can reach corner rows r0..r1: ja in [r0 - c, r1 + c].
-    a0 = max(r0 - c - 1, 0)
-    a1 = min(r1 + c + 1, ny)
-    # D[J] = F[J + c] in full-image rows; in block rows F_b[m] with m = J + c - a0.
-    return conv.stack(charge[a0:a1], workers=workers), r0 + c - a0
-
-
 def _block_displacements(conv, charge, r0, r1, workers=1):
     """Absolute boundary positions of pixel rows r0..r1-1 (float64).
 
@@ -268,7 +207,7 @@ def _block_displacements(conv, charge, r0, r1, workers=1):
     t = conv.t
     c, ns = t.center, t.edge_samples
     nx = charge.shape[1]
-    st, ro = _block_stack(conv, charge, r0, r1, workers)
+    st, ro = block_stack(conv, charge, r0, r1, workers)
     rc, rv = slice(ro, ro + r1 - r0 + 1), slice(ro, ro + r1 - r0)
     cc, ch = slice(c, c + nx + 1), slice(c, c + nx)
 
@@ -309,7 +248,7 @@ def superpose_boundaries(template, charge, *, mask=None, workers=1):
         no tangential displacements).
     """
     q = check_charge_image(charge, mask=mask, template=template)
-    conv = _Convolver(template)
+    conv = Convolver(template)
     cd, v, h, vt, ht = _block_displacements(conv, q, 0, q.shape[0], workers=workers)
     grid = BoundaryGrid(0, 0, cd, v, h, template.fractions)
     grid.vedge_t, grid.hedge_t = vt, ht
@@ -402,8 +341,6 @@ def moment_maps(template, charge, *, mask=None, samples=None, strip=256, workers
     >>> print(f"{maps.area[16, 16]:.3f} {maps.area[16, 17]:.4f} {maps.dx[16, 17]:+.4f}")
     0.899 1.0057 -0.0107
     """
-    from lsst_bfdrift.geometry._moment_kernels import stack_moments
-
     if np.dtype(dtype) not in (np.dtype(np.float64), np.dtype(np.float32)):
         raise InputError(f"dtype must be float64 or float32, got {dtype!r}")
     if isinstance(strip, (bool, np.bool_)) or int(strip) != strip or strip < 1:
@@ -413,14 +350,14 @@ def moment_maps(template, charge, *, mask=None, samples=None, strip=256, workers
     q = check_charge_image(charge, mask=mask, template=template)
     ny, nx = q.shape
     strip = int(strip)
-    conv = _Convolver(template, dtype=dtype)
+    conv = Convolver(template, dtype=dtype)
     out = MomentMaps(q.shape, maps)
     fr = np.ascontiguousarray(template.fractions)
     ns, has_t = template.edge_samples, template.vedge_t is not None
     res = np.empty((8, min(strip, ny), nx))
     for r0 in range(0, ny, strip):
         r1 = min(r0 + strip, ny)
-        st, ro = _block_stack(conv, q, r0, r1, workers)
+        st, ro = block_stack(conv, q, r0, r1, workers)
         part = res if r1 - r0 == res.shape[1] else np.empty((8, r1 - r0, nx))
         stack_moments(st, ns, has_t, ro, template.center, fr, part)
         del st

@@ -14,7 +14,7 @@ centred on (i, j) and its nominal corners are at half-integers.
 
 import numpy as np
 
-from lsst_bfdrift.physics.drift import drift_lines
+from lsst_bfdrift.physics.drift import compile_model, drift_lines
 from lsst_bfdrift.utils.errors import ComputationError, InputError
 
 __all__ = ["BoundaryGrid", "bisect_boundary", "locate_corners", "pixel_boundaries",
@@ -297,10 +297,8 @@ def _split_run(model, kind, arrays, kw, workers):
     chunks run in turn. Results are concatenated in order and do not depend
     on ``workers``.
     """
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    from lsst_bfdrift.physics.drift import compile_model
+    import multiprocessing as mp  # starts worker processes: only when chunks run in them
+    from concurrent.futures import ProcessPoolExecutor  # likewise
 
     arrays = [np.asarray(a).ravel() for a in np.broadcast_arrays(*arrays)]
     n = arrays[0].size

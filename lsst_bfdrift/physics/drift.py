@@ -16,6 +16,12 @@ integrated all at once; finished lines leave the active set.
 import os
 
 import numpy as np
+
+from lsst_bfdrift.physics._drift_kernels import drift_batch
+from lsst_bfdrift.physics.constants import COULOMB_UM
+from lsst_bfdrift.physics.fields import (BackdropField, HalfPeriodicDipoleGrid, LineDipole,
+                                         PeriodicDipoleGrid, PointDipoles, TabulatedBackdrop,
+                                         TruncatedLineDipole)
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["DriftResult", "drift_lines", "compile_model", "landing_pixels",
@@ -56,10 +62,6 @@ def compile_model(model):
     Returns None when the model has a term the compiled engine does not know
     (e.g. user-supplied field terms); :func:`drift_lines` then uses numpy.
     """
-    from lsst_bfdrift.physics.fields import (BackdropField, HalfPeriodicDipoleGrid, LineDipole,
-                                             PeriodicDipoleGrid, PointDipoles, TabulatedBackdrop,
-                                             TruncatedLineDipole)
-
     lines, px, py, pz, ph = [], [], [], [], []
     bd_kind, bd, bd_z, bd_ez = 0, np.zeros(3), np.zeros(2), np.ones(2)
     n_backdrop = 0
@@ -162,8 +164,6 @@ def drift_lines(model, x0, y0, z0=None, *, z_stop=None, step_scale=0.15, min_ste
     if engine == "compiled" and arrays is None:
         raise InputError("this model has terms the compiled engine does not support")
     if arrays is not None:
-        from lsst_bfdrift.physics._drift_kernels import drift_batch
-        from lsst_bfdrift.physics.constants import COULOMB_UM
         n = x0.size
         out = [np.empty(n), np.empty(n), np.empty(n), np.empty(n, np.int64),
                np.empty(n, np.bool_), np.empty(n, np.bool_)]
@@ -246,7 +246,7 @@ def absorption_length(wavelength):
     Interpolated in GalSim's table (``share/sensors/abs_length.dat``, from
     Green 2008 at 300 K), so that depths agree with galsim.SiliconSensor.
     """
-    import galsim
+    import galsim  # heavy: only for its table of absorption lengths
 
     path = os.path.join(galsim.meta_data.share_dir, "sensors", "abs_length.dat")
     table = np.loadtxt(path, skiprows=1)

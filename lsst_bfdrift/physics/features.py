@@ -21,6 +21,7 @@ import numpy as np
 from astropy.table import vstack
 
 from lsst_bfdrift.physics.boundaries import pixel_boundaries
+from lsst_bfdrift.physics.patterns import block_geometry
 from lsst_bfdrift.physics.polygons import pixel_polygons, polygon_moments
 from lsst_bfdrift.physics.sensor import SensorModel, SensorParameters
 
@@ -44,7 +45,6 @@ def _profiles(settings, make_params, i_range, j_range, axis, edge_samples, tol, 
     the pixel vertices ``xv``, ``yv`` for contour plots) plus ``setting`` and
     ``index`` (column or row of the profile).
     """
-    from lsst_bfdrift.physics.patterns import block_geometry
     rows = []
     for value in settings:
         t = block_geometry(make_params(float(value)), i_range, j_range,

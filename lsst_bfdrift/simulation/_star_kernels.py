@@ -29,7 +29,7 @@ import numba
 import numpy as np
 
 from lsst_bfdrift.physics.polygons import inside_polygon
-from lsst_bfdrift.templates.galsim_rules import BOX_MARGIN, collect_batch
+from lsst_bfdrift.templates.galsim_rules import BOX_MARGIN, add_shifted, collect_batch
 
 __all__ = ["NEIGHBOUR_ORDER", "BOX_MARGIN", "add_templates", "inner_boxes", "locate",
            "accumulate"]
@@ -63,32 +63,14 @@ def inner_boxes(corners, vedge, hedge, fr, vt, ht, has_t, j0, j1, i0, i1, box):
 @numba.njit(cache=True)
 def _add_one(q, ja, ia, c, corners, vedge, hedge, vt, ht, has_t, kc, kv, kh, kvt, kht):
     """Add q times the template centred on pixel (ia, ja) to the boundary arrays."""
-    ny = vedge.shape[0]
-    nx = hedge.shape[1]
-    nt = kv.shape[0]
-    ns = kv.shape[2]
-    for jt in range(nt + 1):
-        js = jt + ja - c
-        if js < 0 or js > ny:
-            continue
-        for it in range(nt + 1):
-            is_ = it + ia - c
-            if is_ < 0 or is_ > nx:
-                continue
-            corners[js, is_, 0] += q * kc[jt, it, 0]
-            corners[js, is_, 1] += q * kc[jt, it, 1]
-            if jt < nt and js < ny:
-                for k in range(ns):
-                    vedge[js, is_, k] += q * kv[jt, it, k]
-                if has_t:
-                    for k in range(ns):
-                        vt[js, is_, k] += q * kvt[jt, it, k]
-            if it < nt and is_ < nx:
-                for k in range(ns):
-                    hedge[js, is_, k] += q * kh[jt, it, k]
-                if has_t:
-                    for k in range(ns):
-                        ht[js, is_, k] += q * kht[jt, it, k]
+    j0 = ja - c
+    i0 = ia - c
+    add_shifted(corners, kc, q, j0, i0, corners.shape[0], corners.shape[1])
+    add_shifted(vedge, kv, q, j0, i0, vedge.shape[0], vedge.shape[1])
+    add_shifted(hedge, kh, q, j0, i0, hedge.shape[0], hedge.shape[1])
+    if has_t:
+        add_shifted(vt, kvt, q, j0, i0, vt.shape[0], vt.shape[1])
+        add_shifted(ht, kht, q, j0, i0, ht.shape[0], ht.shape[1])
 
 
 @numba.njit(cache=True)

@@ -27,11 +27,18 @@ After each step two estimators of the covariances are computed:
   halved, averaged over pairs, with the error from their scatter (e^2).
 """
 
+import os
+
 import numpy as np
+from astropy.io import fits
 from astropy.table import Table
 from scipy import fft as sp_fft
+from scipy.ndimage import convolve1d
+from scipy.special import erf
 
 from lsst_bfdrift.simulation.effects import ChargeCloud, full_lags
+from lsst_bfdrift.templates.refine import template_alpha
+from lsst_bfdrift.utils.io import atomic_output
 from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.utils.errors import InputError
 
@@ -209,8 +216,6 @@ def template_area_coefficients(template, *, max_lag=3):
     L = int(max_lag)
     if not 0 <= L <= c:
         raise InputError(f"max_lag must be in [0, {c}] for this template, got {max_lag!r}")
-    from lsst_bfdrift.templates.refine import template_alpha
-
     q = template.charge
     full = template.moments(charge=q).area
 
@@ -401,8 +406,6 @@ def _kernel_fft(q, shape):
 
 def _diffusion_weights(sigma):
     """3 x 3 pixel-integrated Gaussian of rms ``sigma`` (px), renormalised."""
-    from scipy.special import erf
-
     edges = np.arange(-1.5, 2.0, 1.0)
     cdf = 0.5 * (1 + erf(edges / (np.sqrt(2) * sigma)))
     p1 = np.diff(cdf)
@@ -690,8 +693,7 @@ def _galsim_areas(sensor, shape, *, charge_cloud=None, well_filling=0.0):
     what :class:`~lsst_bfdrift.simulation.effects.ChargeCloud` models to
     second order.
     """
-    import galsim
-    from scipy.ndimage import convolve1d
+    import galsim  # galsim: heavy, imported only where GalSim runs
 
     blur = None
     if charge_cloud is not None:
@@ -757,12 +759,6 @@ def write_flat_pairs(pairs, levels, directory, *, exptime_per_e=1e-4, gain=1.0, 
     list of str
         The paths written.
     """
-    import os
-
-    from astropy.io import fits
-
-    from lsst_bfdrift.utils.io import atomic_output
-
     if len(pairs) != len(levels):
         raise InputError(f"{len(pairs)} pairs but {len(levels)} levels")
     paths = []

@@ -28,6 +28,8 @@ by up to one interval, which weakens the simulated effect by about
 """
 
 import numpy as np
+
+from lsst_bfdrift.simulation.flats import engine_acoeffs
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["shoot_stamp_photons", "sky_box", "accumulate_twins", "galsim_acoeffs"]
@@ -63,7 +65,7 @@ def shoot_stamp_photons(profile, stamp, *, pixel_scale, seed, offset=(0.0, 0.0))
         convention, pixel ``i`` = 1 .. ``stamp`` spans ``i - 0.5`` to
         ``i + 0.5``) and fluxes (e).
     """
-    import galsim
+    import galsim  # galsim: heavy, imported only where GalSim runs
 
     img = galsim.ImageD(int(stamp), int(stamp), scale=float(pixel_scale))
     profile.drawImage(img, method="phot", save_photons=True, rng=galsim.BaseDeviate(int(seed)),
@@ -166,7 +168,7 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
     n_sky : int
         Number of sky photons accumulated (each of flux 1 e).
     """
-    import galsim
+    import galsim  # galsim: heavy, imported only where GalSim runs
 
     x = np.asarray(x, float)
     y = np.asarray(y, float)
@@ -269,8 +271,6 @@ def galsim_acoeffs(sensor, max_lag=8, *, charge=1e4):
     ndarray, shape (max_lag + 1, max_lag + 1)
         a[i, j] (1/e), i serial (x), j parallel (y).
     """
-    from lsst_bfdrift.simulation.flats import engine_acoeffs
-
     if int(max_lag) != max_lag or max_lag < 0:
         raise InputError(f"max_lag must be a non-negative integer, got {max_lag!r}")
     if not charge > 0:

@@ -36,6 +36,8 @@ import numpy as np
 from astropy import units as u
 from astropy.table import QTable
 
+from lsst_bfdrift.simulation.galsim_twins import (SKY_MARGIN, accumulate_twins,
+                                                  shoot_stamp_photons, sky_box)
 from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.utils.errors import InputError
 
@@ -146,7 +148,8 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
         ``stars`` (QTable: ``x``, ``y`` (px), ``flux`` (e), ``fwhm`` (arcsec),
         ``psf_e1``, ``psf_e2``), ``sky`` (e per px), ``strength``.
     """
-    import galsim
+    import galsim  # galsim: heavy, imported only where GalSim runs
+    from galsim.utilities import get_omp_threads, set_omp_threads  # galsim, as above
 
     ny, nx = (int(v) for v in shape)
     stamp = int(stamp)
@@ -168,7 +171,6 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
     images = [np.zeros((ny, nx)) for _ in strengths]
     collected = np.zeros((ny, nx), bool) if sky_through_sensor and sky > 0 else None
     rows = []
-    from galsim.utilities import get_omp_threads, set_omp_threads
     n_threads = get_omp_threads()
     try:
         # single-threaded accumulation: the stamps are small, and GalSim's OpenMP
@@ -215,9 +217,6 @@ def _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_r
     With ``collected`` (bool (ny, nx)), the sky in each star's box is collected
     through the sensor and the box is marked in ``collected``.
     """
-    from lsst_bfdrift.simulation.galsim_twins import (SKY_MARGIN, accumulate_twins,
-                                                      shoot_stamp_photons, sky_box)
-
     lo, hi, inner = sky_box(stamp, sky_radius)
     # the sky photons do not change the stars (positions, fluxes, photons, sensor seeds)
     rng_sky = rng.spawn(1)[0]

@@ -18,6 +18,9 @@ from astropy.table import Table
 
 from lsst_bfdrift.simulation._star_kernels import NEIGHBOUR_ORDER, accumulate, inner_boxes, locate
 from lsst_bfdrift.physics.boundaries import BoundaryGrid
+from lsst_bfdrift.templates.galsim_rules import (accumulate_galsim, add_templates_galsim,
+                                                 edge_boxes, galsim_boxes, galsim_edge_templates,
+                                                 locate_galsim, nominal_edges)
 from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.geometry.superpose import check_charge_image, moment_maps, superpose_boundaries
 from lsst_bfdrift.utils.errors import InputError
@@ -28,7 +31,7 @@ __all__ = ["make_psf", "shoot_photons", "image_moments", "StarSimulation", "simu
 def make_psf(kind, fwhm, *, e=0.0, beta=0.0, beta_moffat=3.5):
     """A GalSim PSF by name: 'gaussian', 'moffat' or 'kolmogorov' (FWHM arcsec),
     sheared to ellipticity ``e`` at position angle ``beta`` (degrees)."""
-    import galsim
+    import galsim  # galsim: heavy, imported only where GalSim runs
     if not fwhm > 0:
         raise InputError(f"--fwhm must be positive, got {fwhm}")
     if not 0 <= e < 1:
@@ -60,7 +63,7 @@ def shoot_photons(psf, n_photons, *, pixel_scale=0.2, seed=None):
     -------
     x, y : ndarray
     """
-    import galsim
+    import galsim  # galsim: heavy, imported only where GalSim runs
 
     n = int(n_photons)
     if n < 1:
@@ -164,7 +167,6 @@ class StarSimulation:
         self.galsim_box = bool(galsim_box)
         self._rng = np.random.default_rng(seed)
         if layout == "galsim":
-            from lsst_bfdrift.templates.galsim_rules import galsim_edge_templates
             self._tv, self._th = galsim_edge_templates(template, qdist=qdist)
         self.nominal_image = np.zeros((self.n, self.n))
         self.lost = 0
@@ -192,8 +194,6 @@ class StarSimulation:
             raise InputError(f"charge must have shape {(self.n, self.n)}, got {q.shape}")
         self.image = q
         if self.layout == "galsim":
-            from lsst_bfdrift.templates.galsim_rules import (add_templates_galsim, edge_boxes,
-                                                             galsim_boxes, nominal_edges)
             self._V, self._H = nominal_edges(self.n, self.n, self._fr)
             add_templates_galsim(q, 1.0 / self.t.charge, self.t.center, self._V, self._H,
                                  self._tv, self._th)
@@ -232,7 +232,6 @@ class StarSimulation:
         oi = np.empty(px.size, dtype=np.int64)
         oj = np.empty(px.size, dtype=np.int64)
         if self.layout == "galsim":
-            from lsst_bfdrift.templates.galsim_rules import locate_galsim
             locate_galsim(px, py, self._rng.uniform(size=px.size), self._V, self._H, self._box,
                           oi, oj)
             off = (oi < 0) | (oi >= self.n) | (oj < 0) | (oj >= self.n)
@@ -250,7 +249,6 @@ class StarSimulation:
         """
         px, py = _check_points(px, py)
         if self.layout == "galsim":
-            from lsst_bfdrift.templates.galsim_rules import accumulate_galsim
             self.lost += int(accumulate_galsim(px, py, self._rng.uniform(size=px.size),
                                                self.update_every, self.image,
                                                self.nominal_image, self._V, self._H, self._box,

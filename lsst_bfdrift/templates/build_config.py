@@ -18,8 +18,10 @@ releases used are still read (:func:`read_build_config`).
 """
 
 import dataclasses
+import json
 import os
 import re
+import tomllib
 
 import lsst.pex.config as pexConfig
 
@@ -153,8 +155,6 @@ def read_build_config(path):
     params : SensorParameters
     settings : TemplateSettings
     """
-    import json
-
     if path is None:
         return SensorParameters(), TemplateSettings()
     path = os.fspath(path)
@@ -164,7 +164,6 @@ def read_build_config(path):
         raw = fh.read()
     try:
         if path.endswith(".toml"):
-            import tomllib
             data = tomllib.loads(raw.decode())
         else:
             data = json.loads(raw.decode())

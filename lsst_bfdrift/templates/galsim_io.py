@@ -22,6 +22,9 @@ import numpy as np
 from astropy.table import Table
 from astropy.utils.exceptions import AstropyUserWarning
 
+from lsst_bfdrift.templates.galsim_rules import (add_templates_galsim, galsim_boxes,
+                                                 galsim_edge_templates, locate_galsim,
+                                                 nominal_edges)
 from lsst_bfdrift.templates.template import DistortionTemplate
 from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
 
@@ -103,7 +106,7 @@ def galsim_sensor_files(name):
     """Paths (cfg, dat) of a GalSim sensor, by name or path prefix."""
     cfg, dat = name + ".cfg", name + ".dat"
     if not os.path.isfile(cfg):
-        import galsim
+        import galsim  # heavy: only for the path of its bundled sensor files
         base = os.path.join(galsim.meta_data.share_dir, "sensors", name)
         cfg, dat = base + ".cfg", base + ".dat"
     for path in (cfg, dat):
@@ -339,7 +342,7 @@ def match_galsim_areas(template, name):
         A copy with adjusted corners (``meta['area_matched']`` records the
         largest corner change, px).
     """
-    import galsim
+    import galsim  # galsim: heavy, imported only where GalSim runs
 
     n, c = template.size, template.center
     sensor = galsim.SiliconSensor(name)
@@ -418,9 +421,6 @@ def edge_integrals(template):
 def _galsim_layout(template, half, pad, qdist, charge):
     """GalSim's edge polylines (:mod:`lsst_bfdrift.templates.galsim_rules`) of a stamp of
     side 2 (half + pad) + 1 with ``charge`` (e) in the central pixel."""
-    from lsst_bfdrift.templates.galsim_rules import (add_templates_galsim, galsim_edge_templates,
-                                                     nominal_edges)
-
     big = 2 * (half + pad) + 1
     tv, th = galsim_edge_templates(template, qdist=qdist)
     V, H = nominal_edges(big, big, template.fractions)
@@ -434,8 +434,6 @@ def _band_widths(V, H, half, pad, fractions):
     """Largest vertex displacement (px) of each pixel polygon of the layout,
     pixels -half..half; beyond it from the nominal square's boundary every
     point lies inside the polygon (and GalSim assigns it to its nominal pixel)."""
-    from lsst_bfdrift.templates.galsim_rules import nominal_edges
-
     v0, h0 = nominal_edges(V.shape[0], H.shape[1], fractions)
     dv = np.abs(V - v0).max(axis=(2, 3))
     dh = np.abs(H - h0).max(axis=(2, 3))
@@ -477,7 +475,7 @@ def _moves_galsim(name, template, half, cells, qdist, seed, charge):
     so each pixel's count comes from one sampled pixel), with diffusion off
     and the boundaries frozen at those of ``charge`` e in pixel (0, 0).
     """
-    import galsim
+    import galsim  # galsim: heavy, imported only where GalSim runs
 
     pad = 3  # GalSim's stamp-edge rules and fixed top/right boundaries stay far away
     big = 2 * (half + pad) + 1
@@ -512,8 +510,6 @@ def _moves_rules(template, half, cells, qdist, seed, charge):
     rule (:mod:`lsst_bfdrift.templates.galsim_rules`); a point found in no pixel counts
     half to its nominal pixel and half to the first neighbour tried (GalSim's
     expectation). Same points as :func:`_moves_galsim` for the same seed."""
-    from lsst_bfdrift.templates.galsim_rules import galsim_boxes, locate_galsim
-
     pad = 3
     big = 2 * (half + pad) + 1
     V, H = _galsim_layout(template, half, pad, qdist, charge)

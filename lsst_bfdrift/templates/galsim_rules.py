@@ -34,7 +34,7 @@ from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["galsim_edge_templates", "nominal_edges", "edge_boxes", "galsim_boxes",
            "add_templates_galsim", "accumulate_galsim", "locate_galsim", "layout_areas",
-           "collect_batch"]
+           "collect_batch", "add_shifted"]
 
 # GalSim's neighbour offsets, indexed 0 (nominal) and 1..8 around the pixel
 _XOFF = np.array([0, 1, 1, 0, -1, -1, -1, 0, 1], dtype=np.int64)
@@ -278,29 +278,46 @@ def locate_galsim(px, py, u, V, H, box, oi, oj):
 
 
 @numba.njit(cache=True)
+def add_shifted(a, k, q, j0, i0, jmax, imax):
+    """Add ``q`` times the kernel ``k`` placed with its element (0, 0) on
+    element (j0, i0) of ``a``, where it overlaps the rows 0 <= j < ``jmax``
+    and the columns 0 <= i < ``imax`` (at most those of ``a``).
+
+    ``a`` (rows, columns, m) is a boundary array of a stamp and ``k`` (rows,
+    columns, m) a template's displacements of it, per e, with the same last
+    axis (samples along an edge and their components, flattened). The one
+    superposition step of both layouts: :func:`add_templates_galsim` here,
+    ``add_templates`` and ``accumulate`` of
+    :mod:`lsst_bfdrift.simulation._star_kernels` (the shared layout).
+    """
+    for jt in range(k.shape[0]):
+        js = jt + j0
+        if js < 0 or js >= jmax:
+            continue
+        for it in range(k.shape[1]):
+            is_ = it + i0
+            if is_ < 0 or is_ >= imax:
+                continue
+            for m in range(k.shape[2]):
+                a[js, is_, m] += q * k[jt, it, m]
+
+
+@numba.njit(cache=True)
+def _by_edge(a):
+    """View (rows, columns, vertices x 2) of a C-contiguous polyline array."""
+    return a.reshape(a.shape[0], a.shape[1], -1)
+
+
+@numba.njit(cache=True)
 def _add_one(q, ja, ia, c, V, H, tv, th):
+    """Add ``q`` times the edge templates centred on pixel (ia, ja) to the
+    polylines ``V``, ``H`` (C-contiguous)."""
     ny = V.shape[0]
     nx = H.shape[1]
-    nt = tv.shape[0]
-    m = tv.shape[2]
-    for jt in range(nt + 1):
-        js = jt + ja - c
-        if js < 0 or js > ny:
-            continue
-        for it in range(nt + 1):
-            is_ = it + ia - c
-            if is_ < 0 or is_ > nx:
-                continue
-            # GalSim never moves the stamp's rightmost vertical and topmost
-            # horizontal boundaries (its update loops run over pixels); same here
-            if jt < nt and js < ny and is_ < nx:
-                for a in range(m):
-                    V[js, is_, a, 0] += q * tv[jt, it, a, 0]
-                    V[js, is_, a, 1] += q * tv[jt, it, a, 1]
-            if it < nt and is_ < nx and js < ny:
-                for a in range(m):
-                    H[js, is_, a, 0] += q * th[jt, it, a, 0]
-                    H[js, is_, a, 1] += q * th[jt, it, a, 1]
+    # GalSim never moves the stamp's rightmost vertical and topmost
+    # horizontal boundaries (its update loops run over pixels); same here
+    add_shifted(_by_edge(V), _by_edge(tv), q, ja - c, ia - c, ny, nx)
+    add_shifted(_by_edge(H), _by_edge(th), q, ja - c, ia - c, ny, nx)
 
 
 @numba.njit(cache=True)

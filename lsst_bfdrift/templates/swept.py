@@ -259,8 +259,6 @@ def refuse_out_of_range(finite_data, kernel_abs_sum, unit_note=""):
     InputError
         When ``kernel_abs_sum * max|I|`` exceeds :data:`MAX_SWEEP`.
     """
-    from lsst_bfdrift.utils.errors import InputError
-
     # max and -min: no full-size temporary for abs()
     peak = max(float(finite_data.max()), -float(finite_data.min())) if finite_data.size else 0.0
     if kernel_abs_sum * peak > MAX_SWEEP:

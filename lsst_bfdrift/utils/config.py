@@ -36,6 +36,7 @@ Example
 import json
 import logging
 import os
+import tomllib
 
 import lsst.pex.config as pexConfig
 
@@ -178,8 +179,6 @@ def load_config(config_class, path):
     InputError, FieldValidationError
         Unknown field or bad value.
     """
-    import tomllib
-
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise InputNotFoundError(f"{path}: no such config file", path)

@@ -25,6 +25,8 @@ Any other ``OSError`` (permission denied, disk full) gives exit code 1 in the
 command line; see ``docs/cli.rst``.
 """
 
+import os
+
 import lsst.pex.config as _pexConfig
 
 __all__ = ["BfdriftError", "InputError", "InputTypeError", "InputKeyError",
@@ -80,8 +82,6 @@ class InputFileError(InputError):
     """
 
     def __init__(self, message, path=None):
-        import os
-
         self.path = None if path is None else os.fspath(path)
         if self.path is not None and self.path not in str(message):
             message = f"{self.path}: {message}"

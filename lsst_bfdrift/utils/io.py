@@ -1,6 +1,7 @@
 """File helpers shared by the package: atomic output, the overwrite rule, FITS input."""
 
 import contextlib
+import json
 import os
 import re
 import socket
@@ -8,6 +9,7 @@ import tempfile
 import time
 
 import numpy as np
+from astropy.io import fits
 
 from lsst_bfdrift.utils.errors import (InputFileError, InputNotFoundError,
                                        OutputExistsError)
@@ -303,8 +305,6 @@ def write_text(path, text):
 def write_json(path, obj, **dump_kwargs):
     """Write ``obj`` as JSON to ``path`` atomically; ``dump_kwargs`` go to
     :func:`json.dump` (e.g. ``indent=2, default=float``)."""
-    import json
-
     with atomic_output(path) as tmp, open(tmp, "w") as fh:
         json.dump(obj, fh, **dump_kwargs)
 
@@ -320,8 +320,6 @@ def open_fits(path):
     InputFileError
         ``path`` is not a readable FITS file (empty, corrupt, another format).
     """
-    from astropy.io import fits
-
     path = os.fspath(path)
     if not os.path.exists(path):
         raise InputNotFoundError(f"{path}: no such file; accepted: a FITS file", path)

@@ -11,12 +11,13 @@ import pytest
 from tests.geometry.conftest import star_field
 from numpy.testing import assert_allclose
 
-from lsst_bfdrift.geometry._exact import _boxes
-from lsst_bfdrift.geometry.bounds import (_binned_eps, _index_map, displacement_bound,
-                                          pixel_displacement_bound, second_order_bounds)
-from lsst_bfdrift.geometry.first_order import (LINEAR_MAPS, FirstOrderPass, _linear_maps,
-                                               linear_kernels)
-from lsst_bfdrift.geometry.linear import MEASURED_CONSTANTS, error_bounds, linear_moment_maps
+from lsst_bfdrift.geometry._exact import exact_boxes
+from lsst_bfdrift.geometry.bounds import (displacement_bound, pixel_displacement_bound,
+                                          second_order_bounds)
+from lsst_bfdrift.geometry.first_order import (LINEAR_MAPS, FirstOrderPass,
+                                               convolved_first_order_maps, linear_kernels)
+from lsst_bfdrift.geometry.linear import (MEASURED_CONSTANTS, _binned_eps, _index_map,
+                                          error_bounds, linear_moment_maps)
 from lsst_bfdrift.geometry.superpose import moment_maps, resample_template, superpose_boundaries
 
 NOMINAL = dict(area=1.0, dx=0.0, dy=0.0, e1=0.0, e2=0.0)
@@ -84,7 +85,8 @@ def test_linear_maps_are_the_convolutions(small_template, rng):
             ref += k[:, dj + r, di + r, None, None] * qp[r - dj:r - dj + 37, r - di:r - di + 29]
     lk = linear_kernels(t)
     for dtype, tol in ((np.float64, 1e-12), (np.float32, 1e-5)):
-        maps, smax = _linear_maps(lk, q, LINEAR_MAPS, (10, 13), dtype, 1)
+        maps, smax = convolved_first_order_maps(lk, q, LINEAR_MAPS, tile=(10, 13),
+                                                dtype=dtype, workers=1)
         for i, name in enumerate(LINEAR_MAPS):
             s = np.abs(ref[i]).max()
             assert_allclose(maps[i] - NOMINAL[name], ref[i], rtol=0, atol=tol * s)
@@ -110,7 +112,8 @@ def fields(default_template):
     for name, q in (("stars", _star_field(80, 1.5e6, rng)),
                     ("flat", rng.poisson(1e5, (72, 72)).astype(float))):
         exact = moment_maps(default_template, q, samples=8)
-        raw = dict(zip(LINEAR_MAPS, _linear_maps(lk, q, LINEAR_MAPS, (64, 64), np.float64, 1)[0]))
+        raw = dict(zip(LINEAR_MAPS, convolved_first_order_maps(
+            lk, q, LINEAR_MAPS, tile=(64, 64), dtype=np.float64, workers=1)[0]))
         lin = linear_moment_maps(default_template, q, samples=8, fallback=False,
                                  dtype=np.float64)
         out[name] = (q, exact, raw, lin, _true_eps(t8, q))
@@ -229,14 +232,14 @@ def test_pixel_bound_is_the_direct_sum(default_template):
 
 
 def test_border_strips_follow_the_flagged_runs():
-    """_boxes: flagged bins near the border make one strip per run along the
+    """exact_boxes: flagged bins near the border make one strip per run along the
     side (runs farther apart than 2 band + 1 bins stay apart), each as deep as
     its own deepest flagged bin; every flagged bin lies in a box."""
     flag = np.zeros((40, 50), bool)
     flag[0, 3:6] = True          # a run near the left end of the bottom side
     flag[0:2, 30:33] = True      # another, deeper, far along the same side
     flag[20:22, 20:23] = True    # an interior group
-    boxes = _boxes(flag, 2, (80, 100), band=3)
+    boxes = exact_boxes(flag, 2, (80, 100), band=3)
     bottom = sorted(bx for bx in boxes if bx[0] == 0)
     assert bottom == [(0, 2, 6, 12), (0, 4, 60, 66)]
     assert (40, 44, 40, 46) in boxes and len(boxes) == 3
@@ -354,7 +357,8 @@ def test_first_order_pass_from_the_swept_areas(which, small_template, default_te
     lk = linear_kernels(t)
     assert lk.decomposed == (which == "default")
     q = _star_field(70, 4e5, rng)
-    ref, smax = _linear_maps(lk, q, LINEAR_MAPS, (64, 64), np.float64, 1)
+    ref, smax = convolved_first_order_maps(lk, q, LINEAR_MAPS, tile=(64, 64),
+                                           dtype=np.float64, workers=1)
     ops = OperatorCache(t, dtype=np.float64)
     blocked = np.zeros(q.shape, bool)
     fo = FirstOrderPass(t, q.shape, maps=("e2", "area"))

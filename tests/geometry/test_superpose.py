@@ -324,10 +324,11 @@ def test_kernel_works_in_double_precision_on_single_precision_channels(default_t
     """float32 FFT output: the polygons are still built in float64 (same maps as
     the same channels converted to float64 first)."""
     from lsst_bfdrift.geometry._moment_kernels import stack_moments
-    from lsst_bfdrift.geometry.superpose import _block_stack, _Convolver, resample_template
+    from lsst_bfdrift.geometry._convolve import Convolver, block_stack
+    from lsst_bfdrift.geometry.superpose import resample_template
     t = resample_template(default_template, 8)
     q = _star_field(40, 1.5e6, rng)
-    st, ro = _block_stack(_Convolver(t, dtype=np.float32), q, 0, 40)
+    st, ro = block_stack(Convolver(t, dtype=np.float32), q, 0, 40)
     assert st.dtype == np.float32
     fr = np.ascontiguousarray(t.fractions)
     out32, out64 = np.empty((8, 40, 40)), np.empty((8, 40, 40))

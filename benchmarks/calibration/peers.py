@@ -1,0 +1,250 @@
+"""This package's route against LSST's two, from the same sensor data, on the same stars.
+
+The chain LSST runs (a-matrix -> model -> shifts or kernel -> correction) and
+this package's, side by side (:mod:`lsst_bfdrift.calibration.routes`):
+
+* ``electrostatic``: the drift model calibrated to the a-matrix
+  (:func:`~lsst_bfdrift.calibration.tuning.calibrate`), corrected by ``drift``;
+* ``astier23`` (DP2): the Astier & Regnault 2023 model fitted to the
+  a-matrix, its per-edge shifts, corrected by ``astier23``;
+* ``coulton18`` (DP1): the kernel of the measured a-matrix, corrected by
+  ``coulton18``;
+* for reference, GalSim's own file (the true template) corrected by ``drift``.
+
+Inputs per GalSim sensor model (lags 0..``--lags``, default 3: GalSim's
+sensor files stop about 4 px from the aggressor, so its a_ij beyond lag 3
+describe the file's window, not a sensor):
+
+(a) ``noise-free``: GalSim's own a-matrix
+    (:func:`~lsst_bfdrift.simulation.galsim_twins.galsim_acoeffs`) with
+    cp_pipe-scale errors, 3 % of each a_ij plus 1e-9 per electron (about 1 %
+    of a01);
+(b) ``draw k``: that a-matrix plus Gaussian noise of those errors (seeded per
+    sensor and draw);
+(c) ``flats`` (``--flats``): a-matrix fitted to GalSim flat pairs, every flat
+    its own exposure (:func:`~lsst_bfdrift.simulation.flats.simulate_flat_pairs`,
+    engine 'galsim').
+
+Every route corrects the same paired GalSim stars (Moffat and Kolmogorov,
+drawn by galsim.SiliconSensor with a no-BF twin; the stars of
+``calibrate_sensor.py``). Printed, as % of the uncorrected slope: size, e1
+and e2 left with errors from the stars, and the paired differences between
+routes (per-star differences: the stars' scatter cancels). Each route states
+a precision from its own input errors: the standard deviation of the
+corrected slopes over ``--draws-stated`` templates drawn from them (the
+calibrated template's stored uncertainty; the Astier & Regnault fit's
+parameter covariance; the a-matrix errors through the kernel); its coverage
+is the fraction of cases (sensor x input x PSF x size, e1) whose residual
+lies within that precision combined with the stars' error. Run::
+
+    python benchmarks/calibration/peers.py [--sensors ...] [--lags 3] [--draws 3]
+        [--n-stars 200] [--pairs CACHE_PREFIX] [--flats] [--out PREFIX]
+"""
+
+import argparse
+import os
+import shlex
+import sys
+import time
+import zlib
+
+import numpy as np
+
+from calibrate_sensor import flats_table, star_pairs
+
+from lsst_bfdrift.calibration.astier23_model import Astier23Parameters, astier23_shifts
+from lsst_bfdrift.calibration.routes import MODELS, ROUTE_METHODS, calibrate_route
+from lsst_bfdrift.ptc.acoeffs import AcoeffTable
+from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
+from lsst_bfdrift.templates.edge_shifts import template_from_edge_shifts
+from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
+from lsst_bfdrift.templates.refine import draw_templates
+from lsst_bfdrift.utils.io import write_json, write_text
+from lsst_bfdrift.validation.stars import per_star_residuals
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+REPO = os.path.dirname(os.path.dirname(HERE))
+
+#: cp_pipe-scale errors: relative part and floor (per electron).
+REL_ERROR, ERROR_FLOOR = 0.03, 1e-9
+#: Quantities compared: column of per_star_residuals' rows, name.
+QUANTITIES = ((0, "size"), (1, "e1"), (2, "e2"))
+
+
+def command_line():
+    """The command that runs this script as it was run."""
+    return " ".join(["python", shlex.quote(os.path.relpath(os.path.abspath(__file__), REPO))]
+                    + [shlex.quote(a) for a in sys.argv[1:]])
+
+
+def origin_slope(x, y):
+    """Least-squares slope through the origin and its error from the scatter."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    s = np.sum(x * y) / np.sum(x * x)
+    r = y - s * x
+    return float(s), float(np.sqrt(np.sum(r * r) / max(len(x) - 1, 1) / np.sum(x * x)))
+
+
+def amatrix_inputs(sensor, lags, draws):
+    """(name, AcoeffTable) of GalSim's noise-free a-matrix and its noisy draws."""
+    a = galsim_acoeffs(sensor, lags)
+    sigma = REL_ERROR * np.abs(a) + ERROR_FLOOR
+    out = [("noise-free", AcoeffTable(a, sigma, source=f"GalSim {sensor} a-matrix"))]
+    rng = np.random.default_rng(zlib.crc32(f"peers:{sensor}".encode()))
+    for k in range(draws):
+        out.append((f"draw {k}", AcoeffTable(a + sigma * rng.standard_normal(a.shape), sigma,
+                                             source=f"GalSim {sensor} a-matrix, draw {k}")))
+    return a, out
+
+
+def stated_templates(route, table, n, seed):
+    """Templates drawn from the route's own input uncertainty (its stated precision)."""
+    rng = np.random.default_rng(seed)
+    if route.model == "electrostatic":
+        return draw_templates(route.template, n, seed=seed)
+    if route.model == "astier23":
+        m = route.product
+        names = list(m.free_params)
+        mean = np.array([m.fit_params[k] for k in names])
+        out = []
+        fit_range = m.fit_range
+        base = route.template.meta["astier23_fit"]["params"]
+        for x in rng.multivariate_normal(mean, m.covariance, size=n):
+            p = Astier23Parameters(**{**base, **dict(zip(names, x))})
+            out.append(template_from_edge_shifts(*astier23_shifts(p, fit_range - 1),
+                                                 size=route.template.size))
+        return out
+    out = []
+    for _ in range(n):
+        noisy = AcoeffTable(table.a + table.sigma * rng.standard_normal(table.a.shape),
+                            table.sigma)
+        out.append(calibrate_route(noisy, "coulton18").template)
+    return out
+
+
+def slopes(fluxes, rows):
+    """{quantity: (slope, error)} of per-star rows, measurable stars."""
+    ok = np.isfinite(fluxes)
+    return {q: origin_slope(fluxes[ok], rows[ok, col]) for col, q in QUANTITIES}, ok
+
+
+def run_case(pairs, templates, args):
+    """Corrected residual rows of every route's template on one set of stars."""
+    out = {}
+    for name, (tpl, method) in templates.items():
+        fl, rows = per_star_residuals(pairs, tpl, methods={name: {"method": method}},
+                                      sky=1000.0)
+        out[name] = (fl, rows)
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sensors", nargs="+",
+                    default=["lsst_itl_50_8", "lsst_e2v_50_8", "lsst_itl_50_32",
+                             "lsst_e2v_50_32"])
+    ap.add_argument("--psf", nargs="+", default=["moffat", "kolmogorov"])
+    ap.add_argument("--lags", type=int, default=3, help="largest lag of the a-matrix used")
+    ap.add_argument("--draws", type=int, default=3, help="noisy draws of each a-matrix")
+    ap.add_argument("--draws-stated", type=int, default=6,
+                    help="templates drawn from each route's uncertainty (stated precision)")
+    ap.add_argument("--n-stars", type=int, default=200)
+    ap.add_argument("--pairs", help="cache prefix for the drawn stars and flats' covariances")
+    ap.add_argument("--flats", action="store_true", help="also calibrate from GalSim flats")
+    ap.add_argument("--flat-size", type=int, default=400)
+    ap.add_argument("--pairs-per-level", type=int, default=2)
+    ap.add_argument("--flat-max-lag", type=int, default=3)
+    ap.add_argument("--flat-steps", type=int, default=40)
+    ap.add_argument("--out", default=os.path.join(HERE, "peers_results"))
+    args = ap.parse_args(argv)
+    lines, out = [], {"sensors": {}, "errors": {"relative": REL_ERROR, "floor": ERROR_FLOOR},
+                      "lags": args.lags}
+    coverage = {m: [] for m in MODELS}
+
+    def say(s):
+        print(s, flush=True)
+        lines.append(s)
+
+    say(f"routes: {', '.join(f'{m} ({ROUTE_METHODS[m]})' for m in MODELS)}; a-matrix lags "
+        f"0..{args.lags}, errors {REL_ERROR:.0%} + {ERROR_FLOOR:g}/e; % of the uncorrected "
+        "slope, errors from the stars")
+    for sensor in args.sensors:
+        rec = out["sensors"][sensor] = {}
+        truth_a, inputs = amatrix_inputs(sensor, args.lags, args.draws)
+        if args.flats:
+            tab, _ = flats_table(sensor, args)
+            inputs.append(("flats", tab))
+        true_tpl = import_galsim_sensor(sensor, match="transfers")
+        psf_pairs = {}
+        for psf in args.psf:
+            pairs, seed, cost = star_pairs(sensor, psf, args)
+            psf_pairs[psf] = pairs
+            say(f"{sensor} {psf}: {len(pairs)} stars (seed {seed})"
+                + (f", drawn in {cost:.0f} s" if cost else ""))
+        for k, (label, table) in enumerate(inputs):
+            t0 = time.time()
+            routes = {}
+            for m in MODELS:
+                kw = {"allow_poor_fit": True} if m == "electrostatic" else {}
+                routes[m] = calibrate_route(table, m, **kw)
+            fits = "; ".join(f"{m} chi2 {r.chi2:.1f}/{r.dof}" for m, r in routes.items()
+                             if m != "coulton18")
+            say(f" {sensor}, {label}: {fits}; {time.time() - t0:.0f} s")
+            stated = {m: stated_templates(r, table, args.draws_stated,
+                                          seed=zlib.crc32(f"{sensor}:{label}:{m}".encode()))
+                      for m, r in routes.items()}
+            rec[label] = {}
+            for psf, pairs in psf_pairs.items():
+                templates = {m: (r.template, r.method) for m, r in routes.items()}
+                templates["true template"] = (true_tpl, "drift")
+                res = run_case(pairs, templates, args)
+                fl, base_rows = next(iter(res.values()))
+                u, ok = slopes(fl, base_rows["uncorrected"])
+                row = rec[label][psf] = {"uncorrected": u}
+                for name, (fl_n, rows) in res.items():
+                    s, _ = slopes(fl_n, rows[name])
+                    row[name] = {q: (100 * s[q][0] / u[q][0], 100 * s[q][1] / abs(u[q][0]))
+                                 for _, q in QUANTITIES}
+                    say(f"  {psf:10s} {name:14s} " + "  ".join(
+                        f"{q} {row[name][q][0]:+6.1f} +- {row[name][q][1]:4.1f}"
+                        for _, q in QUANTITIES))
+                # paired differences (same stars): package minus each LSST route
+                for other in ("astier23", "coulton18"):
+                    d = {}
+                    for col, q in QUANTITIES:
+                        a_rows, b_rows = res["electrostatic"][1], res[other][1]
+                        good = ok & np.isfinite(res["electrostatic"][0]) & np.isfinite(
+                            res[other][0])
+                        diff = a_rows["electrostatic"][good, col] - b_rows[other][good, col]
+                        sl, se = origin_slope(fl[good], diff)
+                        d[q] = (100 * sl / u[q][0], 100 * se / abs(u[q][0]))
+                    row[f"electrostatic minus {other}"] = d
+                    say(f"  {psf:10s} paired electrostatic - {other}: " + "  ".join(
+                        f"{q} {d[q][0]:+6.1f} +- {d[q][1]:4.1f}" for _, q in QUANTITIES))
+                # stated precision and its coverage
+                for m in MODELS:
+                    vals = {q: [] for _, q in QUANTITIES}
+                    for tpl in stated[m]:
+                        fl_d, rows_d = per_star_residuals(
+                            pairs, tpl, methods={m: {"method": ROUTE_METHODS[m]}}, sky=1000.0)
+                        s, _ = slopes(fl_d, rows_d[m])
+                        for _, q in QUANTITIES:
+                            vals[q].append(100 * s[q][0] / u[q][0])
+                    st = {q: float(np.std(v, ddof=1)) for q, v in vals.items()}
+                    row[m]["stated"] = st
+                    for q in ("size", "e1"):
+                        resid, star_err = row[m][q]
+                        covered = abs(resid) <= np.hypot(st[q], star_err)
+                        coverage[m].append(bool(covered))
+                    say(f"  {psf:10s} {m:14s} stated +- " + ", ".join(
+                        f"{q} {st[q]:.1f}" for _, q in QUANTITIES))
+    say("coverage of the stated precision (|residual| <= stated (+) stars, size and e1): "
+        + "; ".join(f"{m} {np.mean(c):.0%} of {len(c)}" for m, c in coverage.items() if c))
+    out["coverage"] = {m: {"fraction": float(np.mean(c)), "cases": len(c)}
+                       for m, c in coverage.items() if c}
+    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
+    write_json(args.out + ".json", {"command": command_line(), **out}, indent=1, default=float)
+
+
+if __name__ == "__main__":
+    main()
