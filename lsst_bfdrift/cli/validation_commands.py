@@ -25,7 +25,7 @@ __all__ = ["add_validate_stars_parser", "add_validate_sky_parser", "add_reproduc
 
 #: How ``validate-stars`` imports the sensor's file when no ``--template`` is
 #: given: matched to GalSim's transfers, not import_galsim_sensor's default
-#: ``'areas'`` (benchmarks/probe_validation_cadence_results.txt,
+#: ``'areas'`` (benchmarks/correction/probe_validation_cadence_results.txt,
 #: docs/benchmarks.rst).
 VALIDATE_STARS_MATCH = "transfers"
 
