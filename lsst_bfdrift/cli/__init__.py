@@ -1,4 +1,4 @@
-"""The ``bfdrift`` command line (stage 7): one subcommand per job, each a thin
+"""The ``bfdrift`` command line: one subcommand per job, each a thin
 wrapper over the functions of the stages before it.
 """
 

@@ -24,7 +24,7 @@ from lsst_bfdrift.correction.steps import FLAG_BLOCKED, FLAG_EDGE
 from lsst_bfdrift.correction.task import (BrighterFatterDriftConfig, BrighterFatterDriftTask,
                                           stage_order)
 from lsst_bfdrift.images.exposure import read_exposure, write_exposure
-from lsst_bfdrift.utils.io import atomic_output, check_output
+from lsst_bfdrift.utils.io import check_output
 from lsst_bfdrift.utils.config import config_from_dict
 from lsst_bfdrift.utils.progress import ProgressBar, StageProgress
 from lsst_bfdrift.utils.errors import InputError

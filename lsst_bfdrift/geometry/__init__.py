@@ -1,4 +1,4 @@
-"""Superposition of a template over a charge image (stage 3).
+"""Superposition of a template over a charge image.
 
 Takes a template and a charge image (e); gives the final pixel polygons and
 their moment maps: area, centroid shift and second moments / ellipticity per

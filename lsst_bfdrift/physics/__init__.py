@@ -1,4 +1,4 @@
-"""The electrostatic drift model (stage 1 of the data flow).
+"""The electrostatic drift model.
 
 Takes sensor parameters (:class:`SensorParameters`); gives the field terms
 (backdrop field, periodic channel-stop and clock dipoles, images, truncated

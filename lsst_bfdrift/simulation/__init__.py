@@ -1,4 +1,4 @@
-"""Simulated data with moving pixel boundaries (stage 4).
+"""Simulated data with moving pixel boundaries.
 
 Takes a template (or a GalSim sensor); gives flat fields and their
 covariances, flat pairs with injected non-BF effects (the effect library's

@@ -1,4 +1,4 @@
-"""Portable distortion templates (stage 2).
+"""Portable distortion templates.
 
 Takes a sensor model (or GalSim's sensor files); gives the
 :class:`DistortionTemplate` of one aggressor pixel (corner and edge-sample
@@ -14,4 +14,5 @@ from lsst_bfdrift.templates.swept import *  # noqa: F401,F403
 from lsst_bfdrift.templates.galsim_io import *  # noqa: F401,F403
 from lsst_bfdrift.templates.galsim_export import *  # noqa: F401,F403
 from lsst_bfdrift.templates.refine import *  # noqa: F401,F403
+from lsst_bfdrift.templates.edge_shifts import *  # noqa: F401,F403
 from lsst_bfdrift.templates.build_config import *  # noqa: F401,F403

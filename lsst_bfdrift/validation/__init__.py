@@ -1,4 +1,4 @@
-"""Validation of the corrections (stage 6).
+"""Validation of the corrections.
 
 Takes exposures, star catalogues and templates; gives star catalogues
 (photutils), catalogue-level shape corrections, residual size-flux slopes on
