@@ -8,10 +8,13 @@ the command modules import them; nothing outside the ``cli`` package should.
 import contextlib
 import inspect
 import json
+import math
 import os
 import signal
 import sys
 import threading
+
+import numpy as np
 
 from lsst_bfdrift.templates.template import (DistortionTemplate, default_template_path,
                                              load_default_template)
@@ -69,14 +72,28 @@ def load_template(path):
 
 
 def print_json(obj):
-    """Print ``obj`` as indented JSON with sorted keys (numpy scalars as floats).
+    """Print ``obj`` as strict JSON, indented, keys sorted (numpy scalars as floats,
+    NaN and infinities as null).
 
     Parameters
     ----------
     obj : dict
         The command's result.
     """
-    print(json.dumps(obj, indent=2, sort_keys=True, default=float))
+    print(json.dumps(_finite(obj), indent=2, sort_keys=True, default=float, allow_nan=False))
+
+
+def _finite(obj):
+    """``obj`` with non-finite floats as None: strict JSON has no NaN or Infinity."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, np.ndarray):
+        return _finite(obj.tolist())
+    return obj
 
 
 def emit(obj, as_json, width=18):

@@ -9,8 +9,10 @@ not given leaves the config's field) and from
 """
 
 import argparse
+import math
 import os
 import sys
+import warnings
 
 import numpy as np
 from astropy.io import fits
@@ -20,9 +22,9 @@ from lsst_bfdrift.cli._common import (check_outputs, emit, library_default, load
 from lsst_bfdrift.correction.batch import correct_files, output_pairs
 from lsst_bfdrift.correction.task import BrighterFatterDriftConfig
 from lsst_bfdrift.geometry.superpose import moment_maps
-from lsst_bfdrift.images.electrons import to_electrons
+from lsst_bfdrift.images.electrons import gain_value, to_electrons
 from lsst_bfdrift.utils.config import load_config
-from lsst_bfdrift.utils.errors import InputError, OutputExistsError
+from lsst_bfdrift.utils.errors import FieldValidationError, InputError, OutputExistsError
 from lsst_bfdrift.utils.io import atomic_output, check_output, data_path
 from lsst_bfdrift.utils.progress import ProgressBar
 
@@ -67,6 +69,9 @@ def cmd_maps(args):
     # the package's one unit, gain and saturation rule (as bfdrift correct): --gain means ADU
     electrons = to_electrons(path, gain=args.gain, gain_name="--gain")
     image, bad, header, gain = electrons.data, electrons.bad, electrons.meta, electrons.gain
+    if bad.all():
+        raise InputError(f"{path}: every one of the {bad.size} pixels is masked or non-finite: "
+                         "there is no charge to map")
     tpl = load_template(args.template)
     with ProgressBar(image.shape[0], "maps", enabled=not args.quiet) as bar:
         samples = None if args.samples is None else min(args.samples, tpl.edge_samples)
@@ -102,20 +107,28 @@ def _correct_config(args):
         load_config(BrighterFatterDriftConfig, args.config)
     if args.method:
         cfg.method = args.method
-    if args.gain is not None:
-        cfg.gain = args.gain
+    if args.gain is not None:  # named by its option, not by the config field's source line
+        cfg.gain = gain_value(args.gain, what="--gain")
     if args.geometry is not None:
         cfg.compute_geometry = bool(args.geometry)
     if args.template is not None:
         cfg.template = os.path.abspath(args.template)
     if args.saturation is not None:
+        if not (math.isfinite(args.saturation) and args.saturation > 0):
+            raise InputError(f"--saturation {args.saturation:g} is not a positive level; "
+                             "accepted: a positive finite level in the images' unit (e or ADU)")
         cfg.saturation = args.saturation
     if args.blocking_planes is not None:
         cfg.blocking_mask_planes = [p.strip() for p in args.blocking_planes.split(",")
                                     if p.strip()]
     if args.strict:
         cfg.on_input_warning = "raise"
-    cfg.validate()  # a bad --gain or --method is a usage error, not one failure per file
+    try:  # a bad value is a usage error, not one failure per file
+        cfg.validate()
+    except FieldValidationError as exc:
+        # pex_config's message ends with the source lines of the field: not the user's
+        text = str(exc).split("\nFor more information")[0].strip()
+        raise InputError(f"--config {args.config}: {text}" if args.config else text) from None
     return cfg
 
 
@@ -123,6 +136,9 @@ def _correct_pairs(args):
     """The (input, output) pairs of ``correct``, checked against the overwrite rule."""
     files = list(args.inputs)
     if args.out_dir:
+        if os.path.exists(args.out_dir) and not os.path.isdir(args.out_dir):
+            raise InputError(f"--out-dir {args.out_dir}: exists and is not a directory; "
+                             "accepted: a directory (created if missing)")
         os.makedirs(args.out_dir, exist_ok=True)
         pairs = output_pairs(files, args.out_dir)
     else:
@@ -187,18 +203,41 @@ def cmd_correct(args):
     """
     cfg = _correct_config(args)
     pairs = _correct_pairs(args)
-    skipped = [(s_, d) for s_, d in pairs if args.skip_existing and os.path.exists(d)]
-    todo = [p_ for p_ in pairs if p_ not in skipped]
+    # --skip-existing skips only an output bfdrift correct wrote completely; another file
+    # there is that input's failure, saying what was found
+    found = {p_: _output_state(p_[1]) for p_ in pairs
+             if args.skip_existing and os.path.exists(p_[1])}
+    todo = [p_ for p_ in pairs if p_ not in found]
     done = correct_files(todo, cfg, scheduler=args.scheduler, overwrite=args.overwrite,
                          n_workers=args.n_workers, processes=args.processes,
                          progress=not args.quiet) if todo else []
     by_pair = dict(zip(todo, done))
-    results = [by_pair.get(p_) or {"input": p_[0], "output": p_[1], "error": None,
-                                   "skipped": True, "iterations": None, "converged": None}
-               for p_ in pairs]
+    for p_, state in found.items():
+        by_pair[p_] = {"input": p_[0], "output": p_[1], "iterations": None,
+                       "converged": None, "skipped": state is None,
+                       "error": None if state is None else
+                       f"--skip-existing: {p_[1]} exists but {state}; remove it, or give "
+                       "--overwrite to replace it"}
+    results = [by_pair[p_] for p_ in pairs]
     failed = [r for r in results if r["error"]]
     _print_correct_results(results, failed, cfg.method, args.json)
     return 1 if failed else 0
+
+
+def _output_state(path):
+    """None for a complete output of ``bfdrift correct`` (every HDU readable, the
+    BFDRIFT card set), else what is wrong with the file at ``path``."""
+    try:
+        with warnings.catch_warnings():  # what is wrong is said in the returned text
+            warnings.simplefilter("ignore")
+            with fits.open(path) as hdul:
+                for h in hdul:
+                    _ = h.data  # a file cut short fails here
+                if not any(h.header.get("BFDRIFT") is True for h in hdul):
+                    return "was not written by bfdrift correct (no BFDRIFT card)"
+    except (OSError, ValueError, TypeError, IndexError) as exc:
+        return f"is not a readable FITS file, perhaps an output cut short ({exc})"
+    return None
 
 
 def _written_by_bfdrift(path):

@@ -31,6 +31,9 @@ def input_warnings(image, blocked):
     * **A bias pedestal**: a median above 1000 e whose robust scatter is far
       below its Poisson noise (variance < 10 % of the median) is an image in
       ADU with its bias in, not post-ISR electrons.
+    * **A negative image**: a median more than 5 times its robust scatter
+      below zero (a flipped sign, a bias subtracted twice): the model
+      describes collected charge.
 
     Median and scatter come from at most :data:`ROBUST_SAMPLE` pixels
     (:func:`~lsst_bfdrift.images.levels.robust_level`).
@@ -60,6 +63,10 @@ def input_warnings(image, blocked):
                        f"informational plane (DETECTED) part of the mask? Read LSST files with "
                        f"lsst_bfdrift.images.exposure.read_exposure (named planes) or set "
                        f"blocking_mask_planes")
+    if med < -5.0 * max(mad, 1.0):
+        out.append(f"median {med:.4g} e, {-med / max(mad, 1.0):.0f} times its scatter below "
+                   f"zero: the image is mostly negative (a sign flipped, or a bias subtracted "
+                   f"twice?); the correction needs collected charge, e >= 0 but for noise")
     if med > 1000.0 and mad * mad < 0.1 * med:
         out.append(f"median {med:.4g} e with a scatter of {mad:.3g} e, far below its Poisson "
                    f"noise ({np.sqrt(med):.3g} e): a bias pedestal or an image in ADU? The "

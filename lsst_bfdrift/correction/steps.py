@@ -27,6 +27,7 @@ from lsst_bfdrift.geometry.superpose import moment_maps
 from lsst_bfdrift.images.exposure import add_mask_plane
 from lsst_bfdrift.templates.refine import draw_templates
 from lsst_bfdrift.templates.swept import OperatorCache
+from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.utils.version import __version__
 
 __all__ = ["FLAG_BLOCKED", "FLAG_EDGE", "BF_PLANE_DOC", "MAP_NAMES", "LSST_METHOD",
@@ -59,10 +60,21 @@ def blocked_pixels(image):
     -------
     ndarray of bool
         A new array.
+
+    Raises
+    ------
+    InputError
+        Every pixel is blocked: nothing to correct.
     """
     blocked = image.bad.copy()
     if image.saturated is not None:
         blocked |= image.saturated
+    if blocked.all():
+        nonfinite = int(np.count_nonzero(~np.isfinite(image.data)))
+        masked = 0 if image.mask is None else int(np.count_nonzero(image.mask))
+        raise InputError(f"{image.source}: every one of the {blocked.size} pixels is blocked "
+                         f"({nonfinite} non-finite, {masked} masked, the rest saturated or "
+                         "masked by the caller): there is no charge to correct")
     return blocked
 
 

@@ -541,8 +541,14 @@ class DistortionTemplate:
         except Exception as exc:  # astropy raises many kinds for broken files
             raise TemplateFileError(f"{path}: cannot read template file ({exc})") from exc
         version = hdr.get("BFSCHEMA")
+        if version is None or isinstance(version, (str, bool, float)):
+            what = "missing" if version is None else \
+                f"the {type(version).__name__} {version!r}, not an integer"
+            raise TemplateFileError(f"{path}: template schema version (BFSCHEMA) is {what}; "
+                                    f"this lsst_bfdrift reads the integer version "
+                                    f"{TEMPLATE_SCHEMA_VERSION}")
         if version != TEMPLATE_SCHEMA_VERSION:
-            raise TemplateFileError(f"{path}: template schema version {version!r}, this "
+            raise TemplateFileError(f"{path}: template schema version {version}, this "
                                     f"lsst_bfdrift reads version {TEMPLATE_SCHEMA_VERSION}")
         try:
             ns = int(hdr["BFNSAMP"])

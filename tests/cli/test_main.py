@@ -857,3 +857,63 @@ def test_calibrate_with_lsst_routes(capsys, tmp_path):
                         str(tmp_path / "no.fits"))
     assert code == 4 and "this input has 1" in err
     assert not (tmp_path / "no.fits").exists() and not (tmp_path / "p.fits").exists()
+
+
+def test_hostile_inputs_of_correct_and_maps(capsys, tmp_path):
+    """Issue 44 items 3, 5, 6, 11, 12, 13: each case a clear error naming the option or
+    file (no traceback, no internal source path), never a silent success."""
+    from lsst_bfdrift.cli.main import sample_image_path
+
+    star = str(tmp_path / "star.fits")
+    with fits.open(sample_image_path()) as h:
+        data = np.array(h[0].data, dtype=np.float32)
+    fits.PrimaryHDU(data, header=ELECTRONS).writeto(star)
+    # 11: a bad --gain / --saturation is named by its option, no source path shown
+    for opt, val in (("--gain", "0"), ("--gain", "-1"), ("--gain", "nan"),
+                     ("--saturation", "nan")):
+        code, _, err = _run(capsys, "correct", star, str(tmp_path / "o.fits"), opt, val,
+                            "--quiet")
+        assert code == 2 and opt in err and ".py" not in err, (opt, val, err)
+    # 12: --out-dir that is a file
+    code, _, err = _run(capsys, "correct", star, "--out-dir", star, "--quiet")
+    assert code == 2 and "--out-dir" in err and "is not a directory" in err
+    # 5: an all-negative image: a warning, and --strict refuses it
+    neg = str(tmp_path / "neg.fits")
+    fits.PrimaryHDU(-data, header=ELECTRONS).writeto(neg)
+    code, _, err = _run(capsys, "correct", neg, str(tmp_path / "n.fits"), "--quiet",
+                        "--strict", "--no-geometry")
+    assert code == 1 and "mostly negative" in err and not (tmp_path / "n.fits").exists()
+    # 6 and 13: an all-NaN image is refused by correct and maps, and the JSON stays strict
+    nan = str(tmp_path / "nan.fits")
+    fits.PrimaryHDU(np.full((20, 20), np.nan, np.float32), header=ELECTRONS).writeto(nan)
+    code, _, err = _run(capsys, "correct", nan, str(tmp_path / "x.fits"), "--quiet")
+    assert code == 1 and "there is no charge to correct" in err
+    assert "converged" not in capsys.readouterr().out
+    code, out, err = _run(capsys, "maps", nan, "--json", "--quiet")
+    assert code == 2 and "no charge to map" in err and "NaN" not in out
+    # 3: --skip-existing skips only a complete output of bfdrift correct
+    d = tmp_path / "out"
+    d.mkdir()
+    fits.PrimaryHDU(np.zeros((4, 4))).writeto(d / "star.fits")  # unrelated
+    code, out, err = _run(capsys, "correct", star, "--out-dir", str(d), "--skip-existing",
+                          "--quiet")
+    assert code == 1 and "no BFDRIFT card" in err
+    (d / "star.fits").write_bytes(b"SIMPLE  =                    T")  # cut short
+    code, out, err = _run(capsys, "correct", star, "--out-dir", str(d), "--skip-existing",
+                          "--quiet")
+    assert code == 1 and "not a readable FITS file" in err
+    (d / "star.fits").unlink()
+    assert _run(capsys, "correct", star, "--out-dir", str(d), "--quiet",
+                "--no-geometry")[0] == 0
+    code, out, _ = _run(capsys, "correct", star, "--out-dir", str(d), "--skip-existing")
+    assert code == 0 and "skipped (the output exists)" in out
+
+
+def test_print_json_is_strict():
+    from lsst_bfdrift.cli._common import print_json
+    import io
+    import contextlib
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        print_json({"a": float("nan"), "b": [np.float64("inf"), 1.5], "c": np.arange(2.0)})
+    assert json.loads(buf.getvalue()) == {"a": None, "b": [None, 1.5], "c": [0.0, 1.0]}

@@ -499,3 +499,13 @@ def test_ccddata_meta_fits_cannot_store_is_kept_not_refused():
     assert out["OK"] == 3 and out["BFDRIFT"] is True
     assert res.header["OK"] == 3 and "LISTKEY" not in res.header
     assert res.header["LONGKEYWORDNAME"] == 4
+
+
+def test_an_image_with_every_pixel_blocked_is_refused():
+    """Issue 44 item 6: nothing to correct is an error, not 'moved 0 e, converged'."""
+    task = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(compute_geometry=False))
+    with pytest.raises(ValueError, match="every one of the 400 pixels is blocked \\(400 "
+                                         "non-finite"):
+        task.run(np.full((20, 20), np.nan))
+    with pytest.raises(ValueError, match="0 non-finite, 400 masked"):
+        task.run(np.ma.MaskedArray(np.ones((20, 20)), mask=np.ones((20, 20), bool)))

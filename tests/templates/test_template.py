@@ -77,6 +77,9 @@ class TestBuild:
 def _bump_schema(h):
     h["TEMPLATE"].header["BFSCHEMA"] = TEMPLATE_SCHEMA_VERSION + 1
 
+def _text_schema(h):  # issue 44 item 14: the version as text
+    h["TEMPLATE"].header["BFSCHEMA"] = str(TEMPLATE_SCHEMA_VERSION)
+
 def _scale_normals(h):  # the FITS checksum is rewritten: only the hash sees it
     h["TEMPLATE"].data["normal"][:] *= 1.5
 
@@ -128,10 +131,12 @@ class TestFileIO:
             DistortionTemplate.load(path)
 
     @pytest.mark.parametrize("edit, match", [
-        (_bump_schema, "schema version"),
+        (_bump_schema, "schema version 2, this lsst_bfdrift reads version 1"),
+        (_text_schema, r"\(BFSCHEMA\) is the str '1', not an integer; this lsst_bfdrift "
+                       "reads the integer version 1"),
         (_scale_normals, "SHA-256|inconsistent"),
         (_move_one_corner_view, "inconsistent"),
-    ], ids=["version_mismatch", "altered_data_with_valid_checksum_fails_hash",
+    ], ids=["version_mismatch", "version_as_text", "altered_data_with_valid_checksum_fails_hash",
             "inconsistent_shared_edges"])
     def test_edited_file_fails(self, small_template, tmp_path, edit, match):
         src, dst = tmp_path / "a.fits", tmp_path / "b.fits"
