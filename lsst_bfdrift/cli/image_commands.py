@@ -42,10 +42,28 @@ def sample_image_path():
     return data_path("sample_star.fits")
 
 
+#: Unit and description of each geometry map ``maps --out`` writes.
+MAP_UNITS = {"area": ("pix2", "final pixel area"),
+             "dx": ("pix", "centroid shift along x (serial) from the pixel centre"),
+             "dy": ("pix", "centroid shift along y (parallel) from the pixel centre"),
+             "e1": ("", "e1 = (Ixx - Iyy) / (Ixx + Iyy) of the final pixel"),
+             "e2": ("", "e2 = 2 Ixy / (Ixx + Iyy) of the final pixel")}
+
+
 def _write_maps(path, maps, header):
+    """The maps file: the input's header in the primary HDU (its BUNIT kept as
+    BFIUNIT: the file holds no image in that unit), one HDU per map with its
+    BUNIT and description."""
+    header = fits.Header(header)
+    if "BUNIT" in header:
+        header["BFIUNIT"] = (header.pop("BUNIT"), "unit of the input image")
     hdus = [fits.PrimaryHDU(header=header)]
     for name, arr in maps.as_dict().items():
-        hdus.append(fits.ImageHDU(arr.astype(np.float64), name=name.upper()))
+        hdu = fits.ImageHDU(arr.astype(np.float64), name=name.upper())
+        unit, doc = MAP_UNITS.get(name, ("", name))
+        hdu.header["BUNIT"] = (unit, "dimensionless" if not unit else "")
+        hdu.header["BFDESC"] = doc
+        hdus.append(hdu)
     with atomic_output(path) as tmp:
         fits.HDUList(hdus).writeto(tmp, overwrite=True, checksum=True)
 

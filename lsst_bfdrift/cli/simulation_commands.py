@@ -7,6 +7,8 @@ The options' defaults are those of the functions they feed
 says why not.
 """
 
+import os
+
 from lsst_bfdrift.cli._common import (check_outputs, library_default, load_template,
                                       print_json, save_plot, template_input)
 from lsst_bfdrift.simulation.flats import simulate_flats, with_responsivity
@@ -96,7 +98,10 @@ def cmd_star_sim(args):
     if args.plot:
         # matplotlib: simulation.plots imports it; only when --plot is given
         from lsst_bfdrift.simulation.plots import plot_star_history
-        save_plot(plot_star_history(hist), args.plot)
+        run = (f"star-sim: {args.psf} PSF, FWHM {args.fwhm:g}\", {args.flux:.3g} e, "
+               f"template {os.path.basename(args.template or 'bundled default')} "
+               f"({tpl.charge:.3g} e aggressor)")
+        save_plot(plot_star_history(hist, title=run), args.plot)
     last = hist[-1]
     out = {"psf": args.psf, "fwhm_arcsec": args.fwhm, "flux": args.flux,
            "template_charge": tpl.charge, "lost": final["lost"],

@@ -24,7 +24,8 @@ def plot_moment_maps(maps, *, image=None, title=None, percentile=99.5):
     Each panel has pixel axes (x serial, y parallel), a colour bar with its
     unit, and a robust symmetric stretch (``percentile`` of the absolute
     values, :func:`robust_limit`) so that a full CCD with a few bright stars
-    stays readable; the charge image uses an asinh stretch.
+    stays readable; where it clips, the panel's title gives the full range and
+    the colour bar has arrows. The charge image uses an asinh stretch.
 
     Parameters
     ----------
@@ -56,14 +57,22 @@ def plot_moment_maps(maps, *, image=None, title=None, percentile=99.5):
             im = ax.imshow(arr, origin="lower", cmap="viridis",
                            norm=AsinhNorm(linear_width=max(abs(med), 1.0), vmin=min(med, top),
                                           vmax=max(top, med + 1.0)), interpolation="nearest")
+            extend, clip = "neither", ""
         else:
             lim = robust_limit(arr, percentile=percentile)
             im = ax.imshow(arr, origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim,
                            interpolation="nearest")
-        ax.set_title(name)
+            finite = arr[np.isfinite(arr)]
+            lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 0.0)
+            extend = {(False, False): "neither", (True, False): "min", (False, True): "max",
+                      (True, True): "both"}[(lo < -lim, hi > lim)]
+            # say so when the stretch clips: the colours then do not reach the extremes
+            clip = "" if extend == "neither" else \
+                f"\nscale clipped at {percentile:g} %: range {lo:.3g} to {hi:.3g}"
+        ax.set_title(name + clip, fontsize=10 if clip else None)
         ax.set_xlabel("x (px)")
         ax.set_ylabel("y (px)")
-        fig.colorbar(im, ax=ax, shrink=0.75, label=unit)
+        fig.colorbar(im, ax=ax, shrink=0.75, label=unit, extend=extend)
     if title:
         fig.suptitle(title)
     return fig

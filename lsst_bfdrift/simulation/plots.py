@@ -4,7 +4,7 @@ import numpy as np
 
 from lsst_bfdrift.utils.plotting import plt  # Agg backend set there
 
-__all__ = ['plot_flat_simulation', 'plot_star_history']
+__all__ = ['plot_flat_simulation', 'plot_star_history', 'STAR_PANEL_TITLES']
 
 
 def plot_flat_simulation(table, template=None):
@@ -41,13 +41,32 @@ def plot_flat_simulation(table, template=None):
     return fig
 
 
-def plot_star_history(history):
+#: Title of each panel of :func:`plot_star_history`, [row, column].
+STAR_PANEL_TITLES = (("central pixel", "size with and without BF", "FWHM growth by BF",
+                      "size change by BF"),
+                     ("ellipticity", "orientation", "arrival rates",
+                      "ellipticity change by BF"))
+
+
+def plot_star_history(history, *, title=None):
     """A star simulation against counts (like the paper's Fig. 7).
 
     Panels: central pixel counts, T = sigma_x^2 + sigma_y^2 with and without
     BF, FWHM growth by BF (RSS difference), ellipticity and orientation, the
     arrival rates, and (right column) BF minus square pixels: the size change
-    dT (px^2) and the ellipticity change de1, de2.
+    dT (px^2) and the ellipticity change de1, de2. Each panel has a title
+    (:data:`STAR_PANEL_TITLES`).
+
+    Parameters
+    ----------
+    history : astropy.table.Table
+        From :meth:`~lsst_bfdrift.simulation.stars.StarSimulation.run`.
+    title : str, optional
+        Figure title: the run's parameters (PSF, FWHM, flux, template).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
     """
     h = history
     n = np.asarray(h["counts"])
@@ -88,6 +107,11 @@ def plot_star_history(history):
             ax[1, 2].plot(n, h[col], ".-", ms=2, label=col[5:].replace("_", ","))
     ax[1, 2].set_ylabel("arrivals per conversion")
     ax[1, 2].legend(fontsize=7, ncol=3)
+    for r, row in enumerate(STAR_PANEL_TITLES):
+        for c_, name in enumerate(row):
+            ax[r, c_].set_title(name, fontsize=10)
+    if title:
+        fig.suptitle(title)
     for a in ax.ravel():
         a.ticklabel_format(axis="x", style="sci", scilimits=(0, 0))
         if not a.get_xlabel():

@@ -230,6 +230,16 @@ def test_star_sim(capsys, tmp_path):
     assert s["T_growth"] > 0 and s["central_counts"] < s["central_counts_square_pixels"]
     assert s["steps"][-1]["counts"] == 30000
     assert png.read_bytes()[:4] == b"\x89PNG"
+    # issue 43 item 5: every panel titled, the run's parameters on the figure
+    from astropy.table import Table
+    from lsst_bfdrift.simulation.plots import STAR_PANEL_TITLES, plot_star_history
+    hist = tmp_path / "h.ecsv"
+    assert _run(capsys, "star-sim", "--flux", "30000", "--quiet", "--stamp", "21", "--out",
+                str(hist))[0] == 0
+    fig = plot_star_history(Table.read(hist), title="moffat 0.7\"")
+    titles = [a.get_title() for a in fig.axes if a.get_title()]
+    assert titles == [t for row in STAR_PANEL_TITLES for t in row]
+    assert fig._suptitle.get_text() == "moffat 0.7\""
 
 
 def test_star_sim_bad_psf(capsys):
@@ -917,3 +927,27 @@ def test_print_json_is_strict():
     with contextlib.redirect_stdout(buf):
         print_json({"a": float("nan"), "b": [np.float64("inf"), 1.5], "c": np.arange(2.0)})
     assert json.loads(buf.getvalue()) == {"a": None, "b": [None, 1.5], "c": [0.0, 1.0]}
+
+
+def test_maps_outputs_say_their_units_and_clipping(capsys, tmp_path):
+    """Issue 43 item 5: each map HDU states its unit (the input's BUNIT moves to
+    BFIUNIT: the file holds no image in it) and the figure says where its colour
+    scale clips (the sample star's area reaches 0.96 while 99.5 % of pixels lie
+    within +-0.003)."""
+    from lsst_bfdrift.geometry.plots import plot_moment_maps
+    from lsst_bfdrift.geometry.superpose import moment_maps
+    from lsst_bfdrift.templates.template import load_default_template
+    from lsst_bfdrift.cli.main import sample_image_path
+
+    out = tmp_path / "maps.fits"
+    assert _run(capsys, "maps", "--out", str(out), "--quiet")[0] == 0
+    with fits.open(out) as h:
+        assert h[0].header["BFIUNIT"] == "electron" and "BUNIT" not in h[0].header
+        assert [h[k].header["BUNIT"] for k in ("AREA", "DX", "E1")] == ["pix2", "pix", ""]
+    with fits.open(sample_image_path()) as h:
+        img = np.array(h[0].data, float)
+    maps = moment_maps(load_default_template(), img, samples=8)
+    fig = plot_moment_maps(maps, image=img)
+    titles = [ax.get_title() for ax in fig.axes if ax.get_title()]
+    area = next(t for t in titles if t.startswith("area - 1"))
+    assert "scale clipped at 99.5 %: range" in area and f"{maps.area.min() - 1:.3g}" in area
