@@ -203,3 +203,12 @@ def test_the_producer_check_finds_wrong_headers(tmp_path, monkeypatch):
     bad = {name for name in files if producer_problems(f"benchmarks/x/{name}")}
     assert bad == {"other_results.txt", "gone_results.txt", "bare_results.txt"}
     assert commands_of("benchmarks/x/run_results.json") == ["python benchmarks/x/run.py --n 2"]
+
+
+def test_readme_says_how_to_build_the_docs_and_how_long_the_tests_take():
+    """Issue 43 item 6: the docs extra is installed before the build, and the test
+    suite's duration is stated."""
+    with open(os.path.join(ROOT, "README.md")) as fh:
+        text = fh.read()
+    assert 'pip install ".[docs]" && python3 -m sphinx' in text
+    assert re.search(r"suite takes about \d+ minutes on 2 cores", text)
