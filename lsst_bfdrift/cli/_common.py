@@ -285,11 +285,25 @@ def output_dirs(args):
     return dirs
 
 
+def _input_dirs(args):
+    """Directories given as inputs (``bfdrift ptc DIR``, ``diagnose DIR``): a killed
+    run may have written into them too, and their readers skip partial files."""
+    out = []
+    for name in ("files", "input", "inputs"):
+        for p in getattr(args, name, None) or ():
+            if isinstance(p, (str, os.PathLike)) and os.path.isdir(p):
+                d = os.path.abspath(os.fspath(p))
+                if d not in out:
+                    out.append(d)
+    return out
+
+
 def remove_stale_outputs(args, stream=None):
     """Remove the partial files of killed runs (``.tmp-*`` of
     :func:`~lsst_bfdrift.utils.io.atomic_output` whose process is gone) from
-    the directories the command writes into, and say so on ``stream``
-    (stderr).
+    the directories the command writes into and from directories given as
+    inputs (whose readers skip such files: without this they would stay
+    forever), and say so on ``stream`` (stderr).
 
     Parameters
     ----------
@@ -304,7 +318,7 @@ def remove_stale_outputs(args, stream=None):
         The files removed.
     """
     removed = []
-    for d in output_dirs(args):
+    for d in output_dirs(args) + _input_dirs(args):
         try:
             removed += remove_stale_temporaries(d)
         except OSError as exc:  # e.g. a directory we may not list: not this run's concern

@@ -951,3 +951,27 @@ def test_maps_outputs_say_their_units_and_clipping(capsys, tmp_path):
     titles = [ax.get_title() for ax in fig.axes if ax.get_title()]
     area = next(t for t in titles if t.startswith("area - 1"))
     assert "scale clipped at 99.5 %: range" in area and f"{maps.area.min() - 1:.3g}" in area
+
+
+def test_a_stale_partial_file_in_an_input_directory_is_removed(capsys, tmp_path):
+    """Issue 43 item 9: a directory of flats given to ``bfdrift ptc`` that holds a
+    killed run's .tmp-* file: skipped by the reader and removed, and said so."""
+    import subprocess
+    import sys
+
+    from lsst_bfdrift.utils.io import _host_tag
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    d = tmp_path / "flats"
+    d.mkdir()
+    rng = np.random.default_rng(4)
+    for k, level in enumerate((2e3, 6e3, 1.2e4, 2.4e4, 4e4)):
+        for half in "ab":
+            hdr = fits.Header({"EXPTIME": float(k + 1), "BUNIT": "adu"})
+            fits.PrimaryHDU(rng.poisson(level, (48, 48)).astype(np.float32),
+                            header=hdr).writeto(d / f"flat_{k}{half}.fits")
+    stale = d / f".tmp-{proc.pid}-{_host_tag()}-abcd0xyz.fits"
+    stale.write_bytes(b"partial")
+    code, out, err = _run(capsys, "ptc", str(d), "--json")
+    assert code == 0, err
+    assert "removed 1 stale partial file of killed runs" in err and not stale.exists()
