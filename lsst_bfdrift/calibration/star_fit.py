@@ -436,9 +436,12 @@ def progress_steps(n_model, n_lag_dirs, n_fit_fields, n_hold_fields, mode, itera
     Returns
     -------
     int
-        One per direction built (and ``curl``), per field and direction
-        evaluated, per field and star evaluation of each fit (three fits
-        with 'cross'), per held-out field, template and fold.
+        One per field and direction evaluated, and per held-out field,
+        template and fold; per field, the star evaluations of every fit
+        (three fits with 'cross') if each takes all its Gauss-Newton steps;
+        and ``n_model + 2`` for the directions built (the model's candidates
+        and ``curl`` tick one each). An upper bound: the bar is filled at
+        the end.
     """
     n_fits = 3 if mode == "cross" else 1
     return n_model + 2 + n_fit_fields * (n_model + 1 + n_lag_dirs + n_fits * (iterations + 1)) \
