@@ -22,7 +22,7 @@ that).
 import numpy as np
 from scipy.special import erf
 
-from lsst_bfdrift.calibration.tuning import calibrate
+from lsst_bfdrift.calibration import tuning
 from lsst_bfdrift.diagnosis.effects_fit import base_acoeffs, scaled_basis
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable
 from lsst_bfdrift.ptc.covariances import least_squares_line
@@ -170,8 +170,9 @@ def template_change(diagnosis, basis, *, max_lag=None, threshold=1.0, calibrate_
     kw = {"allow_poor_fit": True, **(calibrate_kw or {})}
     results = {}
     for side, a, s in (("without effects", a0, s0), ("with effects", a1, s1)):
-        res = calibrate(AcoeffTable(a, np.maximum(s, 1e-3 * np.abs(a) + 1e-12),
-                                    source=f"diagnosis base model, {side}"), **kw)
+        # tuning.calibrate looked up at the call (tests replace it: about a minute a side)
+        res = tuning.calibrate(AcoeffTable(a, np.maximum(s, 1e-3 * np.abs(a) + 1e-12),
+                                           source=f"diagnosis base model, {side}"), **kw)
         results[side] = res
         t = res.template_acoeffs
         out.setdefault("templates", {})[side] = {
