@@ -50,8 +50,8 @@ from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.templates.refine import curl_free_template  # noqa: E402
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
-from lsst_bfdrift.validation.stars import (_slope, draw_star_pairs,  # noqa: E402
-                                           per_star_residuals, residual_slopes)
+from lsst_bfdrift.validation.stars import (draw_star_pairs, per_star_residuals,  # noqa: E402
+                                           residual_slopes, slope_through_origin as _slope)
 
 METHODS = ("astier23", "drift")
 

@@ -51,7 +51,8 @@ from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.simulation.galsim_twins import accumulate_twins, shoot_stamp_photons, sky_box  # noqa: E402
 from lsst_bfdrift.simulation.stars import make_psf  # noqa: E402
-from lsst_bfdrift.validation.stars import _slope, per_star_residuals, residual_slopes  # noqa: E402
+from lsst_bfdrift.validation.stars import per_star_residuals, residual_slopes  # noqa: E402
+from lsst_bfdrift.validation.stars import slope_through_origin as _slope  # noqa: E402
 
 METHODS = ("coulton18", "astier23", "drift")
 

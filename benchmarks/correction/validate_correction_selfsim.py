@@ -29,7 +29,7 @@ from lsst_bfdrift.utils.io import write_text  # noqa: E402
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
 from lsst_bfdrift.simulation.stars import StarSimulation, image_moments, shoot_photons  # noqa: E402
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
-from lsst_bfdrift.validation.stars import _moments  # noqa: E402
+from lsst_bfdrift.validation.stars import star_moments as _moments  # noqa: E402
 
 VARIANTS = {"drift": dict(method="drift"),  # default density 'fv4'
             "drift cubic4": dict(method="drift", density="cubic4"),

@@ -18,6 +18,8 @@ Arrays of coefficients are indexed ``a[i, j]`` with i the serial lag and j
 the parallel lag, 0 <= i, j <= L (the model is symmetric in the sign of each).
 """
 
+import json
+
 import numpy as np
 
 from lsst_bfdrift.calibration.fitting import ParameterFit, fit_parameters
@@ -335,7 +337,6 @@ def default_basis_path():
 
 def load_default_basis():
     """The shipped :class:`LinearBasis` (written by ``benchmarks/diagnosis/diagnose_itl.py``)."""
-    import json
     with open(default_basis_path()) as fh:
         return LinearBasis.from_dict(json.load(fh))
 

@@ -10,10 +10,10 @@ CLI and the benchmarks print.
 
 import numpy as np
 
-__all__ = ["StarCalibrationResult", "fields_for_precision"]
+__all__ = ["STAR_SLOPES", "StarCalibrationResult", "fields_for_precision"]
 
 #: The star slopes measured on every field, in the order of the fit's star vector.
-_SLOPES = ("size", "e1", "e2")
+STAR_SLOPES = ("size", "e1", "e2")
 
 
 def fields_for_precision(flats_percent, joint_percent, n_fields, goal_percent):

@@ -57,7 +57,7 @@ from lsst_bfdrift.utils.io import data_path, write_text
 
 __all__ = ["CANDIDATES", "CalibrationError", "CalibrationResult", "calibrate",
            "default_start", "model_acoeffs", "measured_acoeffs", "refinement_target",
-           "refine_template",
+           "refine_template", "select_parameters",
            "start_jacobian", "write_start_jacobian"]
 
 #: Candidate free parameters and their bounds: the dipole unit xi0 (e), the
@@ -394,13 +394,49 @@ def _sum_rule(table):
                     "is zero within its error when the lags beyond the table are small"}
 
 
-def _select(J, r, sigma, mask, names, *, max_params, always_first=True, n_points=None,
-            base=()):
-    """Greedy choice of columns of J (linearised model) by chi2 drop > ln N
-    (the first column without the test when ``always_first``). ``n_points``:
-    N of the ln N test when some rows are priors, not data (default all rows
-    in ``mask``). ``base``: indices of columns always in the model (not
-    chosen, not returned, not counted in ``max_params``)."""
+def select_parameters(J, r, sigma, mask, names, *, max_params, always_first=True,
+                      n_points=None, base=()):
+    """Greedy choice of the parameters a linearised model needs: chi2 drop > ln N.
+
+    Columns of ``J`` are added one at a time, each time the one that lowers
+    the weighted least-squares chi2 most, while the drop exceeds
+    ``max(ln N, 1)``. A candidate must beat the best so far by more than
+    rounding (1e-9 of the chi2), so columns that fit equally keep their
+    order in ``names``. Used by :func:`calibrate` (the model's parameters)
+    and by :func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars`
+    (the template's directions).
+
+    Parameters
+    ----------
+    J : ndarray, shape (n_rows, n_names)
+        The model's change per unit of each parameter.
+    r : ndarray, shape (n_rows,)
+        Model minus data at the start.
+    sigma : ndarray, shape (n_rows,)
+        Errors of the rows (inf: no weight).
+    mask : ndarray of bool, shape (n_rows,)
+        The rows used.
+    names : sequence of str
+        Name of each column.
+    max_params : int
+        Most parameters chosen (besides ``base``); at most N - 1.
+    always_first : bool, optional
+        Take the first parameter without the ln N test.
+    n_points : int, optional
+        N of the ln N test when some rows are priors, not data (default: the
+        rows in ``mask``).
+    base : sequence of int, optional
+        Indices of columns always in the model (not chosen, not returned,
+        not counted in ``max_params``).
+
+    Returns
+    -------
+    chosen : list of str
+        The names chosen, in the order they were added.
+    steps : list of dict
+        ``parameter`` (None for the start) and ``chi2_linear`` after each
+        addition.
+    """
     w = 1.0 / sigma[mask]
     A = J[mask] * w[:, None]
     b = -r[mask] * w
@@ -530,8 +566,8 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
         bar(len(names) + 1)
     # 2. which parameters the data need
     if free is None:
-        chosen, selection = _select(J, m0 - table.a, table.sigma, mask, names,
-                                    max_params=max_params)
+        chosen, selection = select_parameters(J, m0 - table.a, table.sigma, mask, names,
+                                                max_params=max_params)
     else:
         chosen, selection = names, [{"parameter": n, "chi2_linear": None} for n in names]
     if int(mask.sum()) < len(chosen):

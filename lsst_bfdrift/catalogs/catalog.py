@@ -52,6 +52,8 @@ import numpy as np
 from astropy import units as u
 from astropy.table import QTable
 from astropy.utils.exceptions import AstropyUserWarning
+from scipy import ndimage
+from scipy.signal import fftconvolve
 
 from lsst_bfdrift.images.electrons import to_electrons
 from lsst_bfdrift.utils.errors import InputError
@@ -84,6 +86,7 @@ def _saturated_pixels(saturated, from_exposure, shape):
 
 
 def _background(data, bad, box_size):
+    # photutils: heavy (1-2 s to import), only when stars are detected
     from photutils.background import Background2D, MedianBackground
 
     ny, nx = data.shape
@@ -122,7 +125,7 @@ def hsm_moments(stamp, *, weight=None, guess=None, origin=(1, 1), guess_sig=2.0)
         ``mxx``, ``myy``, ``mxy``; None when HSM fails or the shape is
         unphysical.
     """
-    import galsim
+    import galsim  # galsim: heavy, only for HSM moments
 
     x0, y0 = origin
     img = galsim.ImageD(np.ascontiguousarray(stamp, dtype=np.float64), xmin=x0, ymin=y0)
@@ -239,10 +242,9 @@ def detect_stars(exposure, *, gain=None, mask=None, saturation=None, saturated=N
 def _detect(data, bad, sat_e, g, *, threshold, n_pixels, kernel_fwhm, box_size, deblend,
             saturated=None):
     """:func:`detect_stars` of an image already in electrons."""
+    # photutils: heavy (1-2 s to import), only when stars are detected
     from photutils.segmentation import detect_sources, make_2dgaussian_kernel
     from photutils.utils.exceptions import NoDetectionsWarning
-    from scipy import ndimage
-    from scipy.signal import fftconvolve
 
     if bad.all():
         raise InputError("image has no usable pixel (all masked or non-finite)")
@@ -287,7 +289,8 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, saturated=
     Parameters
     ----------
     exposure : ndarray, CCDData, NDData or path
-        The image (electrons, or ADU with ``gain``); read by :func:`~lsst_bfdrift.images.electrons.to_electrons`.
+        The image (electrons, or ADU with ``gain``); read by
+        :func:`~lsst_bfdrift.images.electrons.to_electrons`.
     gain : float, optional
         e/ADU for images in ADU.
     mask : array_like of bool, optional
@@ -361,8 +364,6 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, saturated=
     >>> len(cat), bool(cat["use"][0]), round(float(cat["T"][0].value), 1)
     (1, True, 4.7)
     """
-    from scipy import ndimage
-
     image = to_electrons(exposure, gain=gain, mask=mask, saturation=saturation)
     image.warn()
     data, bad, sat_e, g, sat_pix = (image.data, image.bad, image.saturation, image.gain,
@@ -470,6 +471,7 @@ def measure_stars(exposure, *, gain=None, mask=None, saturation=None, saturated=
 
 def _multi_peak_segments(conv, labels, thr, bad):
     """Labels of segments holding more than one significant peak (saddle test)."""
+    # photutils: heavy (1-2 s to import), only when stars are detected
     from photutils.detection import find_peaks
 
     peaks = find_peaks(conv, thr, box_size=5, mask=bad)

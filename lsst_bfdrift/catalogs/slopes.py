@@ -47,6 +47,7 @@ after.
 """
 
 import numpy as np
+from scipy.optimize import nnls
 
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.catalogs.catalog import FLAG_NAMES
@@ -87,8 +88,6 @@ def _robust_fit(a, q, snr, huber, max_iter=30, flux=None):
     Returns coef, cov (scaled by the reduced chi^2), (alpha, beta, tau), Huber
     weights, chi^2/dof.
     """
-    from scipy.optimize import nnls
-
     n, p = a.shape
     inv2 = 1.0 / snr ** 2
     cols = [inv2, np.ones(n)] if flux is None else [inv2, 1.0 / flux, np.ones(n)]

@@ -22,8 +22,10 @@ that).
 import numpy as np
 from scipy.special import erf
 
+from lsst_bfdrift.calibration import tuning
 from lsst_bfdrift.diagnosis.effects_fit import base_acoeffs, scaled_basis
-from lsst_bfdrift.ptc.covariances import _line
+from lsst_bfdrift.ptc.acoeffs import AcoeffTable
+from lsst_bfdrift.ptc.covariances import least_squares_line
 from lsst_bfdrift.correction.settings import REFERENCE
 from lsst_bfdrift.correction.solvers import correct_image, recorded_image
 from lsst_bfdrift.simulation.stars import image_moments
@@ -54,7 +56,7 @@ def _moments(img):
 
 
 def _slope(f, v):
-    return float(_line(f, v)[0])
+    return float(least_squares_line(f, v)[0])
 
 
 def star_consequence(true_template, used_template, *, fwhm=3.5, fluxes=CONSEQUENCE_FLUXES,
@@ -144,9 +146,6 @@ def template_change(diagnosis, basis, *, max_lag=None, threshold=1.0, calibrate_
         correcting with the template calibrated without the effects, if the
         final model is right (:func:`star_consequence`).
     """
-    from lsst_bfdrift.ptc.acoeffs import AcoeffTable
-    from lsst_bfdrift.calibration.tuning import calibrate
-
     steps = diagnosis.get("steps") or []
     if diagnosis.get("kind") not in ("table", "flats") or basis is None:
         return {"available": False,
@@ -171,8 +170,9 @@ def template_change(diagnosis, basis, *, max_lag=None, threshold=1.0, calibrate_
     kw = {"allow_poor_fit": True, **(calibrate_kw or {})}
     results = {}
     for side, a, s in (("without effects", a0, s0), ("with effects", a1, s1)):
-        res = calibrate(AcoeffTable(a, np.maximum(s, 1e-3 * np.abs(a) + 1e-12),
-                                    source=f"diagnosis base model, {side}"), **kw)
+        # tuning.calibrate looked up at the call (tests replace it: about a minute a side)
+        res = tuning.calibrate(AcoeffTable(a, np.maximum(s, 1e-3 * np.abs(a) + 1e-12),
+                                           source=f"diagnosis base model, {side}"), **kw)
         results[side] = res
         t = res.template_acoeffs
         out.setdefault("templates", {})[side] = {

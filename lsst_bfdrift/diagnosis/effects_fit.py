@@ -47,6 +47,8 @@ change the choice of effects. Pairs above the turn-off are left out of the
 fit and listed.
 """
 
+import os
+
 import numpy as np
 from scipy import stats
 
@@ -56,8 +58,10 @@ from lsst_bfdrift.diagnosis.findings import assess_observables, credit_findings
 from lsst_bfdrift.ptc.observables import exposure_line, pair_mean_errors
 from lsst_bfdrift.diagnosis.observations import (Observations, edge_signature,
                                                  observations_from_pairs)
-from lsst_bfdrift.ptc.covariances import covariance_model, fit_ptc_exponential
+from lsst_bfdrift.ptc.acoeffs import read_acoeff_table
+from lsst_bfdrift.ptc.covariances import covariance_model, fit_ptc_exponential, read_ptc_text
 from lsst_bfdrift.utils.errors import InputError
+from lsst_bfdrift.utils.io import data_files
 from lsst_bfdrift.simulation.effects import effect_library, EFFECT_NAMES
 
 __all__ = ["diagnose",
@@ -608,12 +612,6 @@ def load_input(path, *, max_lag=3):
     -------
     Observations
     """
-    import os
-
-    from lsst_bfdrift.ptc.acoeffs import read_acoeff_table
-    from lsst_bfdrift.ptc.covariances import read_ptc_text
-    from lsst_bfdrift.utils.io import data_files
-
     if os.path.isdir(path):
         full = data_files(path, (".fits", ".fit", ".fits.gz"))  # never a .tmp-* leftover
         if len(full) < 8 or len(full) % 2:

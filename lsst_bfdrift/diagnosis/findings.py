@@ -47,8 +47,9 @@ these errors (``linearity``, ``pair_ratio``), and is named as such.
 import numpy as np
 from scipy import stats
 
-from lsst_bfdrift.ptc.observables import (SPLITS, _pair_ratios, _pixel_variance, _wmean,
-                                          exposure_line, lag_error_factors, pair_mean_errors)
+from lsst_bfdrift.ptc.observables import (SPLITS, exposure_line, lag_error_factors,
+                                          pair_mean_errors, pair_ratios, pixel_variance,
+                                          weighted_mean)
 from lsst_bfdrift.simulation.effects import BASE_OBSERVABLES
 from lsst_bfdrift.templates.refine import lag_multiplicity
 from lsst_bfdrift.utils.errors import InputError
@@ -195,7 +196,7 @@ def sum_rule_finding(mu, cov, model, sigma, gain, *, p_threshold=1e-3):
     chi2 = float(np.sum(pull**2))
     dof = max(mu.size - 1, 1)
     p = float(stats.chi2.sf(chi2, dof))
-    mean, mean_err = _wmean(res, err)
+    mean, mean_err = weighted_mean(res, err)
     k = int(np.argmax(np.abs(pull)))
     detected = p < p_threshold
     bad = [float(mu[j]) for j in np.flatnonzero(np.abs(pull) > 3.0)] or [float(mu[k])]
@@ -325,10 +326,10 @@ def halves_finding(mu, cov, npix, halves, gain, noise, *, p_threshold=1e-3):
         nv = np.array([r["nvalid"] for r in rows])
         c = np.array([r["cov"] for r in rows])
         npx = np.array([r["npix"] for r in rows])
-        var = _pixel_variance(m, gain, noise) / (2.0 * nv) / m**2  # relative, pair mean
+        var = pixel_variance(m, gain, noise) / (2.0 * nv) / m**2  # relative, pair mean
         rho = m[:, 1] / m[:, 0] - 1.0
         srho = np.sqrt(var.sum(axis=1)) * (1.0 + rho)
-        rbar, rerr = _wmean(rho, srho)
+        rbar, rerr = weighted_mean(rho, srho)
         z = rbar / rerr
         p_off = float(2.0 * stats.norm.sf(abs(z)))
         chi2_t = float(np.sum(((rho - rbar) / srho) ** 2))
@@ -342,7 +343,7 @@ def halves_finding(mu, cov, npix, halves, gain, noise, *, p_threshold=1e-3):
         dof_c = int(d.size)
         p_cov = float(stats.chi2.sf(chi2_c, dof_c))
         g = d[:, 0, 0] / y[:, 0, 0, 0]
-        gbar, gerr = _wmean(g, sd[:, 0, 0] / y[:, 0, 0, 0])
+        gbar, gerr = weighted_mean(g, sd[:, 0, 0] / y[:, 0, 0, 0])
         ptests += [(p_off, split, "offset"), (p_trend, split, "trend"),
                    (p_cov, split, "covariances")]
         splits[split] = {"halves": [na, nb], "mean_ratio": rho.tolist(),
@@ -414,13 +415,10 @@ def pair_ratio_finding(mu, mu1, mu2, nvalid, gain, noise, *, p_threshold=1e-3):
 
     Parameters
     ----------
-    mu, mu1, mu2 : array_like, shape (n,)
-        Pair means and the means of each flat (ADU).
-    nvalid : array_like, shape (n,)
-        Pixels behind the means.
-    gain, noise : float
-        e/ADU and read noise (e^2): the error of r is sqrt(2 V / N) / mu with V
-        the variance of a pixel total (:func:`halves_finding`).
+    mu, mu1, mu2, nvalid, gain, noise
+        As :func:`~lsst_bfdrift.ptc.observables.pair_ratios`, which gives r
+        and its shot-noise error sqrt(2 V / N) / mu (V the variance of a
+        pixel total).
     p_threshold : float, optional
 
     Returns
@@ -431,12 +429,12 @@ def pair_ratio_finding(mu, mu1, mu2, nvalid, gain, noise, *, p_threshold=1e-3):
         and ``mean_err``: weighted mean of r.
     """
     name = "pair_ratio"
-    mu, r, s = _pair_ratios(mu, mu1, mu2, nvalid, gain, noise)
+    mu, r, s = pair_ratios(mu, mu1, mu2, nvalid, gain, noise)
     pull = r / s
     chi2 = float(np.sum(pull**2))
     dof = int(mu.size)
     p = float(stats.chi2.sf(chi2, dof))
-    mean, mean_err = _wmean(r, s)
+    mean, mean_err = weighted_mean(r, s)
     k = int(np.argmax(np.abs(pull)))
     detected = p < p_threshold
     bad = [float(mu[j]) for j in np.flatnonzero(np.abs(pull) > 3.0)] or [float(mu[k])]

@@ -13,7 +13,7 @@ import numpy as np
 from scipy import stats
 
 from lsst_bfdrift.ptc.observables import lag_error_factors, pair_observables, turnoff_cut
-from lsst_bfdrift.ptc.covariances import pair_covariances
+from lsst_bfdrift.ptc.covariances import edge_border, pair_covariances, read_flat_pair
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["Observations", "pair_statistics", "edge_profile", "edge_signature",
@@ -53,8 +53,6 @@ def edge_profile(flat1, flat2, *, border=None):
         1, and the standard error of that number (from the scatter of the
         ring's pixels).
     """
-    from lsst_bfdrift.ptc.covariances import edge_border
-
     a = np.asarray(flat1, dtype=float)
     b = np.asarray(flat2, dtype=float)
     tot = a + b
@@ -254,8 +252,6 @@ def observations_from_pairs(pairs, *, max_lag=3, border=None, exptimes=None):
         ``exptime`` (s, or None with ``exptime_note`` saying why) and
         ``turnoff`` (the pairs above the turn-off, left out).
     """
-    from lsst_bfdrift.ptc.covariances import read_flat_pair
-
     pairs = list(pairs)
     if exptimes is not None:
         exptimes = np.asarray(exptimes, dtype=float)

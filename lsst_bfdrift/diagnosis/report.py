@@ -31,6 +31,7 @@ def pull_map(per_lag, block="a"):
 
 
 def _figures(result, outdir):
+    # matplotlib (and utils.plotting, which imports it): heavy, only when figures are drawn
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -87,7 +88,7 @@ def _residuals_vs_mean(result, plt):
     worst = result.get("worst_lag")
     if worst and worst not in keys and worst in result["residuals_before"]:
         keys.append(worst)
-    from matplotlib.ticker import NullFormatter
+    from matplotlib.ticker import NullFormatter  # matplotlib: heavy, only for figures
 
     fig, axes = plt.subplots(1, len(keys), figsize=(2.6 * len(keys), 3.2), squeeze=False)
     for ax, k in zip(axes[0], keys):

@@ -24,15 +24,18 @@ import warnings
 import numpy as np
 from astropy.table import Table
 from scipy import fft as sp_fft
+from scipy import stats as sp_stats
 from scipy.optimize import least_squares
 from scipy.signal import convolve2d
 from lsst_bfdrift.images.exposure import read_image
-from lsst_bfdrift.utils.errors import InputError
+from lsst_bfdrift.utils.errors import FitError, InputError, InputFileError
+from lsst_bfdrift.utils.io import open_fits
 
 __all__ = ["PairCovariance", "pair_covariances", "measure_ptc", "ptc_exponential_model",
            "fit_ptc_exponential", "ptc_turnoff", "covariance_model", "fit_covariance_model",
            "read_ptc_text", "read_flat_pair", "count_levels", "MIN_LEVELS", "SIGNAL_RANGE",
-           "EDGE_BORDER", "edge_border", "edge_mask"]
+           "EDGE_BORDER", "edge_border", "edge_mask", "least_squares_line",
+           "convolve_lags"]
 
 #: Fewest distinct signal levels of any PTC fit.
 MIN_LEVELS = 3
@@ -77,7 +80,6 @@ def _check_points(m, v):
 
 def _fit(resid, start, **kwargs):
     """least_squares with the package's error when the arithmetic fails."""
-    from lsst_bfdrift.utils.errors import FitError
     try:
         with np.errstate(all="ignore"):
             return least_squares(resid, start, **kwargs)
@@ -87,7 +89,6 @@ def _fit(resid, start, **kwargs):
 
 
 def _exptime(path):
-    from lsst_bfdrift.utils.io import open_fits
     with open_fits(path) as hdul:
         for h in hdul:
             if "EXPTIME" in h.header:
@@ -285,9 +286,22 @@ def pair_covariances(flat1, flat2, *, max_lag=8, mask=None, nsig=5.0, min_pixels
                           mu1=float(mu1), mu2=float(mu2), nvalid=n_mean)
 
 
-def _line(x, y):
-    """(slope, intercept) of the least-squares line (minimum-norm when degenerate,
-    without numpy's RankWarning: the callers only need a starting point)."""
+def least_squares_line(x, y):
+    """Unweighted least-squares line y = slope x + intercept.
+
+    Minimum-norm when degenerate (all x equal, or fewer than two points),
+    without numpy's RankWarning: the callers need a starting point or a
+    slope of noise-free points.
+
+    Parameters
+    ----------
+    x, y : array_like, shape (n,)
+
+    Returns
+    -------
+    ndarray, shape (2,)
+        (slope, intercept).
+    """
     a = np.stack([np.asarray(x, float), np.ones(len(x))], axis=1)
     return np.linalg.lstsq(a, np.asarray(y, float), rcond=None)[0]
 
@@ -459,7 +473,7 @@ def fit_ptc_exponential(mu, var, *, sigma=None, mu_max="auto", p0=None):
     if p0 is None:
         # straight line var = mu / g + n / g^2 through the lowest third
         k = max(3, len(m) // 3)
-        slope, icpt = _line(m[:k], v[:k])  # a start only: no rank warning on ties
+        slope, icpt = least_squares_line(m[:k], v[:k])  # a start only: no rank warning on ties
         g_est = 1.0 / slope if slope > 0 else 1.0
         start = (g_est, -1e-6, max(icpt, 0.0) * g_est**2)
     else:
@@ -482,8 +496,23 @@ def _full_lags(q):
     return np.concatenate([top, right], axis=1)
 
 
-def _conv_quadrant(x, y):
-    """(x * y) on signed lags, returned on the quadrant of x's size."""
+def convolve_lags(x, y):
+    """Convolution of two quadrant arrays on signed lags, on the quadrant of x's size.
+
+    Each array q[di, dj] (di, dj >= 0) stands for its mirror images at
+    negative lags (q[-i, j] = q[i, -j] = q[i, j]); the result is the 2-d
+    convolution of the two signed-lag arrays, at lags 0 to L of ``x``: the
+    a * a terms of :func:`covariance_model`.
+
+    Parameters
+    ----------
+    x, y : ndarray, shape (L + 1, L + 1)
+        Quadrant arrays indexed [di, dj].
+
+    Returns
+    -------
+    ndarray, shape (L + 1, L + 1)
+    """
     L = x.shape[0] - 1
     full = convolve2d(_full_lags(x), _full_lags(y), mode="same")
     return full[L:, L:]
@@ -509,10 +538,10 @@ def covariance_model(mu, gain, a, b, noise):
     mu = np.atleast_1d(np.asarray(mu, dtype=float))
     a = np.asarray(a, float)
     b = np.asarray(b, float)
-    aa = _conv_quadrant(a, a)
+    aa = convolve_lags(a, a)
     ab = a * b
-    aaa = _conv_quadrant(aa, a)
-    a_ab = _conv_quadrant(a, ab)
+    aaa = convolve_lags(aa, a)
+    a_ab = convolve_lags(a, ab)
     x = (mu * gain)[:, None, None]
     eye = np.zeros_like(a)
     eye[0, 0] = 1.0
@@ -565,14 +594,13 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
         ``dof``, ``p_value``; None otherwise).
     """
     if fit_b == "auto":
-        from scipy import stats as _stats
         kw = dict(sigma=sigma, npix=npix, max_lag=max_lag, mu_max=mu_max, gain=gain,
                   fit_noise=fit_noise)
         without = fit_covariance_model(mu, cov, fit_b=False, **kw)
         with_b = fit_covariance_model(mu, cov, fit_b=True, **kw)
         n_b = int(without["dof"] - with_b["dof"])
         delta = float(without["chi2"] - with_b["chi2"])
-        p = float(_stats.chi2.sf(delta, max(n_b, 1)))
+        p = float(sp_stats.chi2.sf(delta, max(n_b, 1)))
         best = with_b if p < 0.01 else without
         best["b_test"] = {"delta_chi2": delta, "dof": n_b, "p_value": p}
         return best
@@ -620,7 +648,7 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
             if i == j == 0:
                 a0[0, 0] = exp["a00"]
             else:
-                a0[i, j] = _line(x, y)[0] if m.size > 2 else 0.0
+                a0[i, j] = least_squares_line(x, y)[0] if m.size > 2 else 0.0
     n0 = np.zeros((L + 1, L + 1))
     n0[0, 0] = exp["noise"] if fit_noise else 0.0
 
@@ -658,7 +686,6 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
 
 def read_ptc_text(path):
     """Read a two-column PTC text file (mean ADU, variance ADU^2; '#' comments)."""
-    from lsst_bfdrift.utils.errors import InputFileError
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "input contained no data"

@@ -51,6 +51,7 @@ import math
 import os
 
 import numpy as np
+from astropy.io import fits
 
 from lsst_bfdrift.ptc.data import CalibrationData, require_levels, truncate_lags
 from lsst_bfdrift.utils.errors import InputError
@@ -170,8 +171,6 @@ def read_cp_pipe_ptc(path, *, amp=None, max_lag=None, min_levels=3):
     CalibrationData
         ``kind`` 'cp_pipe'.
     """
-    from astropy.io import fits
-
     path = os.fspath(path)
     with fits.open(path, memmap=False) as hdul:
         if len(hdul) < 2 or not isinstance(hdul[1], fits.BinTableHDU):

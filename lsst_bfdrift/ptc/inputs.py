@@ -55,6 +55,9 @@ import math
 import os
 
 import numpy as np
+import astropy.units as u
+from astropy.io import fits
+from astropy.table import Table
 
 from lsst_bfdrift.ptc.acoeffs import (AcoeffTable, acoeff_square, assign_axes, read_acoeff_table,
                                       sum_rule_check)
@@ -124,8 +127,6 @@ def detect_input_kind(path):
         raise InputError(f"{path}: is a directory; give the files themselves (e.g. "
                          f"{os.path.join(path, '*.fits')})")
     if _is_fits(path):
-        from astropy.io import fits
-
         with open_fits(path) as hdul:
             image = any(h.is_image and h.header.get("NAXIS", 0) == 2 for h in hdul)
             table = any(isinstance(h, fits.BinTableHDU) for h in hdul)
@@ -469,9 +470,6 @@ def read_ptc_file(path, *, turnoff_drop=0.05, min_levels=3):
 # --------------------------------------------------------------------------- a-matrix
 
 def _ecsv_rows(path):
-    import astropy.units as u
-    from astropy.table import Table
-
     try:
         t = Table.read(path, format="ascii.ecsv")
     except Exception as err:  # noqa: BLE001 - any parse failure is a bad file

@@ -19,7 +19,8 @@ from lsst_bfdrift.ptc.covariances import edge_mask, pair_covariances, ptc_turnof
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["SPLITS", "lag_error_factors", "pair_observables",
-           "turnoff_cut", "exposure_scatter", "pair_mean_errors", "exposure_line"]
+           "turnoff_cut", "weighted_mean", "pixel_variance", "pair_ratios",
+           "exposure_scatter", "pair_mean_errors", "exposure_line"]
 
 #: Image halves compared: split name -> (first half, second half).
 SPLITS = {"left_right": ("left", "right"), "bottom_top": ("bottom", "top")}
@@ -137,20 +138,60 @@ def turnoff_cut(mu, c00, npix00=None, *, nsigma=5.0, min_drop=0.05):
                   "mu_max": float(mu.max())}
 
 
-def _wmean(x, s):
+def weighted_mean(x, s):
+    """Inverse-variance weighted mean and its error.
+
+    Parameters
+    ----------
+    x, s : array_like, shape (n,)
+        Values and their errors (> 0).
+
+    Returns
+    -------
+    mean, error : float
+        sum(w x) / sum(w) and 1 / sqrt(sum(w)), w = 1 / s^2.
+    """
     w = 1.0 / np.asarray(s, float) ** 2
     return float(np.sum(w * x) / np.sum(w)), float(1.0 / np.sqrt(np.sum(w)))
 
 
-def _pixel_variance(mu, gain, noise):
-    """Variance of a pixel total per pixel (ADU^2) from the sum rule: mu / g + n / g^2."""
+def pixel_variance(mu, gain, noise):
+    """Variance of a pixel total per pixel (ADU^2) from the sum rule: mu / g + n / g^2.
+
+    Parameters
+    ----------
+    mu : array_like
+        Signal (ADU).
+    gain, noise : float
+        e/ADU and read noise (e^2; negative counts as 0).
+
+    Returns
+    -------
+    ndarray
+    """
     return np.asarray(mu, float) / gain + max(float(noise), 0.0) / gain**2
 
 
-def _pair_ratios(mu, mu1, mu2, nvalid, gain, noise):
-    """mu, r = mu2 / mu1 - 1 per pair and its shot-noise error sqrt(2 V / N) / mu."""
+def pair_ratios(mu, mu1, mu2, nvalid, gain, noise):
+    """The second flat of each pair over the first, r = mu2 / mu1 - 1, with its error.
+
+    Parameters
+    ----------
+    mu, mu1, mu2 : array_like, shape (n,)
+        Pair means and the means of each flat (ADU).
+    nvalid : array_like, shape (n,)
+        Pixels behind the means.
+    gain, noise : float
+        e/ADU and read noise (e^2).
+
+    Returns
+    -------
+    mu, r, sigma : ndarray, shape (n,)
+        The pair means, r, and its shot-noise error sqrt(2 V / N) / mu (V
+        the variance of a pixel total, :func:`pixel_variance`; N ``nvalid``).
+    """
     mu, mu1, mu2, n = (np.asarray(v, float) for v in (mu, mu1, mu2, nvalid))
-    return mu, mu2 / mu1 - 1.0, np.sqrt(2.0 * _pixel_variance(mu, gain, noise) / n) / mu
+    return mu, mu2 / mu1 - 1.0, np.sqrt(2.0 * pixel_variance(mu, gain, noise) / n) / mu
 
 
 def exposure_scatter(mu, mu1, mu2, nvalid, gain, noise):
@@ -164,12 +205,8 @@ def exposure_scatter(mu, mu1, mu2, nvalid, gain, noise):
 
     Parameters
     ----------
-    mu, mu1, mu2 : array_like, shape (n,)
-        Pair means and the means of each flat (ADU).
-    nvalid : array_like, shape (n,)
-        Pixels behind the means.
-    gain, noise : float
-        e/ADU and read noise (e^2).
+    mu, mu1, mu2, nvalid, gain, noise
+        As :func:`pair_ratios`.
 
     Returns
     -------
@@ -177,10 +214,10 @@ def exposure_scatter(mu, mu1, mu2, nvalid, gain, noise):
         sigma_f, relative (0 when the pairs agree within shot noise or there
         are fewer than 3 pairs).
     """
-    mu, r, s = _pair_ratios(mu, mu1, mu2, nvalid, gain, noise)
+    mu, r, s = pair_ratios(mu, mu1, mu2, nvalid, gain, noise)
     if mu.size < 3:
         return 0.0
-    mean, _ = _wmean(r, s)
+    mean, _ = weighted_mean(r, s)
     excess = (np.sum((r - mean) ** 2) / (mu.size - 1) - np.mean(s**2)) / 2.0
     return float(np.sqrt(max(excess, 0.0)))
 
@@ -207,7 +244,7 @@ def pair_mean_errors(mu, pairs, gain, noise):
     """
     mu = np.asarray(mu, float)
     n = np.array([e["nvalid"] for e in pairs], float)
-    sig = np.sqrt(_pixel_variance(mu, gain, noise) / (2.0 * n))
+    sig = np.sqrt(pixel_variance(mu, gain, noise) / (2.0 * n))
     return sig, exposure_scatter(mu, [e["mu1"] for e in pairs], [e["mu2"] for e in pairs],
                                  n, gain, noise)
 

@@ -5,8 +5,13 @@ xi0, channel depth and clock-pair separation to the paper's A00..A11, with
 collection 1 um above the gates; see ``docs/calibration.rst``).
 """
 
+import os
+
 import numpy as np
 
+from lsst_bfdrift.physics.features import edge_rolloff, midline
+from lsst_bfdrift.physics.patterns import (bamboo, bamboo_summary, prnu, tearing_onset,
+                                           tearing_summary)
 from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.templates.template import TemplateSettings, build_template
 
@@ -152,8 +157,6 @@ def fixed_patterns(params, *, quick=False, progress=None):
         tables), ``tearing``, ``bamboo`` (:mod:`~lsst_bfdrift.physics.patterns`
         tables) and ``prnu`` (:func:`~lsst_bfdrift.physics.patterns.prnu` result).
     """
-    from lsst_bfdrift.physics.features import edge_rolloff, midline
-    from lsst_bfdrift.physics.patterns import bamboo, prnu, tearing_onset
     if quick:
         kw = dict(edge_samples=4, tol=3e-4)
         jobs = {
@@ -200,8 +203,6 @@ def feature_summary(params, *, edge=None, mid=None, tables=None):
         :func:`fixed_patterns` output; with it, tearing, bamboo and PRNU
         numbers are added.
     """
-    from lsst_bfdrift.physics.features import edge_rolloff, midline
-    from lsst_bfdrift.physics.patterns import bamboo_summary, tearing_summary
     tables = {} if tables is None else tables
     edge = tables.get("edge_rolloff", edge)
     mid = tables.get("midline", mid)
@@ -242,8 +243,7 @@ def write_figures(numbers, template, scan, tables, out):
     list of str
         The files written.
     """
-    import os
-
+    # the plots modules import matplotlib: heavy, only when figures are written
     from lsst_bfdrift.templates.plots import plot_template
     from lsst_bfdrift.utils.plotting import save_figure
     from lsst_bfdrift.validation.plots import (plot_feature_profiles, plot_pixel_contours,

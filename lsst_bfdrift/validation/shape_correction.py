@@ -71,6 +71,11 @@ cancels.
 """
 
 import numpy as np
+from astropy import units as u
+
+from lsst_bfdrift.catalogs.catalog import FLAG_EDGE, FLAG_MOMENTS
+from lsst_bfdrift.geometry.superpose import moment_maps
+from lsst_bfdrift.images.electrons import to_electrons
 from lsst_bfdrift.utils.errors import ComputationError, InputError
 
 __all__ = ["adaptive_moments", "footprint_moments", "correct_star_moments", "correct_catalog"]
@@ -290,12 +295,6 @@ def correct_catalog(catalog, exposure, *, maps=None, template=None, gain=None, m
         FLAG_EDGE/FLAG_MOMENTS or whose correction fails are left
         unchanged with ``bf_corrected`` False.
     """
-    from astropy import units as u
-
-    from lsst_bfdrift.catalogs.catalog import FLAG_EDGE, FLAG_MOMENTS
-    from lsst_bfdrift.images.electrons import to_electrons
-    from lsst_bfdrift.geometry.superpose import moment_maps
-
     image = to_electrons(exposure, gain=gain, mask=mask)
     image.warn()
     data, bad = image.data, image.bad

@@ -17,11 +17,18 @@ any after-correction slope (size, e1 or e2) differs from zero by more than
 """
 
 import numpy as np
+from astropy import units as u
+from astropy.nddata import CCDData
 
 from lsst_bfdrift.utils.progress import ProgressBar
 
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.catalogs.slopes import shape_flux_relations
+from lsst_bfdrift.catalogs.catalog import measure_stars
+from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
+from lsst_bfdrift.images.electrons import to_electrons
+from lsst_bfdrift.templates.template import load_default_template
+from lsst_bfdrift.validation.shape_correction import correct_catalog
 
 __all__ = ["validate_sky", "SkyValidation"]
 
@@ -102,13 +109,6 @@ def validate_sky(exposure, *, gain=None, mask=None, saturation=None, template=No
     -------
     SkyValidation
     """
-    from astropy import units as u
-    from astropy.nddata import CCDData
-
-    from lsst_bfdrift.catalogs.catalog import measure_stars
-    from lsst_bfdrift.images.electrons import to_electrons
-    from lsst_bfdrift.validation.shape_correction import correct_catalog
-
     if route not in ("catalog", "pixel", "both", "none"):
         raise InputError(f"route must be catalog, pixel, both or none, got {route!r}")
     if not z_crit > 0:
@@ -130,7 +130,6 @@ def validate_sky(exposure, *, gain=None, mask=None, saturation=None, template=No
     bar(1)
     corrected = {}
     if route != "none" and template is None:
-        from lsst_bfdrift.templates.template import load_default_template
         template = load_default_template()
     if route in ("catalog", "both"):
         corrected["catalog"] = correct_catalog(cat, data, template=template, mask=bad,
@@ -139,7 +138,6 @@ def validate_sky(exposure, *, gain=None, mask=None, saturation=None, template=No
         fits["catalog"] = shape_flux_relations(corrected["catalog"], **kw)
         bar(1)
     if route in ("pixel", "both"):
-        from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
         cfg = BrighterFatterDriftConfig(method=method, compute_geometry=False,
                                         saturation=sat_e)
         res = BrighterFatterDriftTask(config=cfg, template=template).run(

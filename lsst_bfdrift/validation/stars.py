@@ -24,10 +24,14 @@ from the scatter).
 import numpy as np
 
 from lsst_bfdrift.catalogs.catalog import hsm_moments
+from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
+from lsst_bfdrift.simulation.galsim_twins import accumulate_twins, shoot_stamp_photons, sky_box
+from lsst_bfdrift.simulation.stars import make_psf
 from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.utils.errors import ComputationError, InputError
 
-__all__ = ["draw_star_pairs", "per_star_residuals", "residual_slopes", "validate_stars"]
+__all__ = ["draw_star_pairs", "star_moments", "slope_through_origin", "per_star_residuals",
+           "residual_slopes", "validate_stars"]
 
 
 def draw_star_pairs(n_stars, *, sensor="lsst_itl_50_8", psf="moffat", fwhm=(0.6, 0.9),
@@ -94,9 +98,6 @@ def draw_star_pairs(n_stars, *, sensor="lsst_itl_50_8", psf="moffat", fwhm=(0.6,
     list of dict
         ``bf``, ``truth`` (arrays, e), ``flux``, ``fwhm``.
     """
-    from lsst_bfdrift.simulation.galsim_twins import accumulate_twins, shoot_stamp_photons, sky_box
-    from lsst_bfdrift.simulation.stars import make_psf
-
     if int(n_stars) < 1:
         raise InputError(f"n_stars must be positive, got {n_stars!r}")
     rng = np.random.default_rng(seed)
@@ -128,14 +129,40 @@ def draw_star_pairs(n_stars, *, sensor="lsst_itl_50_8", psf="moffat", fwhm=(0.6,
     return out
 
 
-def _moments(arr, sky):
-    """(T_det = 2 sigma^2, e1, e2) of a sky-subtracted stamp (:func:`hsm_moments`)."""
+def star_moments(arr, sky):
+    """Adaptive size and ellipticity of a star stamp after its sky.
+
+    Parameters
+    ----------
+    arr : array_like
+        The stamp (e).
+    sky : float
+        Sky level subtracted first (e per pixel).
+
+    Returns
+    -------
+    tuple of float or None
+        (T_det = 2 sigma^2, e1, e2) of
+        :func:`~lsst_bfdrift.catalogs.catalog.hsm_moments`; None when the
+        moments fail.
+    """
     m = hsm_moments(np.asarray(arr, float) - sky, guess_sig=5.0)
     return None if m is None else (m["t_det"], m["e1"], m["e2"])
 
 
-def _slope(x, y):
-    """Least-squares slope through the origin and its error from the scatter."""
+def slope_through_origin(x, y):
+    """Least-squares slope of y = s x through the origin, and its error from the scatter.
+
+    Parameters
+    ----------
+    x, y : array_like, shape (n,)
+
+    Returns
+    -------
+    slope, error : float
+        s = sum(x y) / sum(x^2) and sqrt(sum(r^2) / (n - 1) / sum(x^2)), r
+        the residuals (n - 1 at least 1).
+    """
     x = np.asarray(x, float)
     y = np.asarray(y, float)
     s = np.sum(x * y) / np.sum(x * x)
@@ -170,7 +197,6 @@ def per_star_residuals(pairs, template, *, methods=("coulton18", "astier23", "dr
         For ``uncorrected`` and each label, an (n, 3) array of
         T / T_truth - 1, e1 - e1_truth and e2 - e2_truth (NaN likewise).
     """
-    from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
 
     configs = (dict(methods) if isinstance(methods, dict)
                else {m: {"method": m} for m in methods})
@@ -181,10 +207,10 @@ def per_star_residuals(pairs, template, *, methods=("coulton18", "astier23", "dr
     fluxes = []
     with ProgressBar(len(pairs), "validate", enabled=progress) as bar:
         for p in pairs:
-            truth = _moments(p["truth"], sky)
-            meas = {"uncorrected": _moments(p["bf"], sky)}
+            truth = star_moments(p["truth"], sky)
+            meas = {"uncorrected": star_moments(p["bf"], sky)}
             for m, t in tasks.items():
-                meas[m] = _moments(t.run(p["bf"]).exposure, sky)
+                meas[m] = star_moments(t.run(p["bf"]).exposure, sky)
             bar(1)
             ok = truth is not None and all(v is not None for v in meas.values())
             fluxes.append(p["flux"] / 1e5 if ok else np.nan)
@@ -218,14 +244,14 @@ def residual_slopes(fluxes, rows):
     out = {}
     for k, v in rows.items():
         v = v[ok]
-        s, se = _slope(f, v[:, 0])
-        e1, e1e = _slope(f, v[:, 1])
-        e2, e2e = _slope(f, v[:, 2])
+        s, se = slope_through_origin(f, v[:, 0])
+        e1, e1e = slope_through_origin(f, v[:, 1])
+        e2, e2e = slope_through_origin(f, v[:, 2])
         out[k] = {"size_slope": s, "size_slope_err": se, "e_slope": e1, "e_slope_err": e1e,
                   "e2_slope": e2, "e2_slope_err": e2e, "n_stars": n}
         if ref is not None and k not in ("uncorrected", "astier23"):
             # paired: slope of the per-star difference, free of the star-to-star scatter
-            d, de = _slope(f, v[:, 0] - ref[:, 0])
+            d, de = slope_through_origin(f, v[:, 0] - ref[:, 0])
             out[k].update(size_slope_minus_astier23=d, size_slope_minus_astier23_err=de)
     return out
 

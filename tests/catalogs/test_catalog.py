@@ -214,7 +214,7 @@ def test_hsm_moments_of_an_elliptical_gaussian():
     from numpy.testing import assert_allclose
 
     from lsst_bfdrift.catalogs.catalog import hsm_moments
-    from lsst_bfdrift.validation.stars import _moments
+    from lsst_bfdrift.validation.stars import star_moments
     mxx, myy, mxy = 5.0, 3.0, 0.8
     inv = np.linalg.inv([[mxx, mxy], [mxy, myy]])
     yy, xx = np.mgrid[:61, :61] - 30.0
@@ -226,6 +226,6 @@ def test_hsm_moments_of_an_elliptical_gaussian():
     assert_allclose(m["t_det"], 2 * np.sqrt(det), rtol=2e-3)
     assert_allclose([m["x"], m["y"]], [30.0, 30.0], atol=1e-6)
     # the validation's star measure is the same call (t_det, e1, e2)
-    t_det, e1, e2 = _moments(img + 7.0, 7.0)
+    t_det, e1, e2 = star_moments(img + 7.0, 7.0)
     assert_allclose([t_det, e1, e2], [m["t_det"], m["e1"], m["e2"]], rtol=1e-6, atol=1e-9)
     assert hsm_moments(np.zeros((20, 20))) is None

@@ -99,8 +99,8 @@ def test_full_model_convolution_terms():
     """a*a at lag (1, 0) equals 2 a00 a10 + 2 a10 a20 + ... (direct sum)."""
     a = np.zeros((3, 3))
     a[0, 0], a[1, 0], a[0, 1], a[1, 1] = -1.0, 0.2, 0.3, 0.05
-    from lsst_bfdrift.ptc.covariances import _conv_quadrant
-    aa = _conv_quadrant(a, a)
+    from lsst_bfdrift.ptc.covariances import convolve_lags
+    aa = convolve_lags(a, a)
 
     def full(i, j):
         i, j = abs(i), abs(j)

@@ -4,11 +4,11 @@ import pytest
 from numpy.testing import assert_allclose
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
-from lsst_bfdrift.validation.stars import _slope, draw_star_pairs, validate_stars
+from lsst_bfdrift.validation.stars import draw_star_pairs, slope_through_origin, validate_stars
 
 
 def test_slope_through_origin():
-    s, e = _slope([1.0, 2.0, 3.0], [2.0, 4.0, 6.0])
+    s, e = slope_through_origin([1.0, 2.0, 3.0], [2.0, 4.0, 6.0])
     assert s == pytest.approx(2.0) and e == pytest.approx(0.0, abs=1e-12)
 
 
