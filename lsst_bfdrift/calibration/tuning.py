@@ -23,9 +23,18 @@ The steps:
    drift-line evaluation per step), every measured lag in chi2, a00
    included; the sum rule is reported, not imposed. The parameter
    covariance comes from a finite-difference Jacobian at the optimum.
-3. **A poor fit is an error** (:class:`CalibrationError`, naming the worst
-   lags) unless ``allow_poor_fit``: chi2/dof above ``max_chi2_dof`` with a
-   p-value below 1e-3.
+3. **A poor fit is stated, and refused only where nothing would match the
+   data**: chi2/dof above ``max_chi2_dof`` with a p-value below 1e-3. With
+   refinement (the default) the template is matched to the measured a_ij,
+   so the data decide its area response: the misfit is stated (a
+   :class:`CalibrationWarning` naming the worst lags, ``misfit`` in the
+   result and the template's metadata) and carried into the template's
+   uncertainty, the a_ij errors scaled by the Birge ratio
+   (:func:`poor_fit_policy`). Without refinement the template would be the
+   model's alone: a :class:`CalibrationError` unless ``allow_poor_fit``. A
+   table inconsistent in itself (a00 > 0; the area sum rule broken when the
+   lags are complete) is refused first, naming the check
+   (:func:`~lsst_bfdrift.ptc.acoeffs.check_consistency`).
 4. **The template.** Built exactly at the best fit, then, with ``refine``,
    its pixel areas are matched to the measured a_ij where they differ from
    the model significantly (:func:`refinement_target`: the residual weighted
@@ -40,10 +49,11 @@ import datetime
 import json
 import math
 import time
+import warnings
 
 import numpy as np
 
-from lsst_bfdrift.ptc.acoeffs import AcoeffTable
+from lsst_bfdrift.ptc.acoeffs import AcoeffTable, check_consistency
 from lsst_bfdrift.calibration.acoeff_model import electrostatic_acoeffs
 from lsst_bfdrift.calibration.fitting import FitError, fit_parameters
 from lsst_bfdrift.ptc.covariances import fit_covariance_model, fit_ptc_exponential
@@ -55,7 +65,8 @@ from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.utils.errors import InputTypeError
 from lsst_bfdrift.utils.io import data_path, write_text
 
-__all__ = ["CANDIDATES", "CalibrationError", "CalibrationResult", "calibrate",
+__all__ = ["CANDIDATES", "CalibrationError", "CalibrationWarning", "CalibrationResult",
+           "calibrate", "poor_fit_policy", "check_refined_match",
            "default_start", "model_acoeffs", "measured_acoeffs", "refinement_target",
            "refine_template", "select_parameters",
            "start_jacobian", "write_start_jacobian"]
@@ -475,6 +486,90 @@ def select_parameters(J, r, sigma, mask, names, *, max_params, always_first=True
     return [names[k] for k in chosen[len(base):]], steps
 
 
+class CalibrationWarning(UserWarning):
+    """The model fits the a-matrix poorly; the template was refined to the data and its
+    uncertainty scaled (:func:`poor_fit_policy`)."""
+
+
+def poor_fit_policy(fit, table, chosen, *, refined, allow_poor_fit):
+    """What a poor physics fit gives: an error, or a template with the misfit carried.
+
+    When the template is refined to the measured a_ij, the data decide its
+    area response and a physics misfit is no reason to refuse them: the
+    misfit is stated (a :class:`CalibrationWarning` naming the worst lags)
+    and carried into the template's uncertainty, whose a_ij errors are
+    scaled by the Birge ratio sqrt(chi2/dof) (what the data do not pin, the
+    far lags and the serial/parallel sharing, comes from a model that
+    misfits). Without refinement the template would be the model's alone,
+    which does not match the data: an error unless ``allow_poor_fit``.
+
+    Parameters
+    ----------
+    fit : ParameterFit
+    table : AcoeffTable
+    chosen : list of str
+        The fitted parameters.
+    refined : bool
+        A template is built and refined to the data.
+    allow_poor_fit : bool
+
+    Returns
+    -------
+    dict
+        ``chi2``, ``dof``, ``chi2_dof``, ``p_value``, ``birge`` and ``worst_lags``.
+
+    Raises
+    ------
+    CalibrationError
+        Without refinement, unless ``allow_poor_fit``.
+    """
+    worst = ", ".join(f"a{i}{j} pull {p:+.1f}" for (i, j), p in fit.worst(3))
+    src = table.source or "the a-matrix"
+    text = (f"poor fit of {chosen} to {src}: chi2/dof = {fit.chi2_dof:.2f} ({fit.chi2:.1f} "
+            f"for {fit.dof} dof, p = {fit.p_value:.1e}); worst lags: {worst}")
+    if not refined and not allow_poor_fit:
+        raise CalibrationError(
+            f"{text}. The model cannot match these data within their errors, and without "
+            "refinement (--no-refine, refine=False) the template would be the model's; "
+            "refine it to the data, check the errors, or pass allow_poor_fit=True "
+            "(--allow-poor-fit) to build it anyway")
+    birge = math.sqrt(fit.chi2_dof)
+    if refined and not allow_poor_fit:  # allow_poor_fit: the caller expects it, no warning
+        warnings.warn(f"{text}. The template is refined to the measured a_ij and its "
+                      f"uncertainty (the a_ij errors) scaled by the Birge ratio {birge:.2f}: "
+                      "what the data do not pin (the far lags, how the area change divides "
+                      "between serial and parallel edges) comes from a model that misfits",
+                      CalibrationWarning, stacklevel=3)
+    return {"chi2": float(fit.chi2), "dof": int(fit.dof), "chi2_dof": float(fit.chi2_dof),
+            "p_value": float(fit.p_value), "birge": birge,
+            "worst_lags": [{"lag": list(k), "pull": float(p)} for k, p in fit.worst(3)]}
+
+
+def check_refined_match(template_a, table, max_chi2_dof):
+    """The refined template's a_ij against the data (after a poor physics fit).
+
+    Returns
+    -------
+    dict
+        ``template_chi2`` and ``template_lags`` (measured lags the template
+        holds).
+
+    Raises
+    ------
+    CalibrationError
+        The refinement did not bring the template within ``max_chi2_dof`` per
+        lag of the data: nothing the package could write would match them.
+    """
+    m = table.mask() & np.isfinite(template_a)
+    chi2 = float(np.sum(((template_a - table.a) / table.sigma)[m] ** 2))
+    n = int(m.sum())
+    if n and chi2 / n > max_chi2_dof:
+        raise CalibrationError(f"{table.source or 'the a-matrix'}: the template refined to the "
+                               f"data still misses them (chi2 {chi2:.1f} over {n} lags): the "
+                               "refinement failed; check the errors and the lags given")
+    return {"template_chi2": chi2, "template_lags": n}
+
+
 def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settings=None,
               max_chi2_dof=3.0, allow_poor_fit=False, build=True, max_evaluations=25,
               progress=False):
@@ -503,7 +598,8 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     max_chi2_dof : float, optional
         A fit with chi2/dof above this and a p-value below 1e-3 is poor.
     allow_poor_fit : bool, optional
-        Return a poor fit (and its template) instead of raising.
+        Without refinement: return a poor fit (and its template) instead of
+        raising (with refinement a poor fit is never an error).
     build : bool, optional
         Build the template (the slow step: about 15 s).
     max_evaluations : int, optional
@@ -518,8 +614,17 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     Raises
     ------
     CalibrationError
-        Too few lags for one parameter, unknown parameter names, or a poor
-        fit (the message names the worst lags) without ``allow_poor_fit``.
+        Too few lags for one parameter, unknown parameter names, a poor fit
+        without refinement (the message names the worst lags) and without
+        ``allow_poor_fit``, or a refined template that still misses the data.
+    InputError
+        A table inconsistent in itself (the check is named).
+
+    Warns
+    -----
+    CalibrationWarning
+        A poor fit whose template is refined to the data (the Birge ratio
+        that scales its uncertainty is given).
     """
     if not isinstance(table, AcoeffTable):
         raise InputTypeError("calibrate needs an AcoeffTable (see "
@@ -527,6 +632,7 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
                         f"{type(table).__name__}")
     t0 = time.perf_counter()
     seconds = {}
+    consistency = check_consistency(table)  # data inconsistent in themselves are refused
     start = default_start() if start is None else start
     L = table.max_lag
     mask = table.mask()
@@ -588,14 +694,8 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     seconds["fit"] = time.perf_counter() - t1
     params = start.replace(**fit.values)
     poor = fit.dof > 0 and fit.chi2_dof > max_chi2_dof and fit.p_value < 1e-3
-    if poor and not allow_poor_fit:
-        worst = ", ".join(f"a{i}{j} pull {p:+.1f}" for (i, j), p in fit.worst(3))
-        raise CalibrationError(
-            f"poor fit of {chosen} to {table.source or 'the a-matrix'}: chi2/dof = "
-            f"{fit.chi2_dof:.2f} ({fit.chi2:.1f} for {fit.dof} dof, p = {fit.p_value:.1e}); "
-            f"worst lags: {worst}. The model cannot match these data within their errors; "
-            "check the errors, or pass allow_poor_fit=True (--allow-poor-fit) to build the "
-            "template anyway")
+    misfit = poor_fit_policy(fit, table, chosen, refined=bool(refine and build),
+                             allow_poor_fit=allow_poor_fit) if poor else None
     template = tpl_a = built = None
     if build:
         t2 = time.perf_counter()
@@ -613,6 +713,8 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
         k = min(L, c - 1) + 1
         tpl_a = np.full_like(table.a, np.nan)
         tpl_a[:k, :k] = template_alpha(template)[c:c + k, c:c + k].T
+        if misfit is not None:  # the refined template must match what the model could not
+            misfit.update(check_refined_match(tpl_a, table, max_chi2_dof))
     seconds["total"] = time.perf_counter() - t0
     bar.done = bar.total
     if progress:
@@ -622,7 +724,8 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
                                sum_rule=_sum_rule(table), seconds=seconds, poor_fit=poor,
                                refined=bool(refine and build), built_template=built,
                                settings=settings, candidates=candidates, start=start,
-                               jacobian_source=jacobian_source)
+                               jacobian_source=jacobian_source, misfit=misfit,
+                               consistency=consistency)
     if template is not None:
         template.meta["params"] = params.to_dict()
         template.meta["calibration"] = {
@@ -631,8 +734,11 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
             "errors": fit.errors, "covariance": np.asarray(fit.covariance).tolist(),
             "chi2": fit.chi2, "dof": fit.dof, "p_value": fit.p_value, "poor_fit": poor,
             "refined": bool(refine), "max_lag": int(L), "a00_in_fit": bool(mask[0, 0]),
+            "misfit": misfit,
             "uncertainty": (
-                {"kind": "data", "sigma": np.where(mask, table.sigma, np.nan).tolist()}
+                {"kind": "data", "sigma": np.where(
+                    mask, table.sigma * (1.0 if misfit is None else misfit["birge"]),
+                    np.nan).tolist()}
                 if refine else
                 {"kind": "parameters", "jacobian": np.asarray(fit.jacobian).tolist(),
                  "covariance": np.asarray(fit.covariance).tolist(), "names": fit.names})}

@@ -12,12 +12,14 @@ comment says why not.
 import argparse
 import json
 import os
+import sys
+import warnings
 
 from lsst_bfdrift.calibration.acoeff_model import LinearBasis, load_default_basis
 from lsst_bfdrift.calibration.lsst_products import write_bfk, write_distortion_matrix
 from lsst_bfdrift.calibration.routes import MODELS, calibrate_route
 from lsst_bfdrift.calibration.star_fit import calibrate_with_stars, check_size_goal
-from lsst_bfdrift.calibration.tuning import calibrate, measured_acoeffs
+from lsst_bfdrift.calibration.tuning import CalibrationWarning, calibrate, measured_acoeffs
 from lsst_bfdrift.cli._common import (check_output_dir, check_outputs, emit, library_default,
                                       print_json, save_plot)
 from lsst_bfdrift.diagnosis import consequence
@@ -108,9 +110,16 @@ def cmd_calibrate(args):
     table = measured_acoeffs(data)
     if args.model != "electrostatic":
         return _lsst_route(args, data, table)
-    res = calibrate(table, free=args.free, refine=not args.no_refine,
-                    allow_poor_fit=args.allow_poor_fit, max_chi2_dof=args.max_chi2_dof,
-                    progress=not args.quiet)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", CalibrationWarning)
+        res = calibrate(table, free=args.free, refine=not args.no_refine,
+                        allow_poor_fit=args.allow_poor_fit, max_chi2_dof=args.max_chi2_dof,
+                        progress=not args.quiet)
+    for w in caught:  # a poor physics fit: written, with the misfit in its uncertainty
+        if issubclass(w.category, CalibrationWarning):
+            print(f"bfdrift calibrate: warning: {w.message}", file=sys.stderr)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     res.template.meta["calibration"]["inputs"] = [os.path.abspath(x) for x in args.input]
     joint = None
     if args.stars:
@@ -342,10 +351,13 @@ def add_calibrate_parser(subparsers):
                     help="keep the model's areas (default: match them to the measured a_ij)")
     ca.add_argument("--max-chi2-dof", type=float,
                     default=library_default(calibrate, "max_chi2_dof"),
-                    help="a fit above this chi2/dof (and p < 1e-3) is an error "
+                    help="a fit above this chi2/dof (and p < 1e-3) is poor: a warning and "
+                         "the Birge ratio in the uncertainty, an error with --no-refine "
                          "(default: %(default)s)")
     ca.add_argument("--allow-poor-fit", action="store_true",
-                    help="write the template even when the fit is poor")
+                    help="with --no-refine: write the model's template even when it fits "
+                         "poorly (refined templates are written with the misfit in their "
+                         "uncertainty, and a warning)")
     ca.add_argument("--stars", nargs="+", metavar="EXPOSURE",
                     help="star fields (FITS, electrons or ADU with GAIN) fitted jointly with "
                          "the a-matrix: corrected star size and shape must not depend on flux")

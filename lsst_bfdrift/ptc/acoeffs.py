@@ -25,7 +25,7 @@ import numpy as np
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["AcoeffTable", "read_acoeff_table", "assign_axes", "sum_rule_check",
-           "lag_radius", "acoeff_square", "MAX_TABLE_LAG"]
+           "lag_radius", "acoeff_square", "lag_weights", "check_consistency", "MAX_TABLE_LAG"]
 
 #: Largest lag an a_ij table may hold (measured tables reach ~20; a larger
 #: lag is a typo, and the square arrays grow as its square).
@@ -247,3 +247,78 @@ def sum_rule_check(table, *, nsigma=1.0):
             f"a00 error {table.sigma[0, 0]:.2g}): "
             + ("a00 set by the sum rule, left out of chi2" if ok else "a00 measured, kept"))
     return ok, note
+
+
+def lag_weights(max_lag):
+    """Number of pixels at each lag [i, j] of the quadrant 0..max_lag (1 at the
+    aggressor, 2 on the axes, 4 elsewhere): the weights of the area sum rule."""
+    w = np.full((max_lag + 1, max_lag + 1), 4.0)
+    w[0, :] = 2.0
+    w[:, 0] = 2.0
+    w[0, 0] = 1.0
+    return w
+
+
+def check_consistency(table, *, nsigma=5.0, zero_ring=2.0):
+    """Refuse an a-matrix that is inconsistent in itself, naming the check that failed.
+
+    Checks:
+
+    * **a00 shrinks its pixel**: a measured a00 must be negative (a pixel
+      loses area to the charge it holds); one above ``nsigma`` errors is a
+      sign error or another quantity.
+    * **The area sum rule, when the lags are complete**: pixel areas sum to a
+      constant, so the sum of a_ij over all lags (2 on the axes, 4 off them,
+      a00 once) is zero. When a00 is measured and every lag of the table's
+      outermost ring is within ``zero_ring`` errors of zero (the table
+      reaches the lags where the effect has faded), a sum more than
+      ``nsigma`` errors from zero says a00, or the errors, are wrong.
+
+    Parameters
+    ----------
+    table : AcoeffTable
+    nsigma : float, optional
+    zero_ring : float, optional
+
+    Returns
+    -------
+    list of str
+        The checks made and their figures (for reports).
+
+    Raises
+    ------
+    InputError
+        A failed check, named, with its figures.
+    """
+    a, s = table.a, table.sigma
+    m = table.mask()
+    src = table.source or "the a-matrix"
+    done = []
+    if not table.exclude_a00 and m[0, 0]:
+        if a[0, 0] > nsigma * s[0, 0]:
+            raise InputError(f"{src}: a00 = {a[0, 0]:+.3g} per e ({a[0, 0] / s[0, 0]:+.1f} "
+                             "sigma above zero): a pixel grows with its own charge; the check "
+                             "'a00 shrinks its pixel' failed (a sign error, or a table of "
+                             "another quantity?)")
+        done.append(f"a00 shrinks its pixel: a00 = {a[0, 0]:.3g}")
+    L = table.max_lag
+    ring = m.copy()
+    ring[:L, :L] = False
+    complete = L >= 3 and ring.any() and bool(np.all(np.abs(a[ring]) <= zero_ring * s[ring]))
+    if complete and not table.exclude_a00 and m[0, 0]:
+        w = lag_weights(L)
+        total = float(np.sum((w * a)[m]))
+        err = float(np.sqrt(np.sum(((w * s)[m]) ** 2)))
+        if abs(total) > nsigma * err:
+            raise InputError(
+                f"{src}: the area sum rule fails: the a_ij sum to {total:+.3g} +- {err:.2g} per "
+                f"e ({total / err:+.1f} sigma) over lags 0..{L}, whose outermost lags are zero "
+                f"within {zero_ring:g} errors (the table is complete); the check 'sum rule "
+                "when the lags are complete' failed: a00 or the errors are wrong")
+        done.append(f"sum rule (lags complete): {total:+.3g} +- {err:.2g} per e")
+    elif complete:
+        done.append("sum rule: a00 not measured, not checked")
+    else:
+        done.append(f"sum rule: not checked (the lags at {L} are not yet zero within their "
+                    "errors: the table stops short of the effect's reach)")
+    return done

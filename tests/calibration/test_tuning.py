@@ -80,13 +80,16 @@ def test_uncertainty_travels_with_the_file(itl, tmp_path):
     cal = back.meta["calibration"]
     assert cal["source"] == "galsim:lsst_itl_50_8" and cal["names"] == ["channel_depth"]
     assert_allclose(cal["covariance"], res.fit.covariance)
-    assert_allclose(np.asarray(cal["uncertainty"]["sigma"]), itl.sigma)
+    # the one-parameter fit is poor: the stored errors carry its Birge ratio (issue 41)
+    birge = 1.0 if res.misfit is None else res.misfit["birge"]
+    sigma = itl.sigma * birge
+    assert_allclose(np.asarray(cal["uncertainty"]["sigma"]), sigma)
     draws = draw_templates(back, 200, seed=3)
     c = back.center
     da = np.array([template_alpha(d)[c:c + 3, c:c + 3].T for d in draws]) \
         - template_alpha(back)[c:c + 3, c:c + 3].T
-    assert_allclose(da.std(axis=0), itl.sigma, rtol=0.15)
-    assert_allclose(da.mean(axis=0), 0.0, atol=0.25 * itl.sigma.max())
+    assert_allclose(da.std(axis=0), sigma, rtol=0.15)
+    assert_allclose(da.mean(axis=0), 0.0, atol=0.25 * sigma.max())
     with pytest.raises(ValueError, match="no calibration uncertainty"):
         draw_templates(DistortionTemplate.load(path).__class__(
             back.corner_d, back.vedge_d, back.hedge_d, back.fractions, back.charge), 2)
@@ -207,3 +210,42 @@ def test_calibrate_uses_the_shipped_jacobian(itl):
     assert abs(res.fit.values["xi0"] - res2.fit.values["xi0"]) < 0.2 * res.fit.errors["xi0"]
     for r in (res, res2):
         assert abs(r.fit.model[0, 0] - itl.a[0, 0]) < 0.2 * a00.sigma[0, 0]
+
+
+def test_a_poor_fit_refined_to_the_data_is_kept_with_its_misfit():
+    """Issue 41: GalSim's noise-free ITL a-matrix (lags <= 2) with errors of 0.1 % no
+    model meets: refused without refinement; refined, written with a warning, the
+    refined template within the data's errors and the stored a_ij errors scaled by
+    the Birge ratio sqrt(chi2/dof) (checked against the fit's own chi2)."""
+    from lsst_bfdrift.calibration.tuning import CalibrationWarning
+
+    a = galsim_acoeffs("lsst_itl_50_8", 2)
+    tight = AcoeffTable(a, 1e-3 * np.abs(a) + 1e-12, source="tight")
+    with pytest.raises(CalibrationError, match="without refinement"):
+        calibrate(tight, free=["channel_depth"], settings=SMALL, refine=False)
+    with pytest.warns(CalibrationWarning, match="Birge ratio"):
+        res = calibrate(tight, free=["channel_depth"], settings=SMALL)
+    m = res.misfit
+    assert m["birge"] == pytest.approx(np.sqrt(res.fit.chi2 / res.fit.dof), rel=1e-12)
+    assert m["birge"] > 3 and m["template_chi2"] <= m["template_lags"]
+    stored = np.asarray(res.template.meta["calibration"]["uncertainty"]["sigma"])
+    assert_allclose(stored, tight.sigma * m["birge"], rtol=1e-12)
+
+
+@pytest.mark.parametrize("change, match", [
+    (lambda a: a.__setitem__((0, 0), -a[0, 0]), "a00 shrinks its pixel' failed"),
+    (lambda a: a.__setitem__((0, 0), 0.7 * a[0, 0]), "sum rule when the lags are complete"),
+])
+def test_an_amatrix_inconsistent_in_itself_is_refused(change, match):
+    """Issue 41: a00 of the wrong sign, and an a00 that breaks the sum rule by far
+    more than its error allows when the table reaches lags where the effect has faded
+    (GalSim's ITL a-matrix to lag 6, 1 % errors), are refused naming the check."""
+    from lsst_bfdrift.ptc.acoeffs import check_consistency
+
+    a = galsim_acoeffs("lsst_itl_50_8", 6)
+    sigma = 0.01 * np.abs(a) + 2e-10
+    done = check_consistency(AcoeffTable(a, sigma))  # as GalSim made it: consistent
+    assert any(d.startswith("sum rule (lags complete)") for d in done)
+    change(a)
+    with pytest.raises(ValueError, match=match):
+        calibrate(AcoeffTable(a, sigma), build=False)

@@ -365,7 +365,11 @@ def test_maps_figure_has_units_axes_and_a_robust_stretch(default_template):
     assert lim == pytest.approx(np.percentile(np.abs(maps.area - 1.0), 99.5))
     fig = plot_moment_maps(maps, image=q)
     axes = [a for a in fig.axes if a.get_title()]
-    assert [a.get_title() for a in axes][:2] == ["charge", "area - 1"]
+    titles = [a.get_title() for a in axes]
+    assert titles[0] == "charge"
+    # issue 43 item 5: a clipped colour scale says so, with the full range
+    assert titles[1].startswith("area - 1\nscale clipped at 99.5 %")
+    assert f"{(maps.area - 1.0).min():.3g}" in titles[1]
     assert all(a.get_xlabel() == "x (px)" for a in axes)
     bars = [a for a in fig.axes if not a.get_title()]
     assert "px$^2$" in [b.get_ylabel() for b in bars]
