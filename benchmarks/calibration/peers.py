@@ -9,7 +9,10 @@ this package's, side by side (:mod:`lsst_bfdrift.calibration.routes`):
   a-matrix, its per-edge shifts, corrected by ``astier23``;
 * ``coulton18`` (DP1): the kernel of the measured a-matrix, corrected by
   ``coulton18``;
-* for reference, GalSim's own file (the true template) corrected by ``drift``.
+* for reference, GalSim's own file (the true template) corrected by ``drift``;
+* to tell the links of the chain apart (template against correction
+  method): the Astier & Regnault template corrected by ``drift``, and the
+  true template corrected by ``astier23``.
 
 Inputs per GalSim sensor model (lags 0..``--lags``, default 3: GalSim's
 sensor files stop about 4 px from the aggressor, so its a_ij beyond lag 3
@@ -29,7 +32,8 @@ Every route corrects the same paired GalSim stars (Moffat and Kolmogorov,
 drawn by galsim.SiliconSensor with a no-BF twin; the stars of
 ``calibrate_sensor.py``). Printed, as % of the uncorrected slope: size, e1
 and e2 left with errors from the stars, and the paired differences between
-routes (per-star differences: the stars' scatter cancels). Each route states
+routes (per-star differences: the stars' scatter cancels; the package's route
+against each LSST route and against the true template). Each route states
 a precision from its own input errors: the standard deviation of the
 corrected slopes over ``--draws-stated`` templates drawn from them (the
 calibrated template's stored uncertainty; the Astier & Regnault fit's
@@ -197,6 +201,9 @@ def main(argv=None):
             for psf, pairs in psf_pairs.items():
                 templates = {m: (r.template, r.method) for m, r in routes.items()}
                 templates["true template"] = (true_tpl, "drift")
+                # the links of the chain: each template with the other method
+                templates["astier23 shifts, drift"] = (routes["astier23"].template, "drift")
+                templates["true template, astier23"] = (true_tpl, "astier23")
                 res = run_case(pairs, templates, args)
                 fl, base_rows = next(iter(res.values()))
                 u, ok = slopes(fl, base_rows["uncorrected"])
@@ -209,7 +216,7 @@ def main(argv=None):
                         f"{q} {row[name][q][0]:+6.1f} +- {row[name][q][1]:4.1f}"
                         for _, q in QUANTITIES))
                 # paired differences (same stars): package minus each LSST route
-                for other in ("astier23", "coulton18"):
+                for other in ("astier23", "coulton18", "true template"):
                     d = {}
                     for col, q in QUANTITIES:
                         a_rows, b_rows = res["electrostatic"][1], res[other][1]
