@@ -31,7 +31,8 @@ describe the file's window, not a sensor):
 Every route corrects the same paired GalSim stars (Moffat and Kolmogorov,
 drawn by galsim.SiliconSensor with a no-BF twin; the stars of
 ``calibrate_sensor.py``). Printed, as % of the uncorrected slope: size, e1
-and e2 left with errors from the stars, and the paired differences between
+and e2 left (e2, which has no brighter-fatter slope of its own, in % of the
+uncorrected e1 slope) with errors from the stars, and the paired differences between
 routes (per-star differences: the stars' scatter cancels; the package's route
 against each LSST route and against the true template). Each route states
 a precision from its own input errors: the standard deviation of the
@@ -169,6 +170,21 @@ def main(argv=None):
         print(s, flush=True)
         lines.append(s)
 
+    def save(*, partial):
+        """Write what is done (after every input, so that a long run keeps its cases)."""
+        cov = "; ".join(f"{m} {np.mean(c):.0%} of {len(c)}" for m, c in coverage.items() if c)
+        head = ("(partial: the run goes on) " if partial else "") + (
+            "coverage of the stated precision (|residual| <= stated (+) stars, size and e1): "
+            + cov)
+        if not partial:
+            say(head)
+        out["coverage"] = {m: {"fraction": float(np.mean(c)), "cases": len(c)}
+                           for m, c in coverage.items() if c}
+        text = lines + ([head] if partial else [])
+        write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(text) + "\n")
+        write_json(args.out + ".json", {"command": command_line(), "complete": not partial, **out},
+                   indent=1, default=float)
+
     say(f"routes: {', '.join(f'{m} ({ROUTE_METHODS[m]})' for m in MODELS)}; a-matrix lags "
         f"0..{args.lags}, errors {REL_ERROR:.0%} + {ERROR_FLOOR:g}/e; % of the uncorrected "
         "slope, errors from the stars")
@@ -208,9 +224,12 @@ def main(argv=None):
                 fl, base_rows = next(iter(res.values()))
                 u, ok = slopes(fl, base_rows["uncorrected"])
                 row = rec[label][psf] = {"uncorrected": u}
+                # e2 has no brighter-fatter slope of its own (the symmetry): its
+                # slope left is given in % of the uncorrected e1 slope
+                den = {q: (u[q][0] if q != "e2" else abs(u["e1"][0])) for _, q in QUANTITIES}
                 for name, (fl_n, rows) in res.items():
                     s, _ = slopes(fl_n, rows[name])
-                    row[name] = {q: (100 * s[q][0] / u[q][0], 100 * s[q][1] / abs(u[q][0]))
+                    row[name] = {q: (100 * s[q][0] / den[q], 100 * s[q][1] / abs(den[q]))
                                  for _, q in QUANTITIES}
                     say(f"  {psf:10s} {name:14s} " + "  ".join(
                         f"{q} {row[name][q][0]:+6.1f} +- {row[name][q][1]:4.1f}"
@@ -224,7 +243,7 @@ def main(argv=None):
                             res[other][0])
                         diff = a_rows["electrostatic"][good, col] - b_rows[other][good, col]
                         sl, se = origin_slope(fl[good], diff)
-                        d[q] = (100 * sl / u[q][0], 100 * se / abs(u[q][0]))
+                        d[q] = (100 * sl / den[q], 100 * se / abs(den[q]))
                     row[f"electrostatic minus {other}"] = d
                     say(f"  {psf:10s} paired electrostatic - {other}: " + "  ".join(
                         f"{q} {d[q][0]:+6.1f} +- {d[q][1]:4.1f}" for _, q in QUANTITIES))
@@ -236,7 +255,7 @@ def main(argv=None):
                             pairs, tpl, methods={m: {"method": ROUTE_METHODS[m]}}, sky=1000.0)
                         s, _ = slopes(fl_d, rows_d[m])
                         for _, q in QUANTITIES:
-                            vals[q].append(100 * s[q][0] / u[q][0])
+                            vals[q].append(100 * s[q][0] / den[q])
                     st = {q: float(np.std(v, ddof=1)) for q, v in vals.items()}
                     row[m]["stated"] = st
                     for q in ("size", "e1"):
@@ -245,12 +264,8 @@ def main(argv=None):
                         coverage[m].append(bool(covered))
                     say(f"  {psf:10s} {m:14s} stated +- " + ", ".join(
                         f"{q} {st[q]:.1f}" for _, q in QUANTITIES))
-    say("coverage of the stated precision (|residual| <= stated (+) stars, size and e1): "
-        + "; ".join(f"{m} {np.mean(c):.0%} of {len(c)}" for m, c in coverage.items() if c))
-    out["coverage"] = {m: {"fraction": float(np.mean(c)), "cases": len(c)}
-                       for m, c in coverage.items() if c}
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-    write_json(args.out + ".json", {"command": command_line(), **out}, indent=1, default=float)
+            save(partial=True)
+    save(partial=False)
 
 
 if __name__ == "__main__":
