@@ -24,17 +24,22 @@ beyond the errors (then chosen so that chi2 per degree of freedom is 1).
 The slope's error is the largest of three estimates, each reported:
 
 * ``err_formal``: the weighted least-squares error (with tau);
-* ``err_image``: the sandwich error clustered by image (residuals summed
-  per image, so a common change of one exposure counts once, not once per
-  spot: the image-to-image scatter);
-* ``err_spot``: the sandwich error clustered by spot (spots whose slopes
-  differ from one another: the spot-to-spot scatter).
+* ``err_image``: the formal error scaled by the Birge ratio of the images'
+  mean residuals (each image's weighted mean residual against its error,
+  2 parameters: the slope and the level): a common change of one exposure
+  (focus, projector) moves all its spots together, so its residuals do not
+  average down over the spots; this is the image-to-image scatter;
+* ``err_spot``: the formal error scaled by the Birge ratio of the per-spot
+  slopes about the common one (spots with 3 or more rows, 1 parameter):
+  spots whose slopes differ from one another, the spot-to-spot scatter.
 
-Clustered errors (CR1, with the G / (G - 1) (N - 1) / (N - K) factor of
-Cameron, Gelbach & Miller 2011) need no model of the scatter but are noisy
-with few clusters; the largest of the three never understates a scatter any
-of them sees. The per-spot slopes are reported too, with the chi2 of their
-spread about the common slope.
+Both ratios only inflate (:func:`~lsst_bfdrift.catalogs.slopes.birge_scale`,
+at least 3 images or spots). On 40 synthetic series of 9 spots and 5
+exposures (the generator of ``tests/catalogs/test_spots.py``), the pulls of
+the sigma_x, sigma_y and e2 slopes have standard deviations 1.0, 0.8 and
+0.8 (the formal error alone: 1.2, 0.9, 0.9); with a common size change per
+exposure 20 times the row noise, 1.2 (the formal error alone: 6.8); with the
+spots' slopes scattered by 30 %, 1.0 (formal: 2.7).
 
 :func:`predict_spot_slopes` predicts the slopes of the same rows from a
 template: each spot's BF-free profile (a pixel-integrated elliptical
@@ -50,7 +55,7 @@ functional of the same design.
 import numpy as np
 from scipy.optimize import brentq
 
-from lsst_bfdrift.catalogs.slopes import FLUX_UNIT
+from lsst_bfdrift.catalogs.slopes import FLUX_UNIT, birge_scale
 from lsst_bfdrift.catalogs.spots import (SPOT_QUANTITIES, fixed_weight_moments,
                                          spot_flag_counts)
 from lsst_bfdrift.correction.settings import RECOMMENDED
@@ -73,17 +78,6 @@ def _group_mean(groups, values, w):
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = sv / sw
     return mean[groups]
-
-
-def _cluster_err(score, groups, sxx, n, k):
-    """CR1 sandwich error of the slope, clustered by ``groups``."""
-    ids, inv = np.unique(groups, return_inverse=True)
-    g = ids.size
-    if g < 2 or n <= k:
-        return float("nan")
-    s = np.bincount(inv, score)
-    c = g / (g - 1.0) * (n - 1.0) / (n - k)
-    return float(np.sqrt(c * np.sum(s * s)) / sxx)
 
 
 def fit_spot_slope(spot, image, flux, q, q_err, *, tau=None, scale_errors=False, min_points=6):
@@ -118,6 +112,7 @@ def fit_spot_slope(spot, image, flux, q, q_err, *, tau=None, scale_errors=False,
         ``n_images``, ``per_spot`` (``spot``, ``slope``, ``slope_err``,
         ``intercept`` arrays; spots with 3 or more rows get a slope, others
         NaN), ``spread_chi2_dof`` (per-spot slopes about the common one),
+        ``image_chi2_scale``, ``spot_chi2_scale`` (the two Birge ratios),
         ``points`` (per row: ``spot``, ``image``, ``regressor`` = flux / 1e5,
         ``detrended`` = q minus the spot's intercept, ``err``).
 
@@ -175,11 +170,7 @@ def fit_spot_slope(spot, image, flux, q, q_err, *, tau=None, scale_errors=False,
                 break
     elif tau is not None:
         w, xt, yt, sxx, s, r = solve(tau2)
-    score = w * xt * r
     err_formal = float(1.0 / np.sqrt(sxx))
-    err_image = _cluster_err(score, image, sxx, n, k)
-    err_spot = _cluster_err(score, spot, sxx, n, k)
-    err = float(np.nanmax([err_formal, err_image, err_spot]))
     # per-spot slopes and intercepts (weights with tau)
     sxx_k = np.bincount(sp, w * xt * xt, minlength=ids.size)
     sxy_k = np.bincount(sp, w * xt * yt, minlength=ids.size)
@@ -193,13 +184,22 @@ def fit_spot_slope(spot, image, flux, q, q_err, *, tau=None, scale_errors=False,
     good = np.isfinite(slope_k)
     spread = float(np.sum(((slope_k[good] - s) / err_k[good]) ** 2) / max(good.sum() - 1, 1)) \
         if good.sum() >= 2 else float("nan")
+    # image-to-image: the weighted mean residual of each image against its error
+    im_ids, im = np.unique(image, return_inverse=True)
+    sw_i = np.bincount(im, w)
+    rbar = np.bincount(im, w * r) / sw_i
+    scale_image = birge_scale(rbar, 1.0 / np.sqrt(sw_i), 2, min_points=3)
+    scale_spot = birge_scale(slope_k[good] - s, err_k[good], 1, min_points=3)
+    err_image, err_spot = err_formal * scale_image, err_formal * scale_spot
+    err = float(max(err_formal, err_image, err_spot))
     return {"slope": s, "slope_err": err, "err_formal": err_formal, "err_image": err_image,
             "err_spot": err_spot, "z": s / err if err > 0 else float("inf"),
             "tau": float(np.sqrt(tau2)), "chi2_dof": chi2_dof0, "n_points": n,
             "n_spots": int(ids.size), "n_images": int(np.unique(image).size),
             "per_spot": {"spot": ids, "slope": slope_k, "slope_err": err_k,
                          "intercept": intercept, "n": n_k},
-            "spread_chi2_dof": spread,
+            "spread_chi2_dof": spread, "image_chi2_scale": scale_image,
+            "spot_chi2_scale": scale_spot,
             "points": {"spot": spot, "image": image, "regressor": g,
                        "detrended": q - intercept[sp], "err": e}}
 

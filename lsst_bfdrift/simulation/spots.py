@@ -331,7 +331,7 @@ def write_spot_series(series, directory, *, prefix="spot", gain=None, overwrite=
                 hdr["GAIN"] = (float(gain), "e/ADU")
             for key, card in series["header"].items():
                 hdr[key] = (card[0] * scale, card[1].replace("(e)", "(ADU)")) \
-                    if key == "SATURATE" else card
+                    if key == "SATURATE" and gain is not None else card
             hdr["LEVEL"] = (float(levels[k]), "mean spot flux (e)")
             hdr["IMAGETYP"] = ("SPOT", "spot-grid exposure") if kind == "images" else \
                 ("SPOT NOBF TRUTH", "same photons without BF: benchmark truth only")
