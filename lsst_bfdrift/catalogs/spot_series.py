@@ -130,7 +130,8 @@ class SpotSeries:
         ``template`` (None: as measured), in the form of
         :meth:`lsst_bfdrift.calibration.star_fit.StarField.slopes`
         (:func:`~lsst_bfdrift.catalogs.spot_slopes.slope_values`)."""
-        return slope_values(self.fit(template, use=use, quantities=quantities), quantities)
+        return slope_values(self.fit(template, use=use, quantities=quantities),
+                            quantities=quantities)
 
     def predict(self, template, *, model="gaussian", use=None, quantities=SPOT_QUANTITIES,
                 measured=None):

@@ -274,7 +274,7 @@ def spot_slopes(catalog, *, quantities=SPOT_QUANTITIES, use=None, min_points=6):
     return out
 
 
-def slope_values(result, quantities=None):
+def slope_values(result, *, quantities=None):
     """(slope, error) per quantity of a :func:`spot_slopes` result, as the star route
     holds them (:meth:`lsst_bfdrift.calibration.star_fit.StarField.slopes`).
 
@@ -455,7 +455,7 @@ def predict_spot_slopes(catalog, template, *, exposures=None, model="gaussian", 
     return out
 
 
-def compare_slopes(measured, predicted, quantities=None):
+def compare_slopes(measured, predicted, *, quantities=None):
     """Measured against predicted slopes, quantity by quantity.
 
     Parameters

@@ -93,7 +93,7 @@ def spots_summary(series, result, *, predicted=None, template=None):
                      "extra scatter tau), err_image (clustered by image) and err_spot "
                      "(clustered by spot)"}
     if predicted is not None:
-        cmp = compare_slopes(result, predicted, names)
+        cmp = compare_slopes(result, predicted, quantities=names)
         out["predicted"] = {"template": template, "model": predicted["model"],
                             "spots_skipped": predicted["spots_skipped"], **cmp}
     return out
