@@ -296,7 +296,7 @@ def slope_values(result, *, quantities=None):
         {"n_stars": result.get("n_points")}
 
 
-def _spot_intercepts(catalog, rows, k):
+def _spot_intercepts(catalog, rows):
     """Faint-limit (F = 0) moments (Mxx, Myy, Mxy) and mean centroid phase of spot ``k``."""
     f = _column(catalog, "flux")[rows]
     w = 1.0 / np.maximum(_column(catalog, "size_err")[rows], 1e-12) ** 2
@@ -424,7 +424,7 @@ def predict_spot_slopes(catalog, template, *, exposures=None, model="gaussian", 
     with ProgressBar(int(sel.sum()), "predict", enabled=progress) as bar:
         for k in ids:
             rows = sel & (spots == k)
-            m0, phase = _spot_intercepts(catalog, rows, k)
+            m0, phase = _spot_intercepts(catalog, rows)
             if model == "gaussian":
                 unit = _gaussian_unit(m0, phase, side, ws, radius)
                 centre = (c + phase[0], c + phase[1])
