@@ -50,6 +50,15 @@ Subcommands
     chi2/dof, rms and largest residual lags before and after each added
     effect, and what an added effect changes in the calibrated template and
     in star corrections (see ``docs/calibration.rst``).
+``bfdrift spots SPOT_IMAGE... [--json] [--plot PNG] [--template FILE | --galsim-sensor NAME]``
+    Spot-projector series: the spots found once on the sum of the images,
+    measured in every image with one fixed Gaussian weight, and the slopes
+    of sigma_x, sigma_y, ln T, e1 and e2 against flux with errors from the
+    image-to-image and spot-to-spot scatter; with a template, the slopes it
+    predicts (drift forward model) against the measured ones.
+``bfdrift spot-sim OUTDIR [--sensor NAME] [--grid NX NY] [--sigma S] [--twin] [--json]``
+    Spot-grid series drawn by galsim.SiliconSensor, one FITS file per
+    exposure time (EXPTIME, BUNIT), optionally with BF-free twins.
 ``bfdrift maps [IMAGE] [--template FILE] [--out FILE] [--plot PNG] [--json]``
     Final pixel geometry (area, centroid shift, ellipticity maps) of an image
     in electrons; with no IMAGE, the bundled sample star. This is the quick
@@ -63,8 +72,9 @@ with up to two tables: ``sensor`` (keys of
 
 Each subcommand's options and code are in one module: ``template`` in
 :mod:`~lsst_bfdrift.cli.template_commands`; ``correct`` and ``maps`` in
-:mod:`~lsst_bfdrift.cli.image_commands`; ``flat-sim`` and ``star-sim`` in
-:mod:`~lsst_bfdrift.cli.simulation_commands`; ``calibrate``, ``ptc`` and
+:mod:`~lsst_bfdrift.cli.image_commands`; ``flat-sim``, ``star-sim`` and
+``spot-sim`` in :mod:`~lsst_bfdrift.cli.simulation_commands`; ``spots`` in
+:mod:`~lsst_bfdrift.cli.spot_commands`; ``calibrate``, ``ptc`` and
 ``diagnose`` in :mod:`~lsst_bfdrift.cli.calibration_commands`;
 ``validate-stars``, ``validate-sky`` and ``reproduce`` in
 :mod:`~lsst_bfdrift.cli.validation_commands`. An option's default is that of
@@ -80,7 +90,9 @@ from lsst_bfdrift.cli.calibration_commands import (add_calibrate_parser, add_dia
                                                    add_ptc_parser)
 from lsst_bfdrift.cli.image_commands import (add_correct_parser, add_maps_parser,
                                              sample_image_path)
-from lsst_bfdrift.cli.simulation_commands import add_flat_sim_parser, add_star_sim_parser
+from lsst_bfdrift.cli.simulation_commands import (add_flat_sim_parser, add_spot_sim_parser,
+                                                  add_star_sim_parser)
+from lsst_bfdrift.cli.spot_commands import add_spots_parser
 from lsst_bfdrift.cli.template_commands import add_template_parser, read_config
 from lsst_bfdrift.cli.validation_commands import (add_reproduce_parser, add_validate_sky_parser,
                                                   add_validate_stars_parser)
@@ -111,7 +123,7 @@ def build_parser():
     for add in (add_template_parser, add_calibrate_parser, add_ptc_parser, add_flat_sim_parser,
                 add_star_sim_parser, add_correct_parser, add_validate_stars_parser,
                 add_reproduce_parser, add_validate_sky_parser, add_diagnose_parser,
-                add_maps_parser):
+                add_maps_parser, add_spots_parser, add_spot_sim_parser):
         add(sub)
     show_defaults(p)
     return p

@@ -1,22 +1,25 @@
-"""``bfdrift flat-sim`` and ``bfdrift star-sim``: simulations with moving
-boundaries (options and commands).
+"""``bfdrift flat-sim``, ``bfdrift star-sim`` and ``bfdrift spot-sim``: simulations
+with moving boundaries, and spot-projector series drawn by GalSim (options and
+commands).
 
 The options' defaults are those of the functions they feed
 (:func:`~lsst_bfdrift.simulation.flats.simulate_flats`,
-:func:`~lsst_bfdrift.simulation.stars.simulate_star`), except where a comment
-says why not.
+:func:`~lsst_bfdrift.simulation.stars.simulate_star`,
+:func:`~lsst_bfdrift.simulation.spots.simulate_spot_series`), except where a
+comment says why not.
 """
 
 import os
 
-from lsst_bfdrift.cli._common import (check_outputs, library_default, load_template,
-                                      print_json, save_plot, template_input)
+from lsst_bfdrift.cli._common import (check_output_dir, check_outputs, library_default,
+                                      load_template, print_json, save_plot, template_input)
 from lsst_bfdrift.simulation.flats import simulate_flats, with_responsivity
+from lsst_bfdrift.simulation.spots import SPOT_PROFILES, simulate_spot_series, write_spot_series
 from lsst_bfdrift.simulation.stars import make_psf, simulate_star
 from lsst_bfdrift.utils.io import atomic_output
 
-__all__ = ["add_flat_sim_parser", "add_star_sim_parser", "cmd_flat_sim", "cmd_star_sim",
-           "CLI_SEED"]
+__all__ = ["add_flat_sim_parser", "add_star_sim_parser", "add_spot_sim_parser", "cmd_flat_sim",
+           "cmd_star_sim", "cmd_spot_sim", "CLI_SEED"]
 
 #: Seed of the simulations when ``--seed`` is not given: a run is repeatable
 #: by default (the library's ``seed=None`` draws a fresh one each time); the
@@ -120,6 +123,48 @@ def cmd_star_sim(args):
     return 0
 
 
+def cmd_spot_sim(args):
+    """``bfdrift spot-sim``: a spot-grid series drawn by galsim.SiliconSensor, as FITS files.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+
+    Returns
+    -------
+    code : int
+        The exit status.
+    """
+    check_output_dir(args, args.out_dir, "OUTDIR")
+    sim = simulate_spot_series(sensor=args.sensor, grid=tuple(args.grid), pitch=args.pitch,
+                               sigma=args.sigma, profile=args.profile, n_images=args.n_images,
+                               flux_min=args.flux_min, peak_max=args.peak_max,
+                               flux_scatter=args.flux_scatter, rate=args.rate,
+                               read_noise=args.read_noise, bias=args.bias,
+                               background=args.background, full_well=args.full_well,
+                               twin=args.twin, updates=args.updates, seed=args.seed,
+                               progress=not args.quiet)
+    paths = write_spot_series(sim, args.out_dir, gain=args.gain, overwrite=args.overwrite)
+    times = sim["exptimes"].value
+    levels = sim["levels"].value
+    out = {"out_dir": os.path.abspath(args.out_dir), "images": paths["images"],
+           "twins": paths["twins"], "truth": paths["truth"], "exptimes": times.tolist(),
+           "levels": levels.tolist(), "settings": sim["settings"],
+           "units": "EXPTIME in s; levels: mean spot flux (e); images in "
+                    + ("electrons" if args.gain is None else f"ADU (GAIN {args.gain:g} e/ADU)")}
+    if args.json:
+        print_json(out)
+    else:
+        twins = f" and {len(paths['twins'])} BF-free twins (*_nobf.fits, truth only)" \
+            if paths["twins"] else ""
+        print(f"wrote {len(paths['images'])} spot images{twins} to {args.out_dir}: "
+              f"{len(sim['spots'])} spots of sigma {args.sigma:g} px ({args.profile}), "
+              f"{args.sensor}, EXPTIME {times.min():.3g}-{times.max():.3g} s, mean spot flux "
+              f"{levels.min():.3g}-{levels.max():.3g} e")
+    return 0
+
+
 def add_flat_sim_parser(subparsers):
     """Add ``flat-sim`` to the subcommands of ``bfdrift``.
 
@@ -211,3 +256,62 @@ def add_star_sim_parser(subparsers):
     ss.add_argument("--quiet", action="store_true")
     ss.set_defaults(func=cmd_star_sim)
     return ss
+
+
+def add_spot_sim_parser(subparsers):
+    """Add ``spot-sim`` to the subcommands of ``bfdrift``.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``add_subparsers()`` of the top-level parser.
+
+    Returns
+    -------
+    parser : argparse.ArgumentParser
+    """
+    def default(name):
+        return library_default(simulate_spot_series, name)
+
+    sp = subparsers.add_parser("spot-sim", help="spot-grid series drawn by galsim.SiliconSensor "
+                               "(FITS files with EXPTIME, optional BF-free twins)")
+    sp.add_argument("out_dir", metavar="OUTDIR", help="directory of the FITS files")
+    sp.add_argument("--sensor", default=default("sensor"),
+                    help="GalSim sensor (lsst_itl_50_8, lsst_e2v_50_8, lsst_itl_50_32, ...)")
+    sp.add_argument("--grid", type=int, nargs=2, default=list(default("grid")),
+                    metavar=("NX", "NY"), help="spots along x and y")
+    sp.add_argument("--pitch", type=float, default=default("pitch"), help="spot spacing (px)")
+    sp.add_argument("--sigma", type=float, default=default("sigma"), help="spot sigma (px)")
+    sp.add_argument("--profile", default=default("profile"), choices=SPOT_PROFILES,
+                    help="spot profile (a Moffat has the Gaussian's FWHM)")
+    sp.add_argument("--n-images", type=int, default=default("n_images"),
+                    help="exposures in the series")
+    sp.add_argument("--flux-min", type=float, default=default("flux_min"),
+                    help="mean spot flux of the shortest exposure (e)")
+    sp.add_argument("--peak-max", type=float, default=default("peak_max"),
+                    help="peak pixel of the longest exposure without BF (e)")
+    sp.add_argument("--flux-scatter", type=float, default=default("flux_scatter"),
+                    help="relative rms of the spots' flux factors")
+    sp.add_argument("--rate", type=float, default=default("rate"),
+                    help="mean spot flux per second (e/s): EXPTIME = flux / rate")
+    sp.add_argument("--read-noise", type=float, default=default("read_noise"),
+                    help="read noise (e rms)")
+    sp.add_argument("--bias", type=float, default=default("bias"),
+                    help="bias pedestal left in the images (e; header BIASLVL)")
+    sp.add_argument("--background", type=float, default=default("background"),
+                    help="uniform background (e per px)")
+    sp.add_argument("--full-well", type=float, default=default("full_well"),
+                    help="clip pixels at this level plus the bias (e); header SATURATE")
+    sp.add_argument("--gain", type=float,
+                    help="write ADU with this GAIN (e/ADU) instead of electrons")
+    sp.add_argument("--twin", action="store_true",
+                    help="also write BF-free twins (*_nobf.fits: same photons and noise; "
+                         "benchmark truth only)")
+    sp.add_argument("--updates", type=float, default=default("updates"),
+                    help="GalSim boundary updates per spot and exposure")
+    sp.add_argument("--seed", type=int, default=default("seed"))
+    sp.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    sp.add_argument("--json", action="store_true")
+    sp.add_argument("--quiet", action="store_true")
+    sp.set_defaults(func=cmd_spot_sim)
+    return sp

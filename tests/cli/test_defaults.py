@@ -18,6 +18,8 @@ import pytest
 from lsst_bfdrift.calibration.routes import calibrate_route
 from lsst_bfdrift.calibration.star_fit import calibrate_with_stars
 from lsst_bfdrift.calibration.tuning import calibrate
+from lsst_bfdrift.catalogs.spot_series import SpotSeries
+from lsst_bfdrift.catalogs.spot_slopes import predict_spot_slopes
 from lsst_bfdrift.cli.main import build_parser, main
 from lsst_bfdrift.correction.batch import correct_files
 from lsst_bfdrift.correction.task import BrighterFatterDriftConfig
@@ -25,6 +27,7 @@ from lsst_bfdrift.diagnosis.effects_fit import load_input
 from lsst_bfdrift.geometry.superpose import moment_maps
 from lsst_bfdrift.ptc.inputs import read_calibration_input
 from lsst_bfdrift.simulation.flats import simulate_flats
+from lsst_bfdrift.simulation.spots import simulate_spot_series
 from lsst_bfdrift.simulation.stars import make_psf, simulate_star
 from lsst_bfdrift.templates.galsim_export import export_galsim_sensor
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
@@ -44,7 +47,8 @@ ARGV = {"validate-sky": ["validate-sky", "img.fits"],
         "template summary": ["template", "summary"],
         "template plot": ["template", "plot", "--out", "t.png"],
         "template export-galsim": ["template", "export-galsim", "prefix"],
-        "template import-galsim": ["template", "import-galsim", "x", "--out", "t.fits"]}
+        "template import-galsim": ["template", "import-galsim", "x", "--out", "t.fits"],
+        "spots": ["spots", "a.fits"], "spot-sim": ["spot-sim", "outdir"]}
 
 
 def _same(v):
@@ -95,6 +99,24 @@ SOURCES = [
     ("validate-stars", "sky", draw_star_pairs, "sky", _same, 800.0),
     ("validate-stars", "seed", draw_star_pairs, "seed", _same, 7),
     ("template export-galsim", "vertices", export_galsim_sensor, "num_vertices", _same, 12),
+    ("spots", "min_snr", SpotSeries, "min_snr", _same, 40.0),
+    ("spots", "min_spots", SpotSeries, "min_spots", _same, 9),
+    ("spots", "model", predict_spot_slopes, "model", _same, "stamp"),
+    ("spot-sim", "sensor", simulate_spot_series, "sensor", _same, "lsst_e2v_50_8"),
+    ("spot-sim", "grid", simulate_spot_series, "grid", tuple, (7, 7)),
+    ("spot-sim", "pitch", simulate_spot_series, "pitch", _same, 50.0),
+    ("spot-sim", "sigma", simulate_spot_series, "sigma", _same, 2.0),
+    ("spot-sim", "profile", simulate_spot_series, "profile", _same, "moffat"),
+    ("spot-sim", "n_images", simulate_spot_series, "n_images", _same, 12),
+    ("spot-sim", "flux_min", simulate_spot_series, "flux_min", _same, 2e4),
+    ("spot-sim", "peak_max", simulate_spot_series, "peak_max", _same, 1.2e5),
+    ("spot-sim", "flux_scatter", simulate_spot_series, "flux_scatter", _same, 0.1),
+    ("spot-sim", "rate", simulate_spot_series, "rate", _same, 1e4),
+    ("spot-sim", "read_noise", simulate_spot_series, "read_noise", _same, 7.0),
+    ("spot-sim", "bias", simulate_spot_series, "bias", _same, 1000.0),
+    ("spot-sim", "background", simulate_spot_series, "background", _same, 5.0),
+    ("spot-sim", "updates", simulate_spot_series, "updates", _same, 1000.0),
+    ("spot-sim", "seed", simulate_spot_series, "seed", _same, 7),
 ]
 
 
@@ -127,6 +149,7 @@ DELIBERATE = [
     ("star-sim", "beta", 30.0, make_psf, "beta"),
     ("ptc", "max_lag", 3, read_calibration_input, "max_lag"),  # a00..a11, not calibrate's 8
     ("validate-stars", "match", "transfers", import_galsim_sensor, "match"),  # benchmarks
+    ("spots", "match", "transfers", import_galsim_sensor, "match"),  # as validate-stars
 ]
 
 #: Options with a default and no library keyword behind it: the command's own.

@@ -1,0 +1,224 @@
+"""``bfdrift spots``: the brighter-fatter slopes of a spot-projector series (options and
+command).
+
+The options' defaults are those of the functions they feed
+(:class:`~lsst_bfdrift.catalogs.spot_series.SpotSeries`,
+:func:`~lsst_bfdrift.catalogs.spot_slopes.predict_spot_slopes`), except where a
+comment says why not.
+"""
+
+import os
+
+import numpy as np
+
+from lsst_bfdrift.catalogs.spot_series import SpotSeries
+from lsst_bfdrift.catalogs.spot_slopes import SPOT_MODELS, compare_slopes, predict_spot_slopes
+from lsst_bfdrift.catalogs.spots import SPOT_QUANTITIES
+from lsst_bfdrift.cli._common import (check_outputs, library_default, load_template,
+                                      print_json, save_plot)
+from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
+from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
+from lsst_bfdrift.utils.io import atomic_output
+
+__all__ = ["add_spots_parser", "cmd_spots", "spots_summary", "SPOTS_MATCH"]
+
+#: How ``spots --galsim-sensor`` imports the sensor's file: matched to GalSim's
+#: transfers, as ``validate-stars`` does (its prediction of GalSim's own spots
+#: is within about 1 % in size, ``benchmarks/calibration/spots_measure.py``).
+SPOTS_MATCH = "transfers"
+
+#: Units of the slopes, per quantity.
+_UNITS = {"sigma_x": "px per 1e5 e", "sigma_y": "px per 1e5 e",
+          "size": "fractional change of T = Ixx + Iyy per 1e5 e", "e1": "per 1e5 e",
+          "e2": "per 1e5 e"}
+
+
+def _fit_summary(fit):
+    """The JSON of one quantity's fit (no per-row arrays)."""
+    out = {k: fit[k] for k in ("slope", "slope_err", "err_formal", "err_image", "err_spot", "z",
+                               "tau", "chi2_dof", "spread_chi2_dof", "n_points", "n_spots",
+                               "n_images")}
+    return out
+
+
+def spots_summary(series, result, *, predicted=None, template=None):
+    """The result of ``bfdrift spots`` as a JSON-ready dict.
+
+    Parameters
+    ----------
+    series : SpotSeries
+    result : dict
+        :func:`~lsst_bfdrift.catalogs.spot_slopes.spot_slopes` of its rows.
+    predicted : dict, optional
+        :func:`~lsst_bfdrift.catalogs.spot_slopes.predict_spot_slopes`.
+    template : str, optional
+        How the template was given (a path or ``galsim:NAME``).
+
+    Returns
+    -------
+    dict
+        ``images`` (name, EXPTIME, rows used), ``grid`` (spots, weight sigma,
+        radius), ``excluded`` (rows per flag, in total and per image),
+        ``slopes`` (per quantity: slope and its three errors, tau, chi2),
+        ``units``, ``per_spot`` (position and slopes of every spot) and, with
+        a template, ``predicted`` (per quantity: measured, predicted, ratio, z).
+    """
+    cat, grid = series.catalog, series.grid
+    excl = result["excluded"]
+    images = [{"name": ex.name, "exptime": ex.exptime, "used": excl["images"][i]["used"],
+               "median_flux": float(np.nanmedian(cat["flux"].value[np.asarray(cat["image"])
+                                                                    == i]))}
+              for i, ex in enumerate(series.exposures)]
+    names = [k for k in SPOT_QUANTITIES if k in result]
+    per_spot = []
+    for k in range(len(grid)):
+        row = {"spot": k, "x": float(grid.x[k]), "y": float(grid.y[k])}
+        for q in names:
+            ps = result[q]["per_spot"]
+            hit = np.flatnonzero(ps["spot"] == k)
+            row[q] = float(ps["slope"][hit[0]]) if hit.size else None
+            row[f"{q}_err"] = float(ps["slope_err"][hit[0]]) if hit.size else None
+        per_spot.append(row)
+    out = {"images": images,
+           "grid": {"n_spots": len(grid), "weight_sigma": grid.weight_sigma,
+                    "adaptive_sigma": grid.adaptive_sigma, "radius": grid.radius,
+                    "annulus": list(grid.annulus), "shape": list(grid.shape)},
+           "moments": cat.meta["moments"],
+           "excluded": {k: v for k, v in excl.items() if k != "images"},
+           "excluded_per_image": excl["images"],
+           "n_points": result["n_points"], "flux_range": result["flux_range"],
+           "slopes": {q: _fit_summary(result[q]) for q in names},
+           "units": {q: _UNITS[q] for q in names}, "per_spot": per_spot,
+           "errors": "slope_err is the largest of err_formal (weighted least squares with the "
+                     "extra scatter tau), err_image (clustered by image) and err_spot "
+                     "(clustered by spot)"}
+    if predicted is not None:
+        cmp = compare_slopes(result, predicted, quantities=names)
+        out["predicted"] = {"template": template, "model": predicted["model"],
+                            "spots_skipped": predicted["spots_skipped"], **cmp}
+    return out
+
+
+def _print_text(out):
+    """The text report of ``spots`` (without ``--json``)."""
+    g, ex = out["grid"], out["excluded"]
+    times = [im["exptime"] for im in out["images"]]
+    left = ", ".join(f"{v} {k}" for k, v in ex.items() if k not in ("used", "rows") and v)
+    print(f"{g['n_spots']} spots, {len(out['images'])} images (EXPTIME {min(times):.3g}-"
+          f"{max(times):.3g} s), fixed Gaussian weight sigma {g['weight_sigma']:g} px; "
+          f"{ex['used']} of {ex['rows']} rows used (left out: {left or 'none'})")
+    print("slopes per 1e5 e (sigma_x, sigma_y in px; size: fractional change of T)")
+    pred = out.get("predicted")
+    for q, s in out["slopes"].items():
+        line = (f"  {q:8s} {s['slope']:+.3e} +- {s['slope_err']:.1e}"
+                f"  (formal {s['err_formal']:.1e}, image {s['err_image']:.1e}, spot "
+                f"{s['err_spot']:.1e}; z {s['z']:+.1f})")
+        if pred is not None:
+            p = pred[q]
+            line += f"  predicted {p['predicted']:+.3e}, measured/predicted {p['ratio']:.3f}" \
+                    f" +- {p['ratio_err']:.3f}"
+        print(line)
+    if pred is not None:
+        print(f"  prediction: template {pred['template']}, {pred['model']} spot model")
+
+
+def cmd_spots(args):
+    """``bfdrift spots``: find, measure and fit the spots of a series.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+
+    Returns
+    -------
+    code : int
+        The exit status.
+    """
+    if args.template and args.galsim_sensor:
+        raise InputError("give --template or --galsim-sensor, not both")
+    for path in args.images:
+        if not os.path.exists(path):
+            raise InputNotFoundError(f"{path}: no such file", path)
+    check_outputs(args, list(args.images) + [args.template],
+                  {"--catalog": args.catalog, "--plot": args.plot})
+    series = SpotSeries(args.images, gain=args.gain, saturation=args.saturation,
+                        weight_sigma=args.weight_sigma, min_snr=args.min_snr,
+                        min_spots=args.min_spots, gain_name="--gain",
+                        saturation_name="--saturation", progress=not args.quiet)
+    result = series.fit()
+    predicted, label = None, None
+    if args.template or args.galsim_sensor:
+        if args.galsim_sensor:
+            tpl = import_galsim_sensor(args.galsim_sensor, match=args.match)
+            label = f"galsim:{args.galsim_sensor} (match={args.match!r})"
+        else:
+            tpl, label = load_template(args.template), args.template
+        predicted = predict_spot_slopes(series.catalog, tpl, exposures=series.exposures,
+                                        model=args.model, measured=result,
+                                        progress=not args.quiet)
+    out = spots_summary(series, result, predicted=predicted, template=label)
+    out["inputs"] = [os.path.abspath(p) for p in args.images]
+    if args.catalog:
+        with atomic_output(args.catalog) as tmp:
+            series.catalog.write(tmp, format="ascii.ecsv", overwrite=True)
+        out["catalog"] = os.path.abspath(args.catalog)
+    if args.plot:
+        # matplotlib: catalogs.plots imports it; only when --plot is given
+        from lsst_bfdrift.catalogs.plots import plot_spot_slopes
+        title = f"{len(series.grid)} spots x {len(series.exposures)} images" + \
+            (f"; dashed: predicted by {label}" if label else "")
+        save_plot(plot_spot_slopes(result, predicted=predicted, title=title), args.plot, out)
+    if args.json:
+        print_json(out)
+    else:
+        _print_text(out)
+    return 0
+
+
+def add_spots_parser(subparsers):
+    """Add ``spots`` to the subcommands of ``bfdrift``.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``add_subparsers()`` of the top-level parser.
+
+    Returns
+    -------
+    parser : argparse.ArgumentParser
+    """
+    def default(name):
+        return library_default(SpotSeries, name)
+
+    sp = subparsers.add_parser("spots", help="BF slopes of a spot-projector series (spot sizes "
+                               "and shapes against flux), optionally predicted by a template")
+    sp.add_argument("images", nargs="+", metavar="SPOT_IMAGE",
+                    help="FITS spot images of one grid at several exposure times (EXPTIME; "
+                         "electrons, or ADU with --gain / GAIN keyword)")
+    sp.add_argument("--gain", type=float, default=default("gain"),
+                    help="e/ADU of images in ADU without a GAIN keyword")
+    sp.add_argument("--saturation", type=float, default=default("saturation"),
+                    help="saturation level (image unit; default: SATURATE keyword)")
+    sp.add_argument("--weight-sigma", type=float, default=default("weight_sigma"),
+                    help="sigma of the fixed Gaussian weight (px; default: 1.5 times the "
+                         "spots' median adaptive sigma)")
+    sp.add_argument("--min-snr", type=float, default=default("min_snr"),
+                    help="rows below this signal-to-noise ratio are left out")
+    sp.add_argument("--min-spots", type=int, default=default("min_spots"),
+                    help="fewest spots in the grid and detected in every image")
+    sp.add_argument("--template", help="predict the slopes with this template FITS file")
+    sp.add_argument("--galsim-sensor",
+                    help="predict the slopes with the import of this GalSim sensor")
+    # not import_galsim_sensor's 'areas': see SPOTS_MATCH
+    sp.add_argument("--match", default=SPOTS_MATCH, choices=("transfers", "areas", "none"),
+                    help="import of --galsim-sensor (import_galsim_sensor)")
+    sp.add_argument("--model", default=library_default(predict_spot_slopes, "model"),
+                    choices=SPOT_MODELS, help="BF-free spot profile of the prediction")
+    sp.add_argument("--catalog", help="write the per-spot, per-image rows (ECSV)")
+    sp.add_argument("--plot", help="write a PNG: moments against flux with the slopes")
+    sp.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    sp.add_argument("--json", action="store_true")
+    sp.add_argument("--quiet", action="store_true")
+    sp.set_defaults(func=cmd_spots)
+    return sp
