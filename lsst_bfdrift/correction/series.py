@@ -476,7 +476,7 @@ def sparse_series(img, blocked, ops, *, noise_tol=RECOMMENDED.noise_tol, rtol=RE
     # reach of the swept-area kernels: the transfer at a pixel depends on
     # the charge within R px
     r_k = ops.template.size // 2 + 1
-    margins = (4, r_k, 2 * r_k)
+    margins = (min(4, r_k), r_k, 2 * r_k)  # a template under 7 x 7 px reaches < 4 px
 
     def _tier2_active(stats, arrays, blk, refine=True):
         # cells whose higher orders may exceed fraction x the tolerance (rows

@@ -293,3 +293,22 @@ def test_one_task_in_several_threads(sky_field):
         together = list(pool.map(lambda a: task.run(a).exposure, imgs * 2))
     for k, out in enumerate(together):
         assert np.array_equal(out, alone[k % 3])
+
+
+def test_sparse_series_takes_a_template_smaller_than_7_px(small_template):
+    """A 5 x 5 template reaches 3 px: the cell margins start there, not at 4 px
+    (once 'margins must be increasing ... (4, 3, 6)'). Independent reference:
+    the dense float64 solver on the same image, and charge conservation."""
+    from lsst_bfdrift.correction.settings import RECOMMENDED
+    rng = np.random.default_rng(7)
+    yy, xx = np.mgrid[:96, :96]
+    img = 1000.0 + 6e4 * np.exp(-((xx - 47.3) ** 2 + (yy - 50.6) ** 2) / (2 * 1.8 ** 2))
+    img = img + rng.normal(0.0, 30.0, img.shape)
+    before = img.copy()
+    sparse, _, converged = C.correct_image(img, small_template,
+                                           **RECOMMENDED.solver_kwargs(dtype=np.float64))
+    dense, _, _ = C.correct_image(img, small_template, **REFERENCE.solver_kwargs())
+    assert converged
+    assert_allclose(img, before)
+    assert_allclose(sparse.sum(), img.sum(), rtol=1e-9)
+    assert_allclose(sparse, dense, atol=0.05 * np.abs(dense - img).max())
