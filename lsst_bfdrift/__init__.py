@@ -53,10 +53,11 @@ from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatt
 from lsst_bfdrift.ptc.inputs import read_calibration_input
 from lsst_bfdrift.calibration.tuning import calibrate
 from lsst_bfdrift.calibration.star_fit import calibrate_with_stars
+from lsst_bfdrift.calibration.spot_fit import calibrate_with_spots
 
 __all__ = ["__version__", "BfdriftError", "to_electrons", "SensorModel", "SensorParameters",
            "drift_lines", "pixel_boundaries", "pixel_polygons", "polygon_moments",
            "DistortionTemplate", "TemplateSettings", "build_template", "load_default_template",
            "import_galsim_sensor", "MomentMaps", "moment_maps", "correct_image",
            "BrighterFatterDriftConfig", "BrighterFatterDriftTask", "read_calibration_input",
-           "calibrate", "calibrate_with_stars"]
+           "calibrate", "calibrate_with_stars", "calibrate_with_spots"]

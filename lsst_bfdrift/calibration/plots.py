@@ -85,9 +85,10 @@ def plot_star_calibration(result):
     **held-out** stars of each field, uncorrected and corrected with the
     a-matrix-only template and with the joint one, with 1-sigma errors (zero
     is the target; the fitted stars are not shown, so the figure is a
-    validation). Right: per fitted direction, the share of its information
-    from the stars (the rest from the a-matrix), and the chi2 of each data set
-    before and after in the title.
+    validation; spot series, :func:`~lsst_bfdrift.calibration.spot_fit.calibrate_with_spots`,
+    by their held-out spot rows). Right: per fitted direction, the share of
+    its information from the stars or spots (the rest from the a-matrix),
+    and the chi2 of each data set before and after in the title.
 
     Returns
     -------
@@ -97,6 +98,8 @@ def plot_star_calibration(result):
     whats = (("before", "uncorrected", "0.5"), ("flats_only", "a-matrix template", "tab:blue"),
              ("joint", "joint template", "tab:red"))
     fields = list(result.held_out)
+    spots = [result.held_out[f].get("kind") == "spots" for f in fields]
+    data = "spots" if all(spots) else ("stars and spots" if any(spots) else "stars")
     for ax, key in zip(axes[:2], ("size", "e1")):
         for k, (what, label, color) in enumerate(whats):
             vals = [result.held_out[f][what][key] for f in fields]
@@ -105,17 +108,18 @@ def plot_star_calibration(result):
                         color=color, label=label, capsize=3)
         ax.axhline(0.0, color="k", lw=0.8)
         ax.set_xticks(range(len(fields)),
-                      [f"{f}\n({result.held_out[f]['n_stars']} stars)" for f in fields],
+                      [f"{f}\n({result.held_out[f]['n_stars']} "
+                       f"{'spot rows' if sp else 'stars'})" for f, sp in zip(fields, spots)],
                       fontsize=8)
         unit = "T (px^2)" if key == "size" else "e1"
         ax.set_ylabel(f"held-out {key} slope: d{unit} per 1e5 e")
-        ax.set_title(f"{key} slope of held-out stars (target 0)")
+        ax.set_title(f"{key} slope of held-out {data} (target 0)")
         ax.legend(fontsize=8)
     ax = axes[2]
     names = list(result.star_information)
     share = [100 * result.star_information[n] for n in names]
     if names:
-        ax.barh(range(len(names)), share, color="tab:orange", label="stars")
+        ax.barh(range(len(names)), share, color="tab:orange", label=data)
         ax.barh(range(len(names)), [100 - v for v in share], left=share, color="tab:blue",
                 label="a-matrix")
         ax.set_yticks(range(len(names)), names, fontsize=8)
@@ -127,9 +131,10 @@ def plot_star_calibration(result):
     ax.set_xlabel("share of the information (%)")
     c2 = result.chi2
     ax.set_title(f"chi2 a-matrix {c2['flats_only']['amatrix']:.0f} -> "
-                 f"{c2['joint']['amatrix']:.0f}, stars {c2['flats_only']['stars']:.0f} -> "
+                 f"{c2['joint']['amatrix']:.0f}, {data} {c2['flats_only']['stars']:.0f} -> "
                  f"{c2['joint']['stars']:.0f}; tension p = {result.tension['p_value']:.2g}",
                  fontsize=9)
-    fig.suptitle("calibration with star fields: held-out validation", fontsize=10)
+    fig.suptitle(f"calibration with {'star fields' if data == 'stars' else data}: held-out "
+                 "validation", fontsize=10)
     fig.tight_layout()
     return fig

@@ -113,6 +113,14 @@ The steps, each a function of its own:
   tension test, the stars' information, the coefficients and the
   precision the fit leaves; then the result (:func:`joint_template`,
   :func:`fitted_star_slopes`, :func:`fields_summary`).
+
+From the fields on, the steps are :func:`joint_calibration`'s, and a spot
+series (:class:`~lsst_bfdrift.calibration.spot_fit.SpotField`,
+:func:`~lsst_bfdrift.calibration.spot_fit.calibrate_with_spots`) takes a
+field's place: a data set has a ``name``, a ``kind``, its own
+``fitted_slopes`` (None: the calibration's), row masks (``usable``,
+``fit_stars``, ``held_out``, ``half_a``, ``half_b``) set by ``split`` and
+``check_split``, and ``slopes`` and ``corrected_catalog`` per template.
 """
 
 import functools
@@ -138,7 +146,8 @@ from lsst_bfdrift.templates.refine import area_response_directions, combine_temp
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.utils.progress import ProgressBar
 
-__all__ = ["StarField", "calibrate_with_stars", "check_size_goal", "check_star_inputs",
+__all__ = ["StarField", "calibrate_with_stars", "joint_calibration", "check_size_goal",
+           "check_star_inputs",
            "read_star_fields", "HOLDOUTS", "holdout_fields", "split_fields", "progress_steps",
            "fitted_star_slopes", "joint_template", "fields_summary"]
 
@@ -165,7 +174,21 @@ class StarField:
         Detections to measure the stars on (e.g. another image's of the same
         scene, so that the two catalogues hold the same stars row by row);
         default: detected on this image.
+
+    Attributes
+    ----------
+    kind : str
+        ``'stars'`` (a spot series is ``'spots'``:
+        :class:`~lsst_bfdrift.calibration.spot_fit.SpotField`).
+    fitted_slopes : None
+        The field fits the calibration's ``fitted_slopes``.
+    usable, fit_stars, held_out, half_a, half_b : ndarray of bool
+        Per catalogue row: the stars used, fitted, held out, and the two
+        halves of :meth:`split`.
     """
+
+    kind = "stars"
+    fitted_slopes = None
 
     def __init__(self, exposure, *, gain=None, mask=None, saturation=None, min_snr=30.0,
                  name=None, catalog_kwargs=None, detections=None):
@@ -203,6 +226,59 @@ class StarField:
         self.held_out = hold
         self.fit_stars = self.usable & ~hold
         self.half_a, self.half_b = self.fit_stars.copy(), hold.copy()
+
+    @property
+    def n_detections(self):
+        """Sources detected (catalogue rows)."""
+        return len(self.catalog)
+
+    def check_split(self, mode, min_stars):
+        """Set the stars fitted and held out for ``mode`` (after :meth:`split`) and check
+        there are enough.
+
+        Parameters
+        ----------
+        mode : {'cross', 'split', 'last'}
+            'split' fits half A and holds out half B; 'cross' and 'last' fit
+            every usable star and hold every one out.
+        min_stars : int
+            Fewest stars to fit (per half with 'cross').
+
+        Returns
+        -------
+        list of str
+            Warnings: the saturated, blended and masked stars excluded.
+
+        Raises
+        ------
+        CalibrationError
+            Fewer than ``min_stars`` stars to fit.
+        """
+        if mode == "split":
+            n_fit = int(self.fit_stars.sum())
+        else:  # 'last' fits every star of the other fields, 'cross' each half in turn
+            n_fit = int(min(self.half_a.sum(), self.half_b.sum())) if mode == "cross" \
+                else int(self.usable.sum())
+            self.fit_stars = self.usable.copy()
+            self.held_out = self.usable.copy()
+        if n_fit < min_stars:
+            flagged = ", ".join(f"{v} {k}" for k, v in self.flag_counts.items() if v)
+            raise CalibrationError(
+                f"star field {self.name}: {n_fit} usable stars to fit (SNR >= "
+                f"{self.min_snr:g}; flagged: {flagged or 'none'}); need at least {min_stars}, "
+                "and several hundred isolated, unsaturated stars of 1e4-1e6 e to constrain the "
+                "template")
+        warnings = []
+        if self.flag_counts.get("saturated"):
+            warnings.append(f"{self.name}: {self.flag_counts['saturated']} saturated stars "
+                            "excluded")
+        if self.flag_counts.get("blended"):
+            warnings.append(f"{self.name}: {self.flag_counts['blended']} blended detections "
+                            "excluded")
+        if self.flag_counts.get("masked"):
+            warnings.append(f"{self.name}: {self.flag_counts['masked']} stars with masked or "
+                            "non-finite pixels in their aperture excluded")
+        return warnings
 
     def corrected_catalog(self, template):
         """Catalogue of the same stars after a drift correction with ``template``
@@ -364,56 +440,42 @@ def holdout_fields(fields, holdout):
 
 
 def split_fields(fields, mode, *, seed=20151, min_stars=30):
-    """Split every field's usable stars for ``mode`` and check there are enough to fit.
+    """Split every data set for ``mode`` and check there are enough stars or spots to fit.
 
-    Every field is split in two seeded halves paired in flux
-    (:meth:`StarField.split`). 'split' fits one half and holds out the
-    other; 'cross' and 'last' fit every usable star (and hold every one
-    out: 'cross' measures each half with the other half's fit, 'last' the
-    last field's stars).
+    Every data set is split in two seeded halves (:meth:`StarField.split`:
+    stars paired in flux; :meth:`SpotField.split
+    <lsst_bfdrift.calibration.spot_fit.SpotField.split>`: spots paired in
+    flux, or images). 'split' fits one half and holds out the other;
+    'cross' and 'last' fit every usable star (and hold every one out:
+    'cross' measures each half with the other half's fit, 'last' the last
+    data set's stars).
 
     Parameters
     ----------
-    fields : list of StarField
+    fields : list of StarField or SpotField
     mode : {'cross', 'split', 'last'}
     seed : int, optional
         Seed of the split.
     min_stars : int, optional
-        Fewest stars to fit per field (per half with 'cross').
+        Fewest stars to fit per field (per half with 'cross'); a spot
+        series has its own minimum of spots (``min_spots``).
 
     Returns
     -------
     list of str
-        Warnings: the saturated, blended and masked stars excluded.
+        Warnings: the saturated, blended and masked stars (or spot rows)
+        excluded.
 
     Raises
     ------
     CalibrationError
-        A field with fewer than ``min_stars`` stars to fit.
+        A data set with too few stars or spots to fit (the message counts
+        them and what was flagged).
     """
     warnings = []
     for f in fields:
         f.split(seed)
-        if mode == "split":
-            n_fit = int(f.fit_stars.sum())
-        else:  # 'last' fits every star of the other fields, 'cross' each half in turn
-            n_fit = int(min(f.half_a.sum(), f.half_b.sum())) if mode == "cross" \
-                else int(f.usable.sum())
-            f.fit_stars = f.usable.copy()
-            f.held_out = f.usable.copy()
-        if n_fit < min_stars:
-            flagged = ", ".join(f"{v} {k}" for k, v in f.flag_counts.items() if v)
-            raise CalibrationError(
-                f"star field {f.name}: {n_fit} usable stars to fit (SNR >= {f.min_snr:g}; "
-                f"flagged: {flagged or 'none'}); need at least {min_stars}, and several "
-                "hundred isolated, unsaturated stars of 1e4-1e6 e to constrain the template")
-        if f.flag_counts.get("saturated"):
-            warnings.append(f"{f.name}: {f.flag_counts['saturated']} saturated stars excluded")
-        if f.flag_counts.get("blended"):
-            warnings.append(f"{f.name}: {f.flag_counts['blended']} blended detections excluded")
-        if f.flag_counts.get("masked"):
-            warnings.append(f"{f.name}: {f.flag_counts['masked']} stars with masked or "
-                            "non-finite pixels in their aperture excluded")
+        warnings += f.check_split(mode, min_stars)
     return warnings
 
 
@@ -472,8 +534,8 @@ def fitted_star_slopes(fields, flats_template, joint_template, *, n_boot=200, se
             for f in fields}
 
 
-def joint_template(template, flats_template, stars_meta):
-    """The joint template with the star calibration in its metadata.
+def joint_template(template, flats_template, stars_meta, *, key="stars"):
+    """The joint template with the star (or spot) calibration in its metadata.
 
     Parameters
     ----------
@@ -483,7 +545,9 @@ def joint_template(template, flats_template, stars_meta):
     flats_template : DistortionTemplate
         T_a: its metadata are the base of the result's.
     stars_meta : dict
-        Stored as ``meta['calibration']['stars']``.
+        Stored as ``meta['calibration'][key]``.
+    key : str, optional
+        ``'stars'``, or ``'spots'`` when spot series are in the fit.
 
     Returns
     -------
@@ -493,25 +557,30 @@ def joint_template(template, flats_template, stars_meta):
         template = combine_templates(flats_template, [], [])
     meta = dict(flats_template.meta)
     calib = dict(meta.get("calibration", {}))
-    calib["stars"] = stars_meta
+    calib[key] = stars_meta
     meta["calibration"] = calib
     template.meta = meta
     return template
 
 
 def fields_summary(fields, fit_fields, hold_fields):
-    """Per field: name, detections, usable, fitted and held-out stars, flag counts.
+    """Per data set: name, kind, detections, usable, fitted and held-out stars, flag counts.
 
     Parameters
     ----------
-    fields, fit_fields, hold_fields : sequence of StarField
-        Every field, those fitted and those with held-out stars.
+    fields, fit_fields, hold_fields : sequence of StarField or SpotField
+        Every data set, those fitted and those with held-out stars.
 
     Returns
     -------
     list of dict
+        ``name``, ``kind`` (``stars`` or ``spots``), ``n_detections``
+        (sources detected; spots in the grid), ``n_usable``, ``n_fit``,
+        ``n_held_out`` (stars; spot rows, one per spot and image) and
+        ``flagged`` (counts per flag).
     """
-    return [{"name": f.name, "n_detections": len(f.catalog), "n_usable": int(f.usable.sum()),
+    return [{"name": f.name, "kind": f.kind, "n_detections": f.n_detections,
+             "n_usable": int(f.usable.sum()),
              "n_fit": int(f.fit_stars.sum()) if f in fit_fields else 0,
              "n_held_out": int(f.held_out.sum()) if f in hold_fields else 0,
              "flagged": f.flag_counts} for f in fields]
@@ -605,6 +674,50 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     t0 = time.perf_counter()
     fitted_slopes = check_star_inputs(result, fitted_slopes, size_goal)
     fields = read_star_fields(stars, gain=gain, min_snr=min_snr)
+    return joint_calibration(result, fields, holdout=holdout, seed=seed,
+                             max_directions=max_directions, n_boot=n_boot,
+                             iterations=iterations, min_stars=min_stars,
+                             flats_uncertainty=flats_uncertainty, fitted_slopes=fitted_slopes,
+                             scale_star_errors=scale_star_errors, size_goal=size_goal,
+                             progress=progress, t0=t0)
+
+
+def joint_calibration(result, fields, *, holdout="auto", seed=20151, max_directions=6,
+                      n_boot=200, iterations=2, min_stars=30, flats_uncertainty=True,
+                      fitted_slopes=("size",), scale_star_errors=True, size_goal=3.0,
+                      always=(), meta_key="stars", progress=False, t0=None):
+    """The joint fit of a calibration to data sets read already: star fields, spot series.
+
+    The body of :func:`calibrate_with_stars` and
+    :func:`~lsst_bfdrift.calibration.spot_fit.calibrate_with_spots`, after
+    their inputs are checked and read (module docstring: the steps).
+
+    Parameters
+    ----------
+    result : CalibrationResult
+        With its template built (:func:`check_star_inputs`).
+    fields : list of StarField or SpotField
+        The data sets, with distinct names.
+    holdout, seed, max_directions, n_boot, iterations, min_stars, flats_uncertainty
+        As :func:`calibrate_with_stars`.
+    fitted_slopes : tuple of str
+        The slopes fitted on data sets that state none of their own (star
+        fields; a spot series fits its own ``fitted_slopes``).
+    scale_star_errors, size_goal, progress
+        As :func:`calibrate_with_stars`.
+    always : sequence of str, optional
+        Model directions always in the fit
+        (:func:`~lsst_bfdrift.calibration.star_solve.solve_joint`).
+    meta_key : str, optional
+        Key of the fit's record in the template's ``meta['calibration']``.
+    t0 : float, optional
+        ``time.perf_counter()`` at the start of the calibration (default now).
+
+    Returns
+    -------
+    StarCalibrationResult
+    """
+    t0 = time.perf_counter() if t0 is None else t0
     mode, fit_fields, hold_fields = holdout_fields(fields, holdout)
     warn = split_fields(fields, mode, seed=seed, min_stars=min_stars)
     # the directions: the built template's change per parameter step, or the flats' own
@@ -615,7 +728,7 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         if flats_uncertainty else {}
     n_model = 0 if lag_dirs else len(result.candidates) + 1  # the candidates and 'scale'
     bar = ProgressBar(progress_steps(n_model, len(lag_dirs), len(fit_fields), len(hold_fields),
-                                     mode, iterations), "stars", enabled=progress)
+                                     mode, iterations), meta_key, enabled=progress)
     names, steps, deltas, lag_names, more = direction_basis(result, lag_dirs, bar=bar)
     warn += more
     t_dirs = time.perf_counter() - t0
@@ -628,7 +741,8 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     # the fit to every fitted star, refitted with the star errors scaled when they scatter
     fit = functools.partial(fit_joint, fields=fit_fields, template=ta, basis=basis, rows=rows,
                             fitted_slopes=fitted_slopes, max_directions=max_directions,
-                            iterations=iterations, n_boot=n_boot, seed=seed, bar=bar)
+                            iterations=iterations, n_boot=n_boot, seed=seed, always=always,
+                            bar=bar)
     final, star_scale, more = fit_with_error_scale(
         fit, {f.name: f.fit_stars for f in fit_fields}, n_amatrix=rows.size,
         scale_errors=scale_star_errors)
@@ -650,10 +764,11 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     warn += more
     fit_slopes = fitted_star_slopes(fit_fields, ta, final["t"], n_boot=n_boot, seed=seed)
     t_joint = joint_template(final["t"], ta, {
-        "fields": [f.name for f in fields], "holdout": mode, "directions": final["chosen"],
+        "fields": [f.name for f in fields], "kinds": [f.kind for f in fields],
+        "holdout": mode, "directions": final["chosen"],
         "coefficients": coefficients, "flats_uncertainty": uncertainty,
         "chi2_amatrix": chi2["joint"]["amatrix"], "chi2_stars": chi2["joint"]["stars"],
-        "tension": tension, "held_out": held})
+        "tension": tension, "held_out": held}, key=meta_key)
     bar.done = bar.total
     if progress:
         bar._draw(final=True)

@@ -20,12 +20,16 @@ import numpy as np
 from scipy import stats
 
 from lsst_bfdrift.calibration.star_result import STAR_SLOPES, fields_for_precision
+from lsst_bfdrift.calibration.star_solve import fitted_rows
 
-__all__ = ["TENSION_P", "fit_chi2", "tension_test", "star_information", "direction_coefficients",
-           "lag_changes", "slope_precision", "uncertainty_report"]
+__all__ = ["TENSION_P", "N_DRIVERS", "fit_chi2", "tension_test", "tension_drivers",
+           "star_information", "direction_coefficients", "lag_changes", "slope_precision",
+           "uncertainty_report"]
 
 #: The tension's p-value below which the report names the worst rows.
 TENSION_P = 1e-3
+#: Lags and slopes named as the tension's drivers.
+N_DRIVERS = 3
 
 
 def fit_chi2(final, rows, star_scale=1.0):
@@ -77,16 +81,20 @@ def tension_test(final, rows, star_sigma, fields, *, fitted_slopes=("size",)):
     rows : AmatrixRows
     star_sigma : ndarray
         The star rows' errors as measured (:func:`fit_chi2`).
-    fields : sequence of StarField
-        The fitted fields (they name the star rows).
+    fields : sequence of StarField or SpotField
+        The fitted data sets (they name the star rows).
     fitted_slopes : sequence of str, optional
+        The slopes fitted on data sets that state none of their own
+        (:func:`~lsst_bfdrift.calibration.star_solve.fitted_rows`).
 
     Returns
     -------
     tension : dict
-        ``chi2_rise``, ``dof``, ``p_value`` and ``note``; ``unfitted`` (the
-        slopes measured and not fitted: their chi2 after the fit against
-        zero, a check); ``worst`` (the three rows of largest pull) when p <
+        ``chi2_rise``, ``dof``, ``p_value`` and ``note``; ``drivers``
+        (:func:`tension_drivers`: the lags the fit moved most and the
+        slopes it left furthest from zero); ``unfitted`` (the slopes
+        measured and not fitted: their chi2 after the fit against zero, a
+        check); ``worst`` (the three rows of largest pull) when p <
         :data:`TENSION_P`.
     warnings : list of str
         The tension, when p < :data:`TENSION_P`.
@@ -98,12 +106,14 @@ def tension_test(final, rows, star_sigma, fields, *, fitted_slopes=("size",)):
     tension = {"chi2_rise": rise, "dof": n_s, "p_value": float(stats.chi2.sf(rise, n_s)),
                "note": "rise of the total chi2 from the a-matrix-only optimum when the star "
                        "slopes are added; large with a small p-value means the model's "
-                       "directions cannot satisfy both data sets"}
-    unfitted = [k for k in STAR_SLOPES if k not in fitted_slopes]
-    if unfitted:
+                       "directions cannot satisfy both data sets",
+               "drivers": tension_drivers(final, rows, star_sigma, fields)}
+    fitted = fitted_rows(fields, fitted_slopes)
+    if not fitted.all():
         # the slopes measured and not fitted, after the fit, against zero (a check: the
         # loop's curl term shows in e1 here first)
-        rows_u = ~np.tile([k in fitted_slopes for k in STAR_SLOPES], len(fields))
+        rows_u = ~fitted
+        unfitted = [k for i, k in enumerate(STAR_SLOPES) if rows_u[i::3].any()]
         chi2_u = float(np.sum((r_fin[n_a:][rows_u] / final["sig_u"][rows_u]) ** 2))
         tension["unfitted"] = {"slopes": unfitted, "chi2": chi2_u, "dof": int(rows_u.sum()),
                                "p_value": float(stats.chi2.sf(chi2_u, int(rows_u.sum())))}
@@ -117,6 +127,57 @@ def tension_test(final, rows, star_sigma, fields, *, fitted_slopes=("size",)):
                f"{tension['p_value']:.1e}); worst: " + ", ".join(
                    f"{t['what']} pull {t['pull']:+.1f}" for t in tension["worst"]))
     return tension, [warning]
+
+
+def tension_drivers(final, rows, star_sigma, fields, *, n=N_DRIVERS):
+    """The lags and slopes that drive the tension: what the fit moved, what it left.
+
+    The rise of the chi2 (:func:`tension_test`) has two parts: the
+    a-matrix's cost of the template's change from T_a (per measured lag,
+    its a_ij change over its error) and the fitted slopes left after the
+    fit (per slope, its value over its error). The largest of each are its
+    drivers: a spot series' e1 slope that only a 3-sigma change of a10 and
+    a01 can null shows as those lags and that slope.
+
+    Parameters
+    ----------
+    final : dict
+        The fit (:func:`~lsst_bfdrift.calibration.star_solve.fit_joint`):
+        ``a_change``, ``r_fin`` and, when given, ``r_s0`` (the slopes with
+        T_a).
+    rows : AmatrixRows
+    star_sigma : ndarray
+        The star rows' errors as measured (inf where not fitted; :func:`fit_chi2`).
+    fields : sequence of StarField or SpotField
+        The fitted data sets (they name the star rows).
+    n : int, optional
+        How many of each.
+
+    Returns
+    -------
+    dict
+        ``lags``: the ``n`` lags of largest change, each ``what`` (``a{i}{j}``),
+        ``change`` (1/e) and ``pull`` (change over error); ``slopes``: the
+        ``n`` fitted slopes of largest pull after the fit, each ``what``
+        (``<data set>:<slope>``), ``value`` (per 1e5 e), ``pull`` and
+        ``pull_flats`` (with T_a; None without ``r_s0``).
+    """
+    n_a = rows.size
+    pa = final["a_change"] / rows.sigma
+    labels = rows.labels()
+    lags = [{"what": labels[k], "change": float(final["a_change"][k]), "pull": float(pa[k])}
+            for k in np.argsort(-np.abs(pa))[:n]]
+    r_s = final["r_fin"][n_a:]
+    fitted = np.flatnonzero(np.isfinite(star_sigma))
+    pulls = r_s[fitted] / star_sigma[fitted]
+    names = [f"{f.name}:{k}" for f in fields for k in STAR_SLOPES]
+    r0 = final.get("r_s0")
+    slopes = [{"what": names[fitted[k]], "value": float(r_s[fitted[k]]),
+               "pull": float(pulls[k]),
+               "pull_flats": None if r0 is None else float(r0[fitted[k]]
+                                                           / star_sigma[fitted[k]])}
+              for k in np.argsort(-np.abs(pulls))[:n]]
+    return {"lags": lags, "slopes": slopes}
 
 
 def star_information(final, basis, rows, star_sigma, star_scale=1.0):

@@ -62,7 +62,8 @@ def fields_for_precision(flats_percent, joint_percent, n_fields, goal_percent):
 
 
 class StarCalibrationResult:
-    """Result of :func:`calibrate_with_stars`.
+    """Result of :func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars` and
+    :func:`~lsst_bfdrift.calibration.spot_fit.calibrate_with_spots`.
 
     Attributes
     ----------
@@ -107,13 +108,21 @@ class StarCalibrationResult:
         T(c) (``joint``), and the number of points of each.
     tension : dict
         Rise of the a-matrix chi2 needed to null the fitted star slopes, its
-        degrees of freedom and p-value; ``unfitted``: the chi2 of the
-        slopes measured and not fitted, after the fit, against zero.
+        degrees of freedom and p-value; ``drivers``: the lags the fit moved
+        most and the slopes it left furthest from zero
+        (:func:`~lsst_bfdrift.calibration.star_report.tension_drivers`);
+        ``unfitted``: the chi2 of the slopes measured and not fitted, after
+        the fit, against zero.
     star_information : dict
         Per direction, the share of the Fisher information from the stars.
     fit_slopes, held_out : dict
         Slopes (value, error; per 1e5 e) of the fitted and of the held-out
-        stars, per field: ``before``, ``flats_only``, ``joint``.
+        stars (or spot rows), per field or spot series: ``before``,
+        ``flats_only``, ``joint``; ``held_out`` also names each data set's
+        ``kind`` (``stars`` or ``spots``).
+    fields : list of dict
+        Per data set: name, kind and counts
+        (:func:`~lsst_bfdrift.calibration.star_fit.fields_summary`).
     selection : list of dict
     star_error_scale : float
         Factor applied to the fitted slopes' bootstrap errors (1: none;
@@ -164,9 +173,16 @@ class StarCalibrationResult:
         return text
 
     def tension_line(self):
-        """The tension's p-value, and the chi2 of the slopes measured and not fitted."""
+        """The tension's p-value and drivers, and the chi2 of the slopes measured and not
+        fitted."""
         t = self.tension
         line = f"tension p = {t['p_value']:.2g} ({t['dof']} fitted slopes)"
+        d = t.get("drivers")
+        if d:
+            line += ("; driven by the a_ij moved (" + ", ".join(
+                f"{x['what']} {x['pull']:+.1f} sigma" for x in d["lags"]) + ") and the slopes "
+                "left (" + ", ".join(f"{x['what']} {x['pull']:+.1f} sigma" for x in d["slopes"])
+                + ")")
         u = t.get("unfitted")
         if u:
             line += (f"; {', '.join(u['slopes'])} not fitted, after the fit chi2 "
@@ -178,9 +194,11 @@ class StarCalibrationResult:
         lines = []
         for name, d in self.held_out.items():
             b = d["before"]
+            spots = d.get("kind") == "spots"
             how = " (two-fold cross-validation)" if "folds" in d else ""
-            lines.append(f"held-out stars of {name}{how} ({d['n_stars']} stars), slopes per "
-                         "1e5 e (% of before):")
+            count = f"{d['n_stars']} spot rows" if spots else f"{d['n_stars']} stars"
+            lines.append(f"held-out {'spots' if spots else 'stars'} of {name}{how} ({count}), "
+                         "slopes per 1e5 e (% of before):")
             for what in ("before", "flats_only", "joint"):
                 row = d[what]
                 cells = []

@@ -15,6 +15,11 @@ report (:mod:`~lsst_bfdrift.calibration.star_report`):
   alone and measured with the other half's template,
   :func:`combine_folds`) or :func:`held_out_validation` (stars held out of
   the one fit).
+
+A spot series (:class:`~lsst_bfdrift.calibration.spot_fit.SpotField`) takes
+a star field's place in every step: its slopes are rows of the star vector
+like a field's, with the slopes it fits (:func:`fitted_rows`), and its
+halves are halves of its spots.
 """
 
 import numpy as np
@@ -25,7 +30,8 @@ from lsst_bfdrift.catalogs.slopes import birge_scale
 from lsst_bfdrift.templates.refine import combine_templates
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["PRIOR_STEPS", "star_vector", "star_jacobian", "solve_joint", "refine_joint",
+__all__ = ["PRIOR_STEPS", "star_vector", "fitted_rows", "star_jacobian", "solve_joint",
+           "refine_joint",
            "fit_joint", "fit_with_error_scale", "held_out_slopes", "combine_folds",
            "cross_validate", "held_out_validation"]
 
@@ -69,6 +75,32 @@ def star_vector(fields, subsets, template, *, n_boot=0, seed=20151):
     return np.array(vals), np.array(errs)
 
 
+def fitted_rows(fields, fitted_slopes):
+    """Which rows of the star vector the fit weighs.
+
+    Parameters
+    ----------
+    fields : sequence
+        The fitted data sets (star fields, spot series), in row order.
+    fitted_slopes : sequence of {'size', 'e1', 'e2'}
+        The slopes fitted on a data set that states none of its own.
+
+    Returns
+    -------
+    ndarray of bool, shape (3 * len(fields),)
+        Per data set, its size, e1 and e2 rows (:data:`STAR_SLOPES`): True
+        for the slopes in its ``fitted_slopes`` attribute (a spot series
+        fits its e1 slope, which it measures well,
+        :class:`~lsst_bfdrift.calibration.spot_fit.SpotField`), else in
+        ``fitted_slopes``.
+    """
+    rows = []
+    for f in fields:
+        own = getattr(f, "fitted_slopes", None)
+        rows.extend(k in (own or fitted_slopes) for k in STAR_SLOPES)
+    return np.array(rows, bool)
+
+
 def star_jacobian(fields, subsets, basis, base, *, seed=20151):
     """Change of the star vector per unit of each direction (finite differences).
 
@@ -93,7 +125,7 @@ def star_jacobian(fields, subsets, basis, base, *, seed=20151):
 
 def solve_joint(amatrix_jacobian, star_jacobian, star_residuals, amatrix_sigma, star_sigma,
                 is_lag, names, *, max_directions, star_sigma_all=None,
-                prior_steps=PRIOR_STEPS):
+                prior_steps=PRIOR_STEPS, always=()):
     """Choice of directions and weighted least-squares steps of the linearised joint fit.
 
     The rows are the a-matrix's (the change from T_a, residual 0 at T_a),
@@ -123,6 +155,12 @@ def solve_joint(amatrix_jacobian, star_jacobian, star_residuals, amatrix_sigma, 
         Errors of every star row as if all were fitted: ``cov_all`` is the
         steps' covariance with them (None: not computed).
     prior_steps : float, optional
+        Prior width (steps) of every model direction.
+    always : sequence of str, optional
+        Model directions always in the fit, with their prior, not chosen
+        (``curl`` with spot series: they measure the e1 slope it moves);
+        they come first in ``chosen`` and are not counted in
+        ``max_directions``. Names not in ``names`` are ignored.
 
     Returns
     -------
@@ -144,10 +182,12 @@ def solve_joint(amatrix_jacobian, star_jacobian, star_residuals, amatrix_sigma, 
     sig = np.concatenate([a_sig, sig_s, prior])
     J = np.vstack([Ja, Js, np.eye(nd)])
     n_data = n_a + r_s0.size  # data rows (ln N counts the fitted ones), then the prior
+    fixed = [names.index(n) for n in always if n in names and not is_lag[names.index(n)]]
     chosen, selection = select_parameters(J, r0, sig, np.ones(J.shape[0], bool), names,
                                           max_params=max_directions, always_first=False,
                                           n_points=n_a + int(np.isfinite(sig_s).sum()),
-                                          base=np.flatnonzero(is_lag))
+                                          base=list(np.flatnonzero(is_lag)) + fixed)
+    chosen = [names[k] for k in fixed] + chosen
     cols = list(np.flatnonzero(is_lag)) + [names.index(n) for n in chosen]
     rows = np.r_[np.arange(n_data), n_data + np.asarray(cols, int)]
     Jc, r0c, sigc = J[rows][:, cols], r0[rows], sig[rows]
@@ -237,7 +277,7 @@ def refine_joint(template, basis, rows, solution, base, fields, subsets, *, iter
 
 def fit_joint(subsets, fields, template, basis, rows, *, fitted_slopes=("size",),
               star_scale=1.0, max_directions=6, iterations=2, n_boot=200, seed=20151,
-              bar=None):
+              always=(), bar=None):
     """The joint fit of the template to the a-matrix and to the stars ``subsets``.
 
     Parameters
@@ -251,7 +291,8 @@ def fit_joint(subsets, fields, template, basis, rows, *, fitted_slopes=("size",)
     basis : DirectionBasis
     rows : AmatrixRows
     fitted_slopes : sequence of {'size', 'e1', 'e2'}, optional
-        The slopes fitted; the others are measured with no weight.
+        The slopes fitted on data sets that state none of their own
+        (:func:`fitted_rows`); the others are measured with no weight.
     star_scale : float, optional
         Factor on the fitted slopes' bootstrap errors
         (:func:`fit_with_error_scale`).
@@ -260,6 +301,8 @@ def fit_joint(subsets, fields, template, basis, rows, *, fitted_slopes=("size",)
     n_boot : int, optional
         Bootstrap resamples of the errors of the slopes with T_a.
     seed : int, optional
+    always : sequence of str, optional
+        Model directions always in the fit (:func:`solve_joint`).
     bar : callable, optional
 
     Returns
@@ -273,15 +316,15 @@ def fit_joint(subsets, fields, template, basis, rows, *, fitted_slopes=("size",)
         fitted), ``Js`` (the star Jacobian); ``r_fin`` (the a-matrix rows'
         residuals to the measured a_ij, and the star vector, with T(c)).
     """
-    fitted_rows = np.tile([k in fitted_slopes for k in STAR_SLOPES], len(fields))
+    fitted = fitted_rows(fields, fitted_slopes)
     r_s0, sig_u = star_vector(fields, subsets, template, n_boot=n_boot, seed=seed)
     # slopes not fitted: measured, no weight; fitted: bootstrap errors (x the Birge ratio)
-    sig_s = np.where(fitted_rows, sig_u * star_scale, np.inf)
+    sig_s = np.where(fitted, sig_u * star_scale, np.inf)
     Js = star_jacobian(fields, subsets, basis, r_s0, seed=seed)
     # the slopes not fitted with their own errors: reported, not used
-    sig_all = sig_u * star_scale if "e1" not in fitted_slopes else None
+    sig_all = sig_u * star_scale if not fitted[1::3].all() else None
     sol = solve_joint(basis.jacobian, Js, r_s0, rows.sigma, sig_s, basis.is_lag, basis.names,
-                      max_directions=max_directions, star_sigma_all=sig_all)
+                      max_directions=max_directions, star_sigma_all=sig_all, always=always)
     t_joint, coef, s_j = refine_joint(template, basis, rows, sol, r_s0, fields, subsets,
                                       iterations=iterations, seed=seed, bar=bar)
     r_fin = np.concatenate([rows.alpha(t_joint) - rows.measured, s_j])
@@ -416,7 +459,7 @@ def cross_validate(fields, fit, flats_template, *, n_boot=200, seed=20151, bar=N
     dict
         Field name -> :func:`combine_folds` of its two folds, each with
         ``fitted_on`` (``half A`` or ``half B``) and the ``directions``
-        chosen.
+        chosen, and the data set's ``kind`` (``stars`` or ``spots``).
     """
     folds = []
     for fit_half in ("A", "B"):
@@ -433,7 +476,7 @@ def cross_validate(fields, fit, flats_template, *, n_boot=200, seed=20151, bar=N
             row["fitted_on"] = f"half {fit_half}"
             row["directions"] = fk["chosen"]
             rows.append(row)
-        held[f.name] = combine_folds(rows)
+        held[f.name] = combine_folds(rows) | {"kind": f.kind}
     return held
 
 
@@ -455,8 +498,8 @@ def held_out_validation(fields, flats_template, joint_template, *, n_boot=200, s
     Returns
     -------
     dict
-        Field name -> :func:`held_out_slopes`.
+        Field name -> :func:`held_out_slopes`, with the data set's ``kind``.
     """
     templates = {"before": None, "flats_only": flats_template, "joint": joint_template}
     return {f.name: held_out_slopes(f, f.held_out, templates, n_boot=n_boot, seed=seed + 1,
-                                    bar=bar) for f in fields}
+                                    bar=bar) | {"kind": f.kind} for f in fields}

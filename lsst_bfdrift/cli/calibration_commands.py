@@ -5,6 +5,7 @@ The options' defaults are those of the functions they feed
 (:func:`~lsst_bfdrift.ptc.inputs.read_calibration_input`,
 :func:`~lsst_bfdrift.calibration.tuning.calibrate`,
 :func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars`,
+:func:`~lsst_bfdrift.calibration.spot_fit.calibrate_with_spots`,
 :func:`~lsst_bfdrift.diagnosis.effects_fit.load_input`), except where a
 comment says why not.
 """
@@ -18,8 +19,11 @@ import warnings
 from lsst_bfdrift.calibration.acoeff_model import LinearBasis, load_default_basis
 from lsst_bfdrift.calibration.lsst_products import write_bfk, write_distortion_matrix
 from lsst_bfdrift.calibration.routes import MODELS, calibrate_route
+from lsst_bfdrift.calibration.spot_fit import (SPOT_SPLITS, calibrate_with_spots,
+                                               check_spot_fields, read_spot_fields)
 from lsst_bfdrift.calibration.star_fit import calibrate_with_stars, check_size_goal
 from lsst_bfdrift.calibration.tuning import CalibrationWarning, calibrate, measured_acoeffs
+from lsst_bfdrift.catalogs.spot_series import SpotSeries
 from lsst_bfdrift.cli._common import (check_output_dir, check_outputs, emit, library_default,
                                       print_json, save_plot)
 from lsst_bfdrift.diagnosis import consequence
@@ -65,20 +69,25 @@ def _print_calibration(args, res, joint, data, table):
               f" in {res.seconds['total']:.1f} s")
         return
     c2 = joint.chi2
-    print(f"  with {len(args.stars)} star field(s): directions {', '.join(joint.directions)}; "
+    what = " and ".join(w for w in (
+        f"{len(args.stars)} star field(s)" if args.stars else "",
+        f"{len(args.spots)} spot series" if args.spots else "") if w)
+    print(f"  with {what}: directions {', '.join(joint.directions) or 'none'}; "
           f"chi2 a-matrix {c2['flats_only']['amatrix']:.1f} -> {c2['joint']['amatrix']:.1f}, "
-          f"star slopes {c2['flats_only']['stars']:.1f} -> {c2['joint']['stars']:.1f}; "
+          f"{'spot and star' if args.spots else 'star'} slopes "
+          f"{c2['flats_only']['stars']:.1f} -> {c2['joint']['stars']:.1f}; "
           + joint.tension_line())
     for n, v in joint.star_information.items():
         cf = joint.coefficients[n]
         print(f"  {n:>18s} {cf['parameter_change']:+.3g} +- {cf['parameter_change_err']:.2g} "
-              f"(stars give {100 * v:.0f} % of its information)")
+              f"({'spots and stars' if args.spots else 'stars'} give {100 * v:.0f} % of its "
+              "information)")
     if joint.uncertainty:
         print("  " + joint.uncertainty_line())
     for w in joint.warnings:
         print(f"  warning: {w}")
     print("  " + joint.held_out_table().replace("\n", "\n  "))
-    print(f"  template: {args.out} (a-matrix and stars) in "
+    print(f"  template: {args.out} (a-matrix and {what}) in "
           f"{res.seconds['total'] + joint.seconds['total']:.1f} s")
 
 
@@ -96,16 +105,20 @@ def cmd_calibrate(args):
         The exit status.
     """
     stars_plot = None
-    if args.plot and args.stars:
+    spot_files = [x for group in args.spots or [] for x in group]
+    kind = "spots" if spot_files else "stars"
+    if args.plot and (args.stars or spot_files):
         root, ext = os.path.splitext(args.plot)
-        stars_plot = root + "_stars" + (ext or ".png")
-    check_outputs(args, args.input + (args.stars or []),
-                  {"--out": args.out, "--plot": args.plot, "--plot (stars)": stars_plot})
-    for x in args.stars or []:
-        if not os.path.isfile(x):
-            raise InputNotFoundError(f"--stars {x}: no such file")
+        stars_plot = root + f"_{kind}" + (ext or ".png")
+    check_outputs(args, args.input + (args.stars or []) + spot_files,
+                  {"--out": args.out, "--plot": args.plot, f"--plot ({kind})": stars_plot})
+    for opt, files in (("--stars", args.stars or []), ("--spots", spot_files)):
+        for x in files:
+            if not os.path.isfile(x):
+                raise InputNotFoundError(f"{opt} {x}: no such file")
     check_size_goal(args.size_goal, "--size-goal")  # before any file is read
     _check_model_options(args)
+    spot_fields = _spot_fields(args) if spot_files else None  # refused before the flats
     data = read_calibration_input(args.input, max_lag=args.max_lag)
     table = measured_acoeffs(data)
     if args.model != "electrostatic":
@@ -122,35 +135,54 @@ def cmd_calibrate(args):
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     res.template.meta["calibration"]["inputs"] = [os.path.abspath(x) for x in args.input]
     joint = None
-    if args.stars:
-        joint = calibrate_with_stars(res, [os.path.abspath(x) for x in args.stars],
-                                     holdout=args.holdout, gain=args.gain,
+    stars = [os.path.abspath(x) for x in args.stars or []]
+    if spot_fields:
+        joint = calibrate_with_spots(res, spot_fields, stars=stars, holdout=args.holdout,
+                                     gain=args.gain,
+                                     flats_uncertainty=not args.model_directions_only,
+                                     fitted_slopes=args.fit_slopes, size_goal=args.size_goal,
+                                     progress=not args.quiet)
+    elif stars:
+        joint = calibrate_with_stars(res, stars, holdout=args.holdout, gain=args.gain,
                                      flats_uncertainty=not args.model_directions_only,
                                      fitted_slopes=args.fit_slopes,
                                      size_goal=args.size_goal,
                                      progress=not args.quiet)
+    if joint is not None:
         joint.template.meta["calibration"]["inputs"] = \
-            [os.path.abspath(x) for x in args.input + args.stars]
+            [os.path.abspath(x) for x in args.input + (args.stars or []) + spot_files]
         joint.template.save(args.out, overwrite=args.overwrite)
     else:
         res.template.save(args.out, overwrite=args.overwrite)
     summary = res.summary()
     if joint is not None:
-        summary["stars"] = joint.summary()
+        summary[kind] = joint.summary()
     summary["input"] = data.summary()
     summary["out"] = os.path.abspath(args.out)
     if args.plot:
         # matplotlib: calibration.plots imports it; only when --plot is given
         from lsst_bfdrift.calibration.plots import plot_calibration, plot_star_calibration
         save_plot(plot_calibration(res), args.plot, summary)
-        if joint is not None:  # a second figure next to the first: NAME_stars.png
+        if joint is not None:  # a second figure next to the first: NAME_stars.png (_spots)
             save_plot(plot_star_calibration(joint), stars_plot)
-            summary["plot_stars"] = os.path.abspath(stars_plot)
+            summary[f"plot_{kind}"] = os.path.abspath(stars_plot)
     if args.json:
         print_json(summary)
     else:
         _print_calibration(args, res, joint, data, table)
     return 0
+
+
+def _spot_fields(args):
+    """The ``--spots`` series, read, measured and checked against ``--holdout`` (the
+    refusals come before the flats are read)."""
+    series = [SpotSeries(group, gain=args.gain, saturation=args.spot_saturation,
+                         gain_name="--gain", saturation_name="--spot-saturation",
+                         progress=not args.quiet) for group in args.spots]
+    fields = read_spot_fields(series, fitted_slopes=args.spot_fit_slopes,
+                              split_by=args.spot_split, min_spots=args.min_spots)
+    check_spot_fields(fields, args.holdout, n_stars=len(args.stars or []))
+    return fields
 
 
 def _check_model_options(args):
@@ -162,7 +194,8 @@ def _check_model_options(args):
                              "(electroBfDistortionMatrix) or coulton18 (bfk); --model "
                              "electrostatic writes its template only (--out)")
         return
-    given = [opt for opt, on in (("--stars", bool(args.stars)), ("--free", bool(args.free)),
+    given = [opt for opt, on in (("--stars", bool(args.stars)), ("--spots", bool(args.spots)),
+                                 ("--free", bool(args.free)),
                                  ("--no-refine", args.no_refine),
                                  ("--allow-poor-fit", args.allow_poor_fit)) if on]
     if given:
@@ -325,6 +358,9 @@ def add_calibrate_parser(subparsers):
     def stars_default(name):
         return library_default(calibrate_with_stars, name)
 
+    def spots_default(name):
+        return library_default(calibrate_with_spots, name)
+
     ca = subparsers.add_parser("calibrate", help="tune the model to a sensor's data: "
                                "template out")
     ca.add_argument("input", nargs="+", help="flat-pair FITS files (EXPTIME in the header), a "
@@ -361,16 +397,37 @@ def add_calibrate_parser(subparsers):
     ca.add_argument("--stars", nargs="+", metavar="EXPOSURE",
                     help="star fields (FITS, electrons or ADU with GAIN) fitted jointly with "
                          "the a-matrix: corrected star size and shape must not depend on flux")
+    ca.add_argument("--spots", nargs="+", action="append", metavar="SPOT_IMAGE",
+                    help="a spot-projector series (FITS images of one grid at several EXPTIME; "
+                         "electrons, or ADU with --gain / GAIN) fitted jointly with the "
+                         "a-matrix: corrected spot size and shape must not depend on flux; "
+                         "pins the e1 slope (the serial/parallel split no a-matrix sees); "
+                         "repeat for several series")
     ca.add_argument("--holdout", choices=("auto", "cross", "split", "last"),
                     default=stars_default("holdout"),
-                    help="stars held out for validation: two-fold cross-validation over "
-                         "seeded halves of every field, the template fitted to all stars "
-                         "('cross', and 'auto'); one half fitted, the other held out "
-                         "('split'); the last field held out ('last') (default: %(default)s)")
+                    help="stars (spots) held out for validation: two-fold cross-validation "
+                         "over seeded halves of every field (series), the template fitted to "
+                         "all ('cross', and 'auto'); one half fitted, the other held out "
+                         "('split'); the last field or series held out ('last') (default: "
+                         "%(default)s)")
+    ca.add_argument("--spot-split", choices=SPOT_SPLITS, default=spots_default("split_by"),
+                    help="with --spots: the halves of a series, its spots (paired by flux) or "
+                         "its images (paired by EXPTIME) (default: %(default)s)")
+    ca.add_argument("--spot-fit-slopes", nargs="+", choices=("size", "e1", "e2"),
+                    default=list(spots_default("spot_slopes")), metavar="SLOPE",
+                    help="with --spots: the spot slopes the fit nulls (default: size e1 e2; "
+                         "'curl' is always in the fit)")
+    ca.add_argument("--min-spots", type=int, default=spots_default("min_spots"),
+                    help="with --spots: fewest usable spots a series fits (per half with "
+                         "cross-validation) (default: %(default)s)")
+    ca.add_argument("--spot-saturation", type=float, default=spots_default("saturation"),
+                    help="with --spots: saturation level of the spot images (their unit; "
+                         "default: SATURATE keyword)")
     ca.add_argument("--gain", type=float, default=stars_default("gain"),
-                    help="e/ADU of star fields in ADU without GAIN")
+                    help="e/ADU of star fields and spot images in ADU without GAIN")
     ca.add_argument("--model-directions-only", action="store_true",
-                    help="with --stars: move the template along the model's directions only, "
+                    help="with --stars or --spots: move the template along the model's "
+                         "directions only, "
                          "not within the a-matrix's errors lag by lag")
     ca.add_argument("--fit-slopes", nargs="+", choices=("size", "e1", "e2"),
                     default=list(stars_default("fitted_slopes")), metavar="SLOPE",

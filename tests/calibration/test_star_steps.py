@@ -65,6 +65,8 @@ def _strength(template, base):
 class _Field:
     """A stand-in star field: ``slopes`` from a function of the template and the subset."""
 
+    kind = "stars"
+
     def __init__(self, name, fn, *, n=10, fails=None):
         self.name, self.fn, self.fails = name, fn, fails
         self.calls = []
@@ -521,13 +523,13 @@ def test_result_assembly():
     f0, f1 = _Field("f0", slopes), _Field("f1", slopes)
     f1.fit_stars = np.arange(10) < 6
     f0.held_out = np.arange(10) < 3
-    f0.catalog, f1.catalog = [0] * 12, [0] * 10
+    f0.n_detections, f1.n_detections = 12, 10
     f0.flag_counts = f1.flag_counts = {"saturated": 1}
     table = fitted_star_slopes([f1], "Ta", "Tj", n_boot=2, seed=8)
     assert [table["f1"][k]["size"][0] for k in ("before", "flats_only", "joint")] == [1, 2, 3]
     assert table["f1"]["joint"]["n_stars"] == 6 and {c[2:] for c in f1.calls} == {(2, 8)}
     info = fields_summary([f0, f1], [f1], [f0])
-    assert info == [{"name": "f0", "n_detections": 12, "n_usable": 10, "n_fit": 0,
-                     "n_held_out": 3, "flagged": {"saturated": 1}},
-                    {"name": "f1", "n_detections": 10, "n_usable": 10, "n_fit": 6,
-                     "n_held_out": 0, "flagged": {"saturated": 1}}]
+    assert info == [{"name": "f0", "kind": "stars", "n_detections": 12, "n_usable": 10,
+                     "n_fit": 0, "n_held_out": 3, "flagged": {"saturated": 1}},
+                    {"name": "f1", "kind": "stars", "n_detections": 10, "n_usable": 10,
+                     "n_fit": 6, "n_held_out": 0, "flagged": {"saturated": 1}}]

@@ -16,6 +16,7 @@ import re
 import pytest
 
 from lsst_bfdrift.calibration.routes import calibrate_route
+from lsst_bfdrift.calibration.spot_fit import calibrate_with_spots
 from lsst_bfdrift.calibration.star_fit import calibrate_with_stars
 from lsst_bfdrift.calibration.tuning import calibrate
 from lsst_bfdrift.catalogs.spot_series import SpotSeries
@@ -79,6 +80,10 @@ SOURCES = [
     ("calibrate", "gain", calibrate_with_stars, "gain", _same, 1.5),
     ("calibrate", "fit_slopes", calibrate_with_stars, "fitted_slopes", tuple, ("size", "e1")),
     ("calibrate", "size_goal", calibrate_with_stars, "size_goal", _same, 5.0),
+    ("calibrate", "spot_split", calibrate_with_spots, "split_by", _same, "images"),
+    ("calibrate", "spot_fit_slopes", calibrate_with_spots, "spot_slopes", tuple, ("size", "e1")),
+    ("calibrate", "min_spots", calibrate_with_spots, "min_spots", _same, 6),
+    ("calibrate", "spot_saturation", calibrate_with_spots, "saturation", _same, 9e4),
     ("correct", "scheduler", correct_files, "scheduler", _same, "local"),
     ("correct", "n_workers", correct_files, "n_workers", _same, 4),
     ("diagnose", "max_lag", load_input, "max_lag", _same, 2),

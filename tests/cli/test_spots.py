@@ -87,3 +87,126 @@ def test_spots_refuses_bad_input(capsys, tmp_path):
     assert "no such file" in capsys.readouterr().err
     assert main(["spots", *adu, "--template", "t.fits", "--galsim-sensor", "x"]) == 2
     assert "not both" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- calibrate --spots
+
+def _flats_result(table):
+    """What ``calibrate`` returns, without its minutes-long search: the cheap
+    template of ``test_star_fit._calibration`` (GalSim ITL's a-matrix at
+    strength 10, refined onto the bundled model) as a result with a fit of no
+    parameter to the command's a-matrix."""
+    from lsst_bfdrift.calibration.fitting import ParameterFit
+    from lsst_bfdrift.calibration.tuning import CalibrationResult
+    from lsst_bfdrift.templates.refine import combine_templates, template_alpha
+    from tests.calibration.test_star_fit import _calibration
+
+    base = _calibration()
+    c, L = base.template.center, table.max_lag
+    model = template_alpha(base.template)[c:c + L + 1, c:c + L + 1].T
+    mask = table.mask()
+    chi2 = float(np.sum(((table.a - model) / table.sigma)[mask] ** 2))
+    fit = ParameterFit(names=[], values={}, errors={}, start={}, covariance=np.zeros((0, 0)),
+                       correlation=np.zeros((0, 0)), data=table.a, sigma=table.sigma,
+                       model=model, mask=mask, jacobian=np.zeros(table.a.shape + (0,)),
+                       chi2=chi2, dof=int(mask.sum()), n_evaluations=0, seconds=0.0,
+                       converged=True, at_bound=[])
+    template = combine_templates(base.template, [], [],
+                                 meta={**base.template.meta, "calibration": {}})
+    return CalibrationResult(params=base.params, fit=fit, table=table, model=model,
+                             template_acoeffs=model, template=template,
+                             built_template=base.built_template, settings=base.settings,
+                             candidates=base.candidates, selection=[],
+                             sum_rule={"sum": 0.0, "error": 1.0}, seconds={"total": 0.0},
+                             refined=True, poor_fit=False, misfit=None)
+
+
+def _stub_calibrate(monkeypatch, calls, result):
+    """Replace the command's ``calibrate`` (its signature kept: the parser reads
+    its defaults) by ``result(table)``, recording the tables in ``calls``."""
+    import functools
+
+    from lsst_bfdrift.cli import calibration_commands
+
+    @functools.wraps(calibration_commands.calibrate)
+    def stub(table, **kw):
+        calls.append(table)
+        return result(table)
+    monkeypatch.setattr(calibration_commands, "calibrate", stub)
+
+
+def _calibrate_inputs(tmp_path, *, bunit="electron"):
+    """The a-matrix of the cheap calibration as a text table, and the curl-free
+    sensor's spot series (tests/calibration/_spot_series.py) as FITS files."""
+    from tests.calibration._spot_series import curl_free_spots
+    from tests.calibration.test_star_fit import _calibration
+
+    table = _calibration().table
+    rows = [(i, j, table.a[i, j], table.sigma[i, j]) for i in range(table.max_lag + 1)
+            for j in range(table.max_lag + 1)]
+    flats = tmp_path / "amatrix.txt"
+    np.savetxt(flats, rows, header="i j a sigma")
+    _, images, times = curl_free_spots()
+    paths = []
+    for k, (img, t) in enumerate(zip(images, times)):
+        hdr = fits.Header()
+        hdr["EXPTIME"] = t
+        if bunit:
+            hdr["BUNIT"] = bunit
+        paths.append(str(tmp_path / f"spot{k}.fits"))
+        fits.PrimaryHDU(img, header=hdr).writeto(paths[-1])
+    return str(flats), paths
+
+
+def test_calibrate_with_spots_end_to_end(capsys, tmp_path, monkeypatch):
+    """Consistency of the command with the library: ``calibrate AMATRIX
+    --spots SPOT_IMAGES`` reads the spot files, fits the template to the
+    a-matrix and the spots (curl always in), prints the tension with its
+    drivers and the held-out spots, and writes the template with the fit in
+    its metadata. The flats calibration itself is stubbed with a cheap one
+    (the real search takes minutes); everything from the spot files on is
+    the command's."""
+    from lsst_bfdrift.templates.template import DistortionTemplate
+
+    calls = []
+    _stub_calibrate(monkeypatch, calls, _flats_result)
+    flats, spots = _calibrate_inputs(tmp_path)
+    out = tmp_path / "joint.fits"
+    code = main(["calibrate", flats, "--spots", *spots, "--out", str(out), "--holdout", "split",
+                 "--quiet"])
+    text, err = capsys.readouterr()
+    assert code == 0, err
+    assert len(calls) == 1
+    assert "with 1 spot series: directions curl" in text
+    assert "driven by the a_ij moved" in text and "held-out spots of" in text
+    assert "(a-matrix and 1 spot series)" in text
+    meta = DistortionTemplate.load(out).meta["calibration"]
+    s = meta["spots"]
+    assert s["directions"][0] == "curl" and s["kinds"] == ["spots"] and s["holdout"] == "split"
+    assert 0 <= s["tension"]["p_value"] <= 1 and s["tension"]["drivers"]["slopes"]
+    held = s["held_out"][s["fields"][0]]
+    assert held["kind"] == "spots" and held["n_stars"] > 0
+    assert meta["inputs"] == [os.path.abspath(p) for p in [flats] + spots]
+
+
+def test_calibrate_with_spots_refuses_bad_series(capsys, tmp_path, monkeypatch):
+    """Bad input, refused before the flats are calibrated: spot images in ADU
+    without a gain (exit 2, naming BUNIT and --gain), a series with too few
+    spots per half for the cross-validation (exit 4, with the count), and
+    --spots with LSST's routes (exit 2)."""
+    from lsst_bfdrift.cli import calibration_commands
+
+    calls = []
+    _stub_calibrate(monkeypatch, calls, lambda table: None)
+    flats, spots = _calibrate_inputs(tmp_path, bunit=None)
+    out = tmp_path / "joint.fits"
+    assert main(["calibrate", flats, "--spots", *spots, "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "BUNIT = 'electron'" in err and "--gain" in err
+    argv = ["calibrate", flats, "--spots", *spots, "--out", str(out), "--quiet", "--gain", "1"]
+    assert main(argv + ["--min-spots", "13"]) == 4
+    err = capsys.readouterr().err
+    assert "12 usable spots to fit per half" in err and "need at least 13 spots" in err
+    assert main(argv + ["--model", "astier23"]) == 2
+    assert "--spots: options of --model electrostatic" in capsys.readouterr().err
+    assert calls == [] and not out.exists()
