@@ -23,6 +23,7 @@ import math
 import numpy as np
 
 from lsst_bfdrift.utils.errors import InputError
+from lsst_bfdrift.utils.io import read_text_rows
 
 __all__ = ["AcoeffTable", "read_acoeff_table", "assign_axes", "sum_rule_check",
            "lag_radius", "acoeff_square", "lag_weights", "check_consistency", "MAX_TABLE_LAG"]
@@ -137,25 +138,13 @@ def acoeff_square(path, i, j, a, s):
 
 
 def _text_rows(path):
-    rows = []
-    with open(path, encoding="utf-8") as fh:
-        for n, line in enumerate(fh, 1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            parts = s.replace(",", " ").split()
-            try:
-                vals = [float(p) for p in parts]
-            except ValueError:
-                if rows:
-                    raise InputError(f"{path}:{n}: non-numeric row {s!r}; accepted: i j value "
-                                     "sigma") from None
-                continue
-            if len(vals) != 4:
-                raise InputError(f"{path}:{n}: {len(vals)} columns; accepted: 4 (i j value "
-                                 "sigma)")
-            rows.append(vals)
-    d = np.array(rows).reshape(-1, 4)
+    accepted = "rows of i j value sigma (a first line of column names allowed)"
+    rows = read_text_rows(path, accepted=accepted)
+    for n, vals in rows:
+        if len(vals) != 4:
+            raise InputError(f"{path}:{n}: {len(vals)} columns; accepted: 4 (i j value "
+                             "sigma)")
+    d = np.array([vals for _, vals in rows], dtype=float).reshape(-1, 4)
     return d[:, 0], d[:, 1], d[:, 2], d[:, 3]
 
 
@@ -166,7 +155,9 @@ def read_acoeff_table(path, *, orient=True):
     ----------
     path : str
         File name. Rows hold integer lags i, j >= 0, the coefficient (per e)
-        and its 1-sigma error; a first non-numeric line is a header.
+        and its 1-sigma error; lines without any number before the first row
+        are a header, any other line with a field that is not a number is an
+        error naming the line (:func:`~lsst_bfdrift.utils.io.read_text_rows`).
     orient : bool, optional
         Establish the axis assignment from the data (:func:`assign_axes`)
         and detect a sum-rule a00 (:func:`sum_rule_check`).

@@ -31,9 +31,10 @@ Input kinds
     comments; read by :func:`~lsst_bfdrift.ptc.covariances.read_ptc_text`).
     Points past the turn-off are dropped and reported as for flats.
 ``'amatrix'`` -- a table of area coefficients a_ij (:func:`read_amatrix_file`)
-    Either the text format ``i j value sigma`` (one lag per line, one header
-    line allowed; the file does not declare which axis is serial, so it is
-    oriented from the data by
+    Either the text format ``i j value sigma`` (one lag per line, header
+    lines without numbers allowed, a row with a field that is not a number
+    refused naming its line; the file does not declare which axis is serial,
+    so it is oriented from the data by
     :func:`~lsst_bfdrift.ptc.acoeffs.read_acoeff_table`, as
     everywhere in the package), or an ECSV table (``# %ECSV`` first line)
     with integer columns ``i`` (serial lag), ``j`` (parallel lag) and float
@@ -66,7 +67,7 @@ from lsst_bfdrift.ptc.data import INPUT_KINDS, CalibrationData, describe_paths, 
 from lsst_bfdrift.ptc.covariances import pair_covariances, ptc_turnoff, read_ptc_text
 from lsst_bfdrift.images.electrons import image_unit
 from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
-from lsst_bfdrift.utils.io import hdu_pixels, open_fits
+from lsst_bfdrift.utils.io import hdu_pixels, open_fits, read_text_rows
 
 __all__ = ["detect_input_kind", "read_calibration_input", "read_flat_pairs", "read_ptc_file",
            "read_amatrix_file"]
@@ -79,28 +80,29 @@ def _is_fits(path):
         return fh.read(9) == b"SIMPLE  ="
 
 
+#: What a text input may be, for the messages of the readers.
+_TEXT_KINDS = ("a PTC (2 columns: mean ADU, variance ADU^2), an a-matrix (4 columns: i j value "
+               "sigma) or an ECSV a-matrix (# %ECSV) with columns i, j, a, a_err")
+
+
 def _first_data_row(path):
-    """(first line, number of numeric fields of the first numeric line)."""
+    """(first line, number of numeric fields of the first row of numbers).
+
+    Header lines (no number in them) are skipped; a row mixing numbers and
+    other fields is an error naming its line
+    (:func:`~lsst_bfdrift.utils.io.read_text_rows`), never a header.
+    """
     try:
         with open(path, encoding="utf-8") as fh:
-            first = None
-            for line in fh:
-                s = line.strip()
-                if first is None and s:
-                    first = s
-                if not s or s.startswith("#"):
-                    continue
-                parts = s.replace(",", " ").split()
-                try:
-                    [float(p) for p in parts]
-                except ValueError:
-                    continue  # a header line
-                return first, len(parts)
+            first = next((s for s in (line.strip() for line in fh) if s), None)
     except UnicodeDecodeError:
         raise InputError(f"{path}: neither FITS nor text; accepted inputs are FITS flats, a "
                          "cp_pipe PTC dataset FITS, a PTC text file (mean, variance) or an "
                          "a-matrix table (text 'i j value sigma' or ECSV)") from None
-    return first, 0
+    if first is not None and first.startswith("# %ECSV"):
+        return first, 0
+    rows = read_text_rows(path, accepted=_TEXT_KINDS, limit=1)
+    return first, (len(rows[0][1]) if rows else 0)
 
 
 def detect_input_kind(path):

@@ -525,3 +525,32 @@ def test_a_refusal_on_many_flats_names_the_directory_and_the_count(tmp_path):
     assert describe_paths(paths[:3]) == ", ".join(paths[:3])
     other = [str(tmp_path / "x.fits")] + paths[:5]
     assert describe_paths(other) == f"{other[0]} ... (6 files in 2 directories)"
+
+
+# --------------------------------------------------------------------------- issue 44
+
+@pytest.mark.parametrize("text, line, field", [
+    ("0 0 -1.333e-06 x\n0 1 1e-7 1e-8\n1 0 5e-8 1e-8\n1 1 2e-8 1e-8\n", 1, "4 ('x')"),
+    ("i j a sigma\n0 0 -1.333e-06 1e-7\n0 1 1e-7 1e-8,\n1 0 5e-8 1e-8q\n", 4, "4 ('1e-8q')"),
+    ("100 x\n200 400\n300 600\n", 1, "2 ('x')"),
+])
+def test_malformed_row_is_named_not_taken_for_a_header(tmp_path, text, line, field):
+    """Issue 44 item 8: a row mixing numbers and another field is malformed, named by
+    its line and field (not skipped as a header, which made the error say that the
+    a00 row was missing); a header has no number in it."""
+    from lsst_bfdrift.ptc.acoeffs import read_acoeff_table
+
+    path = tmp_path / "t.txt"
+    path.write_text(text)
+    msg = re.escape(f"{path}:{line}: field {field} of the row ") + r".*is not a number"
+    with pytest.raises(ValueError, match=msg) as info:
+        read_calibration_input(path)
+    assert "a00" not in str(info.value)
+    if text.startswith("0 0"):
+        with pytest.raises(ValueError, match=msg + r".*malformed row, not a header"):
+            read_acoeff_table(path)
+    # a header line (no number in it) is still a header, for both text kinds
+    path.write_text("lag_i lag_j a sigma\n" + text.replace(" x\n", " 1e-7\n").replace(
+        "q\n", "\n").replace(",\n", "\n").replace("i j a sigma\n", ""))
+    kind = detect_input_kind(path)
+    assert kind == ("ptc" if text.startswith("100") else "amatrix")
