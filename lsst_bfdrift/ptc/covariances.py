@@ -19,7 +19,7 @@ Conventions
   + 1/6 (2 a*a*a + 5 a*ab)(mu g)^3] + n / g^2.
 """
 
-import warnings
+import os
 
 import numpy as np
 from astropy.table import Table
@@ -29,7 +29,7 @@ from scipy.optimize import least_squares
 from scipy.signal import convolve2d
 from lsst_bfdrift.images.exposure import read_image
 from lsst_bfdrift.utils.errors import FitError, InputError, InputFileError
-from lsst_bfdrift.utils.io import open_fits
+from lsst_bfdrift.utils.io import open_fits, read_text_rows
 
 __all__ = ["PairCovariance", "pair_covariances", "measure_ptc", "ptc_exponential_model",
            "fit_ptc_exponential", "ptc_turnoff", "covariance_model", "fit_covariance_model",
@@ -685,18 +685,39 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
 
 
 def read_ptc_text(path):
-    """Read a two-column PTC text file (mean ADU, variance ADU^2; '#' comments)."""
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
-            data = np.loadtxt(path, comments="#", ndmin=2)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise InputFileError(f"cannot read PTC text ({exc}); accepted: two numeric columns "
-                             "(mean ADU, variance ADU^2), '#' comments", path) from exc
-    if data.shape[0] == 0:
-        raise InputFileError("no PTC rows; accepted: two numeric columns (mean ADU, "
-                             "variance ADU^2)", path)
-    if data.shape[1] < 2:
-        raise InputError(f"{path}: expected two columns (mean, variance)")
-    order = np.argsort(data[:, 0])
+    """Read a two-column PTC text file (mean ADU, variance ADU^2).
+
+    Blank lines, ``#`` comments and header lines (no number in them, before
+    the first row) are skipped (:func:`~lsst_bfdrift.utils.io.read_text_rows`).
+    Every row holds exactly two numbers: a third column (an error of the
+    variance, a pair count, ...) is refused rather than dropped unread.
+
+    Parameters
+    ----------
+    path : str or path-like
+
+    Returns
+    -------
+    mu, var : ndarray
+        Means and variances, sorted by mean.
+
+    Raises
+    ------
+    InputFileError
+        A malformed row, a row of another width, or no rows, naming the file
+        (and the line).
+    """
+    path = os.fspath(path)
+    accepted = "two numeric columns (mean ADU, variance ADU^2) per line, '#' comments"
+    rows = read_text_rows(path, accepted=accepted)
+    if not rows:
+        raise InputFileError(f"no PTC rows; accepted: {accepted}", path)
+    for n, vals in rows:
+        if len(vals) != 2:
+            extra = (" (a third column, e.g. an error of the variance, is not read by any "
+                     "PTC fit here: remove it)" if len(vals) > 2 else "")
+            raise InputFileError(f"{path}:{n}: {len(vals)} column(s); accepted: {accepted}"
+                                 + extra, path)
+    data = np.array([vals for _, vals in rows], dtype=float)
+    order = np.argsort(data[:, 0], kind="stable")
     return data[order, 0], data[order, 1]
