@@ -47,6 +47,7 @@ change the choice of effects. Pairs above the turn-off are left out of the
 fit and listed.
 """
 
+import math
 import os
 
 import numpy as np
@@ -112,6 +113,14 @@ class _Problem:
         if basis.max_lag < obs.max_lag:
             raise InputError(f"basis has lags <= {basis.max_lag}, data {obs.max_lag}")
         self.names = list(basis.names)
+        if obs.kind == "table" and self.y.size <= len(self.names):
+            k = len(self.names)
+            need = math.ceil(math.sqrt(k + 2)) - 1  # (L + 1)^2 lags, a00 perhaps left out
+            raise InputError(
+                f"{getattr(obs, 'source', 'the a_ij table')}: {self.y.size} lag(s) in chi2 "
+                f"(lags 0..{obs.max_lag}), no more than the {k} free parameters of the base "
+                f"model ({', '.join(self.names)}): nothing is left to diagnose; accepted: a "
+                f"table with more lags than parameters (lags 0..{need} or more)")
         self.x0 = np.array([basis.x0[n] for n in self.names])
         self.scale = np.array([max(basis.errors[n], 1e-6 * max(abs(basis.x0[n]), 1.0))
                                for n in self.names])

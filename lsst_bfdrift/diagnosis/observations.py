@@ -148,7 +148,8 @@ class Observations:
     def from_table(cls, table):
         """From an :class:`~lsst_bfdrift.ptc.acoeffs.AcoeffTable`."""
         return cls("table", a=table.a, sigma=table.sigma, mask=table.mask(),
-                   max_lag=table.max_lag, note=table.axis_note)
+                   max_lag=table.max_lag, note=table.axis_note,
+                   source=table.source or "the a_ij table")
 
     @classmethod
     def from_ptc(cls, mu, var):

@@ -158,6 +158,7 @@ def read_acoeff_table(path, *, orient=True):
         and its 1-sigma error; lines without any number before the first row
         are a header, any other line with a field that is not a number is an
         error naming the line (:func:`~lsst_bfdrift.utils.io.read_text_rows`).
+        A table of a00 alone is accepted (nothing to orient, no sum rule).
     orient : bool, optional
         Establish the axis assignment from the data (:func:`assign_axes`)
         and detect a sum-rule a00 (:func:`sum_rule_check`).
@@ -196,8 +197,13 @@ def assign_axes(table):
     Returns
     -------
     AcoeffTable
-        [serial, parallel] order.
+        [serial, parallel] order; a table of a00 alone as it is (no nearest
+        neighbours to orient it by, said in ``axis_note``).
     """
+    if table.max_lag == 0:
+        return AcoeffTable(table.a, table.sigma, source=table.source,
+                           axis_note="a00 only: no nearest neighbours, nothing to orient",
+                           exclude_a00=table.exclude_a00)
     a01, a10 = table.a[0, 1], table.a[1, 0]
     s = math.hypot(table.sigma[0, 1], table.sigma[1, 0])
     z = abs(a01 - a10) / s
@@ -224,9 +230,13 @@ def sum_rule_check(table, *, nsigma=1.0):
     Returns
     -------
     (bool, str)
-        The verdict and a sentence with the numbers.
+        The verdict and a sentence with the numbers; a table of a00 alone
+        has no other lag to sum: a00 is taken as measured.
     """
     a = table.a
+    if table.max_lag == 0:
+        return False, (f"a00 = {a[0, 0]:.4g} alone: no other lag to check the sum rule "
+                       "with; a00 taken as measured, kept")
     w = np.full(a.shape, 4.0)
     w[0, :] = 2.0
     w[:, 0] = 2.0

@@ -10,10 +10,12 @@ from the images and :func:`diagnose` runs on them with the whole library.
 
 import json
 import os
+import re
 
 import numpy as np
 import pytest
 from astropy.io import fits
+from numpy.testing import assert_allclose
 
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable
 from lsst_bfdrift.calibration.acoeff_model import LinearBasis
@@ -187,6 +189,23 @@ def test_bad_inputs(tmp_path, basis, capsys):
         diagnose(Observations.from_table(big), basis)
     assert main(["diagnose", str(p), "--basis", BASIS]) == 2
     assert "not an a_ij table" in capsys.readouterr().err
+
+
+def test_a00_alone_is_refused_naming_the_file(tmp_path, basis, capsys):
+    """Issue 44 item 1: a table of a00 alone reaches the diagnosis (no IndexError) and
+    is refused there with the file, the count and what is accepted."""
+    path = tmp_path / "a00.txt"
+    path.write_text("i j a sigma\n0 0 -1.333030e-06 1.334e-07\n")
+    obs = load_input(str(path))
+    assert obs.a.shape == (1, 1)
+    msg = (re.escape(f"{path}: 1 lag(s) in chi2 (lags 0..0), no more than the 4 free "
+                     "parameters of the base model") + r".*accepted: a table with more lags "
+           r"than parameters \(lags 0\.\.2 or more\)")
+    with pytest.raises(ValueError, match=msg):
+        diagnose(obs, basis)
+    assert main(["diagnose", str(path), "--basis", BASIS, "--no-template-change"]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}: 1 lag(s) in chi2" in err and "Traceback" not in err
 
 
 def test_cli_itl_table_with_shipped_basis(capsys):

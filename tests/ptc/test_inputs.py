@@ -529,6 +529,30 @@ def test_a_refusal_on_many_flats_names_the_directory_and_the_count(tmp_path):
 
 # --------------------------------------------------------------------------- issue 44
 
+def test_amatrix_of_a00_alone_is_read(tmp_path):
+    """Issue 44 item 1: a table of the a00 row alone (a header and one row) is read,
+    with nothing to orient and no sum rule to check, instead of ending in an
+    IndexError; calibrate's a-matrix is then a00 alone, as from a PTC."""
+    from lsst_bfdrift.calibration.tuning import measured_acoeffs
+    from lsst_bfdrift.ptc.acoeffs import read_acoeff_table
+
+    path = tmp_path / "a00.txt"
+    path.write_text("i j a sigma\n0 0 -1.333030e-06 1.334e-07\n")
+    before = _digest([path])
+    d = read_calibration_input(path)
+    assert d.kind == "amatrix" and d.a.shape == (1, 1) and d.a00_measured is True
+    assert_allclose(d.a, [[-1.333030e-06]], rtol=1e-15)
+    assert_allclose(d.a_sigma, [[1.334e-07]], rtol=1e-15)
+    assert "a00 only: no nearest neighbours, nothing to orient" in d.notes
+    assert any("alone: no other lag to check the sum rule" in n for n in d.notes)
+    table = measured_acoeffs(d)
+    assert table.mask().tolist() == [[True]]
+    t = read_acoeff_table(path)
+    assert_allclose(t.a, d.a, rtol=1e-15)
+    assert not t.exclude_a00
+    assert _digest([path]) == before  # the input is never modified
+
+
 @pytest.mark.parametrize("text, line, field", [
     ("0 0 -1.333e-06 x\n0 1 1e-7 1e-8\n1 0 5e-8 1e-8\n1 1 2e-8 1e-8\n", 1, "4 ('x')"),
     ("i j a sigma\n0 0 -1.333e-06 1e-7\n0 1 1e-7 1e-8,\n1 0 5e-8 1e-8q\n", 4, "4 ('1e-8q')"),
