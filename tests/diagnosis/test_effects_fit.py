@@ -172,7 +172,7 @@ def test_cli_directory_of_flat_pairs(tmp_path, basis, capsys):
 def test_bad_inputs(tmp_path, basis, capsys):
     p = tmp_path / "three.txt"
     p.write_text("1 2 3\n4 5 6\n")
-    with pytest.raises(ValueError, match="not an a_ij table"):
+    with pytest.raises(ValueError, match=r"three\.txt: text file with 3 numeric columns"):
         load_input(str(p))
     with pytest.raises(ValueError, match="no such file"):
         load_input(str(tmp_path / "missing.txt"))
@@ -188,7 +188,42 @@ def test_bad_inputs(tmp_path, basis, capsys):
     with pytest.raises(ValueError, match="basis has lags"):
         diagnose(Observations.from_table(big), basis)
     assert main(["diagnose", str(p), "--basis", BASIS]) == 2
-    assert "not an a_ij table" in capsys.readouterr().err
+    assert "3 numeric columns" in capsys.readouterr().err
+
+
+def _ecsv(path, a, s, unit):
+    from astropy.table import Table
+    L = a.shape[0] - 1
+    i, j = np.meshgrid(np.arange(L + 1), np.arange(L + 1), indexing="ij")
+    t = Table({"i": i.ravel(), "j": j.ravel(), "a": a.ravel(), "a_err": s.ravel()})
+    if unit is not None:
+        t["a"].unit = t["a_err"].unit = unit
+    t.write(path, format="ascii.ecsv")
+    return str(path)
+
+
+def test_ecsv_tables_are_read_with_their_units(tmp_path, basis, capsys):
+    """Issue 44 item 2: diagnose reads an a-matrix as calibrate does (one reader): an
+    ECSV table's unit is converted (0.001 / electron) or refused (1 / adu, pix) naming
+    the file and what is accepted, never taken as per electron."""
+    import astropy.units as u
+
+    from lsst_bfdrift.ptc.inputs import read_calibration_input
+
+    a, s = basis.a0.copy(), np.full(basis.a0.shape, 2e-9)
+    milli = _ecsv(tmp_path / "milli.ecsv", a * 1e3, s * 1e3, 1 / (1000 * u.electron))
+    obs = load_input(milli)
+    assert_allclose(obs.a, a, rtol=1e-12)
+    assert_allclose(obs.sigma, s, rtol=1e-12)
+    assert_allclose(obs.a, read_calibration_input(milli).acoeff_table().a, rtol=1e-15)
+    for name, unit, text in (("adu", 1 / u.adu, "1 / adu"), ("pix", u.pix, "pix")):
+        bad = _ecsv(tmp_path / f"{name}.ecsv", a, s, unit)
+        with pytest.raises(ValueError, match=re.escape(f"{bad}: column a has unit {text}; "
+                                                       "accepted: per electron")):
+            load_input(bad)
+        assert main(["diagnose", bad, "--basis", BASIS, "--no-template-change"]) == 2
+        err = capsys.readouterr().err
+        assert f"{bad}: column a has unit" in err and "Traceback" not in err
 
 
 def test_a00_alone_is_refused_naming_the_file(tmp_path, basis, capsys):
