@@ -13,7 +13,8 @@ import numpy as np
 from scipy import stats
 
 from lsst_bfdrift.ptc.observables import lag_error_factors, pair_observables, turnoff_cut
-from lsst_bfdrift.ptc.covariances import edge_border, pair_covariances, read_flat_pair
+from lsst_bfdrift.ptc.covariances import (edge_border, identical_flats, pair_covariances,
+                                          read_flat_pair)
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["Observations", "pair_statistics", "edge_profile", "edge_signature",
@@ -252,6 +253,14 @@ def observations_from_pairs(pairs, *, max_lag=3, border=None, exptimes=None):
         :func:`~lsst_bfdrift.ptc.observables.pair_observables`),
         ``exptime`` (s, or None with ``exptime_note`` saying why) and
         ``turnoff`` (the pairs above the turn-off, left out).
+
+    Raises
+    ------
+    InputError
+        A pair of different shapes or ``EXPTIME``, or one exposure twice
+        (:func:`~lsst_bfdrift.ptc.covariances.identical_flats`: zero
+        difference variance, e.g. a copied file), naming both files; two
+        constant images are left to the turn-off (saturation).
     """
     pairs = list(pairs)
     if exptimes is not None:
@@ -261,8 +270,16 @@ def observations_from_pairs(pairs, *, max_lag=3, border=None, exptimes=None):
                              f"{len(pairs)} pairs, got {exptimes.tolist()!r}")
     rows = []
     for k, (f1, f2) in enumerate(pairs):
+        names = [str(f) if isinstance(f, (str, bytes)) or hasattr(f, "__fspath__") else None
+                 for f in (f1, f2)]
         # same shape and EXPTIME, or an error naming both
         f1, f2, t = read_flat_pair(f1, f2, with_exptime=True)
+        same = identical_flats(f1, f2)
+        if same is not None and same[0] == "copies":  # constant (saturated): the turn-off's
+            what = (f"flat pair {names[0]} and {names[1]}" if None not in names
+                    else f"flat pair {k} (arrays)")
+            raise InputError(f"{what}: {same[1]}; replace one of them by another exposure at "
+                             "its level, or leave the pair out")
         pc = _pair_covariance(f1, f2, max_lag, border)
         rows.append((pc.mu, pc.cov, pc.static, pc.npix) + edge_profile(f1, f2, border=border)
                     + (t if exptimes is None else float(exptimes[k]),

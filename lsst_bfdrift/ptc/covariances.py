@@ -35,7 +35,7 @@ __all__ = ["PairCovariance", "pair_covariances", "measure_ptc", "ptc_exponential
            "fit_ptc_exponential", "ptc_turnoff", "covariance_model", "fit_covariance_model",
            "read_ptc_text", "read_flat_pair", "count_levels", "MIN_LEVELS", "SIGNAL_RANGE",
            "EDGE_BORDER", "edge_border", "edge_mask", "least_squares_line",
-           "convolve_lags"]
+           "convolve_lags", "identical_flats"]
 
 #: Fewest distinct signal levels of any PTC fit.
 MIN_LEVELS = 3
@@ -196,6 +196,57 @@ def _clip_mask(diff, mask, nsig, iters=3):
             break
         mask = new
     return mask
+
+
+def identical_flats(flat1, flat2, *, mask=None, rtol=1e-9):
+    """Whether a flat pair has no difference variance, and why.
+
+    Two exposures always differ by their shot noise; a pair whose
+    difference (the second flat scaled to the first's mean, as in
+    :func:`pair_covariances`) is zero over the valid pixels carries no
+    photon transfer information. Its zero variance would otherwise read as
+    saturation (:func:`ptc_turnoff`) and drop every brighter pair: readers
+    check this first.
+
+    Parameters
+    ----------
+    flat1, flat2 : array_like, 2-d, of one shape
+    mask : array_like of bool, optional
+        True for bad pixels (NaN/inf are left out too).
+    rtol : float, optional
+        A difference whose standard deviation is below ``rtol`` times the
+        mean signal is zero.
+
+    Returns
+    -------
+    None or (str, str)
+        None when the difference has a variance (or the pair cannot be
+        judged: no valid pixel, a mean not positive); else the kind,
+        ``'constant'`` (both images one value: saturated, or not flats) or
+        ``'copies'`` (one exposure twice, e.g. a copied file), and a
+        sentence saying so.
+    """
+    a = np.asarray(flat1, dtype=np.float64)
+    b = np.asarray(flat2, dtype=np.float64)
+    if a.shape != b.shape:
+        return None
+    good = np.isfinite(a) & np.isfinite(b)
+    if mask is not None:
+        good &= ~np.asarray(mask, dtype=bool)
+    if not good.any():
+        return None
+    a, b = a[good], b[good]
+    mu1, mu2 = a.mean(), b.mean()
+    if not (mu1 > 0 and mu2 > 0):
+        return None
+    if np.std(a - b * (mu1 / mu2)) > rtol * mu1:
+        return None
+    if np.std(a) <= rtol * mu1 and np.std(b) <= rtol * mu2:
+        return "constant", (f"both images are constant ({mu1:.6g} and {mu2:.6g}: zero "
+                            "difference variance): saturation, or not flats")
+    return "copies", ("the two images are one exposure (identical pixel for pixel after "
+                      "scaling to one mean: zero difference variance), e.g. a copied file; a "
+                      "pair needs two exposures")
 
 
 def pair_covariances(flat1, flat2, *, max_lag=8, mask=None, nsig=5.0, min_pixels=1000,

@@ -982,3 +982,32 @@ def test_a_stale_partial_file_in_an_input_directory_is_removed(capsys, tmp_path)
     code, out, err = _run(capsys, "ptc", str(d), "--json")
     assert code == 0, err
     assert "removed 1 stale partial file of killed runs" in err and not stale.exists()
+
+
+def _flat_dir(path, rng, exptimes, *, levels=(2e3, 6e3, 1.2e4, 2.4e4, 4e4, 6e4),
+              constant=()):
+    """Flat pairs (48 x 48, ADU) in ``path``: level k at EXPTIME exptimes[k]; the pairs
+    in ``constant`` are both constant at 65535 (saturated)."""
+    path.mkdir()
+    for k, level in enumerate(levels):
+        for half in "ab":
+            img = (np.full((48, 48), 65535.0) if k in constant
+                   else rng.poisson(level, (48, 48)).astype(np.float32))
+            hdr = fits.Header({"EXPTIME": float(exptimes[k]), "BUNIT": "adu"})
+            fits.PrimaryHDU(img, header=hdr).writeto(path / f"flat_{k}{half}.fits")
+    return str(path)
+
+
+def test_ptc_names_a_pair_of_one_exposure_twice(capsys, tmp_path, rng):
+    """Issue 44 item 9: ``bfdrift ptc`` on flats where one pair is a file and its copy:
+    that pair is excluded and named (the brighter pairs are not dropped as past a
+    turn-off), and the fit uses the other five."""
+    import shutil
+
+    d = _flat_dir(tmp_path / "dup", rng, range(1, 7))
+    shutil.copyfile(tmp_path / "dup" / "flat_2a.fits", tmp_path / "dup" / "flat_2b.fits")
+    code, text, err = _run(capsys, "ptc", d, "--max-lag", "1")
+    assert code == 0, err
+    assert "5 pair(s) at 5 level(s)" in text
+    assert "flat_2a.fits, flat_2b.fits (the two images are one exposure" in text
+    assert "turn-off" not in text

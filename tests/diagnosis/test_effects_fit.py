@@ -243,6 +243,26 @@ def test_a00_alone_is_refused_naming_the_file(tmp_path, basis, capsys):
     assert f"{path}: 1 lag(s) in chi2" in err and "Traceback" not in err
 
 
+def test_a_pair_of_one_exposure_twice_is_refused(tmp_path, rng):
+    """Issue 44 item 9: a pair of one exposure twice is named (both files), not read
+    as saturation that drops every brighter pair."""
+    import shutil
+
+    for k, level in enumerate((2e3, 6e3, 1.2e4, 2.4e4)):
+        for half in "ab":
+            fits.PrimaryHDU(rng.poisson(level, (48, 48)).astype(np.float32),
+                            header=fits.Header({"EXPTIME": k + 1.0})).writeto(
+                tmp_path / f"flat_{k}{half}.fits")
+    shutil.copyfile(tmp_path / "flat_1a.fits", tmp_path / "flat_1b.fits")
+    with pytest.raises(ValueError, match=re.escape(
+            f"flat pair {tmp_path / 'flat_1a.fits'} and {tmp_path / 'flat_1b.fits'}: the two "
+            "images are one exposure")):
+        load_input(str(tmp_path))
+    img = rng.poisson(500.0, (48, 48)).astype(float)
+    with pytest.raises(ValueError, match=r"flat pair 0 \(arrays\): the two images are one"):
+        observations_from_pairs([(img, img.copy())] * 4)
+
+
 def test_cli_itl_table_with_shipped_basis(capsys):
     """The measured ITL table against the shipped fit: nothing to add."""
     rc = main(["diagnose", "/work/shared/data/measured/itl_covariances_21oct19.txt", "--json"])

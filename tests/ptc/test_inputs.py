@@ -578,3 +578,46 @@ def test_malformed_row_is_named_not_taken_for_a_header(tmp_path, text, line, fie
         "q\n", "\n").replace(",\n", "\n").replace("i j a sigma\n", ""))
     kind = detect_input_kind(path)
     assert kind == ("ptc" if text.startswith("100") else "amatrix")
+
+
+def test_a_pair_of_one_exposure_twice_is_excluded_and_named(tmp_path, rng):
+    """Issue 44 item 9: a pair whose second file is a copy of the first (zero
+    difference variance) is excluded and named with its reason before the turn-off
+    is sought: the brighter pairs stay, none is dropped as past a turn-off. Two
+    constant images are saturation above every other pair (the turn-off below them),
+    and are excluded, not taken for saturation, below brighter pairs."""
+    import shutil
+
+    from lsst_bfdrift.ptc.covariances import identical_flats
+
+    levels = {1.0: 500.0, 2.0: 1000.0, 4.0: 2000.0, 8.0: 4000.0, 16.0: 8000.0}
+    paths = _flat_set(tmp_path, rng, levels)
+    shutil.copyfile(paths[2], paths[3])  # the pair at 2 s: one exposure twice
+    for t, value in ((32.0, 60000.0), (3.0, 1500.0)):  # constant pairs
+        for k in range(2):
+            paths.append(_write_flat(tmp_path / f"flat_const_{t:04.1f}_{k}.fits",
+                                     np.full(SHAPE, value), exptime=t))
+    before = _digest(paths)
+    d = read_calibration_input(paths, max_lag=1, min_pixels=500)
+    assert _digest(paths) == before
+    assert_allclose(d.exptime, [1.0, 4.0, 8.0, 16.0])  # the brighter pairs all kept
+    assert d.turnoff == d.mu[-1]  # below the saturated pair, not below the copy
+    copy, low, sat = d.pairs_dropped
+    assert copy["files"] == paths[2:4] and copy["exptime"] == 2.0
+    assert copy["reason"].startswith("the two images are one exposure (identical pixel for "
+                                     "pixel after scaling to one mean: zero difference "
+                                     "variance), e.g. a copied file")
+    assert "turn-off" not in copy["reason"]
+    assert sat["files"] == paths[-4:-2] and sat["reason"].startswith(
+        f"past the PTC turn-off at {d.turnoff:.6g} adu: both images are constant (60000 and "
+        "60000: zero difference variance): saturation")
+    assert low["files"] == paths[-2:] and low["reason"].endswith(
+        "below brighter pairs, so not saturation: pair excluded")
+    assert "1 pair(s) of one exposure twice (zero difference variance) excluded" in d.notes[0]
+    # the check itself: a scaled copy is one exposure too; two exposures are not
+    a, b = _flat(rng, 500.0), _flat(rng, 500.0)
+    assert identical_flats(a, 1.5 * a)[0] == "copies"
+    assert identical_flats(a, b) is None
+    assert identical_flats(np.full(SHAPE, 7.0), np.full(SHAPE, 7.0))[0] == "constant"
+    a[0, 0] = np.nan
+    assert identical_flats(a, a.copy(), mask=np.zeros(SHAPE, bool))[0] == "copies"
