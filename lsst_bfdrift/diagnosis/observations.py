@@ -160,12 +160,19 @@ class Observations:
         if mu.shape != var.shape or mu.ndim != 1:
             raise InputError("PTC mean and variance must be 1-d arrays of equal length")
         good = np.isfinite(mu) & np.isfinite(var) & (mu > 0) & (var > 0)
+        nbad = int(mu.size - good.sum())
         turnoff = None
         if good.any():  # saturation cut (ptc_turnoff, 5 % drop), the points left out listed
             keep, turnoff = turnoff_cut(mu[good], var[good])
             good[np.flatnonzero(good)[~keep]] = False
         if good.sum() < 6:
-            raise InputError(f"need at least 6 valid PTC points, got {good.sum()}")
+            why = [f"{nbad} not finite and positive"] if nbad else []
+            if turnoff is not None and turnoff["excluded"]:
+                why.append(f"{len(turnoff['excluded'])} past the turn-off at "
+                           f"{turnoff['break_level']:.6g} ADU (the variance falls more than "
+                           f"{turnoff['drop']:.0%} below its running maximum: saturation)")
+            raise InputError(f"need at least 6 valid PTC points, got {int(good.sum())} of "
+                             f"{mu.size}" + (f" ({'; '.join(why)})" if why else ""))
         o = np.argsort(mu[good])
         return cls("ptc", mu=mu[good][o], var=var[good][o], max_lag=0, turnoff=turnoff,
                    note=f"{good.sum()} points below the turn-off; errors unknown: "

@@ -33,12 +33,19 @@ from lsst_bfdrift.utils.io import open_fits, read_text_rows
 
 __all__ = ["PairCovariance", "pair_covariances", "measure_ptc", "ptc_exponential_model",
            "fit_ptc_exponential", "ptc_turnoff", "covariance_model", "fit_covariance_model",
-           "read_ptc_text", "read_flat_pair", "count_levels", "MIN_LEVELS", "SIGNAL_RANGE",
+           "read_ptc_text", "read_flat_pair", "count_levels", "MIN_LEVELS", "MIN_PTC_POINTS",
+           "MIN_COVARIANCE_LEVELS", "SIGNAL_RANGE",
            "EDGE_BORDER", "edge_border", "edge_mask", "least_squares_line",
            "convolve_lags", "identical_flats"]
 
 #: Fewest distinct signal levels of any PTC fit.
 MIN_LEVELS = 3
+
+#: Fewest valid points of the exponential PTC fit (:func:`fit_ptc_exponential`).
+MIN_PTC_POINTS = 4
+
+#: Fewest signal levels of the full covariance model fit (:func:`fit_covariance_model`).
+MIN_COVARIANCE_LEVELS = 5
 
 #: Signals (ADU or e) a PTC point may have: beyond, the fit's arithmetic fails
 #: (LAPACK's SVD at ~1e-300, overflow at ~1e150) long before any real sensor.
@@ -513,8 +520,9 @@ def fit_ptc_exponential(mu, var, *, sigma=None, mu_max="auto", p0=None):
         mu_max = ptc_turnoff(mu[good], var[good])
     if mu_max is not None:
         good &= mu <= mu_max
-    if good.sum() < 4:
-        raise InputError(f"need at least 4 valid PTC points, got {int(good.sum())}")
+    if good.sum() < MIN_PTC_POINTS:
+        raise InputError(f"need at least {MIN_PTC_POINTS} valid PTC points, got "
+                         f"{int(good.sum())}")
     order = np.argsort(mu[good])
     m, v = mu[good][order], var[good][order]
     _check_points(m, v)
@@ -667,8 +675,8 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
     if mu_max is not None:
         good &= mu <= mu_max
     m, c = mu[good], cov[good]
-    if m.size < 5:
-        raise InputError(f"need at least 5 signal levels, got {m.size}")
+    if m.size < MIN_COVARIANCE_LEVELS:
+        raise InputError(f"need at least {MIN_COVARIANCE_LEVELS} signal levels, got {m.size}")
     known = sigma is not None or npix is not None
     if sigma is not None:
         s = np.asarray(sigma, float)[good][:, :L + 1, :L + 1]

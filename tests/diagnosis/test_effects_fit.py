@@ -263,6 +263,17 @@ def test_a_pair_of_one_exposure_twice_is_refused(tmp_path, rng):
         observations_from_pairs([(img, img.copy())] * 4)
 
 
+def test_ptc_refusal_names_the_file_and_the_reasons(tmp_path):
+    """Issue 44 item 10 (diagnose's side): too few PTC points names the file and why
+    the others were left out."""
+    dec = tmp_path / "dec.txt"
+    dec.write_text("".join(f"{m} {1e5 / m}\n" for m in (100, 200, 300, 400, 500, 600, 700)))
+    with pytest.raises(ValueError, match=re.escape(
+            f"{dec}: need at least 6 valid PTC points, got 1 of 7 (6 past the turn-off at 100 "
+            "ADU")):
+        load_input(str(dec))
+
+
 def test_cli_itl_table_with_shipped_basis(capsys):
     """The measured ITL table against the shipped fit: nothing to add."""
     rc = main(["diagnose", "/work/shared/data/measured/itl_covariances_21oct19.txt", "--json"])
