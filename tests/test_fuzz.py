@@ -9,7 +9,7 @@ positive areas. These are checks against conservation laws and the inputs
 themselves, not against the package's model.
 
 The runs are seeded and derandomized (``tests/conftest.py`` registers the
-profiles): the default profile generates about 600 cases in about a minute on
+profiles): the default profile generates about 800 cases in about a minute on
 2 cores; ``BFDRIFT_HYPOTHESIS=extended python -m pytest -m slow tests/test_fuzz.py``
 generates ten times more.
 """
@@ -47,7 +47,8 @@ def _task(method, geometry):
 
 @st.composite
 def images(draw, max_side=24):
-    """Small images: a sky level, a few bright sources, and special values."""
+    """Small images: a sky level, a few bright sources, and special values; some all
+    negative or all NaN (no charge at all)."""
     ny = draw(st.integers(1, max_side))
     nx = draw(st.integers(1, max_side))
     sky = draw(st.sampled_from([0.0, 1.0, 300.0, 5e3]))
@@ -60,6 +61,12 @@ def images(draw, max_side=24):
     for _ in range(draw(st.integers(0, 2))):
         y, x = draw(st.integers(0, ny - 1)), draw(st.integers(0, nx - 1))
         img[y, x] = draw(st.sampled_from([np.nan, np.inf, -np.inf]))
+    # issue 44: images with no charge to correct or map (all negative, all NaN)
+    fill = draw(st.sampled_from(["as drawn"] * 4 + ["all negative", "all NaN"]))
+    if fill == "all negative":
+        img = -np.abs(np.nan_to_num(img, nan=1.0, posinf=1e6, neginf=1e6)) - 1.0
+    elif fill == "all NaN":
+        img = np.full(img.shape, np.nan)
     dtype = draw(st.sampled_from([np.float64, np.float32, np.int32]))
     if dtype is np.int32:
         img = np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0).clip(-2e9, 2e9)
@@ -243,6 +250,168 @@ def test_template_loader_on_damaged_files(tmp_path, cut, flip, byte):
         return
     event("loaded")
     assert np.all(np.isfinite(t.corner_d))  # a change the checksums do not see: still valid
+
+
+#: ECSV units of a-matrix columns: the per-electron factor of each, None where the
+#: unit is not per electron and must be refused (issue 44 item 2).
+_ACOEFF_UNITS = {None: 1.0, "1 / electron": 1.0, "0.001 / electron": 1e-3,
+                 "1000 / electron": 1e3, "1 / adu": None, "pix": None, "electron": None}
+
+
+@st.composite
+def acoeff_tables(draw):
+    """a-matrix tables as a user writes them (issue 44): text (a header or not) or ECSV
+    with units, short tables (a00 alone, a row left out) and malformed rows.
+
+    Returns (text, suffix, expected): ``expected`` the a_ij per electron a reader must
+    return, None when it must refuse the table.
+    """
+    L = draw(st.integers(0, 3))
+    i, j = np.meshgrid(np.arange(L + 1), np.arange(L + 1), indexing="ij")
+    a = draw(st.sampled_from([1e-7, 3e-8])) / (1.0 + i**2 + 2.0 * j**2) * (1.0 + j)
+    a[0, 0] = -draw(st.sampled_from([1.3e-6, 4e-7]))
+    sig = np.full(a.shape, 1e-8)
+    ecsv = draw(st.booleans())
+    unit = draw(st.sampled_from(sorted(_ACOEFF_UNITS, key=str))) if ecsv else None
+    factor = _ACOEFF_UNITS[unit]
+    rows = [(int(x), int(y)) for x, y in zip(i.ravel(), j.ravel())]
+    defect = draw(st.sampled_from(["none", "none", "short", "malformed"]))
+    if defect == "short":
+        del rows[draw(st.integers(0, len(rows) - 1))]
+    scale = 1.0 if factor is None else factor
+    if ecsv:
+        import io
+        from astropy.table import Table
+        t = Table({"i": [r[0] for r in rows], "j": [r[1] for r in rows],
+                   "a": [a[r] / scale for r in rows], "a_err": [sig[r] / scale for r in rows]})
+        if unit is not None:
+            t["a"].unit = t["a_err"].unit = u.Unit(unit)
+        buf = io.StringIO()
+        t.write(buf, format="ascii.ecsv")
+        lines = buf.getvalue().splitlines()
+    else:
+        lines = (["i j a sigma"] if draw(st.booleans()) else []) + [
+            f"{x} {y} {float(a[x, y])!r} {float(sig[x, y])!r}" for x, y in rows]
+    data = [k for k, line in enumerate(lines) if line and line[0].isdigit()]
+    if defect == "malformed" and data:
+        k = draw(st.sampled_from(data))
+        fields = lines[k].split()
+        fields[draw(st.integers(0, len(fields) - 1))] = draw(
+            st.sampled_from(["x", "1e-7x", "--", "0x10"]))
+        lines[k] = " ".join(fields)
+    refused = defect != "none" or factor is None or not rows
+    return "\n".join(lines) + "\n", "ecsv" if ecsv else "txt", None if refused else a
+
+
+@settings(suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+          max_examples=60)
+@given(table=acoeff_tables())
+def test_amatrix_readers_agree(tmp_path, table):
+    """calibrate's and diagnose's readers take an a-matrix table alike: both refuse it,
+    naming the file, or both return its a_ij per electron (units converted)."""
+    from lsst_bfdrift.diagnosis.effects_fit import load_input
+    from lsst_bfdrift.ptc.inputs import read_calibration_input
+    text, suffix, expected = table
+    path = tmp_path / f"t_{abs(hash(text)) % 10**8}.{suffix}"
+    path.write_text(text)
+    got = []
+    for read in (lambda p: read_calibration_input(p).acoeff_table(), lambda p: load_input(p)):
+        try:
+            t = read(str(path))
+        except ERRORS as exc:
+            assert str(path) in str(exc), str(exc)
+            got.append(None)
+            continue
+        got.append((t.a, t.sigma))
+    assert path.read_text() == text  # the input untouched
+    if expected is None:
+        assert got == [None, None]
+        event("refused")
+        return
+    event(f"read, lags 0..{expected.shape[0] - 1}")
+    for a, sigma in got:
+        np.testing.assert_allclose(a, expected, rtol=1e-12)
+        np.testing.assert_allclose(sigma, 1e-8, rtol=1e-12)
+
+
+@st.composite
+def flat_sets(draw):
+    """Flat sets as a user may bring them (issue 44): pairs at 3 to 7 levels, a pair
+    perhaps a file and its copy, levels at EXPTIME zero or negative, a pair of
+    constant (saturated) images."""
+    n = draw(st.integers(3, 7))
+    return {"n": n, "seed": draw(st.integers(0, 2**16)),
+            "copy": draw(st.one_of(st.none(), st.integers(0, n - 1))),
+            "zero": draw(st.lists(st.integers(0, n - 1), max_size=2, unique=True)),
+            "exptime0": draw(st.sampled_from([0.0, -1.0])),
+            "constant": draw(st.one_of(st.none(), st.integers(0, n - 1)))}
+
+
+def _write_flat_set(directory, spec):
+    rng = np.random.default_rng(spec["seed"])
+    pairs = []
+    for k in range(spec["n"]):
+        t = spec["exptime0"] if k in spec["zero"] else float(k + 1)
+        pair = []
+        for half in "ab":
+            path = os.path.join(directory, f"flat_{k}{half}.fits")
+            if half == "b" and k == spec["copy"]:
+                with open(pair[0], "rb") as src, open(path, "wb") as dst:
+                    dst.write(src.read())
+            else:
+                img = (np.full((32, 32), 65535.0) if k == spec["constant"]
+                       else rng.poisson(500.0 * 2**k, (32, 32)))
+                fits.PrimaryHDU(img.astype(np.float32),
+                                header=fits.Header({"EXPTIME": t, "BUNIT": "adu"})).writeto(path)
+            pair.append(path)
+        pairs.append(pair)
+    return pairs
+
+
+@settings(suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+          max_examples=25)
+@given(spec=flat_sets())
+def test_flat_reader_on_copied_and_zero_exposure_files(tmp_path, spec):
+    """Every file the reader leaves out is named with its reason (a copy as one
+    exposure twice, EXPTIME <= 0 as not a flat, constant images as such), no pair of
+    two exposures is dropped as past a turn-off, and the files are untouched; or a
+    refusal names the files."""
+    import hashlib
+    import tempfile
+
+    from lsst_bfdrift.ptc.inputs import read_calibration_input
+    d = tempfile.mkdtemp(dir=tmp_path)
+    pairs = _write_flat_set(d, spec)
+    paths = [p for pair in pairs for p in pair]
+
+    def digest():
+        out = []
+        for p in paths:
+            with open(p, "rb") as fh:
+                out.append(hashlib.sha256(fh.read()).hexdigest())
+        return out
+    before = digest()
+    try:
+        data = read_calibration_input(paths, max_lag=1, min_pixels=200, min_levels=2)
+    except ERRORS as exc:
+        assert d in str(exc) or any(p in str(exc) for p in paths), str(exc)
+        event("refused")
+        return
+    finally:
+        assert digest() == before
+    event(f"{data.n_levels} levels")
+    reasons = {tuple(p["files"]): p["reason"] for p in data.pairs_dropped}
+    used = [tuple(p["files"]) for p in data.pairs_used]
+    for k, pair in enumerate(pairs):
+        if k in spec["zero"]:
+            assert all("is not positive (a bias or dark" in reasons[(f,)] for f in pair)
+        elif k == spec["constant"]:
+            assert "both images are constant" in reasons[tuple(pair)]
+        elif k == spec["copy"]:
+            assert reasons[tuple(pair)].startswith("the two images are one exposure")
+        else:  # two exposures below any saturation: used
+            assert tuple(pair) in used, reasons
+    assert data.n_levels == len(used)
 
 
 _VALUES = st.sampled_from(["0", "-1", "nan", "inf", "2.5", "1e40", "abc"])

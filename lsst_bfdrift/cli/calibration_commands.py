@@ -31,7 +31,8 @@ from lsst_bfdrift.diagnosis.effects_fit import diagnose, load_input
 from lsst_bfdrift.diagnosis.report import (notable_not_excluded, template_change_lines,
                                            write_report)
 from lsst_bfdrift.ptc import covariances as ptc
-from lsst_bfdrift.ptc.inputs import read_calibration_input
+from lsst_bfdrift.ptc.data import describe_paths
+from lsst_bfdrift.ptc.inputs import read_calibration_input, read_ptc_file
 from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
 from lsst_bfdrift.utils.io import data_files
 
@@ -45,9 +46,20 @@ PTC_MAX_LAG = 3
 
 
 def _dropped_text(dropped):
-    """One line per dropped pair or file: which and why."""
-    return "; ".join(f"{', '.join(os.path.basename(f) for f in d.get('files', []))} "
-                     f"({d['reason']})" if d.get("files") else d["reason"] for d in dropped)
+    """One entry per dropped pair or file (which and why); PTC points grouped by reason."""
+    parts, points = [], {}
+    for d in dropped:
+        if d.get("files"):
+            parts.append(f"{', '.join(os.path.basename(f) for f in d['files'])} "
+                         f"({d['reason']})")
+        elif "mu" in d:
+            points.setdefault(d["reason"], []).append(d["mu"])
+        else:
+            parts.append(d["reason"])
+    for reason, mu in points.items():
+        at = f"mean {mu[0]:.6g}" if len(mu) == 1 else f"means {min(mu):.6g}..{max(mu):.6g}"
+        parts.append(f"{len(mu)} point(s) at {at} ({reason})")
+    return "; ".join(parts)
 
 
 def _print_calibration(args, res, joint, data, table):
@@ -260,26 +272,33 @@ def cmd_ptc(args):
     if len(files) == 1 and os.path.isdir(files[0]):  # its FITS flats, never a .tmp-* leftover
         files = data_files(files[0], (".fits", ".fit", ".fits.gz"))
     if len(files) == 1 and not files[0].lower().endswith((".fits", ".fit", ".fits.gz")):
-        mu, var = ptc.read_ptc_text(files[0])
-        fit = ptc.fit_ptc_exponential(mu, var)
+        # the reader of `bfdrift calibrate`: the turn-off cut, each dropped point's reason,
+        # and as many points as the exponential fit needs
+        data = read_ptc_file(files[0], min_levels=ptc.MIN_PTC_POINTS)
+        fit = _named_fit(files[0], ptc.fit_ptc_exponential, data.mu, data.var, mu_max=None)
         out = {"input": files[0], "model": "exponential C00 (Astier et al. 2019 eq. 16)",
                "gain": fit["gain"], "gain_err": fit["gain_err"], "a00": fit["a00"],
                "a00_err": fit["a00_err"], "noise_e2": fit["noise"],
                "noise_e2_err": fit["noise_err"], "npoints": fit["npoints"],
-               "mu_max": fit["mu_max"], "chi2": fit["chi2"], "dof": fit["dof"]}
+               "mu_max": fit["mu_max"], "chi2": fit["chi2"], "dof": fit["dof"],
+               "points_dropped": data.summary()["pairs_dropped"], "notes": data.notes}
         for k in ("a01", "a10", "a11"):
             out[k] = out[k + "_err"] = None  # a variance-only PTC does not constrain them
     else:
         if args.max_lag < 1:
             raise InputError(f"--max-lag must be >= 1 for FITS flats (the model's a01 and a10 "
                              f"need lag 1), got {args.max_lag}")
-        # the reader of `bfdrift calibrate`: pairs by EXPTIME, masks, turn-off
-        data = read_calibration_input(files, max_lag=args.max_lag)
+        # the reader of `bfdrift calibrate`: pairs by EXPTIME, masks, turn-off; as many
+        # levels as the full covariance model needs, or a refusal naming the files and
+        # why each dropped pair was dropped
+        data = read_calibration_input(files, max_lag=args.max_lag,
+                                      min_levels=ptc.MIN_COVARIANCE_LEVELS)
         if data.kind != "flats":
             raise InputError(f"{files[0]}: a {data.kind} input; bfdrift ptc takes one PTC text "
                              "file or FITS flat pairs")
         table = {"mu": data.mu, "cov": data.cov, "npix": data.npix}
-        fit = ptc.fit_covariance_model(table["mu"], table["cov"], npix=table["npix"])
+        fit = _named_fit(describe_paths(files), ptc.fit_covariance_model, table["mu"],
+                         table["cov"], npix=table["npix"])
         out = {"input": files, "model": "full covariance model (Astier et al. 2019 eq. 20)",
                "gain": fit["gain"], "gain_err": fit["gain_err"], "npairs": int(data.mu.size),
                "chi2": fit["chi2"], "dof": fit["dof"], "units": data.units,
@@ -292,10 +311,21 @@ def cmd_ptc(args):
         out["a"] = fit["a"].tolist()
         if not args.json:
             out = dict(out, pairs_used=f"{len(out['pairs_used'])} pair(s) at "
-                       f"{data.n_levels} level(s)",
-                       pairs_dropped=_dropped_text(out["pairs_dropped"]) or "none",
-                       notes="; ".join(out["notes"]) or "none")
+                       f"{data.n_levels} level(s)")
+    if not args.json:
+        key = "pairs_dropped" if "pairs_dropped" in out else "points_dropped"
+        out = dict(out, **{key: _dropped_text(out[key]) or "none"},
+                   notes="; ".join(out["notes"]) or "none")
     return emit(out, args.json, 14)
+
+
+def _named_fit(where, fit, *args, **kwargs):
+    """``fit(*args, **kwargs)``, its refusal naming the input ``where``."""
+    try:
+        return fit(*args, **kwargs)
+    except InputError as err:
+        msg = str(err)
+        raise InputError(msg if msg.startswith(where) else f"{where}: {msg}") from None
 
 
 def cmd_diagnose(args):

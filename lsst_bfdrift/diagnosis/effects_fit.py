@@ -47,6 +47,7 @@ change the choice of effects. Pairs above the turn-off are left out of the
 fit and listed.
 """
 
+import math
 import os
 
 import numpy as np
@@ -58,8 +59,8 @@ from lsst_bfdrift.diagnosis.findings import assess_observables, credit_findings
 from lsst_bfdrift.ptc.observables import exposure_line, pair_mean_errors
 from lsst_bfdrift.diagnosis.observations import (Observations, edge_signature,
                                                  observations_from_pairs)
-from lsst_bfdrift.ptc.acoeffs import read_acoeff_table
 from lsst_bfdrift.ptc.covariances import covariance_model, fit_ptc_exponential, read_ptc_text
+from lsst_bfdrift.ptc.inputs import detect_input_kind, read_amatrix_file
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.utils.io import data_files
 from lsst_bfdrift.simulation.effects import effect_library, EFFECT_NAMES
@@ -112,6 +113,14 @@ class _Problem:
         if basis.max_lag < obs.max_lag:
             raise InputError(f"basis has lags <= {basis.max_lag}, data {obs.max_lag}")
         self.names = list(basis.names)
+        if obs.kind == "table" and self.y.size <= len(self.names):
+            k = len(self.names)
+            need = math.ceil(math.sqrt(k + 2)) - 1  # (L + 1)^2 lags, a00 perhaps left out
+            raise InputError(
+                f"{getattr(obs, 'source', 'the a_ij table')}: {self.y.size} lag(s) in chi2 "
+                f"(lags 0..{obs.max_lag}), no more than the {k} free parameters of the base "
+                f"model ({', '.join(self.names)}): nothing is left to diagnose; accepted: a "
+                f"table with more lags than parameters (lags 0..{need} or more)")
         self.x0 = np.array([basis.x0[n] for n in self.names])
         self.scale = np.array([max(basis.errors[n], 1e-6 * max(abs(basis.x0[n]), 1.0))
                                for n in self.names])
@@ -603,15 +612,19 @@ def load_input(path, *, max_lag=3):
 
     A directory's FITS files (``*.fits``, ``*.fit``, ``*.fits.gz``), sorted by
     name, form consecutive pairs; temporary files (``.tmp-*``, see
-    :func:`~lsst_bfdrift.utils.io.data_files`) are ignored. A text file with 4
-    numeric columns is an a_ij table
-    (:func:`~lsst_bfdrift.ptc.acoeffs.read_acoeff_table`), with 2
-    columns a PTC (:func:`~lsst_bfdrift.ptc.covariances.read_ptc_text`).
+    :func:`~lsst_bfdrift.utils.io.data_files`) are ignored. A file's kind is
+    found as ``bfdrift calibrate`` finds it
+    (:func:`~lsst_bfdrift.ptc.inputs.detect_input_kind`): an a_ij table (text
+    ``i j value sigma`` or ECSV with its units checked) is read by
+    :func:`~lsst_bfdrift.ptc.inputs.read_amatrix_file`, a two-column PTC by
+    :func:`~lsst_bfdrift.ptc.covariances.read_ptc_text`; FITS files are
+    refused (flats go in a directory).
 
     Returns
     -------
     Observations
     """
+    path = os.fspath(path)
     if os.path.isdir(path):
         full = data_files(path, (".fits", ".fit", ".fits.gz"))  # never a .tmp-* leftover
         if len(full) < 8 or len(full) % 2:
@@ -620,20 +633,16 @@ def load_input(path, *, max_lag=3):
         return observations_from_pairs(list(zip(full[::2], full[1::2])), max_lag=max_lag)
     if not os.path.isfile(path):
         raise InputError(f"{path}: no such file or directory")
-    ncol = None
-    with open(path) as fh:
-        for line in fh:
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            try:
-                ncol = len([float(v) for v in s.replace(",", " ").split()])
-                break
-            except ValueError:
-                continue  # header
-    if ncol == 4:
-        return Observations.from_table(read_acoeff_table(path))
-    if ncol == 2:
+    kind = detect_input_kind(path)  # the one reader of calibrate: units, orientation
+    if kind == "amatrix":
+        return Observations.from_table(read_amatrix_file(path).acoeff_table())
+    if kind == "ptc":
         mu, var = read_ptc_text(path)
-        return Observations.from_ptc(mu, var)
-    raise InputError(f"{path}: not an a_ij table (4 columns) or a PTC (2 columns)")
+        try:
+            return Observations.from_ptc(mu, var)
+        except InputError as err:
+            raise InputError(f"{path}: {err}") from None
+    what = "a flat" if kind == "flats" else "a cp_pipe PTC dataset"
+    raise InputError(f"{path}: a FITS file ({what}); diagnose takes an a_ij table (text i j "
+                     "value sigma, or ECSV), a PTC text file (mean, variance) or a directory "
+                     "of flat pairs")

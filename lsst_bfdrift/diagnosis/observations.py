@@ -13,7 +13,8 @@ import numpy as np
 from scipy import stats
 
 from lsst_bfdrift.ptc.observables import lag_error_factors, pair_observables, turnoff_cut
-from lsst_bfdrift.ptc.covariances import edge_border, pair_covariances, read_flat_pair
+from lsst_bfdrift.ptc.covariances import (edge_border, identical_flats, pair_covariances,
+                                          read_flat_pair)
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["Observations", "pair_statistics", "edge_profile", "edge_signature",
@@ -148,7 +149,8 @@ class Observations:
     def from_table(cls, table):
         """From an :class:`~lsst_bfdrift.ptc.acoeffs.AcoeffTable`."""
         return cls("table", a=table.a, sigma=table.sigma, mask=table.mask(),
-                   max_lag=table.max_lag, note=table.axis_note)
+                   max_lag=table.max_lag, note=table.axis_note,
+                   source=table.source or "the a_ij table")
 
     @classmethod
     def from_ptc(cls, mu, var):
@@ -158,12 +160,19 @@ class Observations:
         if mu.shape != var.shape or mu.ndim != 1:
             raise InputError("PTC mean and variance must be 1-d arrays of equal length")
         good = np.isfinite(mu) & np.isfinite(var) & (mu > 0) & (var > 0)
+        nbad = int(mu.size - good.sum())
         turnoff = None
         if good.any():  # saturation cut (ptc_turnoff, 5 % drop), the points left out listed
             keep, turnoff = turnoff_cut(mu[good], var[good])
             good[np.flatnonzero(good)[~keep]] = False
         if good.sum() < 6:
-            raise InputError(f"need at least 6 valid PTC points, got {good.sum()}")
+            why = [f"{nbad} not finite and positive"] if nbad else []
+            if turnoff is not None and turnoff["excluded"]:
+                why.append(f"{len(turnoff['excluded'])} past the turn-off at "
+                           f"{turnoff['break_level']:.6g} ADU (the variance falls more than "
+                           f"{turnoff['drop']:.0%} below its running maximum: saturation)")
+            raise InputError(f"need at least 6 valid PTC points, got {int(good.sum())} of "
+                             f"{mu.size}" + (f" ({'; '.join(why)})" if why else ""))
         o = np.argsort(mu[good])
         return cls("ptc", mu=mu[good][o], var=var[good][o], max_lag=0, turnoff=turnoff,
                    note=f"{good.sum()} points below the turn-off; errors unknown: "
@@ -251,6 +260,14 @@ def observations_from_pairs(pairs, *, max_lag=3, border=None, exptimes=None):
         :func:`~lsst_bfdrift.ptc.observables.pair_observables`),
         ``exptime`` (s, or None with ``exptime_note`` saying why) and
         ``turnoff`` (the pairs above the turn-off, left out).
+
+    Raises
+    ------
+    InputError
+        A pair of different shapes or ``EXPTIME``, or one exposure twice
+        (:func:`~lsst_bfdrift.ptc.covariances.identical_flats`: zero
+        difference variance, e.g. a copied file), naming both files; two
+        constant images are left to the turn-off (saturation).
     """
     pairs = list(pairs)
     if exptimes is not None:
@@ -260,8 +277,16 @@ def observations_from_pairs(pairs, *, max_lag=3, border=None, exptimes=None):
                              f"{len(pairs)} pairs, got {exptimes.tolist()!r}")
     rows = []
     for k, (f1, f2) in enumerate(pairs):
+        names = [str(f) if isinstance(f, (str, bytes)) or hasattr(f, "__fspath__") else None
+                 for f in (f1, f2)]
         # same shape and EXPTIME, or an error naming both
         f1, f2, t = read_flat_pair(f1, f2, with_exptime=True)
+        same = identical_flats(f1, f2)
+        if same is not None and same[0] == "copies":  # constant (saturated): the turn-off's
+            what = (f"flat pair {names[0]} and {names[1]}" if None not in names
+                    else f"flat pair {k} (arrays)")
+            raise InputError(f"{what}: {same[1]}; replace one of them by another exposure at "
+                             "its level, or leave the pair out")
         pc = _pair_covariance(f1, f2, max_lag, border)
         rows.append((pc.mu, pc.cov, pc.static, pc.npix) + edge_profile(f1, f2, border=border)
                     + (t if exptimes is None else float(exptimes[k]),

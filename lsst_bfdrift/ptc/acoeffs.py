@@ -23,6 +23,7 @@ import math
 import numpy as np
 
 from lsst_bfdrift.utils.errors import InputError
+from lsst_bfdrift.utils.io import read_text_rows
 
 __all__ = ["AcoeffTable", "read_acoeff_table", "assign_axes", "sum_rule_check",
            "lag_radius", "acoeff_square", "lag_weights", "check_consistency", "MAX_TABLE_LAG"]
@@ -137,25 +138,13 @@ def acoeff_square(path, i, j, a, s):
 
 
 def _text_rows(path):
-    rows = []
-    with open(path, encoding="utf-8") as fh:
-        for n, line in enumerate(fh, 1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            parts = s.replace(",", " ").split()
-            try:
-                vals = [float(p) for p in parts]
-            except ValueError:
-                if rows:
-                    raise InputError(f"{path}:{n}: non-numeric row {s!r}; accepted: i j value "
-                                     "sigma") from None
-                continue
-            if len(vals) != 4:
-                raise InputError(f"{path}:{n}: {len(vals)} columns; accepted: 4 (i j value "
-                                 "sigma)")
-            rows.append(vals)
-    d = np.array(rows).reshape(-1, 4)
+    accepted = "rows of i j value sigma (a first line of column names allowed)"
+    rows = read_text_rows(path, accepted=accepted)
+    for n, vals in rows:
+        if len(vals) != 4:
+            raise InputError(f"{path}:{n}: {len(vals)} columns; accepted: 4 (i j value "
+                             "sigma)")
+    d = np.array([vals for _, vals in rows], dtype=float).reshape(-1, 4)
     return d[:, 0], d[:, 1], d[:, 2], d[:, 3]
 
 
@@ -166,7 +155,10 @@ def read_acoeff_table(path, *, orient=True):
     ----------
     path : str
         File name. Rows hold integer lags i, j >= 0, the coefficient (per e)
-        and its 1-sigma error; a first non-numeric line is a header.
+        and its 1-sigma error; lines without any number before the first row
+        are a header, any other line with a field that is not a number is an
+        error naming the line (:func:`~lsst_bfdrift.utils.io.read_text_rows`).
+        A table of a00 alone is accepted (nothing to orient, no sum rule).
     orient : bool, optional
         Establish the axis assignment from the data (:func:`assign_axes`)
         and detect a sum-rule a00 (:func:`sum_rule_check`).
@@ -205,8 +197,13 @@ def assign_axes(table):
     Returns
     -------
     AcoeffTable
-        [serial, parallel] order.
+        [serial, parallel] order; a table of a00 alone as it is (no nearest
+        neighbours to orient it by, said in ``axis_note``).
     """
+    if table.max_lag == 0:
+        return AcoeffTable(table.a, table.sigma, source=table.source,
+                           axis_note="a00 only: no nearest neighbours, nothing to orient",
+                           exclude_a00=table.exclude_a00)
     a01, a10 = table.a[0, 1], table.a[1, 0]
     s = math.hypot(table.sigma[0, 1], table.sigma[1, 0])
     z = abs(a01 - a10) / s
@@ -233,9 +230,13 @@ def sum_rule_check(table, *, nsigma=1.0):
     Returns
     -------
     (bool, str)
-        The verdict and a sentence with the numbers.
+        The verdict and a sentence with the numbers; a table of a00 alone
+        has no other lag to sum: a00 is taken as measured.
     """
     a = table.a
+    if table.max_lag == 0:
+        return False, (f"a00 = {a[0, 0]:.4g} alone: no other lag to check the sum rule "
+                       "with; a00 taken as measured, kept")
     w = np.full(a.shape, 4.0)
     w[0, :] = 2.0
     w[:, 0] = 2.0

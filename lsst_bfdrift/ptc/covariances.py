@@ -19,7 +19,7 @@ Conventions
   + 1/6 (2 a*a*a + 5 a*ab)(mu g)^3] + n / g^2.
 """
 
-import warnings
+import os
 
 import numpy as np
 from astropy.table import Table
@@ -29,16 +29,23 @@ from scipy.optimize import least_squares
 from scipy.signal import convolve2d
 from lsst_bfdrift.images.exposure import read_image
 from lsst_bfdrift.utils.errors import FitError, InputError, InputFileError
-from lsst_bfdrift.utils.io import open_fits
+from lsst_bfdrift.utils.io import open_fits, read_text_rows
 
 __all__ = ["PairCovariance", "pair_covariances", "measure_ptc", "ptc_exponential_model",
            "fit_ptc_exponential", "ptc_turnoff", "covariance_model", "fit_covariance_model",
-           "read_ptc_text", "read_flat_pair", "count_levels", "MIN_LEVELS", "SIGNAL_RANGE",
+           "read_ptc_text", "read_flat_pair", "count_levels", "MIN_LEVELS", "MIN_PTC_POINTS",
+           "MIN_COVARIANCE_LEVELS", "SIGNAL_RANGE",
            "EDGE_BORDER", "edge_border", "edge_mask", "least_squares_line",
-           "convolve_lags"]
+           "convolve_lags", "identical_flats"]
 
 #: Fewest distinct signal levels of any PTC fit.
 MIN_LEVELS = 3
+
+#: Fewest valid points of the exponential PTC fit (:func:`fit_ptc_exponential`).
+MIN_PTC_POINTS = 4
+
+#: Fewest signal levels of the full covariance model fit (:func:`fit_covariance_model`).
+MIN_COVARIANCE_LEVELS = 5
 
 #: Signals (ADU or e) a PTC point may have: beyond, the fit's arithmetic fails
 #: (LAPACK's SVD at ~1e-300, overflow at ~1e150) long before any real sensor.
@@ -196,6 +203,57 @@ def _clip_mask(diff, mask, nsig, iters=3):
             break
         mask = new
     return mask
+
+
+def identical_flats(flat1, flat2, *, mask=None, rtol=1e-9):
+    """Whether a flat pair has no difference variance, and why.
+
+    Two exposures always differ by their shot noise; a pair whose
+    difference (the second flat scaled to the first's mean, as in
+    :func:`pair_covariances`) is zero over the valid pixels carries no
+    photon transfer information. Its zero variance would otherwise read as
+    saturation (:func:`ptc_turnoff`) and drop every brighter pair: readers
+    check this first.
+
+    Parameters
+    ----------
+    flat1, flat2 : array_like, 2-d, of one shape
+    mask : array_like of bool, optional
+        True for bad pixels (NaN/inf are left out too).
+    rtol : float, optional
+        A difference whose standard deviation is below ``rtol`` times the
+        mean signal is zero.
+
+    Returns
+    -------
+    None or (str, str)
+        None when the difference has a variance (or the pair cannot be
+        judged: no valid pixel, a mean not positive); else the kind,
+        ``'constant'`` (both images one value: saturated, or not flats) or
+        ``'copies'`` (one exposure twice, e.g. a copied file), and a
+        sentence saying so.
+    """
+    a = np.asarray(flat1, dtype=np.float64)
+    b = np.asarray(flat2, dtype=np.float64)
+    if a.shape != b.shape:
+        return None
+    good = np.isfinite(a) & np.isfinite(b)
+    if mask is not None:
+        good &= ~np.asarray(mask, dtype=bool)
+    if not good.any():
+        return None
+    a, b = a[good], b[good]
+    mu1, mu2 = a.mean(), b.mean()
+    if not (mu1 > 0 and mu2 > 0):
+        return None
+    if np.std(a - b * (mu1 / mu2)) > rtol * mu1:
+        return None
+    if np.std(a) <= rtol * mu1 and np.std(b) <= rtol * mu2:
+        return "constant", (f"both images are constant ({mu1:.6g} and {mu2:.6g}: zero "
+                            "difference variance): saturation, or not flats")
+    return "copies", ("the two images are one exposure (identical pixel for pixel after "
+                      "scaling to one mean: zero difference variance), e.g. a copied file; a "
+                      "pair needs two exposures")
 
 
 def pair_covariances(flat1, flat2, *, max_lag=8, mask=None, nsig=5.0, min_pixels=1000,
@@ -462,8 +520,9 @@ def fit_ptc_exponential(mu, var, *, sigma=None, mu_max="auto", p0=None):
         mu_max = ptc_turnoff(mu[good], var[good])
     if mu_max is not None:
         good &= mu <= mu_max
-    if good.sum() < 4:
-        raise InputError(f"need at least 4 valid PTC points, got {int(good.sum())}")
+    if good.sum() < MIN_PTC_POINTS:
+        raise InputError(f"need at least {MIN_PTC_POINTS} valid PTC points, got "
+                         f"{int(good.sum())}")
     order = np.argsort(mu[good])
     m, v = mu[good][order], var[good][order]
     _check_points(m, v)
@@ -616,8 +675,8 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
     if mu_max is not None:
         good &= mu <= mu_max
     m, c = mu[good], cov[good]
-    if m.size < 5:
-        raise InputError(f"need at least 5 signal levels, got {m.size}")
+    if m.size < MIN_COVARIANCE_LEVELS:
+        raise InputError(f"need at least {MIN_COVARIANCE_LEVELS} signal levels, got {m.size}")
     known = sigma is not None or npix is not None
     if sigma is not None:
         s = np.asarray(sigma, float)[good][:, :L + 1, :L + 1]
@@ -685,18 +744,39 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
 
 
 def read_ptc_text(path):
-    """Read a two-column PTC text file (mean ADU, variance ADU^2; '#' comments)."""
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
-            data = np.loadtxt(path, comments="#", ndmin=2)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise InputFileError(f"cannot read PTC text ({exc}); accepted: two numeric columns "
-                             "(mean ADU, variance ADU^2), '#' comments", path) from exc
-    if data.shape[0] == 0:
-        raise InputFileError("no PTC rows; accepted: two numeric columns (mean ADU, "
-                             "variance ADU^2)", path)
-    if data.shape[1] < 2:
-        raise InputError(f"{path}: expected two columns (mean, variance)")
-    order = np.argsort(data[:, 0])
+    """Read a two-column PTC text file (mean ADU, variance ADU^2).
+
+    Blank lines, ``#`` comments and header lines (no number in them, before
+    the first row) are skipped (:func:`~lsst_bfdrift.utils.io.read_text_rows`).
+    Every row holds exactly two numbers: a third column (an error of the
+    variance, a pair count, ...) is refused rather than dropped unread.
+
+    Parameters
+    ----------
+    path : str or path-like
+
+    Returns
+    -------
+    mu, var : ndarray
+        Means and variances, sorted by mean.
+
+    Raises
+    ------
+    InputFileError
+        A malformed row, a row of another width, or no rows, naming the file
+        (and the line).
+    """
+    path = os.fspath(path)
+    accepted = "two numeric columns (mean ADU, variance ADU^2) per line, '#' comments"
+    rows = read_text_rows(path, accepted=accepted)
+    if not rows:
+        raise InputFileError(f"no PTC rows; accepted: {accepted}", path)
+    for n, vals in rows:
+        if len(vals) != 2:
+            extra = (" (a third column, e.g. an error of the variance, is not read by any "
+                     "PTC fit here: remove it)" if len(vals) > 2 else "")
+            raise InputFileError(f"{path}:{n}: {len(vals)} column(s); accepted: {accepted}"
+                                 + extra, path)
+    data = np.array([vals for _, vals in rows], dtype=float)
+    order = np.argsort(data[:, 0], kind="stable")
     return data[order, 0], data[order, 1]

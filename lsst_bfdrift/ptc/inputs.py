@@ -26,14 +26,22 @@ Input kinds
     (:func:`~lsst_bfdrift.ptc.covariances.ptc_turnoff`: saturation, the
     variance falls more than ``turnoff_drop`` below its running maximum) are
     dropped and reported; at least ``min_levels`` distinct levels must remain.
+    A pair whose difference has no variance
+    (:func:`~lsst_bfdrift.ptc.covariances.identical_flats`) is judged before
+    the turn-off is sought: one exposure twice (e.g. a copied file) is
+    excluded and reported as such, never read as saturation; two constant
+    images are past the turn-off (saturation) when brighter than every
+    other pair, else excluded and reported.
 ``'ptc'`` -- a PTC text file (:func:`read_ptc_file`)
     The eotest two-column format (mean ADU, variance ADU^2 per line, ``#``
-    comments; read by :func:`~lsst_bfdrift.ptc.covariances.read_ptc_text`).
+    comments; read by :func:`~lsst_bfdrift.ptc.covariances.read_ptc_text`;
+    a third column is refused, not dropped unread).
     Points past the turn-off are dropped and reported as for flats.
 ``'amatrix'`` -- a table of area coefficients a_ij (:func:`read_amatrix_file`)
-    Either the text format ``i j value sigma`` (one lag per line, one header
-    line allowed; the file does not declare which axis is serial, so it is
-    oriented from the data by
+    Either the text format ``i j value sigma`` (one lag per line, header
+    lines without numbers allowed, a row with a field that is not a number
+    refused naming its line; a00 alone is accepted; the file does not
+    declare which axis is serial, so it is oriented from the data by
     :func:`~lsst_bfdrift.ptc.acoeffs.read_acoeff_table`, as
     everywhere in the package), or an ECSV table (``# %ECSV`` first line)
     with integer columns ``i`` (serial lag), ``j`` (parallel lag) and float
@@ -63,10 +71,11 @@ from lsst_bfdrift.ptc.acoeffs import (AcoeffTable, acoeff_square, assign_axes, r
                                       sum_rule_check)
 from lsst_bfdrift.ptc.cp_pipe import read_cp_pipe_ptc
 from lsst_bfdrift.ptc.data import INPUT_KINDS, CalibrationData, describe_paths, require_levels
-from lsst_bfdrift.ptc.covariances import pair_covariances, ptc_turnoff, read_ptc_text
+from lsst_bfdrift.ptc.covariances import (identical_flats, pair_covariances, ptc_turnoff,
+                                          read_ptc_text)
 from lsst_bfdrift.images.electrons import image_unit
 from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
-from lsst_bfdrift.utils.io import hdu_pixels, open_fits
+from lsst_bfdrift.utils.io import hdu_pixels, open_fits, read_text_rows
 
 __all__ = ["detect_input_kind", "read_calibration_input", "read_flat_pairs", "read_ptc_file",
            "read_amatrix_file"]
@@ -79,28 +88,29 @@ def _is_fits(path):
         return fh.read(9) == b"SIMPLE  ="
 
 
+#: What a text input may be, for the messages of the readers.
+_TEXT_KINDS = ("a PTC (2 columns: mean ADU, variance ADU^2), an a-matrix (4 columns: i j value "
+               "sigma) or an ECSV a-matrix (# %ECSV) with columns i, j, a, a_err")
+
+
 def _first_data_row(path):
-    """(first line, number of numeric fields of the first numeric line)."""
+    """(first line, number of numeric fields of the first row of numbers).
+
+    Header lines (no number in them) are skipped; a row mixing numbers and
+    other fields is an error naming its line
+    (:func:`~lsst_bfdrift.utils.io.read_text_rows`), never a header.
+    """
     try:
         with open(path, encoding="utf-8") as fh:
-            first = None
-            for line in fh:
-                s = line.strip()
-                if first is None and s:
-                    first = s
-                if not s or s.startswith("#"):
-                    continue
-                parts = s.replace(",", " ").split()
-                try:
-                    [float(p) for p in parts]
-                except ValueError:
-                    continue  # a header line
-                return first, len(parts)
+            first = next((s for s in (line.strip() for line in fh) if s), None)
     except UnicodeDecodeError:
         raise InputError(f"{path}: neither FITS nor text; accepted inputs are FITS flats, a "
                          "cp_pipe PTC dataset FITS, a PTC text file (mean, variance) or an "
                          "a-matrix table (text 'i j value sigma' or ECSV)") from None
-    return first, 0
+    if first is not None and first.startswith("# %ECSV"):
+        return first, 0
+    rows = read_text_rows(path, accepted=_TEXT_KINDS, limit=1)
+    return first, (len(rows[0][1]) if rows else 0)
 
 
 def detect_input_kind(path):
@@ -369,10 +379,24 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
     files = describe_paths(paths)
     require_levels(len({k for k, _, _ in pairs}), min_levels, "with a pair of flats", files,
                     dropped)
-    rows = []
+    rows, constant, ncopies = [], [], 0
     for _, f1, f2 in pairs:
         d1, m1, g1, n1 = _flat_pixels(f1)
         d2, m2, g2, n2 = _flat_pixels(f2)
+        # a zero difference variance is judged before the turn-off: it is not a fall of
+        # the variance, and must not drop every brighter pair as past a turn-off
+        same = identical_flats(d1, d2, mask=m1 | m2)
+        entry = {"files": [f1["path"], f2["path"]],
+                 "exptime": 0.5 * (f1["exptime"] + f2["exptime"])}
+        if same is not None and same[0] == "copies":
+            ncopies += 1
+            dropped.append(entry | {"reason": f"{same[1]}; pair excluded"})
+            continue
+        if same is not None:  # both constant: saturation if brighter than every other pair
+            good = ~(m1 | m2)
+            constant.append(entry | {"mu": 0.5 * float(d1[good].mean() + d2[good].mean()),
+                                     "var": 0.0, "reason": same[1]})
+            continue
         try:
             pc = pair_covariances(d1, d2, max_lag=max_lag, mask=m1 | m2, nsig=nsig,
                                   min_pixels=min_pixels)
@@ -385,10 +409,16 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
                      "mask_pixels": g1 + g2, "nmasked": pc.nmasked, "_pc": pc})
         if n1 + n2:
             notes.append(f"{f1['path']}, {f2['path']}: {n1 + n2} NaN/inf pixel(s) masked")
+    if ncopies:
+        notes.append(f"{ncopies} pair(s) of one exposure twice (zero difference variance) "
+                     "excluded: see the dropped pairs")
     rows.sort(key=lambda r: r["mu"])
     mu = np.array([r["mu"] for r in rows])
     var = np.array([r["var"] for r in rows])
     turnoff = ptc_turnoff(mu, var, drop=turnoff_drop)
+    top = float(mu.max()) if mu.size else -np.inf
+    if any(c["mu"] > top for c in constant):  # saturated: the turn-off is below them
+        turnoff = min(turnoff, top)
     used = []
     for r in rows:
         if r["mu"] > turnoff:
@@ -399,6 +429,14 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
                                         "saturation)"})
         else:
             used.append(r)
+    for c in constant:
+        if c["mu"] > top:
+            c["reason"] = (f"past the PTC turn-off at {turnoff:.6g} {first['units']}: "
+                           f"{c['reason']}")
+        else:
+            c["reason"] = (f"{c['reason']}; below brighter pairs, so not saturation: pair "
+                           "excluded")
+        dropped.append(c)
     nlev = len(_group_levels([{"exptime": r["exptime"]} for r in used], exptime_rtol))
     require_levels(nlev, min_levels, "remain below the PTC turn-off", files, dropped)
     units = first["units"]

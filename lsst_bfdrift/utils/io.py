@@ -1,4 +1,5 @@
-"""File helpers shared by the package: atomic output, the overwrite rule, FITS input."""
+"""File helpers shared by the package: atomic output, the overwrite rule, FITS input,
+text tables of numbers."""
 
 import contextlib
 import json
@@ -16,7 +17,7 @@ from lsst_bfdrift.utils.errors import (InputFileError, InputNotFoundError,
 
 __all__ = ["TMP_PREFIX", "STALE_AGE", "is_temporary", "temporary_owner", "is_stale_temporary",
            "remove_stale_temporaries", "data_files", "check_output", "atomic_output",
-           "write_text", "write_json", "open_fits", "hdu_pixels", "data_path"]
+           "write_text", "write_json", "open_fits", "hdu_pixels", "data_path", "read_text_rows"]
 
 #: Prefix of the temporary files of :func:`atomic_output`; directory readers
 #: ignore files whose name starts with it (:func:`is_temporary`).
@@ -360,6 +361,73 @@ def hdu_pixels(hdu, path, dtype=np.float64):
         raise InputFileError(f"{path}: truncated or corrupt FITS file: HDU {hdu.name or 0!s} "
                              f"announces an image of shape {shape} but its pixels cannot be read "
                              f"({exc}); re-copy or re-write the file", path) from exc
+
+
+def _number(field):
+    try:
+        return float(field)
+    except ValueError:
+        return None
+
+
+def read_text_rows(path, *, accepted, limit=None):
+    """The rows of numbers of a text table, each with its line number.
+
+    Blank lines and lines starting with ``#`` are skipped; fields are
+    separated by white space or commas. Lines before the first row of
+    numbers none of whose fields is a number are a header and skipped. Any
+    other line with a field that is not a number is a malformed row: an
+    error naming the line and the field, not a header (a header has no
+    numbers).
+
+    Parameters
+    ----------
+    path : str or path-like
+    accepted : str
+        What the table may hold, for the messages (e.g. ``'rows of i j value
+        sigma'``).
+    limit : int, optional
+        Stop after this many rows of numbers (e.g. 1 to find the width).
+
+    Returns
+    -------
+    list of (int, list of float)
+        Line number (from 1) and values of each row, in file order.
+
+    Raises
+    ------
+    InputFileError
+        A malformed row, or a file that is not UTF-8 text.
+    """
+    path = os.fspath(path)
+    rows = []
+    try:
+        with open(path, encoding="utf-8") as fh:
+            for n, line in enumerate(fh, 1):
+                s = line.strip()
+                if not s or s.startswith("#"):
+                    continue
+                parts = s.replace(",", " ").split()
+                vals = [_number(p) for p in parts]
+                bad = [k for k, v in enumerate(vals) if v is None]
+                if not bad:
+                    rows.append((n, vals))
+                    if limit is not None and len(rows) >= limit:
+                        break
+                    continue
+                if not rows and len(bad) == len(parts):
+                    continue  # a header line: no number in it
+                k = bad[0]
+                where = ("a line of text among the rows of numbers" if rows else
+                         f"{len(parts) - len(bad)} of its {len(parts)} fields are numbers, so it "
+                         "is a malformed row, not a header")
+                raise InputFileError(f"{path}:{n}: field {k + 1} ({parts[k]!r}) of the row "
+                                     f"{s!r} is not a number ({where}); accepted: {accepted}",
+                                     path)
+    except UnicodeDecodeError:
+        raise InputFileError(f"{path}: not a text file (bytes that are not UTF-8); accepted: "
+                             f"{accepted}", path) from None
+    return rows
 
 
 def data_path(name):

@@ -70,7 +70,8 @@ def test_sum_rule_detects_measured_a00():
     ("0 0 1e-7 0\n0 1 1e-8 1e-9\n1 0 1e-8 1e-9\n1 1 1e-9 1e-9\n", "not positive and finite"),
     ("0 0 1e-7 1e-9\n0 1 1e-8 1e-9\n1 0 1e-8 1e-9\n", "incomplete table"),
     ("0 0 1e-7 1e-9\n0 0 1e-8 1e-9\n", "appears twice"),
-    ("0 0 1e-7 1e-9\nzero one two three\n", "non-numeric row"),
+    ("0 0 1e-7 1e-9\nzero one two three\n", r"bad.txt:2: field 1 \('zero'\) of the row .* "
+                                              "is not a number"),
     ("0.5 0 1e-7 1e-9\n", "non-negative integers"),
     ("# nothing\n", "no a_ij rows"),
 ])

@@ -982,3 +982,64 @@ def test_a_stale_partial_file_in_an_input_directory_is_removed(capsys, tmp_path)
     code, out, err = _run(capsys, "ptc", str(d), "--json")
     assert code == 0, err
     assert "removed 1 stale partial file of killed runs" in err and not stale.exists()
+
+
+def _flat_dir(path, rng, exptimes, *, levels=(2e3, 6e3, 1.2e4, 2.4e4, 4e4, 6e4),
+              constant=()):
+    """Flat pairs (48 x 48, ADU) in ``path``: level k at EXPTIME exptimes[k]; the pairs
+    in ``constant`` are both constant at 65535 (saturated)."""
+    path.mkdir()
+    for k, level in enumerate(levels):
+        for half in "ab":
+            img = (np.full((48, 48), 65535.0) if k in constant
+                   else rng.poisson(level, (48, 48)).astype(np.float32))
+            hdr = fits.Header({"EXPTIME": float(exptimes[k]), "BUNIT": "adu"})
+            fits.PrimaryHDU(img, header=hdr).writeto(path / f"flat_{k}{half}.fits")
+    return str(path)
+
+
+def test_ptc_refusals_name_the_input_and_the_reasons(capsys, tmp_path, rng):
+    """Issue 44 items 7 and 10: too few levels for the fit names the input (the
+    directory and its count, or the file) and why each level was dropped, as
+    calibrate does; a PTC text with a third column is refused, not read in part."""
+    zero = _flat_dir(tmp_path / "zero", rng, [0.0, -1.0, 3.0, 4.0, 5.0, 6.0])
+    code, out, err = _run(capsys, "ptc", zero)
+    assert code == 2 and not out
+    assert err.startswith(f"bfdrift: error: {zero}/ (12 files): 4 distinct signal level(s) "
+                          "with a pair of flats, fewer than min_levels=5")
+    assert "flat_0a.fits: EXPTIME = 0.0 s is not positive (a bias or dark" in err
+    assert "flat_1b.fits: EXPTIME = -1.0 s is not positive" in err
+    sat = _flat_dir(tmp_path / "sat", rng, range(1, 6), levels=(2e3, 6e3, 1.2e4, 2.4e4, 4e4),
+                    constant=(4,))
+    code, _, err = _run(capsys, "ptc", sat)
+    assert code == 2 and f"{sat}/ (10 files): 4 distinct signal level(s) remain below" in err
+    assert "flat_4b.fits: past the PTC turn-off at" in err and "both images are constant" in err
+    for name, text, why in (
+            ("dec.txt", "".join(f"{m} {1e5 / m}\n" for m in (100, 200, 300, 400, 500)),
+             "1 distinct signal level(s) remain below the PTC turn-off, fewer than "
+             "min_levels=4; a photon transfer curve needs at least 4 levels below the "
+             "turn-off; dropped 4 for the same reason (points 1, 2, 3, 4): past the PTC "
+             "turn-off at 100 ADU"),
+            ("two.txt", "100 50\n200 100\n", "2 distinct signal level(s) remain below"),
+            ("three.txt", "".join(f"{m} {m / 2} 1\n" for m in (100, 200, 400, 800, 1600)),
+             "1: 3 column(s); accepted: two numeric columns (mean ADU, variance ADU^2)")):
+        p = tmp_path / name
+        p.write_text(text)
+        code, out, err = _run(capsys, "ptc", str(p))
+        assert code == 2 and not out and f"bfdrift: error: {p}:" in err and why in err, err
+        assert "Traceback" not in err
+
+
+def test_ptc_names_a_pair_of_one_exposure_twice(capsys, tmp_path, rng):
+    """Issue 44 item 9: ``bfdrift ptc`` on flats where one pair is a file and its copy:
+    that pair is excluded and named (the brighter pairs are not dropped as past a
+    turn-off), and the fit uses the other five."""
+    import shutil
+
+    d = _flat_dir(tmp_path / "dup", rng, range(1, 7))
+    shutil.copyfile(tmp_path / "dup" / "flat_2a.fits", tmp_path / "dup" / "flat_2b.fits")
+    code, text, err = _run(capsys, "ptc", d, "--max-lag", "1")
+    assert code == 0, err
+    assert "5 pair(s) at 5 level(s)" in text
+    assert "flat_2a.fits, flat_2b.fits (the two images are one exposure" in text
+    assert "turn-off" not in text

@@ -10,10 +10,12 @@ from the images and :func:`diagnose` runs on them with the whole library.
 
 import json
 import os
+import re
 
 import numpy as np
 import pytest
 from astropy.io import fits
+from numpy.testing import assert_allclose
 
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable
 from lsst_bfdrift.calibration.acoeff_model import LinearBasis
@@ -170,7 +172,7 @@ def test_cli_directory_of_flat_pairs(tmp_path, basis, capsys):
 def test_bad_inputs(tmp_path, basis, capsys):
     p = tmp_path / "three.txt"
     p.write_text("1 2 3\n4 5 6\n")
-    with pytest.raises(ValueError, match="not an a_ij table"):
+    with pytest.raises(ValueError, match=r"three\.txt: text file with 3 numeric columns"):
         load_input(str(p))
     with pytest.raises(ValueError, match="no such file"):
         load_input(str(tmp_path / "missing.txt"))
@@ -186,7 +188,90 @@ def test_bad_inputs(tmp_path, basis, capsys):
     with pytest.raises(ValueError, match="basis has lags"):
         diagnose(Observations.from_table(big), basis)
     assert main(["diagnose", str(p), "--basis", BASIS]) == 2
-    assert "not an a_ij table" in capsys.readouterr().err
+    assert "3 numeric columns" in capsys.readouterr().err
+
+
+def _ecsv(path, a, s, unit):
+    from astropy.table import Table
+    L = a.shape[0] - 1
+    i, j = np.meshgrid(np.arange(L + 1), np.arange(L + 1), indexing="ij")
+    t = Table({"i": i.ravel(), "j": j.ravel(), "a": a.ravel(), "a_err": s.ravel()})
+    if unit is not None:
+        t["a"].unit = t["a_err"].unit = unit
+    t.write(path, format="ascii.ecsv")
+    return str(path)
+
+
+def test_ecsv_tables_are_read_with_their_units(tmp_path, basis, capsys):
+    """Issue 44 item 2: diagnose reads an a-matrix as calibrate does (one reader): an
+    ECSV table's unit is converted (0.001 / electron) or refused (1 / adu, pix) naming
+    the file and what is accepted, never taken as per electron."""
+    import astropy.units as u
+
+    from lsst_bfdrift.ptc.inputs import read_calibration_input
+
+    a, s = basis.a0.copy(), np.full(basis.a0.shape, 2e-9)
+    milli = _ecsv(tmp_path / "milli.ecsv", a * 1e3, s * 1e3, 1 / (1000 * u.electron))
+    obs = load_input(milli)
+    assert_allclose(obs.a, a, rtol=1e-12)
+    assert_allclose(obs.sigma, s, rtol=1e-12)
+    assert_allclose(obs.a, read_calibration_input(milli).acoeff_table().a, rtol=1e-15)
+    for name, unit, text in (("adu", 1 / u.adu, "1 / adu"), ("pix", u.pix, "pix")):
+        bad = _ecsv(tmp_path / f"{name}.ecsv", a, s, unit)
+        with pytest.raises(ValueError, match=re.escape(f"{bad}: column a has unit {text}; "
+                                                       "accepted: per electron")):
+            load_input(bad)
+        assert main(["diagnose", bad, "--basis", BASIS, "--no-template-change"]) == 2
+        err = capsys.readouterr().err
+        assert f"{bad}: column a has unit" in err and "Traceback" not in err
+
+
+def test_a00_alone_is_refused_naming_the_file(tmp_path, basis, capsys):
+    """Issue 44 item 1: a table of a00 alone reaches the diagnosis (no IndexError) and
+    is refused there with the file, the count and what is accepted."""
+    path = tmp_path / "a00.txt"
+    path.write_text("i j a sigma\n0 0 -1.333030e-06 1.334e-07\n")
+    obs = load_input(str(path))
+    assert obs.a.shape == (1, 1)
+    msg = (re.escape(f"{path}: 1 lag(s) in chi2 (lags 0..0), no more than the 4 free "
+                     "parameters of the base model") + r".*accepted: a table with more lags "
+           r"than parameters \(lags 0\.\.2 or more\)")
+    with pytest.raises(ValueError, match=msg):
+        diagnose(obs, basis)
+    assert main(["diagnose", str(path), "--basis", BASIS, "--no-template-change"]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}: 1 lag(s) in chi2" in err and "Traceback" not in err
+
+
+def test_a_pair_of_one_exposure_twice_is_refused(tmp_path, rng):
+    """Issue 44 item 9: a pair of one exposure twice is named (both files), not read
+    as saturation that drops every brighter pair."""
+    import shutil
+
+    for k, level in enumerate((2e3, 6e3, 1.2e4, 2.4e4)):
+        for half in "ab":
+            fits.PrimaryHDU(rng.poisson(level, (48, 48)).astype(np.float32),
+                            header=fits.Header({"EXPTIME": k + 1.0})).writeto(
+                tmp_path / f"flat_{k}{half}.fits")
+    shutil.copyfile(tmp_path / "flat_1a.fits", tmp_path / "flat_1b.fits")
+    with pytest.raises(ValueError, match=re.escape(
+            f"flat pair {tmp_path / 'flat_1a.fits'} and {tmp_path / 'flat_1b.fits'}: the two "
+            "images are one exposure")):
+        load_input(str(tmp_path))
+    img = rng.poisson(500.0, (48, 48)).astype(float)
+    with pytest.raises(ValueError, match=r"flat pair 0 \(arrays\): the two images are one"):
+        observations_from_pairs([(img, img.copy())] * 4)
+
+
+def test_ptc_refusal_names_the_file_and_the_reasons(tmp_path):
+    """Issue 44 item 10 (diagnose's side): too few PTC points names the file and why
+    the others were left out."""
+    dec = tmp_path / "dec.txt"
+    dec.write_text("".join(f"{m} {1e5 / m}\n" for m in (100, 200, 300, 400, 500, 600, 700)))
+    with pytest.raises(ValueError, match=re.escape(
+            f"{dec}: need at least 6 valid PTC points, got 1 of 7 (6 past the turn-off at 100 "
+            "ADU")):
+        load_input(str(dec))
 
 
 def test_cli_itl_table_with_shipped_basis(capsys):

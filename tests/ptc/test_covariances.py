@@ -266,8 +266,25 @@ def test_degenerate_ptc_is_refused(mu, var, match):
 def test_ptc_text_reader_names_the_file(tmp_path):
     p = tmp_path / "bad.txt"
     p.write_text("1 2\nx y\n")
-    with pytest.raises(InputError, match="bad.txt: cannot read PTC text"):
+    with pytest.raises(InputError, match=r"bad.txt:2: field 1 \('x'\) of the row 'x y' is not "
+                                         r"a number \(a line of text among the rows"):
         read_ptc_text(p)
     p.write_text("# nothing\n")
     with pytest.raises(InputError, match="bad.txt: no PTC rows"):
         read_ptc_text(p)
+
+
+def test_ptc_text_with_a_third_column_is_refused(tmp_path):
+    """Issue 44 item 7: a third column (an error of the variance, say) is refused with
+    the file, the line and what is accepted, not dropped without a word; a header
+    line is allowed."""
+    p = tmp_path / "three.txt"
+    p.write_text("".join(f"{m} {m / 2} {m / 100}\n" for m in (100, 200, 400, 800, 1600)))
+    with pytest.raises(InputError, match=r"three\.txt:1: 3 column\(s\); accepted: two numeric "
+                                         r"columns \(mean ADU, variance ADU\^2\).*a third "
+                                         r"column, e\.g\. an error of the variance, is not read"):
+        read_ptc_text(p)
+    p.write_text("mean variance\n200 100\n100 50\n")
+    mu, var = read_ptc_text(p)
+    assert_allclose(mu, [100.0, 200.0])
+    assert_allclose(var, [50.0, 100.0])

@@ -525,3 +525,99 @@ def test_a_refusal_on_many_flats_names_the_directory_and_the_count(tmp_path):
     assert describe_paths(paths[:3]) == ", ".join(paths[:3])
     other = [str(tmp_path / "x.fits")] + paths[:5]
     assert describe_paths(other) == f"{other[0]} ... (6 files in 2 directories)"
+
+
+# --------------------------------------------------------------------------- issue 44
+
+def test_amatrix_of_a00_alone_is_read(tmp_path):
+    """Issue 44 item 1: a table of the a00 row alone (a header and one row) is read,
+    with nothing to orient and no sum rule to check, instead of ending in an
+    IndexError; calibrate's a-matrix is then a00 alone, as from a PTC."""
+    from lsst_bfdrift.calibration.tuning import measured_acoeffs
+    from lsst_bfdrift.ptc.acoeffs import read_acoeff_table
+
+    path = tmp_path / "a00.txt"
+    path.write_text("i j a sigma\n0 0 -1.333030e-06 1.334e-07\n")
+    before = _digest([path])
+    d = read_calibration_input(path)
+    assert d.kind == "amatrix" and d.a.shape == (1, 1) and d.a00_measured is True
+    assert_allclose(d.a, [[-1.333030e-06]], rtol=1e-15)
+    assert_allclose(d.a_sigma, [[1.334e-07]], rtol=1e-15)
+    assert "a00 only: no nearest neighbours, nothing to orient" in d.notes
+    assert any("alone: no other lag to check the sum rule" in n for n in d.notes)
+    table = measured_acoeffs(d)
+    assert table.mask().tolist() == [[True]]
+    t = read_acoeff_table(path)
+    assert_allclose(t.a, d.a, rtol=1e-15)
+    assert not t.exclude_a00
+    assert _digest([path]) == before  # the input is never modified
+
+
+@pytest.mark.parametrize("text, line, field", [
+    ("0 0 -1.333e-06 x\n0 1 1e-7 1e-8\n1 0 5e-8 1e-8\n1 1 2e-8 1e-8\n", 1, "4 ('x')"),
+    ("i j a sigma\n0 0 -1.333e-06 1e-7\n0 1 1e-7 1e-8,\n1 0 5e-8 1e-8q\n", 4, "4 ('1e-8q')"),
+    ("100 x\n200 400\n300 600\n", 1, "2 ('x')"),
+])
+def test_malformed_row_is_named_not_taken_for_a_header(tmp_path, text, line, field):
+    """Issue 44 item 8: a row mixing numbers and another field is malformed, named by
+    its line and field (not skipped as a header, which made the error say that the
+    a00 row was missing); a header has no number in it."""
+    from lsst_bfdrift.ptc.acoeffs import read_acoeff_table
+
+    path = tmp_path / "t.txt"
+    path.write_text(text)
+    msg = re.escape(f"{path}:{line}: field {field} of the row ") + r".*is not a number"
+    with pytest.raises(ValueError, match=msg) as info:
+        read_calibration_input(path)
+    assert "a00" not in str(info.value)
+    if text.startswith("0 0"):
+        with pytest.raises(ValueError, match=msg + r".*malformed row, not a header"):
+            read_acoeff_table(path)
+    # a header line (no number in it) is still a header, for both text kinds
+    path.write_text("lag_i lag_j a sigma\n" + text.replace(" x\n", " 1e-7\n").replace(
+        "q\n", "\n").replace(",\n", "\n").replace("i j a sigma\n", ""))
+    kind = detect_input_kind(path)
+    assert kind == ("ptc" if text.startswith("100") else "amatrix")
+
+
+def test_a_pair_of_one_exposure_twice_is_excluded_and_named(tmp_path, rng):
+    """Issue 44 item 9: a pair whose second file is a copy of the first (zero
+    difference variance) is excluded and named with its reason before the turn-off
+    is sought: the brighter pairs stay, none is dropped as past a turn-off. Two
+    constant images are saturation above every other pair (the turn-off below them),
+    and are excluded, not taken for saturation, below brighter pairs."""
+    import shutil
+
+    from lsst_bfdrift.ptc.covariances import identical_flats
+
+    levels = {1.0: 500.0, 2.0: 1000.0, 4.0: 2000.0, 8.0: 4000.0, 16.0: 8000.0}
+    paths = _flat_set(tmp_path, rng, levels)
+    shutil.copyfile(paths[2], paths[3])  # the pair at 2 s: one exposure twice
+    for t, value in ((32.0, 60000.0), (3.0, 1500.0)):  # constant pairs
+        for k in range(2):
+            paths.append(_write_flat(tmp_path / f"flat_const_{t:04.1f}_{k}.fits",
+                                     np.full(SHAPE, value), exptime=t))
+    before = _digest(paths)
+    d = read_calibration_input(paths, max_lag=1, min_pixels=500)
+    assert _digest(paths) == before
+    assert_allclose(d.exptime, [1.0, 4.0, 8.0, 16.0])  # the brighter pairs all kept
+    assert d.turnoff == d.mu[-1]  # below the saturated pair, not below the copy
+    copy, low, sat = d.pairs_dropped
+    assert copy["files"] == paths[2:4] and copy["exptime"] == 2.0
+    assert copy["reason"].startswith("the two images are one exposure (identical pixel for "
+                                     "pixel after scaling to one mean: zero difference "
+                                     "variance), e.g. a copied file")
+    assert "turn-off" not in copy["reason"]
+    assert sat["files"] == paths[-4:-2] and sat["reason"].startswith(
+        f"past the PTC turn-off at {d.turnoff:.6g} adu: both images are constant (60000 and "
+        "60000: zero difference variance): saturation")
+    assert low["files"] == paths[-2:] and low["reason"].endswith(
+        "below brighter pairs, so not saturation: pair excluded")
+    assert "1 pair(s) of one exposure twice (zero difference variance) excluded" in d.notes[0]
+    # the check itself: a scaled copy is one exposure too; two exposures are not
+    a, b = _flat(rng, 500.0), _flat(rng, 500.0)
+    assert identical_flats(a, 1.5 * a)[0] == "copies"
+    assert identical_flats(a, b) is None
+    assert identical_flats(np.full(SHAPE, 7.0), np.full(SHAPE, 7.0))[0] == "constant"
+    a[0, 0] = np.nan
+    assert identical_flats(a, a.copy(), mask=np.zeros(SHAPE, bool))[0] == "copies"

@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 
 import pytest
 
@@ -168,3 +169,23 @@ def test_failing_fits_write_leaves_no_temporary(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="cannot write .*out.fits: No space left"):
         correct_file(src, tmp_path / "out.fits")
     assert sorted(os.listdir(tmp_path)) == ["in.fits"]
+
+
+def test_read_text_rows_headers_and_malformed_rows(tmp_path):
+    """Issue 44 item 8: lines without numbers before the data are a header; a row
+    mixing numbers and text is malformed, named by its line and field."""
+    from lsst_bfdrift.utils.errors import InputFileError
+    from lsst_bfdrift.utils.io import read_text_rows
+
+    p = tmp_path / "t.txt"
+    p.write_text("# comment\nmean variance\n\n1, 2\n3 4e1\n")
+    assert read_text_rows(p, accepted="pairs") == [(4, [1.0, 2.0]), (5, [3.0, 40.0])]
+    assert read_text_rows(p, accepted="pairs", limit=1) == [(4, [1.0, 2.0])]
+    p.write_text("0 0 -1.333e-06 x\n")
+    with pytest.raises(InputFileError, match=re.escape(
+            f"{p}:1: field 4 ('x') of the row '0 0 -1.333e-06 x' is not a number (3 of its 4 "
+            "fields are numbers, so it is a malformed row, not a header); accepted: rows")):
+        read_text_rows(p, accepted="rows")
+    p.write_bytes(b"1 2\n\xff\xfe\n")
+    with pytest.raises(InputFileError, match="t.txt: not a text file"):
+        read_text_rows(p, accepted="rows")
