@@ -60,8 +60,8 @@ from lsst_bfdrift.diagnosis.observations import (Observations, edge_signature,
                                                  observations_from_pairs)
 from lsst_bfdrift.ptc.acoeffs import read_acoeff_table
 from lsst_bfdrift.ptc.covariances import covariance_model, fit_ptc_exponential, read_ptc_text
-from lsst_bfdrift.utils.errors import InputError
-from lsst_bfdrift.utils.io import data_files
+from lsst_bfdrift.utils.errors import InputError, InputFileError
+from lsst_bfdrift.utils.io import data_files, not_fits_reason
 from lsst_bfdrift.simulation.effects import effect_library, EFFECT_NAMES
 
 __all__ = ["diagnose",
@@ -620,20 +620,33 @@ def load_input(path, *, max_lag=3):
         return observations_from_pairs(list(zip(full[::2], full[1::2])), max_lag=max_lag)
     if not os.path.isfile(path):
         raise InputError(f"{path}: no such file or directory")
+    accepted = ("accepted: a directory of FITS flat pairs, an a_ij table (4 columns) or a PTC "
+                "text file (2 columns)")
+    reason = not_fits_reason(path)
+    if reason is None:
+        raise InputError(f"{path}: a FITS file; {accepted} (give the directory holding the "
+                         "flats)")
+    if os.fspath(path).lower().endswith((".fits", ".fit", ".fits.gz")):
+        raise InputFileError(f"{path}: {reason}; {accepted}", path)
     ncol = None
-    with open(path) as fh:
-        for line in fh:
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            try:
-                ncol = len([float(v) for v in s.replace(",", " ").split()])
-                break
-            except ValueError:
-                continue  # header
+    try:
+        with open(path, encoding="utf-8") as fh:
+            for line in fh:
+                s = line.strip()
+                if not s or s.startswith("#"):
+                    continue
+                try:
+                    ncol = len([float(v) for v in s.replace(",", " ").split()])
+                    break
+                except ValueError:
+                    continue  # header
+    except UnicodeDecodeError:
+        raise InputFileError(f"{path}: neither text nor FITS; {accepted}", path) from None
     if ncol == 4:
         return Observations.from_table(read_acoeff_table(path))
     if ncol == 2:
         mu, var = read_ptc_text(path)
         return Observations.from_ptc(mu, var)
-    raise InputError(f"{path}: not an a_ij table (4 columns) or a PTC (2 columns)")
+    raise InputError(f"{path}: a text file with {ncol or 0} numeric columns, not an a_ij table "
+                     "(4 columns) or a PTC (2 columns); accepted: one of those, or a directory "
+                     "of FITS flat pairs")

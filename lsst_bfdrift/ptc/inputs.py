@@ -65,18 +65,22 @@ from lsst_bfdrift.ptc.cp_pipe import read_cp_pipe_ptc
 from lsst_bfdrift.ptc.data import INPUT_KINDS, CalibrationData, describe_paths, require_levels
 from lsst_bfdrift.ptc.covariances import pair_covariances, ptc_turnoff, read_ptc_text
 from lsst_bfdrift.images.electrons import image_unit
-from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
-from lsst_bfdrift.utils.io import hdu_pixels, open_fits
+from lsst_bfdrift.utils.errors import InputError, InputFileError, InputNotFoundError
+from lsst_bfdrift.utils.io import hdu_pixels, not_fits_reason, open_fits
 
-__all__ = ["detect_input_kind", "read_calibration_input", "read_flat_pairs", "read_ptc_file",
+__all__ = ["FITS_SUFFIXES", "detect_input_kind", "read_calibration_input", "read_flat_pairs", "read_ptc_file",
            "read_amatrix_file"]
 
 
 # --------------------------------------------------------------------------- detection
 
+#: Endings of file names taken as FITS: such a file that is not FITS is refused
+#: as such, not read as a text table.
+FITS_SUFFIXES = (".fits", ".fit", ".fts", ".fits.gz", ".fits.fz", ".fz")
+
 def _is_fits(path):
-    with open(path, "rb") as fh:
-        return fh.read(9) == b"SIMPLE  ="
+    """Starts like a FITS file (or a compressed one, which astropy opens)."""
+    return not_fits_reason(path) is None
 
 
 def _first_data_row(path):
@@ -136,6 +140,11 @@ def detect_input_kind(path):
             return "cp_pipe"
         raise InputError(f"{path}: FITS file with neither a 2-d image HDU (a flat) nor a binary "
                          "table (a cp_pipe PTC dataset); one of those is accepted")
+    if path.lower().endswith(FITS_SUFFIXES):
+        # named as FITS: say so rather than read it as a table of numbers
+        raise InputFileError(f"{path}: {not_fits_reason(path)}; "
+                             "accepted: FITS flats or a cp_pipe PTC dataset FITS (or, named "
+                             "otherwise, a PTC text file or an a-matrix table)", path)
     first, ncol = _first_data_row(path)
     if first is not None and first.startswith("# %ECSV"):
         return "amatrix"

@@ -26,7 +26,8 @@ from astropy.table import Table
 
 from lsst_bfdrift.physics.boundaries import BoundaryGrid, pixel_boundaries
 from lsst_bfdrift.physics.polygons import pixel_polygons, polygon_moments
-from lsst_bfdrift.utils.io import atomic_output, check_output, data_path
+from lsst_bfdrift.utils.io import (astropy_message, atomic_output, check_output, data_path,
+                                   not_fits_reason)
 from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.physics.sensor import SensorModel, SensorParameters, strict_from_dict
 from lsst_bfdrift.utils.errors import (InputError, InputNotFoundError, InputTypeError,
@@ -520,6 +521,13 @@ class DistortionTemplate:
         path = os.fspath(path)
         if not os.path.exists(path):
             raise InputNotFoundError(f"template file {path} does not exist")
+        if os.path.isdir(path):
+            raise TemplateFileError(f"{path}: is a directory; accepted: a template FITS file")
+        reason = not_fits_reason(path)
+        if reason is not None:
+            raise TemplateFileError(f"{path}: cannot read template file: {reason}; accepted: "
+                                    "a template FITS file (bfdrift template build, "
+                                    "import-galsim)")
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("error")
@@ -539,7 +547,8 @@ class DistortionTemplate:
         except TemplateFileError:
             raise
         except Exception as exc:  # astropy raises many kinds for broken files
-            raise TemplateFileError(f"{path}: cannot read template file ({exc})") from exc
+            raise TemplateFileError(f"{path}: cannot read template file "
+                                    f"({astropy_message(exc)})") from exc
         version = hdr.get("BFSCHEMA")
         if version is None or isinstance(version, (str, bool, float)):
             what = "missing" if version is None else \

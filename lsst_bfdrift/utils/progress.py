@@ -24,15 +24,21 @@ class ProgressBar:
         self._start = time.perf_counter()
         self._tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self._drawn = 0
+        self.failed = False
 
     def __call__(self, n=1):
         self.done = min(self.done + n, self.total)
         if self.enabled:
             self._draw()
 
+    def fail(self):
+        """Mark the work as failed: on leaving the ``with`` block the bar stays
+        where it stood (not 100 %) and its last line is always printed."""
+        self.failed = True
+
     def _eta(self, frac, elapsed):
         """' ETA 12s' while running (elapsed / done x left), '' at the ends."""
-        if not 0 < frac < 1:
+        if not 0 < frac < 1 or self.failed:
             return ""
         return f" ETA {elapsed / frac * (1 - frac):5.0f}s"
 
@@ -52,7 +58,7 @@ class ProgressBar:
             self.stream.flush()
         else:
             decile = int(frac * 10)
-            if decile > self._last_decile:
+            if decile > self._last_decile or (final and self.failed):
                 self._last_decile = decile
                 self.stream.write(f"{self.label} {100 * frac:5.1f}% {elapsed:6.1f}s{eta}\n")
                 self.stream.flush()
@@ -62,7 +68,7 @@ class ProgressBar:
 
     def __exit__(self, *exc):
         if self.enabled:
-            self.done = self.total if exc[0] is None else self.done
+            self.done = self.total if exc[0] is None and not self.failed else self.done
             self._draw(final=True)
         return False
 
@@ -113,11 +119,17 @@ class StageProgress:
         if pos > self.bar.done:
             self.bar(pos - self.bar.done)
 
+    def fail(self):
+        """Mark the job as failed: the bar ends labelled ``failed`` where it
+        stood, not ``done`` at 100 % (the error is the caller's to print)."""
+        self.bar.fail()
+
     def __enter__(self):
         self.bar.__enter__()
         return self
 
     def __exit__(self, *exc):
         if exc[0] is None:
-            self.bar.label = f"{self.label}: done" if self.label else "done"
+            end = "failed" if self.bar.failed else "done"
+            self.bar.label = f"{self.label}: {end}" if self.label else end
         return self.bar.__exit__(*exc)

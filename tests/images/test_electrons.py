@@ -161,7 +161,7 @@ def test_truncated_fits_is_named(tmp_path):
         with pytest.raises(InputFileError, match="cut.fits: truncated"):
             to_electrons(str(cut), gain=1.0)
     (tmp_path / "empty.fits").write_bytes(b"")
-    with pytest.raises(InputFileError, match="empty.fits: not a readable FITS"):
+    with pytest.raises(InputFileError, match="empty.fits: not a FITS file: the file is empty"):
         read_image(tmp_path / "empty.fits")
     with pytest.raises(FileNotFoundError, match="nope.fits"):
         read_image(tmp_path / "nope.fits")

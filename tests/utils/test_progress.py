@@ -95,3 +95,22 @@ def test_stage_weights_are_the_measured_seconds():
             assert STAGE_SECONDS[mode][stage] == pytest.approx(sec, abs=0.005), (mode, stage)
     assert stage_weights() == STAGE_SECONDS["linear"]
     assert stage_weights({"geometry_method": "exact"}) == STAGE_SECONDS["exact"]
+
+
+def test_a_failed_job_ends_failed_not_done():
+    """Issue 43 item 3: a job that failed ends labelled 'failed' where it stood,
+    not 'done 100.0%', and says so even when it stopped within a decile."""
+    from lsst_bfdrift.utils.progress import StageProgress
+    s = io.StringIO()
+    with StageProgress({"read": 1, "work": 9}, "job", stream=s) as stages:
+        stages("read", 0.0)
+        stages.fail()
+    text = s.getvalue()
+    assert "done" not in text and "100.0%" not in text
+    assert text.splitlines()[-1].startswith("job: failed   0.0%")
+    s = io.StringIO()
+    with ProgressBar(10, "bar", stream=s) as bar:
+        bar(3)
+        bar.fail()
+    assert s.getvalue().splitlines()[-1].startswith("bar  30.0%") and "ETA" not in \
+        s.getvalue().splitlines()[-1]
