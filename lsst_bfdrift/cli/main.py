@@ -40,9 +40,9 @@ Subcommands
     radial slopes, neighbour recovery, fall-off), the V_BSS ratio scan, and
     figures in DIR.
 ``bfdrift validate-sky IMAGE.fits [--json] [--plot PNG] [--gain G] [--route R]``
-    Star catalogue of a sky image (photutils, adaptive moments) and robust
+    Star catalog of a sky image (photutils, adaptive moments) and robust
     size- and ellipticity-flux slopes at fixed position, before and after
-    the catalogue-level and/or pixel-level BF correction, with a verdict
+    the catalog-level and/or pixel-level BF correction, with a verdict
     (``residual_bf_detected``) and optional figures.
 ``bfdrift diagnose INPUT [--json] [--report DIR] [--basis FILE] [--no-template-change]``
     Where the electrostatic model is wrong and which effect explains it:
