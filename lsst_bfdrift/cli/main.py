@@ -7,7 +7,8 @@ Subcommands
 ``bfdrift template summary [FILE] [--json]``
     Key numbers: A00, A01, A10, A11 (px^2, pixel at (di, dj) = (serial,
     parallel) offset), ratio_01_10 = dlnA01/dlnA10, area_sum_error (sum of
-    all areas minus N^2), aggressor charge.
+    all areas minus N^2), window_leak (the fraction of the aggressor's area
+    change outside the window), aggressor charge.
 ``bfdrift template plot [FILE] --out PNG``
     Distorted boundaries (exaggerated) and the area map.
 ``bfdrift template import-galsim NAME --out FILE``

@@ -44,7 +44,7 @@ def _calibration():
     GalSim ITL's a-matrix at the field's BF strength."""
     a = STRENGTH * galsim_acoeffs("lsst_itl_50_8", 3)
     table = AcoeffTable(a, 0.05 * np.abs(a) + 1e-9, source="galsim lsst_itl_50_8 x10")
-    settings = TemplateSettings(size=11, edge_samples=8, aggressor_charge=1e4)
+    settings = TemplateSettings(size=11, edge_samples=8, tol=1e-4, aggressor_charge=1e4)
     params = SensorParameters()
     built = build_template(params, settings)
     template = match_area_coefficients(built, table.a, max_lag=3)
