@@ -644,8 +644,10 @@ def build_template(params=None, settings=None, *, progress=False):
     settings : TemplateSettings, optional
         Template settings (default :class:`TemplateSettings`: 21 x 21, 1e4 e,
         32 samples, 1e-5 px, the settings of the bundled default template).
-    progress : bool, optional
-        Show a progress bar on stderr.
+    progress : bool or callable, optional
+        True: a progress bar on stderr (labelled ``template``); a callable:
+        called as ``progress(fraction)`` (0 to 1) as the boundaries are
+        found, e.g. to move the bar of a longer job.
 
     Returns
     -------
@@ -663,7 +665,11 @@ def build_template(params=None, settings=None, *, progress=False):
     kw = dict(edge_samples=ns, tol=settings.tol, z0=settings.conversion_height,
               drift_kwargs=settings.drift_kwargs(), workers=settings.workers,
               spacing=settings.spacing)
-    with ProgressBar(total, "template", enabled=progress) as bar:
+    if callable(progress):
+        bar = _FractionReport(total, progress)
+    else:
+        bar = ProgressBar(total, "template", enabled=bool(progress))
+    with bar:
         grid = pixel_boundaries(model, (-c, c + 1), (-c, c + 1), progress=bar, **kw)
         ref = None
         if settings.baseline == "computed":
@@ -673,6 +679,26 @@ def build_template(params=None, settings=None, *, progress=False):
             "settings": settings.to_dict()}
     return DistortionTemplate(corner_d, vedge_d, hedge_d, grid.fractions,
                               settings.aggressor_charge, meta=meta)
+
+
+class _FractionReport:
+    """A ProgressBar-like counter that reports the fraction done to a callable."""
+
+    def __init__(self, total, report):
+        self.total, self.done, self.report = max(int(total), 1), 0, report
+
+    def __call__(self, n=1):
+        self.done = min(self.done + n, self.total)
+        self.report(self.done / self.total)
+
+    def __enter__(self):
+        self.report(0.0)
+        return self
+
+    def __exit__(self, *exc):
+        if exc[0] is None:
+            self.report(1.0)
+        return False
 
 
 def window_leak(template):

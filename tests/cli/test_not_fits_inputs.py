@@ -79,3 +79,26 @@ def test_correct_reports_a_file_that_is_not_fits_once_and_not_done(capsys, bad):
     assert code == 1 and res["failed"] == 2
     assert "the file is empty" in res["files"][1]["error"]
     assert err.count("not a FITS file") == 2 and "2 of 2 files failed" in err
+
+
+def test_ptc_says_what_runs_and_warns_of_exptime_before_the_fit(capsys, tmp_path):
+    """Issue 43 item 1: `bfdrift ptc` (and calibrate, through the same reader)
+    labels its stages from the start, and flats whose levels do not follow
+    EXPTIME are said before the covariance model fit, naming the files."""
+    rng = np.random.default_rng(4)
+    for k, level in enumerate((2e3, 6e3, 1.2e4, 2.4e4, 4e4)):
+        for half in "ab":
+            hdr = fits.Header({"EXPTIME": float(k + 1), "BUNIT": "adu", "GAIN": 1.0})
+            fits.PrimaryHDU(rng.poisson(level, (48, 48)).astype(np.float32),
+                            header=hdr).writeto(tmp_path / f"flat_{k}{half}.fits")
+    code, out, err = _run(capsys, "ptc", tmp_path, "--max-lag", "1")
+    assert code == 0, err
+    lines = err.splitlines()
+    assert lines[0].startswith("ptc: reading 10 flats, covariances of their pairs   0.0%")
+    warn = next(k for k, ln in enumerate(lines) if "not proportional to EXPTIME" in ln)
+    fit = next(k for k, ln in enumerate(lines) if ln.startswith("ptc: covariance model fit"))
+    assert warn < fit and lines[warn].startswith("bfdrift ptc: warning:")
+    assert "flat_0a.fits, flat_0b.fits: EXPTIME 1 s" in lines[warn]
+    assert "done in" in lines[-1]
+    code, out, err = _run(capsys, "ptc", tmp_path, "--max-lag", "1", "--quiet")
+    assert code == 0 and err.count("\n") == 1 and "not proportional" in err
