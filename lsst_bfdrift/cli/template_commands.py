@@ -30,8 +30,9 @@ BUILD_DESCRIPTION = (
     "falls outside the 21 x 21 window, window_leak in the summary) stay the same. "
     "bfdrift calibrate makes such a refined template from your sensor's data.")
 
-__all__ = ["BUILD_DESCRIPTION", "read_config", "add_template_parser", "cmd_template_build", "cmd_template_summary",
-           "cmd_template_plot", "cmd_template_export", "cmd_template_import"]
+__all__ = ["BUILD_DESCRIPTION", "read_config", "add_template_parser", "cmd_template_build",
+           "cmd_template_summary", "cmd_template_plot", "cmd_template_export",
+           "cmd_template_import"]
 
 
 def read_config(path):
