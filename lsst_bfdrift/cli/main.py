@@ -51,6 +51,10 @@ Subcommands
     chi2/dof, rms and largest residual lags before and after each added
     effect, and what an added effect changes in the calibrated template and
     in star corrections (see ``docs/calibration.rst``).
+``bfdrift butler-put REPO FILES... --run RUN --instrument NAME [--data-id ID ...]``
+    FITS exposures put into a run collection of a Butler repository (made
+    with the package's seed config) as the pipeline's input, with their data
+    IDs, for ``pipetask run -i RUN``.
 ``bfdrift maps [IMAGE] [--template FILE] [--out FILE] [--plot PNG] [--json]``
     Final pixel geometry (area, centroid shift, ellipticity maps) of an image
     in electrons; with no IMAGE, the bundled sample star. This is the quick
@@ -68,7 +72,8 @@ Each subcommand's options and code are in one module: ``template`` in
 :mod:`~lsst_bfdrift.cli.simulation_commands`; ``calibrate``, ``ptc`` and
 ``diagnose`` in :mod:`~lsst_bfdrift.cli.calibration_commands`;
 ``validate-stars``, ``validate-sky`` and ``reproduce`` in
-:mod:`~lsst_bfdrift.cli.validation_commands`. An option's default is that of
+:mod:`~lsst_bfdrift.cli.validation_commands`; ``butler-put`` in
+:mod:`~lsst_bfdrift.cli.butler_commands`. An option's default is that of
 the config field or function it feeds, read from there.
 """
 
@@ -77,6 +82,7 @@ import re
 import sys
 
 from lsst_bfdrift.cli._common import remove_stale_outputs, sigterm_raises
+from lsst_bfdrift.cli.butler_commands import add_butler_put_parser
 from lsst_bfdrift.cli.calibration_commands import (add_calibrate_parser, add_diagnose_parser,
                                                    add_ptc_parser)
 from lsst_bfdrift.cli.image_commands import (add_correct_parser, add_maps_parser,
@@ -112,7 +118,7 @@ def build_parser():
     for add in (add_template_parser, add_calibrate_parser, add_ptc_parser, add_flat_sim_parser,
                 add_star_sim_parser, add_correct_parser, add_validate_stars_parser,
                 add_reproduce_parser, add_validate_sky_parser, add_diagnose_parser,
-                add_maps_parser):
+                add_maps_parser, add_butler_put_parser):
         add(sub)
     show_defaults(p)
     return p
