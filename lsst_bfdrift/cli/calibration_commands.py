@@ -28,8 +28,8 @@ from lsst_bfdrift.diagnosis.report import (notable_not_excluded, template_change
                                            write_report)
 from lsst_bfdrift.ptc import covariances as ptc
 from lsst_bfdrift.ptc.inputs import ExposureLevelWarning, read_calibration_input
-from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
-from lsst_bfdrift.utils.io import data_files
+from lsst_bfdrift.utils.errors import InputError, InputFileError, InputNotFoundError
+from lsst_bfdrift.utils.io import data_files, not_fits_reason
 from lsst_bfdrift.utils.progress import Activity, ProgressBar
 
 __all__ = ["add_calibrate_parser", "add_ptc_parser", "add_diagnose_parser", "cmd_calibrate",
@@ -176,6 +176,10 @@ def cmd_calibrate(args):
     for x in args.stars or []:
         if not os.path.isfile(x):
             raise InputNotFoundError(f"--stars {x}: no such file")
+        reason = not_fits_reason(x)  # before minutes of fitting the flats
+        if reason is not None:
+            raise InputFileError(f"--stars {x}: {reason}; accepted: a FITS image of a star "
+                                 "field", x)
     check_size_goal(args.size_goal, "--size-goal")  # before any file is read
     _check_model_options(args)
     data = read_with_progress("calibrate", args.input, quiet=args.quiet, max_lag=args.max_lag)

@@ -54,6 +54,8 @@ def test_not_fits_reason_says_what_the_file_is(bad, tmp_path):
     ["ptc", "{bad}", "{bad2}"],
     ["calibrate", "{bad}", "{bad2}", "--out", "{tmp}/x.fits"],
     ["diagnose", "{bad}"],
+    ["calibrate", "/work/shared/data/measured/itl_covariances_21oct19.txt", "--out",
+     "{tmp}/y.fits", "--stars", "{bad}", "--quiet"],
 ])
 def test_commands_name_a_file_that_is_not_fits(capsys, bad, argv):
     argv = [a.format(bad=bad / "bad.fits", bad2=bad / "bad2.fits", tmp=bad) for a in argv]
