@@ -6,7 +6,7 @@ as in :func:`~lsst_bfdrift.simulation.skysim.simulate_star_field`), fluxes
 log-uniform 1e4-1.5e6 e, photons binned on square pixels (no
 galsim.SiliconSensor, so no brighter-fatter effect), Poisson sky of 1000 e
 and 5 e read noise, 2048 x 2048 px, 800 stars, each field its own seed. The
-catalogue is the package's (:class:`~lsst_bfdrift.calibration.star_fit.StarField`:
+catalog is the package's (:class:`~lsst_bfdrift.calibration.star_fit.StarField`:
 photutils detection, HSM adaptive moments); the size (ln T), e1 and e2
 slopes against flux of :func:`~lsst_bfdrift.catalogs.slopes.fit_flux_slope`
 must be zero. Each field is fitted with the noise-bias terms of the
@@ -17,7 +17,7 @@ error and chi^2::
     python benchmarks/stars/star_slope_bias.py [--fields 36] [--cache /tmp/ssb]
 
 Writes ``benchmarks/stars/star_slope_bias_results.txt`` / ``.json``. About 20 s
-per field on one core (the catalogues are cached in ``--cache``).
+per field on one core (the catalogs are cached in ``--cache``).
 
 ``--silicon SENSOR`` draws the fields as ``benchmarks/stars/calibrate_stars.py``
 draws its own, with galsim.SiliconSensor (its diffusion, and the sky
@@ -82,7 +82,7 @@ def silicon_field(seed, sensor):
                                min_nrecalc=1e12)["image"]
 
 
-def catalogue(seed, cache, silicon=None):
+def catalog(seed, cache, silicon=None):
     """The usable stars' columns (x, y, flux, snr, T, e1, e2) of field ``seed``."""
     tag = f"ssb_{silicon}_{seed}" if silicon else f"ssb_{seed}"
     path = None if cache is None else os.path.join(cache, tag + ".npz")
@@ -103,7 +103,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fields", type=int, default=36)
     ap.add_argument("--first-seed", type=int, default=1)
-    ap.add_argument("--cache", default=None, help="directory of cached catalogues")
+    ap.add_argument("--cache", default=None, help="directory of cached catalogs")
     ap.add_argument("--silicon", default=None, metavar="SENSOR",
                     help="draw with galsim.SiliconSensor of this sensor at zero BF strength")
     ap.add_argument("--n-boot", type=int, default=0,
@@ -125,7 +125,7 @@ def main(argv=None):
     t0 = time.time()
     for k in range(args.fields):
         seed = args.first_seed + k
-        c = catalogue(seed, args.cache, args.silicon)
+        c = catalog(seed, args.cache, args.silicon)
         row = {"seed": seed, "n_stars": int(c["x"].size)}
         for name, terms in models.items():
             for q in ("size", "e1", "e2"):

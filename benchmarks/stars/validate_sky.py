@@ -12,9 +12,9 @@ the package default.
 1. ``validate_sky`` (no truth used) on the BF image with both correction
    routes, and on the BF-free twin (the null: no detection expected).
 2. With the paired truth: slopes against flux of T / T_truth - 1 and of
-   e1 - e1_truth for the recorded, catalogue-corrected (history 1/2 and, as
+   e1 - e1_truth for the recorded, catalog-corrected (history 1/2 and, as
    a check of the time-history argument, 1) and pixel-corrected (Task,
-   method drift) catalogues, and the star-by-star agreement of the routes.
+   method drift) catalogs, and the star-by-star agreement of the routes.
 
 Run from the repository root::
 
@@ -156,14 +156,14 @@ def main(argv=None):
                               "rms_rel_diff_dT": float(np.sqrt(np.mean(rel ** 2))),
                               "mean_dT_over_T_catalog": float(np.mean(d_cat[bright] / tt[bright])),
                               "mean_dT_over_T_pixel": float(np.mean(d_pix[bright] / tt[bright]))}
-    say(f"   route agreement, {int(bright.sum())} stars > 3e5 e: correction dT pixel vs catalogue "
+    say(f"   route agreement, {int(bright.sum())} stars > 3e5 e: correction dT pixel vs catalog "
         f"median relative difference {np.median(rel):+.3f}, rms {np.sqrt(np.mean(rel ** 2)):.3f}; "
-        f"mean dT/T {out['route_agreement']['mean_dT_over_T_catalog']:+.2e} (catalogue), "
+        f"mean dT/T {out['route_agreement']['mean_dT_over_T_catalog']:+.2e} (catalog), "
         f"{out['route_agreement']['mean_dT_over_T_pixel']:+.2e} (pixel)")
     out["timing_s"] = {"simulation": t_sim, "validate_sky_both": t_val,
-                       "catalogue_correction": t_cat, "pixel_task_plus_catalogue": t_pix}
-    say(f"\ntimes: catalogue-level correction {t_cat:.1f} s (maps + moments of "
-        f"{len(cat)} stars), pixel-level Task + new catalogue {t_pix:.1f} s")
+                       "catalog_correction": t_cat, "pixel_task_plus_catalog": t_pix}
+    say(f"\ntimes: catalog-level correction {t_cat:.1f} s (maps + moments of "
+        f"{len(cat)} stars), pixel-level Task + new catalog {t_pix:.1f} s")
 
     from lsst_bfdrift.utils.plotting import save_figure
     from lsst_bfdrift.validation.plots import plot_sky_validation

@@ -259,7 +259,7 @@ def evaluate_directions(template, names, deltas, lag_names, fields, *, bar=None)
     the modelled range; a lag direction (one error of the a-matrix, usually
     small) tries a whole step first, then a quarter, then 0.05. A direction
     no step of which corrects every field is dropped. The fields keep the
-    corrected catalogues (:meth:`StarField.corrected_catalog
+    corrected catalogs (:meth:`StarField.corrected_catalog
     <lsst_bfdrift.calibration.star_fit.StarField.corrected_catalog>`), so
     every subset of stars reuses them.
 

@@ -85,7 +85,7 @@ kept). The result reports:
   included) is repeated on one half alone and measured on the other, both
   ways. Every star is then measured with a template that never saw it, and
   no star is wasted on validation alone (a single split leaves the template
-  half the stars). The directions' corrected catalogues are computed once
+  half the stars). The directions' corrected catalogs are computed once
   and serve the three fits.
 
 How many stars: the size slope of a field is measured to about
@@ -172,7 +172,7 @@ class StarField:
         Options of :func:`~lsst_bfdrift.catalogs.catalog.detect_stars`.
     detections : StarDetections, optional
         Detections to measure the stars on (e.g. another image's of the same
-        scene, so that the two catalogues hold the same stars row by row);
+        scene, so that the two catalogs hold the same stars row by row);
         default: detected on this image.
 
     Attributes
@@ -281,7 +281,7 @@ class StarField:
         return warnings
 
     def corrected_catalog(self, template):
-        """Catalogue of the same stars after a drift correction with ``template``
+        """Catalog of the same stars after a drift correction with ``template``
         (None: the uncorrected image). Kept per template: the fit, the
         bootstrap and the held-out stars reuse one correction."""
         if template is None:
@@ -732,7 +732,7 @@ def joint_calibration(result, fields, *, holdout="auto", seed=20151, max_directi
     names, steps, deltas, lag_names, more = direction_basis(result, lag_dirs, bar=bar)
     warn += more
     t_dirs = time.perf_counter() - t0
-    # each direction corrects every fitted field once (the catalogues are kept per
+    # each direction corrects every fitted field once (the catalogs are kept per
     # template: every subset of stars reuses them)
     basis, more = evaluated_basis(ta, rows, names, steps, deltas, lag_names, fit_fields,
                                   bar=bar)

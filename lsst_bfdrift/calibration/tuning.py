@@ -61,14 +61,14 @@ from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.templates.refine import lag_multiplicity, match_area_coefficients, template_alpha
 from lsst_bfdrift.templates.template import (TemplateSettings, build_template,
                                              load_default_template)
-from lsst_bfdrift.utils.progress import ProgressBar
+from lsst_bfdrift.utils.progress import StageProgress
 from lsst_bfdrift.utils.errors import InputTypeError
 from lsst_bfdrift.utils.io import data_path, write_text
 
 __all__ = ["CANDIDATES", "CalibrationError", "CalibrationWarning", "CalibrationResult",
            "calibrate", "poor_fit_policy", "check_refined_match",
            "default_start", "model_acoeffs", "measured_acoeffs", "refinement_target",
-           "refine_template", "select_parameters",
+           "refine_template", "select_parameters", "STAGE_SECONDS",
            "start_jacobian", "write_start_jacobian"]
 
 #: Candidate free parameters and their bounds: the dipole unit xi0 (e), the
@@ -85,6 +85,11 @@ CANDIDATES = {"channel_depth": (0.05, 6.0), "xi0": (300.0, 3e4),
 
 #: Aggressor charge (e) of the model evaluations and of the template.
 CHARGE = 1e4
+
+#: Typical seconds of :func:`calibrate`'s stages on 2 cores, the weights of its
+#: progress bar: one evaluation of the model's a_ij, the template build at the
+#: bundled default's settings (21 x 21, 32 samples, 1e-5 px) and the refinement.
+STAGE_SECONDS = {"model evaluation": 1.5, "template build": 12.0, "refinement": 1.0}
 
 
 class CalibrationError(FitError):
@@ -226,7 +231,7 @@ def write_start_jacobian(path, *, max_lag=START_JACOBIAN_MAX_LAG):
     return d
 
 
-def measured_acoeffs(data):
+def measured_acoeffs(data, *, progress=None):
     """The measured a-matrix (an :class:`AcoeffTable`) of any calibration input.
 
     * An a-matrix with errors (a table, or cp_pipe's EXPAPPROXIMATION a00):
@@ -244,6 +249,10 @@ def measured_acoeffs(data):
     ----------
     data : CalibrationData
         From :func:`~lsst_bfdrift.ptc.inputs.read_calibration_input`.
+    progress : callable, optional
+        Passed to :func:`~lsst_bfdrift.ptc.covariances.fit_covariance_model`
+        (called after each evaluation of the covariance model; the other
+        inputs need no fit and never call it).
 
     Returns
     -------
@@ -258,7 +267,8 @@ def measured_acoeffs(data):
         npix = None if sig is not None else data.npix
         fit = fit_covariance_model(np.asarray(data.mu, float), np.asarray(data.cov, float),
                                    sigma=sig, npix=npix,
-                                   gain=1.0 if data.units == "electron" else None)
+                                   gain=1.0 if data.units == "electron" else None,
+                                   progress=progress)
         bt = fit["b_test"]
         b_note = "" if bt is None else (
             f"; b_ij {'fitted' if fit['b_fitted'] else 'fixed to 0'} (their chi2 gain "
@@ -605,7 +615,10 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     max_evaluations : int, optional
         Model evaluations of the search (each about 1 s).
     progress : bool, optional
-        Progress bar on stderr.
+        Progress bar on stderr, labelled with the stage: ``calibrate: model
+        fit`` (the Jacobian and the search), ``calibrate: template build``,
+        ``calibrate: refinement``; each weighted by its typical time
+        (:data:`STAGE_SECONDS`).
 
     Returns
     -------
@@ -652,10 +665,22 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
                                    f"({lo}, {hi})")
     names = list(candidates)
     n_eval = (len(names) + 1) + max_evaluations + (max_params if free is None else len(names))
-    bar = ProgressBar(n_eval, "calibrate", enabled=progress)
+    stages = StageProgress({"model fit": n_eval * STAGE_SECONDS["model evaluation"],
+                            "template build": STAGE_SECONDS["template build"] if build else 0,
+                            "refinement": STAGE_SECONDS["refinement"] if build and refine
+                            else 0}, "calibrate", enabled=progress)
+    evaluations = 0
+
+    def count(n):
+        nonlocal evaluations
+        evaluations += n
+        stages("model fit", evaluations / n_eval)
+
+    stages("model fit", 0.0)
+    stages.bar.show()  # what runs, from the first second
 
     def model(values):
-        bar(1)
+        count(1)
         try:
             return model_acoeffs(start.replace(**values), L)
         except (RuntimeError, ValueError):
@@ -669,7 +694,7 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     m0, J, jacobian_source = start_jacobian(start, candidates, L, model=model)
     seconds["jacobian"] = time.perf_counter() - t0
     if jacobian_source == "package data":
-        bar(len(names) + 1)
+        count(len(names) + 1)
     # 2. which parameters the data need
     if free is None:
         chosen, selection = select_parameters(J, m0 - table.a, table.sigma, mask, names,
@@ -703,10 +728,13 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
             d = dict(load_default_template().meta.get("settings", {}))
             d["aggressor_charge"] = CHARGE
             settings = TemplateSettings.from_dict(d)
-        template = built = build_template(params, settings)
+        stages("template build", 0.0)
+        template = built = build_template(params, settings,
+                                          progress=lambda f: stages("template build", f))
         seconds["build"] = time.perf_counter() - t2
         if refine:
             t3 = time.perf_counter()
+            stages("refinement", 0.0)
             template = refine_template(template, table)
             seconds["refine"] = time.perf_counter() - t3
         c = template.center
@@ -716,9 +744,7 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
         if misfit is not None:  # the refined template must match what the model could not
             misfit.update(check_refined_match(tpl_a, table, max_chi2_dof))
     seconds["total"] = time.perf_counter() - t0
-    bar.done = bar.total
-    if progress:
-        bar._draw(final=True)
+    stages.__exit__(None, None, None)
     result = CalibrationResult(params=params, fit=fit, table=table, model=fit.model,
                                template_acoeffs=tpl_a, template=template, selection=selection,
                                sum_rule=_sum_rule(table), seconds=seconds, poor_fit=poor,

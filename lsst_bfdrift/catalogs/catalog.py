@@ -1,4 +1,4 @@
-"""Star catalogues of an exposure: photutils detection, flags, adaptive moments.
+"""Star catalogs of an exposure: photutils detection, flags, adaptive moments.
 
 Steps of :func:`measure_stars`:
 
@@ -92,7 +92,7 @@ def _background(data, bad, box_size):
     ny, nx = data.shape
     box = int(max(8, min(box_size, ny // 2, nx // 2)))
     if min(ny, nx) < 16:
-        raise InputError(f"image {nx} x {ny} is too small for a star catalogue (>= 16 px)")
+        raise InputError(f"image {nx} x {ny} is too small for a star catalog (>= 16 px)")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # photutils warns about boxes excluded by the mask
         bkg = Background2D(data, box, mask=bad, filter_size=(3, 3),
@@ -153,7 +153,7 @@ def hsm_moments(stamp, *, weight=None, guess=None, origin=(1, 1), guess_sig=2.0)
 
 
 def _hsm(stamp, weight, guess, x0, y0):
-    """The catalogue's row of :func:`hsm_moments` (x, y, mxx, myy, mxy, t, e1, e2, sigma)."""
+    """The catalog's row of :func:`hsm_moments` (x, y, mxx, myy, mxy, t, e1, e2, sigma)."""
     m = hsm_moments(stamp, weight=weight, guess=guess, origin=(x0, y0))
     if m is None:
         return None

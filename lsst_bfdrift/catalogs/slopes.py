@@ -4,7 +4,7 @@ The brighter-fatter effect makes bright stars larger (and slightly more
 elongated along the parallel axis) than faint stars with the same PSF. On a
 real image there is no BF-free truth, but every star samples the same PSF
 field, so the BF signature is a dependence of star size and shape on flux at
-fixed position. For each star catalogue (:func:`~lsst_bfdrift.catalogs.catalog.measure_stars`)
+fixed position. For each star catalog (:func:`~lsst_bfdrift.catalogs.catalog.measure_stars`)
 and each quantity q in (ln T, e1, e2), :func:`fit_flux_slope` fits
 
 .. math::
@@ -264,7 +264,7 @@ def birge_scale(residuals, errors, n_params, *, min_points=6):
 
 
 def select_stars(catalog, min_snr):
-    """Usable stars of a catalogue: unflagged, SNR >= ``min_snr``, finite positive T."""
+    """Usable stars of a catalog: unflagged, SNR >= ``min_snr``, finite positive T."""
     ok = np.asarray(catalog["use"], bool) & (np.asarray(catalog["snr"], float) >= min_snr)
     ok &= np.isfinite(np.asarray(catalog["T"].value)) & (np.asarray(catalog["T"].value) > 0)
     return ok
@@ -272,7 +272,7 @@ def select_stars(catalog, min_snr):
 
 def shape_flux_relations(catalog, *, min_snr=30.0, poly_order=2, noise_term=True, n_boot=200,
                          seed=20151, frame=None):
-    """Size and ellipticity against flux (and size against magnitude) of a catalogue.
+    """Size and ellipticity against flux (and size against magnitude) of a catalog.
 
     Parameters
     ----------
@@ -293,11 +293,11 @@ def shape_flux_relations(catalog, *, min_snr=30.0, poly_order=2, noise_term=True
     Raises
     ------
     ValueError
-        When the catalogue has too few usable stars (with the reason).
+        When the catalog has too few usable stars (with the reason).
     """
     n_all = len(catalog)
     if n_all == 0:
-        raise InputError("the catalogue is empty: no stars detected")
+        raise InputError("the catalog is empty: no stars detected")
     ok = select_stars(catalog, min_snr)
     if ok.sum() < 6:
         flags = np.asarray(catalog["flags"])

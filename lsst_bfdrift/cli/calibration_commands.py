@@ -32,17 +32,89 @@ from lsst_bfdrift.diagnosis.report import (notable_not_excluded, template_change
                                            write_report)
 from lsst_bfdrift.ptc import covariances as ptc
 from lsst_bfdrift.ptc.data import describe_paths
-from lsst_bfdrift.ptc.inputs import read_calibration_input, read_ptc_file
-from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
-from lsst_bfdrift.utils.io import data_files
+from lsst_bfdrift.ptc.inputs import ExposureLevelWarning, read_calibration_input, read_ptc_file
+from lsst_bfdrift.utils.errors import InputError, InputFileError, InputNotFoundError
+from lsst_bfdrift.utils.io import data_files, not_fits_reason
+from lsst_bfdrift.utils.progress import Activity, ProgressBar
 
 __all__ = ["add_calibrate_parser", "add_ptc_parser", "add_diagnose_parser", "cmd_calibrate",
-           "cmd_ptc", "cmd_diagnose", "PTC_MAX_LAG"]
+           "cmd_ptc", "cmd_diagnose", "PTC_MAX_LAG", "read_with_progress", "fit_with_progress"]
 
 #: Largest lag of ``bfdrift ptc`` on FITS flats unless ``--max-lag`` is given:
 #: the command reports a00..a11 and the full model's fit to these lags, not the
 #: lags to 8 that ``calibrate`` reads (read_calibration_input's default).
 PTC_MAX_LAG = 3
+
+
+def read_with_progress(command, files, *, quiet=False, **kwargs):
+    """:func:`~lsst_bfdrift.ptc.inputs.read_calibration_input` with the progress of
+    reading flats (``COMMAND: reading N flats, covariances of their pairs``, from
+    the first file on) and its warnings said at once on stderr (flat levels not
+    proportional to EXPTIME), before any fit.
+
+    Parameters
+    ----------
+    command : str
+        The command's name, for the label and the warnings.
+    files : list of str
+        The inputs.
+    quiet : bool, optional
+        No progress bar (the warnings are still said).
+    **kwargs
+        Passed to ``read_calibration_input``.
+
+    Returns
+    -------
+    CalibrationData
+    """
+    bar = ProgressBar(1, f"{command}: reading {len(files)} flats, covariances of their pairs",
+                      enabled=not quiet)
+
+    def progress(done, total):
+        if bar.total != total:
+            bar.total = max(int(total), 1)
+        if done == 0 and bar.done == 0:
+            bar.show()
+        bar(done - bar.done)
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", ExposureLevelWarning)
+        try:
+            data = read_calibration_input(files, progress=progress, **kwargs)
+        except BaseException:
+            bar.fail()
+            raise
+        finally:
+            if bar.done:
+                bar.__exit__(None, None, None)
+    for w in caught:
+        if issubclass(w.category, ExposureLevelWarning):
+            print(f"bfdrift {command}: warning: {w.message}", file=sys.stderr)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return data
+
+
+def fit_with_progress(command, data, *, quiet=False):
+    """:func:`~lsst_bfdrift.calibration.tuning.measured_acoeffs` saying what runs
+    (``COMMAND: covariance model fit (b_ij free and fixed) ...``, then its time
+    and model evaluations; silent for inputs that need no fit).
+
+    Parameters
+    ----------
+    command : str
+        The command's name, for the label.
+    data : CalibrationData
+    quiet : bool, optional
+        Nothing on stderr.
+
+    Returns
+    -------
+    AcoeffTable
+    """
+    with Activity(f"{command}: covariance model fit (Astier et al. 2019; b_ij fixed, then "
+                  "free)", unit="model evaluations", enabled=not quiet) as act:
+        return measured_acoeffs(data, progress=act)
 
 
 def _dropped_text(dropped):
@@ -128,11 +200,15 @@ def cmd_calibrate(args):
         for x in files:
             if not os.path.isfile(x):
                 raise InputNotFoundError(f"{opt} {x}: no such file")
+            reason = not_fits_reason(x)  # before minutes of fitting the flats
+            if reason is not None:
+                what = "a star field" if opt == "--stars" else "a spot image"
+                raise InputFileError(f"{opt} {x}: {reason}; accepted: a FITS image of {what}", x)
     check_size_goal(args.size_goal, "--size-goal")  # before any file is read
     _check_model_options(args)
     spot_fields = _spot_fields(args) if spot_files else None  # refused before the flats
-    data = read_calibration_input(args.input, max_lag=args.max_lag)
-    table = measured_acoeffs(data)
+    data = read_with_progress("calibrate", args.input, quiet=args.quiet, max_lag=args.max_lag)
+    table = fit_with_progress("calibrate", data, quiet=args.quiet)
     if args.model != "electrostatic":
         return _lsst_route(args, data, table)
     with warnings.catch_warnings(record=True) as caught:
@@ -291,14 +367,16 @@ def cmd_ptc(args):
         # the reader of `bfdrift calibrate`: pairs by EXPTIME, masks, turn-off; as many
         # levels as the full covariance model needs, or a refusal naming the files and
         # why each dropped pair was dropped
-        data = read_calibration_input(files, max_lag=args.max_lag,
-                                      min_levels=ptc.MIN_COVARIANCE_LEVELS)
+        data = read_with_progress("ptc", files, quiet=args.quiet, max_lag=args.max_lag,
+                                  min_levels=ptc.MIN_COVARIANCE_LEVELS)
         if data.kind != "flats":
             raise InputError(f"{files[0]}: a {data.kind} input; bfdrift ptc takes one PTC text "
                              "file or FITS flat pairs")
         table = {"mu": data.mu, "cov": data.cov, "npix": data.npix}
-        fit = _named_fit(describe_paths(files), ptc.fit_covariance_model, table["mu"],
-                         table["cov"], npix=table["npix"])
+        with Activity("ptc: covariance model fit (Astier et al. 2019; b_ij fixed, then free)",
+                      unit="model evaluations", enabled=not args.quiet) as act:
+            fit = _named_fit(describe_paths(files), ptc.fit_covariance_model, table["mu"],
+                             table["cov"], npix=table["npix"], progress=act)
         out = {"input": files, "model": "full covariance model (Astier et al. 2019 eq. 20)",
                "gain": fit["gain"], "gain_err": fit["gain_err"], "npairs": int(data.mu.size),
                "chi2": fit["chi2"], "dof": fit["dof"], "units": data.units,
@@ -496,6 +574,7 @@ def add_ptc_parser(subparsers):
     # not read_calibration_input's 8 (calibrate's): see PTC_MAX_LAG
     pt.add_argument("--max-lag", type=int, default=PTC_MAX_LAG, help="largest covariance lag")
     pt.add_argument("--json", action="store_true")
+    pt.add_argument("--quiet", action="store_true", help="no progress on stderr")
     pt.set_defaults(func=cmd_ptc)
     return pt
 

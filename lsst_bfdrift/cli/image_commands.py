@@ -179,15 +179,15 @@ def _correct_pairs(args):
 
 
 def _print_correct_results(results, failed, method, as_json):
-    """The report of ``correct``: one line per file (or JSON) on stdout, the
-    warnings and failures on stderr."""
+    """The report of ``correct``: one line per file done or skipped (or JSON) on
+    stdout, the warnings and failures on stderr (a failure once, there)."""
     if as_json:
         print_json({"method": method, "files": results, "failed": len(failed)})
     else:
         for r in results:
             if r["error"]:
-                print(f"{r['input']}: FAILED: {r['error']}")
-            elif r.get("skipped"):
+                continue  # said once, on stderr, below
+            if r.get("skipped"):
                 print(f"{r['input']} -> {r['output']}: skipped (the output exists)")
             else:
                 # say what happened: the flux moved, and how the solver got there
@@ -203,7 +203,14 @@ def _print_correct_results(results, failed, method, as_json):
         for w in r.get("warnings") or []:
             print(f"bfdrift correct: {r['input']}: warning: {w}", file=sys.stderr)
     for r in failed:
-        print(f"bfdrift correct: {r['input']}: {r['error']}", file=sys.stderr)
+        # the package's messages start with the file already
+        text = r["error"] if r["error"].startswith(f"{r['input']}:") else \
+            f"{r['input']}: {r['error']}"
+        print(f"bfdrift correct: error: {text}", file=sys.stderr)
+    if failed and len(results) > 1:
+        rest = "" if len(failed) == len(results) else "; the others are done"
+        print(f"bfdrift correct: {len(failed)} of {len(results)} files failed (listed "
+              f"above){rest}", file=sys.stderr)
 
 
 def cmd_correct(args):

@@ -7,7 +7,8 @@ Subcommands
 ``bfdrift template summary [FILE] [--json]``
     Key numbers: A00, A01, A10, A11 (px^2, pixel at (di, dj) = (serial,
     parallel) offset), ratio_01_10 = dlnA01/dlnA10, area_sum_error (sum of
-    all areas minus N^2), aggressor charge.
+    all areas minus N^2), window_leak (the fraction of the aggressor's area
+    change outside the window), aggressor charge.
 ``bfdrift template plot [FILE] --out PNG``
     Distorted boundaries (exaggerated) and the area map.
 ``bfdrift template import-galsim NAME --out FILE``
@@ -40,9 +41,9 @@ Subcommands
     radial slopes, neighbour recovery, fall-off), the V_BSS ratio scan, and
     figures in DIR.
 ``bfdrift validate-sky IMAGE.fits [--json] [--plot PNG] [--gain G] [--route R]``
-    Star catalogue of a sky image (photutils, adaptive moments) and robust
+    Star catalog of a sky image (photutils, adaptive moments) and robust
     size- and ellipticity-flux slopes at fixed position, before and after
-    the catalogue-level and/or pixel-level BF correction, with a verdict
+    the catalog-level and/or pixel-level BF correction, with a verdict
     (``residual_bf_detected``) and optional figures.
 ``bfdrift diagnose INPUT [--json] [--report DIR] [--basis FILE] [--no-template-change]``
     Where the electrostatic model is wrong and which effect explains it:
@@ -59,6 +60,10 @@ Subcommands
 ``bfdrift spot-sim OUTDIR [--sensor NAME] [--grid NX NY] [--sigma S] [--twin] [--json]``
     Spot-grid series drawn by galsim.SiliconSensor, one FITS file per
     exposure time (EXPTIME, BUNIT), optionally with BF-free twins.
+``bfdrift butler-put REPO FILES... --run RUN --instrument NAME [--data-id ID ...]``
+    FITS exposures put into a run collection of a Butler repository (made
+    with the package's seed config) as the pipeline's input, with their data
+    IDs, for ``pipetask run -i RUN``.
 ``bfdrift maps [IMAGE] [--template FILE] [--out FILE] [--plot PNG] [--json]``
     Final pixel geometry (area, centroid shift, ellipticity maps) of an image
     in electrons; with no IMAGE, the bundled sample star. This is the quick
@@ -77,7 +82,8 @@ Each subcommand's options and code are in one module: ``template`` in
 :mod:`~lsst_bfdrift.cli.spot_commands`; ``calibrate``, ``ptc`` and
 ``diagnose`` in :mod:`~lsst_bfdrift.cli.calibration_commands`;
 ``validate-stars``, ``validate-sky`` and ``reproduce`` in
-:mod:`~lsst_bfdrift.cli.validation_commands`. An option's default is that of
+:mod:`~lsst_bfdrift.cli.validation_commands`; ``butler-put`` in
+:mod:`~lsst_bfdrift.cli.butler_commands`. An option's default is that of
 the config field or function it feeds, read from there.
 """
 
@@ -86,6 +92,7 @@ import re
 import sys
 
 from lsst_bfdrift.cli._common import remove_stale_outputs, sigterm_raises
+from lsst_bfdrift.cli.butler_commands import add_butler_put_parser
 from lsst_bfdrift.cli.calibration_commands import (add_calibrate_parser, add_diagnose_parser,
                                                    add_ptc_parser)
 from lsst_bfdrift.cli.image_commands import (add_correct_parser, add_maps_parser,
@@ -123,7 +130,8 @@ def build_parser():
     for add in (add_template_parser, add_calibrate_parser, add_ptc_parser, add_flat_sim_parser,
                 add_star_sim_parser, add_correct_parser, add_validate_stars_parser,
                 add_reproduce_parser, add_validate_sky_parser, add_diagnose_parser,
-                add_maps_parser, add_spots_parser, add_spot_sim_parser):
+                add_maps_parser, add_spots_parser, add_spot_sim_parser,
+                add_butler_put_parser):
         add(sub)
     show_defaults(p)
     return p

@@ -244,7 +244,7 @@ def add_validate_sky_parser(subparsers):
     vk.add_argument("--poly-order", type=int, default=default("poly_order"),
                     help="PSF position polynomial order")
     vk.add_argument("--n-boot", type=int, default=default("n_boot"), help="bootstrap resamples")
-    vk.add_argument("--catalog", help="write the (corrected) star catalogue (ECSV)")
+    vk.add_argument("--catalog", help="write the (corrected) star catalog (ECSV)")
     vk.add_argument("--plot", help="write a PNG: size/ellipticity vs flux and whiskers")
     vk.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     vk.add_argument("--json", action="store_true")

@@ -27,9 +27,9 @@ from lsst_bfdrift.images.exposure import read_exposure, write_exposure
 from lsst_bfdrift.utils.io import check_output
 from lsst_bfdrift.utils.config import config_from_dict
 from lsst_bfdrift.utils.progress import ProgressBar, StageProgress
-from lsst_bfdrift.utils.errors import InputError
+from lsst_bfdrift.utils.errors import BfdriftError, InputError
 
-__all__ = ["correct_file", "correct_files", "output_pairs", "stage_weights",
+__all__ = ["correct_file", "correct_files", "output_pairs", "stage_weights", "error_text",
            "STAGE_SECONDS"]
 
 
@@ -228,7 +228,23 @@ def _safe(src, dst, config_json, overwrite, progress=None):
         return out
     except Exception as exc:  # noqa: BLE001 - reported per file, the others go on
         return {"input": os.fspath(src), "output": os.fspath(dst), "iterations": None,
-                "converged": False, "warnings": [], "error": f"{type(exc).__name__}: {exc}"}
+                "converged": False, "warnings": [], "error": error_text(exc)}
+
+
+def error_text(exc):
+    """The ``error`` of a failed file's result: the message of the package's
+    errors (which name the file and the problem), ``'ExceptionType: message'``
+    for any other exception.
+
+    Parameters
+    ----------
+    exc : BaseException
+
+    Returns
+    -------
+    str
+    """
+    return str(exc) if isinstance(exc, BfdriftError) else f"{type(exc).__name__}: {exc}"
 
 
 def correct_files(pairs, config=None, *, scheduler=None, overwrite=False, n_workers=2,
@@ -262,7 +278,7 @@ def correct_files(pairs, config=None, *, scheduler=None, overwrite=False, n_work
     -------
     list of dict
         One per pair, in the input order: the :func:`correct_file` summary and
-        ``error`` (None, or ``'ExceptionType: message'`` for a failed file).
+        ``error`` (None, or the message of a failed file, :func:`error_text`).
     """
     pairs = [(os.fspath(a), os.fspath(b)) for a, b in pairs]
     cfg = _config_json(config)
@@ -274,6 +290,8 @@ def correct_files(pairs, config=None, *, scheduler=None, overwrite=False, n_work
                 os.path.basename(src)
             with StageProgress(weights, label) as stages:
                 results[k] = _safe(src, dst, cfg, overwrite, progress=stages)
+                if results[k]["error"]:
+                    stages.fail()  # "failed", not "done 100 %"
         return results
     with ProgressBar(len(pairs), "correct", enabled=progress) as bar:
         if scheduler is None:
@@ -308,7 +326,7 @@ def correct_files(pairs, config=None, *, scheduler=None, overwrite=False, n_work
                     src, dst = pairs[k]
                     results[k] = {"input": src, "output": dst, "iterations": None,
                                   "converged": False, "warnings": [],
-                                  "error": f"{type(exc).__name__}: {exc}"}
+                                  "error": error_text(exc)}
                 bar(1)
         finally:
             client.close()

@@ -600,7 +600,8 @@ def _edge_divergence(flux, phi, blocked):
     return out
 
 
-def correct_coulton18(image, kernel, *, blocked=None, max_iter=10, rtol=1e-7, workers=1):
+def correct_coulton18(image, kernel, *, blocked=None, max_iter=10, rtol=1e-7, workers=1,
+                      progress=None):
     """Kernel correction of Coulton et al. 2018: F = I - 1/2 div(F grad(K * F)), iterated.
 
     Parameters
@@ -611,6 +612,9 @@ def correct_coulton18(image, kernel, *, blocked=None, max_iter=10, rtol=1e-7, wo
         From :func:`coulton18_kernel` (per electron).
     blocked, max_iter, rtol, workers
         As for :func:`correct_image`.
+    progress : callable, optional
+        Called with the fraction of ``max_iter`` done after each iteration
+        (1 when converged).
 
     Returns
     -------
@@ -639,5 +643,9 @@ def correct_coulton18(image, kernel, *, blocked=None, max_iter=10, rtol=1e-7, wo
         if change <= rtol * scale:
             converged = True
             break
+        if progress is not None:
+            progress(it / int(max_iter))
+    if progress is not None:
+        progress(1.0)
     flux[blk] = img[blk]
     return flux, it, converged

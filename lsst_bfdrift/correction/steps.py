@@ -145,7 +145,9 @@ def apply_method(data, template, blocked, cfg, dtype, cache, *, maps=None, progr
         when it is the sparse one.
     progress : callable, optional
         Called with the fraction done, as for
-        :func:`~lsst_bfdrift.correction.solvers.correct_image`.
+        :func:`~lsst_bfdrift.correction.solvers.correct_image` (drift) and
+        :func:`~lsst_bfdrift.correction.solvers.correct_coulton18` (its
+        iterations); astier23's single pass reports none.
 
     Returns
     -------
@@ -169,7 +171,7 @@ def apply_method(data, template, blocked, cfg, dtype, cache, *, maps=None, progr
         kernel = coulton18_kernel(area_coefficients(template))
         flux, iterations, converged = correct_coulton18(
             data, kernel, blocked=blocked, max_iter=cfg.max_iter, rtol=cfg.rtol,
-            workers=cfg.workers)
+            workers=cfg.workers, progress=progress)
     else:
         flux, iterations, converged = correct_image(
             data, template, order=order, density=density, blocked=blocked,

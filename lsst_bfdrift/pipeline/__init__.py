@@ -10,6 +10,8 @@ as a subtask. Needs the ``[lsst]`` extra (``lsst-pipe-base``,
 * :mod:`~lsst_bfdrift.pipeline.formatters`: Butler formatters of the storage
   classes ``BfdriftExposure`` (the LSST Exposure FITS layout, without afw)
   and ``BfdriftGeometryMaps``;
+* :mod:`~lsst_bfdrift.pipeline.ingest`: FITS exposures put into a run
+  collection with their data IDs (``bfdrift butler-put``);
 * ``butler_seed.yaml``: the storage classes and formatters for
   ``butler create --seed-config``; ``bfdrift.yaml``: a pipeline using the task.
 """
@@ -23,9 +25,11 @@ except ImportError as exc:  # pragma: no cover - the core install
                       "pip install 'lsst_bfdrift[lsst]'") from exc
 
 from lsst_bfdrift.pipeline.task import *  # noqa: F401,F403,E402
+from lsst_bfdrift.pipeline.ingest import put_exposures  # noqa: E402
 
 __all__ = ["BrighterFatterDriftPipelineTask", "BrighterFatterDriftPipelineConfig",
-           "BrighterFatterDriftConnections", "pipeline_path", "seed_config_path"]
+           "BrighterFatterDriftConnections", "pipeline_path", "seed_config_path",
+           "put_exposures"]
 
 
 def pipeline_path():

@@ -609,7 +609,7 @@ def covariance_model(mu, gain, a, b, noise):
 
 
 def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max=None,
-                         fit_b="auto", gain=None, fit_noise=True):
+                         fit_b="auto", gain=None, fit_noise=True, progress=None):
     """Fit gain, a_ij, b_ij and n_ij of the full model to measured covariances.
 
     Parameters
@@ -643,6 +643,11 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
         Known gain (e/ADU), held fixed (its error is then 0); default: fitted.
     fit_noise : bool, optional
         Fit n_ij (else fixed to 0, e.g. for noiseless simulations).
+    progress : callable, optional
+        Called with no argument after each evaluation of the model (e.g. an
+        :class:`~lsst_bfdrift.utils.progress.Activity`): the number of
+        iterations is not known in advance. With b_ij free the fit is long
+        (7 levels of 9 x 9 lags: about 60000 evaluations, 2 minutes).
 
     Returns
     -------
@@ -654,7 +659,7 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
     """
     if fit_b == "auto":
         kw = dict(sigma=sigma, npix=npix, max_lag=max_lag, mu_max=mu_max, gain=gain,
-                  fit_noise=fit_noise)
+                  fit_noise=fit_noise, progress=progress)
         without = fit_covariance_model(mu, cov, fit_b=False, **kw)
         with_b = fit_covariance_model(mu, cov, fit_b=True, **kw)
         n_b = int(without["dof"] - with_b["dof"])
@@ -724,6 +729,8 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
 
     def resid(q):
         g, a, b, nz = unpack(q)
+        if progress is not None:
+            progress()
         return ((covariance_model(m, g, a, b, nz) - c) / s).ravel()
 
     scale = np.concatenate([[0.1], np.full(n1, 1e-7), np.full(n1, 1e-8), np.full(n1, 10.0)])

@@ -55,6 +55,7 @@ from astropy.io import fits
 
 from lsst_bfdrift.ptc.data import CalibrationData, require_levels, truncate_lags
 from lsst_bfdrift.utils.errors import InputError
+from lsst_bfdrift.utils.io import open_fits
 
 __all__ = ["CP_PIPE_COLUMNS", "read_cp_pipe_ptc"]
 
@@ -172,7 +173,7 @@ def read_cp_pipe_ptc(path, *, amp=None, max_lag=None, min_levels=3):
         ``kind`` 'cp_pipe'.
     """
     path = os.fspath(path)
-    with fits.open(path, memmap=False) as hdul:
+    with open_fits(path) as hdul:
         if len(hdul) < 2 or not isinstance(hdul[1], fits.BinTableHDU):
             found = "no HDU 1" if len(hdul) < 2 else f"HDU 1 is {type(hdul[1]).__name__}"
             raise InputError(f"{path}: not {_CP_EXPECTED}; found {found}")

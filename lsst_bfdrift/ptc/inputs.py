@@ -61,6 +61,7 @@ signal's unit squared.
 
 import math
 import os
+import warnings
 
 import numpy as np
 import astropy.units as u
@@ -74,18 +75,24 @@ from lsst_bfdrift.ptc.data import INPUT_KINDS, CalibrationData, describe_paths, 
 from lsst_bfdrift.ptc.covariances import (identical_flats, pair_covariances, ptc_turnoff,
                                           read_ptc_text)
 from lsst_bfdrift.images.electrons import image_unit
-from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
-from lsst_bfdrift.utils.io import hdu_pixels, open_fits, read_text_rows
+from lsst_bfdrift.utils.errors import InputError, InputFileError, InputNotFoundError
+from lsst_bfdrift.utils.io import hdu_pixels, not_fits_reason, open_fits, read_text_rows
 
-__all__ = ["detect_input_kind", "read_calibration_input", "read_flat_pairs", "read_ptc_file",
+__all__ = ["FITS_SUFFIXES", "ExposureLevelWarning", "exptime_level_problem",
+           "detect_input_kind", "read_calibration_input", "read_flat_pairs", "read_ptc_file",
            "read_amatrix_file"]
 
 
 # --------------------------------------------------------------------------- detection
 
+#: Endings of file names taken as FITS: such a file that is not FITS is refused
+#: as such, not read as a text table.
+FITS_SUFFIXES = (".fits", ".fit", ".fts", ".fits.gz", ".fits.fz", ".fz")
+
+
 def _is_fits(path):
-    with open(path, "rb") as fh:
-        return fh.read(9) == b"SIMPLE  ="
+    """Starts like a FITS file (or a compressed one, which astropy opens)."""
+    return not_fits_reason(path) is None
 
 
 #: What a text input may be, for the messages of the readers.
@@ -146,6 +153,11 @@ def detect_input_kind(path):
             return "cp_pipe"
         raise InputError(f"{path}: FITS file with neither a 2-d image HDU (a flat) nor a binary "
                          "table (a cp_pipe PTC dataset); one of those is accepted")
+    if path.lower().endswith(FITS_SUFFIXES):
+        # named as FITS: say so rather than read it as a table of numbers
+        raise InputFileError(f"{path}: {not_fits_reason(path)}; "
+                             "accepted: FITS flats or a cp_pipe PTC dataset FITS (or, named "
+                             "otherwise, a PTC text file or an a-matrix table)", path)
     first, ncol = _first_data_row(path)
     if first is not None and first.startswith("# %ECSV"):
         return "amatrix"
@@ -159,7 +171,8 @@ def detect_input_kind(path):
 
 
 def read_calibration_input(paths, *, max_lag=8, amp=None, exptime_rtol=1e-3, turnoff_drop=0.05,
-                           min_levels=3, drop_single=False, nsig=5.0, min_pixels=1000):
+                           min_levels=3, drop_single=False, nsig=5.0, min_pixels=1000,
+                           progress=None):
     """Read the inputs of ``bfdrift calibrate``: flats, a PTC, an a-matrix or a cp_pipe PTC.
 
     Parameters
@@ -185,10 +198,20 @@ def read_calibration_input(paths, *, max_lag=8, amp=None, exptime_rtol=1e-3, tur
         raising.
     nsig, min_pixels
         Flats: passed to :func:`~lsst_bfdrift.ptc.covariances.pair_covariances`.
+    progress : callable, optional
+        Flats: called as ``progress(done, total)`` as the files are read
+        (:func:`read_flat_pairs`).
 
     Returns
     -------
     CalibrationData
+
+    Warns
+    -----
+    ExposureLevelWarning
+        Flats whose levels are not proportional to their ``EXPTIME``
+        (:func:`exptime_level_problem`), said as soon as the levels are
+        measured.
 
     Raises
     ------
@@ -220,7 +243,8 @@ def read_calibration_input(paths, *, max_lag=8, amp=None, exptime_rtol=1e-3, tur
     if kind == "flats":
         return read_flat_pairs(paths, max_lag=max_lag, exptime_rtol=exptime_rtol,
                                turnoff_drop=turnoff_drop, min_levels=min_levels,
-                               drop_single=drop_single, nsig=nsig, min_pixels=min_pixels)
+                               drop_single=drop_single, nsig=nsig, min_pixels=min_pixels,
+                               progress=progress)
     if len(paths) > 1:
         raise InputError(f"{paths[1]}: only one {kind} file can be read at a time, got "
                          f"{len(paths)} ({', '.join(paths)})")
@@ -232,6 +256,61 @@ def read_calibration_input(paths, *, max_lag=8, amp=None, exptime_rtol=1e-3, tur
 
 
 # --------------------------------------------------------------------------- flats
+
+class ExposureLevelWarning(UserWarning):
+    """Flat levels not proportional to their exposure times (``EXPTIME``): a
+    mislabelled file, a wrong keyword, or a bias not subtracted."""
+
+
+def exptime_level_problem(exptime, mu, files, *, rtol=0.1):
+    """What is wrong when flat levels are not proportional to ``EXPTIME``; None if they are.
+
+    The signal rate ``mu / exptime`` of every pair should be the lamp's, the
+    same for all: a pair more than ``rtol`` from the median rate (the lower
+    median: one pair's own rate) is named.
+    (A shutter delay of a few per cent of the shortest exposure stays within
+    10 %; flats past the turn-off should be left out by the caller.)
+
+    Parameters
+    ----------
+    exptime, mu : array_like, shape (n,)
+        Exposure time (s) and mean level of each pair.
+    files : sequence of sequence of str
+        The files of each pair.
+    rtol : float, optional
+        Largest relative departure of a pair's rate from the median rate.
+
+    Returns
+    -------
+    str or None
+        A sentence naming the pairs out of line, with every level and
+        ``EXPTIME``.
+    """
+    t = np.asarray(exptime, float)
+    m = np.asarray(mu, float)
+    ok = (t > 0) & np.isfinite(m)
+    if ok.sum() < 2:
+        return None
+    rate = m / np.where(ok, t, np.nan)
+    med = float(np.sort(rate[ok])[(int(ok.sum()) - 1) // 2])  # a pair's own rate
+    if not med > 0:
+        return None
+    off = ok & (np.abs(rate / med - 1.0) > rtol)
+    if not off.any():
+        return None
+    order = np.argsort(t)
+
+    def name(k):
+        return ", ".join(os.path.basename(f) for f in files[k])
+
+    listing = "; ".join(f"{name(k)}: EXPTIME {t[k]:g} s, level {m[k]:.6g} "
+                        f"({rate[k]:.4g} per s){' <-' if off[k] else ''}" for k in order)
+    return (f"flat levels are not proportional to EXPTIME: {int(off.sum())} of {int(ok.sum())} "
+            f"pair(s) are more than {rtol:.0%} from the median rate {med:.4g} per s "
+            f"(marked <-): {listing}. Check the EXPTIME keywords (the pairs are grouped by "
+            "them) and that the flats are bias-subtracted; the calibration goes on with the "
+            "measured levels")
+
 
 def _header_value(headers, key):
     for h in headers:
@@ -303,7 +382,7 @@ def _group_levels(infos, rtol):
 
 
 def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, min_levels=3,
-                    drop_single=False, nsig=5.0, min_pixels=1000):
+                    drop_single=False, nsig=5.0, min_pixels=1000, progress=None):
     """Covariances of flat pairs read from FITS files.
 
     See the module documentation (kind ``'flats'``) for the file format,
@@ -314,11 +393,22 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
     ----------
     paths : sequence of str or path-like
         FITS flats, bias-subtracted (ADU or electrons).
+    progress : callable, optional
+        Called as ``progress(done, total)``: a step per file whose header is
+        read, then a step per flat whose pixels are read (with its pair's
+        covariances), from ``progress(0, total)`` on.
 
     Returns
     -------
     CalibrationData
         ``kind`` 'flats'; one PTC point per pair used.
+
+    Warns
+    -----
+    ExposureLevelWarning
+        The levels of the pairs below the turn-off are not proportional to
+        their ``EXPTIME`` (:func:`exptime_level_problem`); it is also added
+        to the notes.
     """
     paths = [os.fspath(p) for p in paths]
     if len(paths) < 2:
@@ -326,7 +416,19 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
         raise InputError(f"{name}: only one flat given; a photon transfer curve needs pairs of "
                          f"flats (two FITS files with equal EXPTIME) at >= {min_levels} "
                          "exposure levels")
-    infos = [_flat_header(p) for p in paths]
+    done, total = 0, 2 * len(paths)
+
+    def step(n=1):
+        nonlocal done
+        done += n
+        if progress is not None:
+            progress(done, total)
+
+    step(0)
+    infos = []
+    for p in paths:
+        infos.append(_flat_header(p))
+        step()
     first = infos[0]
     for info in infos[1:]:
         if info["shape"] != first["shape"]:
@@ -379,6 +481,8 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
     files = describe_paths(paths)
     require_levels(len({k for k, _, _ in pairs}), min_levels, "with a pair of flats", files,
                     dropped)
+    total = len(paths) + 2 * len(pairs)  # the flats left out need no pixels read
+    step(0)
     rows, constant, ncopies = [], [], 0
     for _, f1, f2 in pairs:
         d1, m1, g1, n1 = _flat_pixels(f1)
@@ -388,6 +492,8 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
         same = identical_flats(d1, d2, mask=m1 | m2)
         entry = {"files": [f1["path"], f2["path"]],
                  "exptime": 0.5 * (f1["exptime"] + f2["exptime"])}
+        if same is not None:
+            step(2)
         if same is not None and same[0] == "copies":
             ncopies += 1
             dropped.append(entry | {"reason": f"{same[1]}; pair excluded"})
@@ -403,6 +509,7 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
         except ValueError as err:
             raise InputError(f"flat pair {f1['path']}, {f2['path']}: {err}") from None
         del d1, d2
+        step(2)
         rows.append({"files": [f1["path"], f2["path"]],
                      "exptime": 0.5 * (f1["exptime"] + f2["exptime"]), "mu": pc.mu,
                      "var": float(pc.cov[0, 0]), "nan_pixels": n1 + n2,
@@ -439,6 +546,11 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
         dropped.append(c)
     nlev = len(_group_levels([{"exptime": r["exptime"]} for r in used], exptime_rtol))
     require_levels(nlev, min_levels, "remain below the PTC turn-off", files, dropped)
+    problem = exptime_level_problem([r["exptime"] for r in used], [r["mu"] for r in used],
+                                    [r["files"] for r in used])
+    if problem is not None:  # said now, before any fit
+        warnings.warn(problem, ExposureLevelWarning, stacklevel=2)
+        notes.append(problem)
     units = first["units"]
     if units == "electron":
         gain, source = 1.0, "BUNIT = 'electron': signals in electrons"

@@ -17,7 +17,8 @@ from lsst_bfdrift.utils.errors import (InputFileError, InputNotFoundError,
 
 __all__ = ["TMP_PREFIX", "STALE_AGE", "is_temporary", "temporary_owner", "is_stale_temporary",
            "remove_stale_temporaries", "data_files", "check_output", "atomic_output",
-           "write_text", "write_json", "open_fits", "hdu_pixels", "data_path", "read_text_rows"]
+           "write_text", "write_json", "FITS_MAGIC", "not_fits_reason", "astropy_message",
+           "open_fits", "hdu_pixels", "data_path", "read_text_rows"]
 
 #: Prefix of the temporary files of :func:`atomic_output`; directory readers
 #: ignore files whose name starts with it (:func:`is_temporary`).
@@ -310,6 +311,58 @@ def write_json(path, obj, **dump_kwargs):
         json.dump(obj, fh, **dump_kwargs)
 
 
+#: The first bytes of a FITS file (the mandatory first card), and of the compressed
+#: files astropy opens (gzip, bzip2, zip).
+FITS_MAGIC = b"SIMPLE  ="
+_COMPRESSED_MAGIC = (b"\x1f\x8b", b"BZh", b"PK\x03\x04")
+
+#: What astropy appends to its message for a file without the SIMPLE card: an
+#: option of ``fits.open``, not of any bfdrift command.
+_ASTROPY_HINT = re.compile(r"\s*If this is really a FITS file, try with "
+                           r"ignore_missing_simple=True\.?")
+
+
+def not_fits_reason(path):
+    """Why the file at ``path`` is not a FITS file, from its first bytes; None if it may be one.
+
+    A FITS file starts with the card ``SIMPLE  =``; gzip, bzip2 and zip files
+    (which astropy decompresses) are left to the reader.
+
+    Parameters
+    ----------
+    path : str or path-like
+        An existing file.
+
+    Returns
+    -------
+    reason : str or None
+        E.g. ``"not a FITS file: it is a text file starting with 'mean var' (a
+        FITS file starts with the card 'SIMPLE  =')"``; None when the file
+        starts like a FITS (or a compressed) file.
+
+    Raises
+    ------
+    OSError
+        The file cannot be read.
+    """
+    with open(os.fspath(path), "rb") as fh:
+        head = fh.read(2880)
+    if head.startswith(FITS_MAGIC) or head.startswith(_COMPRESSED_MAGIC):
+        return None
+    expected = f"a FITS file starts with the card '{FITS_MAGIC.decode()}'"
+    if not head:
+        return f"not a FITS file: the file is empty ({expected})"
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        text = None
+    if text is not None and all(c.isprintable() or c in "\t\r\n" for c in text):
+        first = next((ln.strip() for ln in text.splitlines() if ln.strip()), "")
+        first = first if len(first) <= 40 else first[:37] + "..."
+        return f"not a FITS file: it is a text file starting with {first!r} ({expected})"
+    return f"not a FITS file: it starts with the bytes {head[:8]!r} ({expected})"
+
+
 @contextlib.contextmanager
 def open_fits(path):
     """``astropy.io.fits.open`` (no memmap) with the package's errors.
@@ -319,18 +372,40 @@ def open_fits(path):
     InputNotFoundError
         ``path`` does not exist.
     InputFileError
-        ``path`` is not a readable FITS file (empty, corrupt, another format).
+        ``path`` is not a FITS file (:func:`not_fits_reason`: empty, text,
+        another format) or not a readable one (corrupt); the message names
+        the file and says which.
     """
     path = os.fspath(path)
     if not os.path.exists(path):
         raise InputNotFoundError(f"{path}: no such file; accepted: a FITS file", path)
+    if os.path.isdir(path):
+        raise InputFileError(f"{path}: is a directory; accepted: a FITS file", path)
+    reason = not_fits_reason(path)
+    if reason is not None:
+        raise InputFileError(f"{path}: {reason}; accepted: a FITS file", path)
     try:
         hdul = fits.open(path, memmap=False)
     except (OSError, ValueError, TypeError, IndexError) as exc:
-        raise InputFileError(f"{path}: not a readable FITS file ({exc}); accepted: a FITS "
-                             "file", path) from exc
+        raise InputFileError(f"{path}: not a readable FITS file ({astropy_message(exc)}); "
+                             "accepted: a FITS file", path) from exc
     with hdul:
         yield hdul
+
+
+def astropy_message(exc):
+    """The text of an astropy error about a file, without its advice to call
+    ``fits.open(..., ignore_missing_simple=True)`` (no option of the package).
+
+    Parameters
+    ----------
+    exc : Exception
+
+    Returns
+    -------
+    str
+    """
+    return _ASTROPY_HINT.sub("", str(exc)).strip()
 
 
 def hdu_pixels(hdu, path, dtype=np.float64):

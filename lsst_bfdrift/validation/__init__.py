@@ -1,7 +1,7 @@
 """Validation of the corrections.
 
-Takes exposures, star catalogues and templates; gives star catalogues
-(photutils), catalogue-level shape corrections, residual size-flux slopes on
+Takes exposures, star catalogs and templates; gives star catalogs
+(photutils), catalog-level shape corrections, residual size-flux slopes on
 the sky and on paired GalSim stars, and the reproduction of Rasmussen 2015's
 figures.
 """

@@ -14,7 +14,7 @@ __all__ = ["plot_sky_validation", "plot_whiskers", "plot_ratio_scan", "plot_radi
            "plot_feature_profiles", "plot_pixel_contours", "plot_structure_functions",
            "plot_recovery", "plot_tearing_onset"]
 
-_STYLE = {"before": ("tab:red", "o", "before"), "catalog": ("tab:blue", "s", "catalogue route"),
+_STYLE = {"before": ("tab:red", "o", "before"), "catalog": ("tab:blue", "s", "catalog route"),
           "pixel": ("tab:green", "^", "pixel route")}
 
 

@@ -1,4 +1,4 @@
-r"""Catalogue-level brighter-fatter correction of star moments with pixel-geometry maps.
+r"""Catalog-level brighter-fatter correction of star moments with pixel-geometry maps.
 
 An alternative to (and a cross-check of) the pixel-level flux redistribution
 of :class:`~lsst_bfdrift.correction.task.BrighterFatterDriftTask`: the image is left as
@@ -63,7 +63,7 @@ footprint (a square pixel has the same term), the BF difference between the
 recorded and the true image used to predict the maps, and light crossing
 the aperture edge (the aperture flux is left unchanged).
 
-The correction is applied as a difference: ``M_corrected = M_catalogue +
+The correction is applied as a difference: ``M_corrected = M_catalog +
 (M_adaptive(distorted) - M_adaptive(nominal))`` with both adaptive moments
 computed here by the same algorithm on the same cutout (each iterated to its
 own weight), so any small difference between this implementation and HSM
@@ -263,7 +263,7 @@ def correct_star_moments(stamp, x0, y0, foot, *, guess=None, history=0.5, valid=
 
 def correct_catalog(catalog, exposure, *, maps=None, template=None, gain=None, mask=None,
                     history=0.5, workers=2):
-    """Brighter-fatter correction of a star catalogue's moments (catalogue level).
+    """Brighter-fatter correction of a star catalog's moments (catalog level).
 
     Parameters
     ----------
@@ -348,5 +348,5 @@ def correct_catalog(catalog, exposure, *, maps=None, template=None, gain=None, m
     out["de1"] = out["e1"] - out["e1_meas"]
     out["de2"] = out["e2"] - out["e2_meas"]
     out["bf_corrected"] = done
-    out.meta["bf_correction"] = f"catalogue level, history factor {float(history):g}"
+    out.meta["bf_correction"] = f"catalog level, history factor {float(history):g}"
     return out

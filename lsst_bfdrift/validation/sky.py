@@ -8,9 +8,9 @@ fixed position, fitted by
 :func:`~lsst_bfdrift.catalogs.slopes.shape_flux_relations`.
 
 :func:`validate_sky` measures the slopes before and after correction: the
-catalogue-level correction (:func:`~lsst_bfdrift.validation.shape_correction.correct_catalog`),
+catalog-level correction (:func:`~lsst_bfdrift.validation.shape_correction.correct_catalog`),
 the pixel-level Task (:class:`~lsst_bfdrift.correction.task.BrighterFatterDriftTask`)
-followed by a new catalogue, or both. ``residual_bf_detected`` is True when
+followed by a new catalog, or both. ``residual_bf_detected`` is True when
 any after-correction slope (size, e1 or e2) differs from zero by more than
 ``z_crit`` standard errors (default 3: a false-alarm probability of about
 0.8 % for the three tests together under Gaussian errors).
@@ -30,7 +30,7 @@ from lsst_bfdrift.images.electrons import to_electrons
 from lsst_bfdrift.templates.template import load_default_template
 from lsst_bfdrift.validation.shape_correction import correct_catalog
 
-__all__ = ["validate_sky", "SkyValidation"]
+__all__ = ["validate_sky", "sky_verdict", "SkyValidation"]
 
 
 class SkyValidation:
@@ -39,16 +39,19 @@ class SkyValidation:
     Attributes
     ----------
     summary : dict
-        JSON-ready: ``before`` and ``after`` (per route) relations, verdict
-        fields ``bf_detected_before``, ``residual_bf_detected``,
-        ``significance_before``, ``significance_after`` (absolute z of the size
-        slope), ``removed_fraction`` and ``verdict`` (a sentence).
+        JSON-ready: ``before`` and ``after`` (per route) relations, and the
+        verdict fields of :func:`sky_verdict`: ``bf_detected_before``,
+        ``residual_bf_detected``, ``significance_before`` and
+        ``significance_after`` (signed z of the size slope, the number the
+        verdict prints; positive: bright stars larger), ``max_significance_after``
+        (largest ``|z|`` of the size, e1 and e2 slopes), ``removed_fraction``
+        and ``verdict`` (a sentence).
     catalog : QTable
-        Catalogue of the recorded image.
+        Catalog of the recorded image.
     corrected : dict of QTable
-        Corrected catalogue per route (``catalog``, ``pixel``).
+        Corrected catalog per route (``catalog``, ``pixel``).
     fits : dict
-        Relations per catalogue name (``before``, and each route).
+        Relations per catalog name (``before``, and each route).
     """
 
     def __init__(self, summary, catalog, corrected, fits):
@@ -99,7 +102,7 @@ def validate_sky(exposure, *, gain=None, mask=None, saturation=None, template=No
     min_snr, poly_order, noise_term, n_boot, seed
         See :func:`shape_flux_relations`.
     history : float, optional
-        History factor of the catalogue-level correction.
+        History factor of the catalog-level correction.
     catalog_kwargs : dict, optional
         Extra options of :func:`~lsst_bfdrift.catalogs.catalog.measure_stars`.
     progress : bool, optional
@@ -151,43 +154,87 @@ def validate_sky(exposure, *, gain=None, mask=None, saturation=None, template=No
     if progress:
         bar._draw(final=True)
     before = fits["before"]
-    z_before = abs(before["size"]["z"])
     summary = {"image_shape": [int(ny), int(nx)], "gain": g, "route": route,
                "z_crit": float(z_crit), "min_snr": float(min_snr),
                "n_detections": len(cat), "n_stars_used": before["n_stars"],
                "units": {"size": "fractional change of T = Ixx + Iyy per 1e5 e",
                          "e1": "change of e1 per 1e5 e", "e2": "change of e2 per 1e5 e",
                          "size_mag": "fractional change of T per magnitude"},
-               "before": _compact(before),
-               "bf_detected_before": bool(z_before > z_crit),
-               "significance_before": z_before}
+               "before": _compact(before)}
     routes = [r for r in ("catalog", "pixel") if r in fits]
     summary["after"] = {r: _compact(fits[r]) for r in routes}
-    if routes:
-        zs = {r: max(abs(fits[r][k]["z"]) for k in ("size", "e1", "e2")) for r in routes}
-        worst = max(routes, key=lambda r: zs[r])
-        summary["residual_bf_detected"] = bool(zs[worst] > z_crit)
-        summary["significance_after"] = {r: abs(fits[r]["size"]["z"]) for r in routes}
-        summary["max_significance_after"] = {r: zs[r] for r in routes}
-        s0 = before["size"]["slope"]
-        summary["removed_fraction"] = {r: (1 - fits[r]["size"]["slope"] / s0) if s0 else None
-                                       for r in routes}
-        summary["verdict"] = _verdict(summary, fits, routes, z_crit)
-    else:
-        summary["residual_bf_detected"] = bool(z_before > z_crit)
-        summary["verdict"] = ("BF slope detected (uncorrected image)" if z_before > z_crit
-                              else "no BF slope detected (uncorrected image)") \
-            + f": size slope z = {before['size']['z']:+.1f}"
+    summary.update(sky_verdict(fits, z_crit=z_crit))
     return SkyValidation(summary, cat, corrected, fits)
 
 
-def _verdict(summary, fits, routes, z_crit):
+def sky_verdict(fits, *, z_crit=3.0):
+    """The verdict fields of :func:`validate_sky` from the slopes before and after correction.
+
+    Every significance is the signed ``z = slope / slope_err`` of a slope,
+    the number the verdict sentence prints: positive for the size slope
+    means bright stars larger than faint ones (the sign of the
+    brighter-fatter effect), negative smaller. A BF slope before correction
+    is detected when the size slope's ``z > z_crit`` (one-sided: a slope of
+    the opposite sign is not brighter-fatter, and the verdict says so); a
+    residual slope after correction when any of the size, e1 and e2 slopes
+    has ``|z| > z_crit`` (an over-correction counts).
+
+    Parameters
+    ----------
+    fits : dict
+        Relations (:func:`~lsst_bfdrift.catalogs.slopes.shape_flux_relations`)
+        under ``before`` and each route done (``catalog``, ``pixel``); each
+        has ``size``, ``e1`` and ``e2`` with ``slope``, ``slope_err`` and ``z``.
+    z_crit : float, optional
+        Significance (standard errors) at which a slope counts as detected.
+
+    Returns
+    -------
+    dict
+        ``bf_detected_before`` (bool), ``significance_before`` (signed z of
+        the size slope before correction), ``residual_bf_detected`` (bool;
+        without a route, whether BF is detected before), and with a route:
+        ``significance_after`` (route -> signed z of the size slope after),
+        ``max_significance_after`` (route -> largest ``|z|`` of the size, e1
+        and e2 slopes after: what is compared with ``z_crit``),
+        ``removed_fraction`` (route -> 1 - size slope after / before) and
+        ``verdict`` (a sentence).
+    """
+    before = fits["before"]["size"]
+    z_before = float(before["z"])
+    routes = [r for r in ("catalog", "pixel") if r in fits]
+    out = {"bf_detected_before": bool(z_before > z_crit), "significance_before": z_before}
+    if not routes:
+        out["residual_bf_detected"] = out["bf_detected_before"]
+        out["verdict"] = (("BF slope detected (uncorrected image)" if z_before > z_crit else
+                           "size-flux slope of the opposite sign to BF (uncorrected image; "
+                           "bright stars smaller)" if z_before < -z_crit else
+                           "no BF slope detected (uncorrected image)")
+                          + f": size slope z = {z_before:+.1f}")
+        return out
+    zs = {r: max(abs(float(fits[r][k]["z"])) for k in ("size", "e1", "e2")) for r in routes}
+    out["residual_bf_detected"] = bool(max(zs.values()) > z_crit)
+    out["significance_after"] = {r: float(fits[r]["size"]["z"]) for r in routes}
+    out["max_significance_after"] = zs
+    s0 = before["slope"]
+    out["removed_fraction"] = {r: (1 - fits[r]["size"]["slope"] / s0) if s0 else None
+                               for r in routes}
+    out["verdict"] = _verdict(fits, routes, z_crit)
+    return out
+
+
+def _verdict(fits, routes, z_crit):
     before = fits["before"]["size"]
     parts = []
-    if summary["bf_detected_before"]:
+    if before["z"] > z_crit:
         parts.append(f"BF size-flux slope detected before correction "
                      f"({before['slope']:+.2e} +- {before['slope_err']:.1e} per 1e5 e, "
                      f"z = {before['z']:+.1f})")
+    elif before["z"] < -z_crit:
+        parts.append(f"size-flux slope of the opposite sign to BF before correction (bright "
+                     f"stars smaller: {before['slope']:+.2e} +- {before['slope_err']:.1e} per "
+                     f"1e5 e, z = {before['z']:+.1f}); the stars cannot show whether a BF "
+                     "correction works")
     else:
         parts.append(f"no significant BF slope before correction (z = {before['z']:+.1f}); "
                      "the stars cannot show whether a correction works")

@@ -1,5 +1,7 @@
 """calibrate(): the model tuned to a-matrices GalSim computed (independent data)."""
 
+import re
+
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
@@ -249,3 +251,18 @@ def test_an_amatrix_inconsistent_in_itself_is_refused(change, match):
     change(a)
     with pytest.raises(ValueError, match=match):
         calibrate(AcoeffTable(a, sigma), build=False)
+
+
+def test_progress_says_each_stage_from_the_start(itl, capsys):
+    """Issue 43 item 1: calibrate's bar says what runs from its first line (the
+    model fit at 0 %), then each stage as it starts (template build,
+    refinement), and ends at 100 %."""
+    calibrate(itl, free=["channel_depth"], settings=SMALL, allow_poor_fit=True, progress=True)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0].startswith("calibrate: model fit   0.0%")
+    labels = [re.match(r"(.*?)\s+[0-9.]+%", ln).group(1) for ln in lines]
+    order = ["calibrate: model fit", "calibrate: template build", "calibrate: refinement",
+             "calibrate: done"]
+    assert [lb for lb in order if lb in labels] == order
+    assert labels == sorted(labels, key=order.index)
+    assert lines[-1].startswith("calibrate: done 100.0%")

@@ -1,6 +1,6 @@
-"""Tests of lsst_bfdrift.catalogs.slopes on synthetic catalogues
+"""Tests of lsst_bfdrift.catalogs.slopes on synthetic catalogs
 (independent reference: the slope put in, and the N(0, 1) pulls of noise-only
-catalogues)."""
+catalogs)."""
 
 import numpy as np
 import pytest
@@ -35,7 +35,7 @@ def test_slope_recovered_with_outliers():
 
 
 def test_null_slopes_are_not_detected_and_errors_are_calibrated():
-    # 300 noise-only catalogues: the pull z = slope / err must be ~ N(0, 1)
+    # 300 noise-only catalogs: the pull z = slope / err must be ~ N(0, 1)
     rng = np.random.default_rng(2)
     z = []
     for _ in range(300):

@@ -974,7 +974,8 @@ def test_a_stale_partial_file_in_an_input_directory_is_removed(capsys, tmp_path)
     rng = np.random.default_rng(4)
     for k, level in enumerate((2e3, 6e3, 1.2e4, 2.4e4, 4e4)):
         for half in "ab":
-            hdr = fits.Header({"EXPTIME": float(k + 1), "BUNIT": "adu"})
+            # levels proportional to EXPTIME (a lamp of 2000 e/s; issue 43 item 1)
+            hdr = fits.Header({"EXPTIME": level / 2e3, "BUNIT": "adu"})
             fits.PrimaryHDU(rng.poisson(level, (48, 48)).astype(np.float32),
                             header=hdr).writeto(d / f"flat_{k}{half}.fits")
     stale = d / f".tmp-{proc.pid}-{_host_tag()}-abcd0xyz.fits"

@@ -161,7 +161,7 @@ def test_truncated_fits_is_named(tmp_path):
         with pytest.raises(InputFileError, match="cut.fits: truncated"):
             to_electrons(str(cut), gain=1.0)
     (tmp_path / "empty.fits").write_bytes(b"")
-    with pytest.raises(InputFileError, match="empty.fits: not a readable FITS"):
+    with pytest.raises(InputFileError, match="empty.fits: not a FITS file: the file is empty"):
         read_image(tmp_path / "empty.fits")
     with pytest.raises(FileNotFoundError, match="nope.fits"):
         read_image(tmp_path / "nope.fits")
@@ -184,7 +184,7 @@ def _flats(directory, header):
     for k, level in enumerate((2e3, 6e3, 1.2e4, 2.4e4, 4e4)):
         for half in "ab":
             hdr = fits.Header(header)
-            hdr["EXPTIME"] = float(k + 1)
+            hdr["EXPTIME"] = level / 2e3  # proportional to the level (issue 43 item 1)
             adu = rng.poisson(level, (64, 64)) / 1.5
             paths.append(_write(directory / f"flat_{k}{half}.fits", adu, **hdr))
     return paths

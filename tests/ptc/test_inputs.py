@@ -621,3 +621,43 @@ def test_a_pair_of_one_exposure_twice_is_excluded_and_named(tmp_path, rng):
     assert identical_flats(np.full(SHAPE, 7.0), np.full(SHAPE, 7.0))[0] == "constant"
     a[0, 0] = np.nan
     assert identical_flats(a, a.copy(), mask=np.zeros(SHAPE, bool))[0] == "copies"
+
+
+# --------------------------------------------------------------------------- issue 43 item 1
+
+def test_levels_not_proportional_to_exptime_are_said_at_once(tmp_path, rng):
+    """Flats whose levels do not follow their EXPTIME (here: times 1, 2, 3, 4 s
+    for levels 500 to 4000 ADU) are said when read, naming the files and levels,
+    before any fit; the data are still returned."""
+    from lsst_bfdrift.ptc.inputs import ExposureLevelWarning
+    paths = _flat_set(tmp_path, rng, levels={1.0: 500.0, 2.0: 1000.0, 3.0: 2000.0,
+                                             4.0: 4000.0})
+    with pytest.warns(ExposureLevelWarning, match=r"not proportional to EXPTIME: 2 of 4 "
+                      r"pair\(s\).*flat_001\.0_0\.fits, flat_001\.0_1\.fits: EXPTIME 1 s, "
+                      r"level 49\d(\.\d+)? \(49\d(\.\d+)? per s\);.*flat_004\.0_0\.fits, "
+                      r"flat_004\.0_1\.fits: EXPTIME 4 s, level 4\d+(\.\d+)? \(\d+(\.\d+)? "
+                      r"per s\) <-"):
+        d = read_calibration_input(paths, max_lag=1, min_pixels=500)
+    assert any("not proportional to EXPTIME" in n for n in d.notes)
+    assert d.mu.size == 4
+
+
+def test_exptime_level_problem_tolerates_a_shutter_delay():
+    from lsst_bfdrift.ptc.inputs import exptime_level_problem
+    t = np.array([0.5, 1.0, 2.0, 4.0, 8.0])
+    files = [[f"f{k}a", f"f{k}b"] for k in range(5)]
+    assert exptime_level_problem(t, 1000.0 * (t + 0.02), files) is None  # 20 ms: 4 % at 0.5 s
+    assert "f0a, f0b" in exptime_level_problem(t, 1000.0 * (t + 0.2), files)
+    assert exptime_level_problem(t, 1000.0 * 1.5 ** np.arange(5), files) is not None
+
+
+def test_reading_flats_reports_progress_from_the_start(tmp_path, rng):
+    """progress(done, total): first (0, total) before any file is read, then
+    never back, ending at total."""
+    paths = _flat_set(tmp_path, rng)
+    calls = []
+    read_calibration_input(paths, max_lag=1, min_pixels=500,
+                           progress=lambda done, total: calls.append((done, total)))
+    assert calls[0][0] == 0 and calls[-1][0] == calls[-1][1]
+    fractions = [d / t for d, t in calls]
+    assert fractions == sorted(fractions) and len(calls) >= len(paths)

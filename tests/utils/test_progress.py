@@ -95,3 +95,60 @@ def test_stage_weights_are_the_measured_seconds():
             assert STAGE_SECONDS[mode][stage] == pytest.approx(sec, abs=0.005), (mode, stage)
     assert stage_weights() == STAGE_SECONDS["linear"]
     assert stage_weights({"geometry_method": "exact"}) == STAGE_SECONDS["exact"]
+
+
+def test_a_failed_job_ends_failed_not_done():
+    """Issue 43 item 3: a job that failed ends labelled 'failed' where it stood,
+    not 'done 100.0%', and says so even when it stopped within a decile."""
+    from lsst_bfdrift.utils.progress import StageProgress
+    s = io.StringIO()
+    with StageProgress({"read": 1, "work": 9}, "job", stream=s) as stages:
+        stages("read", 0.0)
+        stages.fail()
+    text = s.getvalue()
+    assert "done" not in text and "100.0%" not in text
+    assert text.splitlines()[-1].startswith("job: failed   0.0%")
+    s = io.StringIO()
+    with ProgressBar(10, "bar", stream=s) as bar:
+        bar(3)
+        bar.fail()
+    assert s.getvalue().splitlines()[-1].startswith("bar  30.0%") and "ETA" not in \
+        s.getvalue().splitlines()[-1]
+
+
+def test_activity_says_what_runs_at_its_first_step_and_how_long_it_took():
+    """Issue 43 item 1: work of unknown length (an iterative fit) says its label at
+    its first step, and at the end its time and step count; no step: silent."""
+    from lsst_bfdrift.utils.progress import Activity
+    out = io.StringIO()
+    with Activity("ptc: covariance model fit", unit="model evaluations", stream=out) as act:
+        assert out.getvalue() == ""
+        for _ in range(5):
+            act()
+    lines = out.getvalue().splitlines()
+    assert lines[0] == "ptc: covariance model fit ..."
+    assert lines[-1].startswith("ptc: covariance model fit: done in ")
+    assert lines[-1].endswith("(5 model evaluations)")
+    quiet = io.StringIO()
+    with Activity("nothing", stream=quiet):
+        pass
+    assert quiet.getvalue() == ""
+
+
+def test_a_log_gets_a_line_per_stage_and_after_a_silent_stretch(monkeypatch):
+    """A new stage is said when it starts, and a slow stretch within a decile
+    still gets a line after `every` seconds."""
+    from lsst_bfdrift.utils import progress as pmod
+    from lsst_bfdrift.utils.progress import StageProgress
+    clock = [0.0]
+    monkeypatch.setattr(pmod.time, "perf_counter", lambda: clock[0])
+    out = io.StringIO()
+    with StageProgress({"fit": 1, "build": 1}, "calibrate", stream=out) as stages:
+        stages("fit", 0.0)
+        clock[0] = 30.0
+        stages("fit", 0.02)  # within the first decile, 30 s later
+        stages("build", 0.0)
+    lines = out.getvalue().splitlines()
+    assert lines[0].startswith("calibrate: fit   0.0%")
+    assert lines[1].startswith("calibrate: fit   1.0%")
+    assert lines[2].startswith("calibrate: build  50.0%")

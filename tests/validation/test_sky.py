@@ -1,4 +1,4 @@
-"""Tests of lsst_bfdrift.validation.sky (validate-sky) on synthetic catalogues and GalSim fields."""
+"""Tests of lsst_bfdrift.validation.sky (validate-sky) on synthetic catalogs and GalSim fields."""
 
 import json
 
@@ -10,7 +10,7 @@ from numpy.testing import assert_allclose
 from tests.validation._galsim_fields import STRENGTHS, galsim_template, paired_fields
 from lsst_bfdrift.cli.main import main
 from lsst_bfdrift.catalogs.slopes import shape_flux_relations
-from lsst_bfdrift.validation.sky import validate_sky
+from lsst_bfdrift.validation.sky import sky_verdict, validate_sky
 from lsst_bfdrift.simulation.skysim import scale_template
 
 
@@ -29,7 +29,7 @@ def test_too_few_stars_and_all_saturated_get_clear_messages():
     assert len(cat) == 9 and np.all(cat["flag_saturated"])
     with pytest.raises(ValueError, match=r"only 0 of 9 .*9 saturated"):
         shape_flux_relations(cat)
-    with pytest.raises(ValueError, match="catalogue is empty"):
+    with pytest.raises(ValueError, match="catalog is empty"):
         shape_flux_relations(cat[:0])
     with pytest.raises(ValueError, match="no sources detected"):
         validate_sky(rng.normal(800.0, 28.0, (128, 128)))
@@ -98,3 +98,46 @@ def test_cli_validate_sky_adu_json_and_plot(tmp_path, capsys):
     fits.PrimaryHDU(np.zeros((64, 64), np.float32)).writeto(blank)
     assert main(["validate-sky", str(blank), "--quiet"]) == 2
     assert "blank" in capsys.readouterr().err
+
+
+def _rel(z_size, z_e1=0.0, z_e2=0.0, err=1e-4):
+    return {k: {"slope": z * err, "slope_err": err, "z": z}
+            for k, z in (("size", z_size), ("e1", z_e1), ("e2", z_e2))}
+
+
+def test_verdict_and_json_give_the_same_signed_significance():
+    """Issue 43 item 5: --json said significance_before 0.94 where the verdict
+    said z = -0.9; both are the signed z of the size slope now."""
+    out = sky_verdict({"before": _rel(-0.94), "catalog": _rel(0.3, z_e1=-1.2)})
+    assert out["significance_before"] == pytest.approx(-0.94)
+    assert "z = -0.9" in out["verdict"] and not out["bf_detected_before"]
+    assert out["significance_after"] == {"catalog": pytest.approx(0.3)}
+    assert out["max_significance_after"] == {"catalog": pytest.approx(1.2)}
+    assert not out["residual_bf_detected"]
+    # a strong slope of the opposite sign is no BF detection, and is said to be so
+    out = sky_verdict({"before": _rel(-5.0)})
+    assert out["significance_before"] == -5.0 and not out["bf_detected_before"]
+    assert "opposite sign to BF" in out["verdict"] and "z = -5.0" in out["verdict"]
+    out = sky_verdict({"before": _rel(4.7), "pixel": _rel(-3.5)})
+    assert out["bf_detected_before"] and out["residual_bf_detected"]
+    assert out["significance_after"]["pixel"] == -3.5 and "over-corrected" in out["verdict"]
+    assert "z = +4.7" in out["verdict"] and out["significance_before"] == 4.7
+
+
+def test_one_spelling_of_catalog():
+    """Issue 43 item 5: "catalog" (astropy's, photutils') everywhere: package,
+    command-line help, docs and README."""
+    import pathlib
+
+    from lsst_bfdrift.cli.main import build_parser
+    root = pathlib.Path(__file__).resolve().parents[2]
+    files = [p for d in ("lsst_bfdrift", "docs") for p in (root / d).rglob("*")
+             if p.suffix in (".py", ".rst", ".md", ".txt", ".yaml") and "_build" not in p.parts]
+    files.append(root / "README.md")
+    found = [str(p.relative_to(root)) for p in files if "catalogue" in p.read_text().lower()]
+    assert found == []
+    parser = build_parser()
+    helps = [parser.format_help()]
+    for action in parser._subparsers._group_actions:
+        helps += [sub.format_help() for sub in action.choices.values()]
+    assert not any("catalogue" in h.lower() for h in helps)
