@@ -2,6 +2,11 @@
 
 import os
 
+if "PYTEST_XDIST_WORKER" in os.environ:
+    # one worker per core: GalSim's OpenMP threads on top of them oversubscribe
+    # the cores (star drawing 8 times slower); set before GalSim is loaded
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+
 import numpy as np
 import pytest
 from hypothesis import settings

@@ -351,7 +351,7 @@ def _write_flat_set(directory, spec):
     rng = np.random.default_rng(spec["seed"])
     pairs = []
     for k in range(spec["n"]):
-        t = spec["exptime0"] if k in spec["zero"] else float(k + 1)
+        t = spec["exptime0"] if k in spec["zero"] else float(2**k)  # levels follow EXPTIME
         pair = []
         for half in "ab":
             path = os.path.join(directory, f"flat_{k}{half}.fits")

@@ -183,7 +183,7 @@ class StarField:
     fitted_slopes : None
         The field fits the calibration's ``fitted_slopes``.
     usable, fit_stars, held_out, half_a, half_b : ndarray of bool
-        Per catalogue row: the stars used, fitted, held out, and the two
+        Per catalog row: the stars used, fitted, held out, and the two
         halves of :meth:`split`.
     """
 
@@ -229,7 +229,7 @@ class StarField:
 
     @property
     def n_detections(self):
-        """Sources detected (catalogue rows)."""
+        """Sources detected (catalog rows)."""
         return len(self.catalog)
 
     def check_split(self, mode, min_stars):

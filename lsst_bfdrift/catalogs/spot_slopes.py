@@ -205,7 +205,7 @@ def fit_spot_slope(spot, image, flux, q, q_err, *, tau=None, scale_errors=False,
 
 
 def _rows(catalog, use):
-    """The rows fitted: ``use`` (default the catalogue's) and finite moments."""
+    """The rows fitted: ``use`` (default the catalog's) and finite moments."""
     sel = np.asarray(catalog["use"], bool) if use is None else np.asarray(use, bool)
     if sel.shape != (len(catalog),):
         raise InputError(f"use has shape {sel.shape} for {len(catalog)} rows")
@@ -227,7 +227,7 @@ def spot_slopes(catalog, *, quantities=SPOT_QUANTITIES, use=None, min_points=6):
     quantities : sequence of str, optional
         Of :data:`~lsst_bfdrift.catalogs.spots.SPOT_QUANTITIES`.
     use : array_like of bool, optional
-        Rows to fit (default the catalogue's ``use``: unflagged rows), e.g.
+        Rows to fit (default the catalog's ``use``: unflagged rows), e.g.
         one half of the spots for a held-out check.
     min_points : int, optional
         See :func:`fit_spot_slope`.
@@ -380,7 +380,7 @@ def predict_spot_slopes(catalog, template, *, exposures=None, model="gaussian", 
         flux-normalised sum of the spot's stamps in the fainter half of its
         images (any profile; carries their noise and their small BF).
     use : array_like of bool, optional
-        Rows (default the catalogue's ``use``).
+        Rows (default the catalog's ``use``).
     quantities : sequence of str, optional
         As :func:`spot_slopes`.
     order, density

@@ -26,7 +26,7 @@ series of exposure times, so that the same spots are seen at many fluxes
 
 Why a fixed weight
 ------------------
-Adaptive moments (HSM, the star catalogues') fit the weight to each spot:
+Adaptive moments (HSM, the star catalogs') fit the weight to each spot:
 the weight then grows with the spot, so with the flux, and a size-flux slope
 mixes the spot's change with the weight's, and depends on the noise. An
 unweighted aperture is flux-independent too, but its noise grows as the
@@ -101,7 +101,7 @@ SPOT_FLAG_NAMES = {SPOT_SATURATED: "flag_saturated", SPOT_EDGE: "flag_edge",
                    SPOT_CROWDED: "flag_crowded", SPOT_MASKED: "flag_masked",
                    SPOT_MOMENTS: "flag_moments", SPOT_FAINT: "flag_faint"}
 
-#: The measured quantities of a spot (catalogue columns; their errors are
+#: The measured quantities of a spot (catalog columns; their errors are
 #: ``<name>_err``): sigma_x, sigma_y (px), size = ln T (T in px^2), e1, e2.
 SPOT_QUANTITIES = ("sigma_x", "sigma_y", "size", "e1", "e2")
 

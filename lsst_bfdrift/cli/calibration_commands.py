@@ -196,6 +196,8 @@ def cmd_calibrate(args):
         stars_plot = root + f"_{kind}" + (ext or ".png")
     check_outputs(args, args.input + (args.stars or []) + spot_files,
                   {"--out": args.out, "--plot": args.plot, f"--plot ({kind})": stars_plot})
+    check_size_goal(args.size_goal, "--size-goal")  # before any file is read
+    _check_model_options(args)
     for opt, files in (("--stars", args.stars or []), ("--spots", spot_files)):
         for x in files:
             if not os.path.isfile(x):
@@ -204,8 +206,6 @@ def cmd_calibrate(args):
             if reason is not None:
                 what = "a star field" if opt == "--stars" else "a spot image"
                 raise InputFileError(f"{opt} {x}: {reason}; accepted: a FITS image of {what}", x)
-    check_size_goal(args.size_goal, "--size-goal")  # before any file is read
-    _check_model_options(args)
     spot_fields = _spot_fields(args) if spot_files else None  # refused before the flats
     data = read_with_progress("calibrate", args.input, quiet=args.quiet, max_lag=args.max_lag)
     table = fit_with_progress("calibrate", data, quiet=args.quiet)

@@ -111,7 +111,9 @@ def test_task_gives_flux_moved_error(itl):
     err, moved = out.flux_moved_err, out.flux_moved
     core = np.abs(moved) > 0.1 * np.abs(moved).max()
     ratio = np.median(err[core] / np.abs(moved[core]))
-    assert 0.005 < ratio < 0.15
+    # a poor physics fit scales the stored a_ij errors by its Birge ratio
+    birge = res.misfit["birge"] if res.misfit else 1.0
+    assert 0.005 * birge < ratio < 0.15 * birge
     assert out.header["BFUNCN"] == 8
     plain = BrighterFatterDriftTask(
         config=BrighterFatterDriftConfig(compute_geometry=False), template=res.template).run(img)

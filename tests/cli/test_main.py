@@ -1006,8 +1006,9 @@ def test_ptc_refusals_name_the_input_and_the_reasons(capsys, tmp_path, rng):
     zero = _flat_dir(tmp_path / "zero", rng, [0.0, -1.0, 3.0, 4.0, 5.0, 6.0])
     code, out, err = _run(capsys, "ptc", zero)
     assert code == 2 and not out
-    assert err.startswith(f"bfdrift: error: {zero}/ (12 files): 4 distinct signal level(s) "
-                          "with a pair of flats, fewer than min_levels=5")
+    # after the reading's progress lines (stderr), the error
+    assert (f"\nbfdrift: error: {zero}/ (12 files): 4 distinct signal level(s) with a pair of "
+            "flats, fewer than min_levels=5") in "\n" + err
     assert "flat_0a.fits: EXPTIME = 0.0 s is not positive (a bias or dark" in err
     assert "flat_1b.fits: EXPTIME = -1.0 s is not positive" in err
     sat = _flat_dir(tmp_path / "sat", rng, range(1, 6), levels=(2e3, 6e3, 1.2e4, 2.4e4, 4e4),
