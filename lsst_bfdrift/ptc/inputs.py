@@ -381,6 +381,58 @@ def _group_levels(infos, rtol):
     return levels
 
 
+def _check_one_kind(infos):
+    """All flats of one shape, one unit and one gain (or none), or an error naming two."""
+    first = infos[0]
+    for info in infos[1:]:
+        if info["shape"] != first["shape"]:
+            raise InputError(f"{info['path']}: image shape {info['shape']} differs from "
+                             f"{first['path']} {first['shape']}; all flats must have one shape "
+                             "(the same amplifier or sensor region)")
+        if info["units"] != first["units"]:
+            raise InputError(f"{info['path']}: BUNIT {info['bunit']!r} differs from "
+                             f"{first['path']} {first['bunit']!r}; all flats must be in one unit")
+        g0, g1 = first["gain"], info["gain"]
+        if (g0 is None) != (g1 is None) or (g0 is not None and abs(g1 - g0) > 1e-6 * g0):
+            raise InputError(f"{info['path']}: GAIN = {g1} differs from {first['path']} "
+                             f"GAIN = {g0}; all flats must share one gain (or none)")
+
+
+def _pair_levels(levels, exptime_rtol, drop_single, dropped):
+    """(level index, flat, flat) pairs in file-name order within each level; a flat
+    alone at its level is an error (or, with ``drop_single``, dropped), an odd one
+    out dropped, each with its reason appended to ``dropped``."""
+    pairs = []
+    for k, level in enumerate(levels):
+        level = sorted(level, key=lambda d: d["path"])
+        if len(level) == 1:
+            only = level[0]
+            others = [lv[0] for lv in levels if lv is not levels[k]]
+            if others:
+                near = min(others, key=lambda d: abs(d["exptime"] - only["exptime"]))
+                rel = abs(near["exptime"] - only["exptime"]) / only["exptime"]
+                hint = (f" (nearest other level: EXPTIME = {near['exptime']:g} s in "
+                        f"{near['path']}, relative difference {rel:.2g} > exptime_rtol="
+                        f"{exptime_rtol:g})")
+            else:
+                hint = ""
+            msg = (f"{only['path']}: the only flat at EXPTIME = {only['exptime']:g} s{hint}; "
+                   "each level needs a pair of flats with equal EXPTIME")
+            if not drop_single:
+                raise InputError(msg + " (add its partner, or pass drop_single=True to drop it)")
+            dropped.append({"files": [only["path"]], "exptime": only["exptime"],
+                            "reason": "the only flat at its EXPTIME (no partner)"})
+            continue
+        for m in range(0, len(level) - 1, 2):
+            pairs.append((k, level[m], level[m + 1]))
+        if len(level) % 2:
+            odd = level[-1]
+            dropped.append({"files": [odd["path"]], "exptime": odd["exptime"],
+                            "reason": f"odd file out: {len(level)} flats at EXPTIME = "
+                                      f"{odd['exptime']:g} s, paired in file-name order"})
+    return pairs
+
+
 def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, min_levels=3,
                     drop_single=False, nsig=5.0, min_pixels=1000, progress=None):
     """Covariances of flat pairs read from FITS files.
@@ -430,18 +482,7 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
         infos.append(_flat_header(p))
         step()
     first = infos[0]
-    for info in infos[1:]:
-        if info["shape"] != first["shape"]:
-            raise InputError(f"{info['path']}: image shape {info['shape']} differs from "
-                             f"{first['path']} {first['shape']}; all flats must have one shape "
-                             "(the same amplifier or sensor region)")
-        if info["units"] != first["units"]:
-            raise InputError(f"{info['path']}: BUNIT {info['bunit']!r} differs from "
-                             f"{first['path']} {first['bunit']!r}; all flats must be in one unit")
-        g0, g1 = first["gain"], info["gain"]
-        if (g0 is None) != (g1 is None) or (g0 is not None and abs(g1 - g0) > 1e-6 * g0):
-            raise InputError(f"{info['path']}: GAIN = {g1} differs from {first['path']} "
-                             f"GAIN = {g0}; all flats must share one gain (or none)")
+    _check_one_kind(infos)
     notes, dropped = [], []
     for info in infos:
         if not info["exptime"] > 0:
@@ -450,34 +491,7 @@ def read_flat_pairs(paths, *, max_lag=8, exptime_rtol=1e-3, turnoff_drop=0.05, m
                                       "or dark, not a flat)"})
     usable = [i for i in infos if i["exptime"] > 0]
     levels = _group_levels(usable, exptime_rtol)
-    pairs = []
-    for k, level in enumerate(levels):
-        level = sorted(level, key=lambda d: d["path"])
-        if len(level) == 1:
-            only = level[0]
-            others = [lv[0] for lv in levels if lv is not levels[k]]
-            if others:
-                near = min(others, key=lambda d: abs(d["exptime"] - only["exptime"]))
-                rel = abs(near["exptime"] - only["exptime"]) / only["exptime"]
-                hint = (f" (nearest other level: EXPTIME = {near['exptime']:g} s in "
-                        f"{near['path']}, relative difference {rel:.2g} > exptime_rtol="
-                        f"{exptime_rtol:g})")
-            else:
-                hint = ""
-            msg = (f"{only['path']}: the only flat at EXPTIME = {only['exptime']:g} s{hint}; "
-                   "each level needs a pair of flats with equal EXPTIME")
-            if not drop_single:
-                raise InputError(msg + " (add its partner, or pass drop_single=True to drop it)")
-            dropped.append({"files": [only["path"]], "exptime": only["exptime"],
-                            "reason": "the only flat at its EXPTIME (no partner)"})
-            continue
-        for m in range(0, len(level) - 1, 2):
-            pairs.append((k, level[m], level[m + 1]))
-        if len(level) % 2:
-            odd = level[-1]
-            dropped.append({"files": [odd["path"]], "exptime": odd["exptime"],
-                            "reason": f"odd file out: {len(level)} flats at EXPTIME = "
-                                      f"{odd['exptime']:g} s, paired in file-name order"})
+    pairs = _pair_levels(levels, exptime_rtol, drop_single, dropped)
     files = describe_paths(paths)
     require_levels(len({k for k, _, _ in pairs}), min_levels, "with a pair of flats", files,
                     dropped)
