@@ -11,6 +11,7 @@ moments, and the large fixed patterns (tearing, bamboo, edge roll-off).
 from lsst_bfdrift.physics.fields import *  # noqa: F401,F403
 from lsst_bfdrift.physics.sensor import *  # noqa: F401,F403
 from lsst_bfdrift.physics.drift import *  # noqa: F401,F403
+from lsst_bfdrift.physics.depth import *  # noqa: F401,F403
 from lsst_bfdrift.physics.boundaries import *  # noqa: F401,F403
 from lsst_bfdrift.physics.polygons import *  # noqa: F401,F403
 from lsst_bfdrift.physics.features import *  # noqa: F401,F403

@@ -26,11 +26,12 @@ from astropy.table import Table
 
 from lsst_bfdrift.physics.boundaries import BoundaryGrid, pixel_boundaries
 from lsst_bfdrift.physics.polygons import pixel_polygons, polygon_moments
-from lsst_bfdrift.utils.io import (astropy_message, atomic_output, check_output, data_path,
-                                   not_fits_reason)
+from lsst_bfdrift.templates.template_io import (check_template_table, read_template_fits,
+                                                template_file_bands)
+from lsst_bfdrift.utils.io import atomic_output, check_output, data_path
 from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.physics.sensor import SensorModel, SensorParameters, strict_from_dict
-from lsst_bfdrift.utils.errors import (InputError, InputNotFoundError, InputTypeError,
+from lsst_bfdrift.utils.errors import (InputError, InputTypeError,
                                        TemplateFileError)
 
 __all__ = ["TEMPLATE_SCHEMA_VERSION", "TemplateSettings", "DistortionTemplate",
@@ -474,18 +475,14 @@ class DistortionTemplate:
             out.update(VEDGE_T=self.vedge_t, HEDGE_T=self.hedge_t)
         return out
 
-    def save(self, path, *, overwrite=False):
-        """Write the template to a FITS file, atomically.
+    def to_hdus(self, *, suffix="", meta_here=False):
+        """The FITS extensions of this template: its table and, if needed, the shared form.
 
-        HDU 1 (``TEMPLATE``) is the per-pixel, per-edge table; its header holds
-        the schema version, aggressor charge, sample fractions, a SHA-256 of
-        the arrays, and the model parameters and settings as JSON. FITS
-        CHECKSUM/DATASUM cards are written on every HDU.
+        ``suffix`` is appended to the extension names (``TEMPLATE_R`` in a
+        multi-band file); with ``meta_here`` the metadata JSON (``BFMETA``) is
+        written in the table's header instead of the primary's.
         """
-        path = os.fspath(path)
-        check_output(path, overwrite=overwrite)
-        table = self.to_table()
-        hdu = fits.BinTableHDU(table, name="TEMPLATE")
+        hdu = fits.BinTableHDU(self.to_table(), name="TEMPLATE" + suffix)
         hdr = hdu.header
         hdr["BFSCHEMA"] = (TEMPLATE_SCHEMA_VERSION, "lsst_bfdrift template schema version")
         hdr["BFQAGG"] = (self.charge, "aggressor charge (e)")
@@ -496,64 +493,84 @@ class DistortionTemplate:
         hdr["BFHASH"] = self._digest()
         for k, f in enumerate(self.fractions):
             hdr[f"BFFRAC{k}"] = (float(f), f"sample {k} fraction along edge")
-        meta = {k: v for k, v in self.meta.items()}
-        primary = fits.PrimaryHDU()
-        primary.header["ORIGIN"] = "lsst_bfdrift"
-        primary.header["BFSCHEMA"] = TEMPLATE_SCHEMA_VERSION
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", fits.verify.VerifyWarning)
-            primary.header["BFMETA"] = json.dumps(meta, sort_keys=True, default=_json_default)
-        hdus = [primary, hdu]
+        if meta_here:
+            _set_meta(hdr, self.meta)
+        hdus = [hdu]
         if self._pixel_table is not None:
             # the shared form is not derivable from a per-pixel table that
             # disagrees between neighbours (GalSim files): store it as well
             for name, arr in self._shared_arrays().items():
-                hdus.append(fits.ImageHDU(np.asarray(arr, dtype=np.float64), name=name))
-        hdul = fits.HDUList(hdus)
+                hdus.append(fits.ImageHDU(np.asarray(arr, dtype=np.float64), name=name + suffix))
+        return hdus
+
+    def save(self, path, *, overwrite=False):
+        """Write the template to a FITS file, atomically.
+
+        HDU 1 (``TEMPLATE``) is the per-pixel, per-edge table; its header holds
+        the schema version, aggressor charge, sample fractions, a SHA-256 of
+        the arrays, and the model parameters and settings as JSON. FITS
+        CHECKSUM/DATASUM cards are written on every HDU. (Several bands in
+        one file: :class:`~lsst_bfdrift.templates.bands.MultiBandTemplate`.)
+        """
+        path = os.fspath(path)
+        check_output(path, overwrite=overwrite)
+        primary = fits.PrimaryHDU()
+        primary.header["ORIGIN"] = "lsst_bfdrift"
+        primary.header["BFSCHEMA"] = TEMPLATE_SCHEMA_VERSION
+        _set_meta(primary.header, self.meta)
+        hdul = fits.HDUList([primary] + self.to_hdus())
         with atomic_output(path) as tmp:
             hdul.writeto(tmp, overwrite=True, checksum=True)
 
     @classmethod
-    def load(cls, path):
-        """Read a template written by :meth:`save`.
+    def load(cls, path, *, band=None):
+        """Read a template written by :meth:`save` (or one band of a multi-band file).
+
+        Parameters
+        ----------
+        path : str or path-like
+        band : str, optional
+            The band to read from a multi-band file
+            (:class:`~lsst_bfdrift.templates.bands.MultiBandTemplate`); a
+            single-band file has no bands and refuses one.
 
         Raises
         ------
         TemplateFileError
             The file is not a FITS file, is truncated, fails its checksum or
-            hash, is of another schema version, or is internally inconsistent.
+            hash, is of another schema version, or is internally inconsistent;
+            a multi-band file without ``band`` (or without that band).
         """
-        path = os.fspath(path)
-        if not os.path.exists(path):
-            raise InputNotFoundError(f"template file {path} does not exist")
-        if os.path.isdir(path):
-            raise TemplateFileError(f"{path}: is a directory; accepted: a template FITS file")
-        reason = not_fits_reason(path)
-        if reason is not None:
-            raise TemplateFileError(f"{path}: cannot read template file: {reason}; accepted: "
-                                    "a template FITS file (bfdrift template build, "
-                                    "import-galsim)")
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("error")
-                # open the file ourselves so that it is closed even when
-                # astropy raises while reading (corrupt or truncated files)
-                with open(path, "rb") as fh, fits.open(fh, memmap=False, checksum=True) as hdul:
-                    hdul.verify("exception")
-                    if "TEMPLATE" not in hdul:
-                        raise TemplateFileError(f"{path}: no TEMPLATE extension")
-                    hdu = hdul["TEMPLATE"]
-                    hdr = hdu.header.copy()
-                    data = Table(hdu.data)
-                    meta_str = hdul[0].header.get("BFMETA", "{}")
-                    shared = {name: np.array(hdul[name].data, dtype=np.float64)
-                              for name in ("CORNER_D", "VEDGE_D", "HEDGE_D", "VEDGE_T",
-                                           "HEDGE_T") if name in hdul}
-        except TemplateFileError:
-            raise
-        except Exception as exc:  # astropy raises many kinds for broken files
-            raise TemplateFileError(f"{path}: cannot read template file "
-                                    f"({astropy_message(exc)})") from exc
+        path, hdus = read_template_fits(path)
+        bands = template_file_bands(path, hdus)
+        if not bands:
+            if band is not None:
+                raise TemplateFileError(f"{path}: a single-band template file (one template for "
+                                        f"every band); band {band!r} cannot be chosen in it",
+                                        path)
+            return cls._from_hdus(path, hdus)
+        if band is None:
+            raise TemplateFileError(f"{path}: a multi-band template file (bands "
+                                    f"{', '.join(bands)}): choose one with band=, or read "
+                                    "them all with lsst_bfdrift.templates.load_templates", path)
+        from lsst_bfdrift.physics.depth import normalize_band
+
+        b = normalize_band(band)
+        if b not in bands:
+            raise TemplateFileError(f"{path}: no template for band {b!r}; the file holds bands "
+                                    f"{', '.join(bands)}", path)
+        return cls._from_hdus(path, hdus, suffix="_" + b.upper())
+
+    @classmethod
+    def _from_hdus(cls, path, hdus, *, suffix=""):
+        """The template of the extensions named with ``suffix`` in :func:`read_template_fits`'s."""
+        name = "TEMPLATE" + suffix
+        if name not in hdus:
+            raise TemplateFileError(f"{path}: no {name} extension")
+        hdr, data = hdus[name]
+        meta_str = hdr.get("BFMETA", hdus["PRIMARY"][0].get("BFMETA", "{}"))
+        shared = {n: hdus[n + suffix][1] for n in ("CORNER_D", "VEDGE_D", "HEDGE_D", "VEDGE_T",
+                                                   "HEDGE_T") if n + suffix in hdus}
         version = hdr.get("BFSCHEMA")
         if version is None or isinstance(version, (str, bool, float)):
             what = "missing" if version is None else \
@@ -571,7 +588,7 @@ class DistortionTemplate:
             meta = json.loads(meta_str)
         except (KeyError, ValueError) as exc:
             raise TemplateFileError(f"{path}: template header incomplete ({exc})") from exc
-        _check_table(path, data, meta)
+        check_template_table(path, data, meta)
         tol = 0.0 if hdr.get("BFSHARED", False) else None
         merge = meta.get("merge", "mean")
         try:
@@ -580,7 +597,7 @@ class DistortionTemplate:
         except TemplateFileError as exc:
             raise TemplateFileError(str(exc), path) from exc
         except (ValueError, IndexError, KeyError, TypeError) as exc:
-            raise TemplateFileError(f"inconsistent TEMPLATE table ({exc})", path) from exc
+            raise TemplateFileError(f"inconsistent {name} table ({exc})", path) from exc
         if shared:
             if not {"CORNER_D", "VEDGE_D", "HEDGE_D"} <= set(shared):
                 raise TemplateFileError(f"{path}: incomplete shared-boundary extensions")
@@ -599,31 +616,11 @@ class DistortionTemplate:
         return tpl
 
 
-#: Columns of the TEMPLATE table (see :meth:`DistortionTemplate.to_table`).
-_TABLE_COLUMNS = ("di", "dj", "edge", "c0x", "c0y", "c1x", "c1y", "normal", "tangent")
-
-
-def _check_table(path, table, meta):
-    """Refuse a checksum-valid but malformed template file, naming it."""
-    if not isinstance(meta, dict):
-        raise TemplateFileError(f"BFMETA is JSON but not an object ({type(meta).__name__}); "
-                                "accepted: a JSON object", path)
-    missing = [c for c in _TABLE_COLUMNS if c not in table.colnames]
-    if missing:
-        raise TemplateFileError(f"TEMPLATE table lacks column(s) {missing}; accepted: columns "
-                                f"{list(_TABLE_COLUMNS)}", path)
-    if len(table) == 0:
-        raise TemplateFileError("TEMPLATE table has no rows; accepted: 4 rows (edges) per "
-                                "pixel of an N x N neighbourhood", path)
-    for col in ("di", "dj"):
-        try:
-            v = np.asarray(table[col], dtype=float)
-        except (TypeError, ValueError) as exc:
-            raise TemplateFileError(f"column {col!r} is not numeric ({exc})", path) from exc
-        bad = ~(np.isfinite(v) & (v == np.round(v)))
-        if bad.any():
-            raise TemplateFileError(f"column {col!r} holds non-integer pixel offsets (first: "
-                                    f"{float(v[bad][0])}); accepted: integer offsets", path)
+def _set_meta(header, meta):
+    """Write ``meta`` as JSON in ``header['BFMETA']`` (long-string cards)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", fits.verify.VerifyWarning)
+        header["BFMETA"] = json.dumps(dict(meta), sort_keys=True, default=_json_default)
 
 
 def _json_default(obj):
