@@ -107,7 +107,8 @@ def sky_box(stamp, sky_radius, *, margin=SKY_MARGIN):
 
 
 def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale, sky=0.0,
-                     box=None, feed=0, sky_mask=None, rng=None, updates=100, min_nrecalc=1e4):
+                     box=None, feed=0, sky_mask=None, rng=None, updates=100, min_nrecalc=1e4,
+                     wavelength=None, sky_wavelength=None):
     """Accumulate the same photons (star plus in-sensor sky) at several BF strengths.
 
     Parameters
@@ -160,6 +161,18 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
         max(min_nrecalc, N / updates)`` for N accumulated photons.
     min_nrecalc : float, optional
         Smallest ``nrecalc`` (photons; GalSim's default 1e4).
+    wavelength : array_like, optional
+        Wavelength (nm) of each of the star's photons: galsim.SiliconSensor
+        then converts each at a depth drawn from silicon's absorption length
+        (dropping those that cross the sensor) and scales its boundary
+        shifts by its conversion height
+        (:mod:`~lsst_bfdrift.simulation.chromatic`). None: every photon
+        converts at the entrance window (GalSim's achromatic draw).
+        ``feed = 0`` only.
+    sky_wavelength : array_like, optional
+        With ``wavelength`` and sky: wavelengths (nm) the sky photons' are
+        drawn from (uniformly, by ``rng``), e.g. a band's flat-spectrum
+        sample; None: the star's.
 
     Returns
     -------
@@ -185,6 +198,13 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
     feed = int(feed)
     if feed < 0 or (feed and box is None):
         raise InputError(f"feed must be >= 0 and needs a box, got {feed!r}")
+    if wavelength is not None:
+        wavelength = np.asarray(wavelength, float)
+        if wavelength.shape != x.shape or feed:
+            raise InputError("wavelength must have one value per photon (and feed = 0)")
+        pool = wavelength if sky_wavelength is None else np.asarray(sky_wavelength, float)
+        if pool.size == 0 and sky > 0:
+            raise InputError("sky_wavelength is empty")
     stamp = int(stamp)
     outer = None
     if feed:
@@ -207,6 +227,10 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
     xs = np.concatenate([x, rng.uniform(lo, hi, n_sky) if n_sky else np.empty(0)])[order]
     ys = np.concatenate([y, rng.uniform(lo, hi, n_sky) if n_sky else np.empty(0)])[order]
     fl = np.concatenate([flux, np.ones(n_sky)])[order]
+    wl = None
+    if wavelength is not None:
+        wl = np.concatenate([wavelength, rng.choice(pool, n_sky) if n_sky else
+                             np.empty(0)])[order]
     if sky_mask is not None and n_sky:
         sky_mask = np.asarray(sky_mask, bool)
         if sky_mask.shape != (stamp, stamp):
@@ -219,6 +243,7 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
         ok[inside] = sky_mask[iy[inside], ix[inside]]
         keep = ~is_sky | ok
         xs, ys, fl = xs[keep], ys[keep], fl[keep]
+        wl = None if wl is None else wl[keep]
         n_sky = int(keep.sum()) - n_star
     n = xs.size
     images = []
@@ -229,7 +254,7 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
             im = galsim.ImageD(galsim.BoundsI(i0, i1, i0, i1), scale=float(pixel_scale))
         else:
             im = galsim.ImageD(stamp, stamp, scale=float(pixel_scale))
-        sens.accumulate(galsim.PhotonArray(n, x=xs, y=ys, flux=fl), im)
+        sens.accumulate(galsim.PhotonArray(n, x=xs, y=ys, flux=fl, wavelength=wl), im)
         if feed:
             n_out = outer[0].size
             full = galsim.ImageD(stamp, stamp, scale=float(pixel_scale))
