@@ -16,7 +16,9 @@ Per GalSim sensor (default lsst_itl_50_8 and lsst_e2v_50_8):
    templates (:func:`~lsst_bfdrift.templates.bands.build_band_templates`).
    Also an achromatic flat (no wavelengths) against GalSim's own a00
    (:func:`~lsst_bfdrift.simulation.galsim_twins.galsim_acoeffs`), a check of
-   the measurement.
+   the measurement, and a flat of 1000 nm photons (converting nearly
+   uniformly through the silicon) against GalSim's rule, the mean of
+   tanh(z / 12 um) over their conversion heights.
 2. **Paired stars per band.** The same star list (PSF, FWHM, ellipticity,
    detected flux, position) drawn in u g r i z y with photon wavelengths
    (SED ``--sed``, default CWW_E_ext), with and without brighter-fatter
@@ -72,7 +74,7 @@ import zlib
 
 import numpy as np
 
-from lsst_bfdrift.physics.depth import BANDS
+from lsst_bfdrift.physics.depth import BANDS, depth_distribution, galsim_depth_factor
 from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.calibration.tuning import default_start
 from lsst_bfdrift.simulation.chromatic import (draw_chromatic_star_pairs, flat_area_response,
@@ -129,8 +131,8 @@ def band_templates(sensor, cache, *, edge_samples):
 def flats_a00(sensor, cache, args):
     """{band or 'none': flat_area_response dict}, cached."""
     out = {}
-    for band in (None,) + BANDS:
-        key = band or "none"
+    for band in (None, 1000.0) + BANDS:
+        key = "1000nm" if band == 1000.0 else band or "none"
         seed = zlib.crc32(f"{sensor}:flat:{key}".encode()) % 100000
         path = os.path.join(cache, f"flat_{sensor}_{key}_{args.area_charge:g}_"
                                    f"{args.area_photons:g}_{seed}.json")
@@ -139,8 +141,14 @@ def flats_a00(sensor, cache, args):
                 out[key] = json.load(fh)
             continue
         t0 = time.time()
-        out[key] = flat_area_response(sensor, band, charge=args.area_charge,
-                                      photons=args.area_photons, seed=seed)
+        if band == 1000.0:
+            out[key] = flat_area_response(sensor, None, wavelength=1000.0,
+                                          charge=args.area_charge, photons=args.area_photons,
+                                          seed=seed)
+            out[key]["rule"] = galsim_depth_factor(depth_distribution(1000.0, 100.0))
+        else:
+            out[key] = flat_area_response(sensor, band, charge=args.area_charge,
+                                          photons=args.area_photons, seed=seed)
         out[key]["seconds"] = time.time() - t0
         with open(path, "w") as fh:
             json.dump(out[key], fh)
@@ -233,6 +241,13 @@ def main(argv=None):
         say(f" achromatic flat: a00 {f0['a00']:.4e} +- {f0['a00_err']:.1e} /e; GalSim's "
             f"a00 {g:.4e} ({100 * (f0['a00'] / g - 1):+.1f} +- "
             f"{100 * f0['a00_err'] / abs(g):.1f} %)")
+        fm = flats["1000nm"]
+        ratio = fm["a00"] / f0["a00"]
+        ratio_err = abs(ratio) * np.hypot(fm["a00_err"] / fm["a00"], f0["a00_err"] / f0["a00"])
+        say(f" 1000 nm flat: a00 {fm['a00']:.4e} +- {fm['a00_err']:.1e} /e, / achromatic "
+            f"{ratio:.4f} +- {ratio_err:.4f}; GalSim's rule (mean tanh(z / 12 um) at 1000 nm) "
+            f"{fm['rule']:.4f}")
+        rec["flats"]["1000nm"] = fm
         say(" flats' a00 per band (flat spectrum) vs the model from r's: "
             "a00(r) (A00(b) - 1) / (A00(r) - 1)")
         rec["flats"] = {"achromatic": f0, "galsim_a00": g, "bands": {}}

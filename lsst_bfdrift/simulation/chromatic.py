@@ -252,7 +252,8 @@ def draw_chromatic_star_pairs(stars, band, *, sed=None, sensor="lsst_itl_50_8", 
     return out
 
 
-def flat_area_response(sensor, band, *, sed=None, charge=5e4, photons=8e5, seed):
+def flat_area_response(sensor, band, *, sed=None, wavelength=None, charge=5e4, photons=8e5,
+                       seed):
     """a00, a10, a01 seen by a band's photons: a flat over a pixel that holds charge.
 
     A 9 x 9 px image whose central pixel holds ``charge`` (and ``charge / 2``)
@@ -277,6 +278,8 @@ def flat_area_response(sensor, band, *, sed=None, charge=5e4, photons=8e5, seed)
         GalSim's achromatic draw, which ``galsim_acoeffs`` describes).
     sed : optional
         Spectrum of the illumination (:func:`galsim_sed`); None: flat.
+    wavelength : float, optional
+        Instead of a band (``band`` None): every photon at this wavelength (nm).
     charge : float, optional
         Charge Q (e) of the central pixel.
     photons : float, optional
@@ -295,17 +298,25 @@ def flat_area_response(sensor, band, *, sed=None, charge=5e4, photons=8e5, seed)
     galsim = _galsim()
     if not charge > 0 or not photons > 0:
         raise InputError(f"charge and photons must be positive, got {charge!r}, {photons!r}")
+    if band is not None and wavelength is not None:
+        raise InputError("give a band or a wavelength, not both")
     rng = np.random.default_rng(seed)
     t = galsim_thickness(sensor)
     frac = 1.0
     if band is not None:
         frac = float(np.mean(detected_fraction(
             sample_wavelengths(20000, band, sed, seed=seed + 1), t)))
+    elif wavelength is not None:
+        frac = float(detected_fraction(float(wavelength), t))
     lo, hi = 2.5, 7.5  # the central 5 x 5 pixels of 9 (pixel centres 1 .. 9)
     n = int(rng.poisson(float(photons) / frac * (hi - lo) ** 2))
     x = rng.uniform(lo, hi, n)
     y = rng.uniform(lo, hi, n)
-    wl = None if band is None else sample_wavelengths(n, band, sed, seed=seed + 2)
+    wl = None
+    if band is not None:
+        wl = sample_wavelengths(n, band, sed, seed=seed + 2)
+    elif wavelength is not None:
+        wl = np.full(n, float(wavelength))
     tiny = 1e-6  # charge of a test photon (e)
     counts = {}
     for name, strength, q in (("0", 1e-9, charge), ("Q", 1.0, charge),

@@ -106,6 +106,10 @@ def test_bad_input():
         star_list(0, seed=1)
     with pytest.raises(ValueError, match="charge and photons"):
         flat_area_response(SENSOR, "r", charge=0, seed=1)
+    with pytest.raises(ValueError, match="a band or a wavelength, not both"):
+        flat_area_response(SENSOR, "r", wavelength=900.0, seed=1)
+    with pytest.raises(ValueError, match="wavelength must lie"):
+        flat_area_response(SENSOR, None, wavelength=2000.0, seed=1)
     with pytest.raises(ValueError, match="one value per photon"):
         accumulate_twins(np.zeros(3), np.zeros(3), np.ones(3), (1.0,), sensor=SENSOR, seed=1,
                          stamp=9, pixel_scale=0.2, rng=np.random.default_rng(1),
