@@ -553,9 +553,9 @@ class DistortionTemplate:
             raise TemplateFileError(f"{path}: a multi-band template file (bands "
                                     f"{', '.join(bands)}): choose one with band=, or read "
                                     "them all with lsst_bfdrift.templates.load_templates", path)
-        from lsst_bfdrift.physics.depth import normalize_band
+        from lsst_bfdrift.templates.bands import band_key  # bands imports this module
 
-        b = normalize_band(band)
+        b = band_key(band)
         if b not in bands:
             raise TemplateFileError(f"{path}: no template for band {b!r}; the file holds bands "
                                     f"{', '.join(bands)}", path)
