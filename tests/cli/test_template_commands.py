@@ -156,3 +156,27 @@ def test_flats_band_from_headers(tmp_path):
     assert _flats_band(argparse.Namespace(band="header", input=[a, b])) == "i"
     assert _flats_band(argparse.Namespace(band="LSST_z", input=[a])) == "z"
     assert _flats_band(argparse.Namespace(band=None, input=[a])) is None
+
+
+def test_correct_with_a_multi_band_template(capsys, tmp_path):
+    """CONSISTENCY: bfdrift correct --band y uses the file's y template (BFBAND in the output);
+    without a band, an image lacking BAND/FILTER is refused naming the keywords."""
+    from astropy.io import fits
+
+    from lsst_bfdrift.templates.bands import MultiBandTemplate, combine_templates
+    from lsst_bfdrift.templates.template import load_default_template
+    d = load_default_template()
+    tpath = tmp_path / "bands.fits"
+    MultiBandTemplate({"r": d, "y": combine_templates([d], [0.5])}).save(tpath)
+    yy, xx = np.mgrid[:40, :40] - 20.0
+    img = 500.0 + 2e5 / (2 * np.pi * 1.4**2) * np.exp(-0.5 * (xx**2 + yy**2) / 1.4**2)
+    src = tmp_path / "in.fits"
+    fits.PrimaryHDU(img, header=fits.Header({"BUNIT": "electron"})).writeto(src)
+    out = tmp_path / "out.fits"
+    code, _, err = _run(capsys, "correct", str(src), str(out), "--template", str(tpath),
+                        "--band", "y", "--no-geometry")
+    assert code == 0, err
+    assert fits.getheader(out)["BFBAND"] == "y"
+    code, _, err = _run(capsys, "correct", str(src), str(tmp_path / "o2.fits"), "--template",
+                        str(tpath), "--no-geometry")
+    assert code != 0 and "read header keywords BAND, FILTER" in err
