@@ -180,3 +180,16 @@ def test_correct_with_a_multi_band_template(capsys, tmp_path):
     code, _, err = _run(capsys, "correct", str(src), str(tmp_path / "o2.fits"), "--template",
                         str(tpath), "--no-geometry")
     assert code != 0 and "read header keywords BAND, FILTER" in err
+    # an LSST-layout file: FILTER in the primary header, inherited by the IMAGE HDU
+    lsst = tmp_path / "lsst.fits"
+    fits.HDUList([fits.PrimaryHDU(header=fits.Header({"FILTER": "y_10"})),
+                  fits.ImageHDU(img, header=fits.Header({"BUNIT": "electron", "INHERIT": True}),
+                                name="IMAGE")]).writeto(lsst)
+    out3 = tmp_path / "o3.fits"
+    code, _, err = _run(capsys, "correct", str(lsst), str(out3), "--template", str(tpath),
+                        "--no-geometry")
+    assert code == 0, err
+    with fits.open(out3) as h:
+        band = h[0].header.get("BFBAND", h["IMAGE"].header.get("BFBAND"))
+        assert_allclose(h["IMAGE"].data, fits.getdata(out, 0), rtol=1e-6)
+    assert band == "y"
