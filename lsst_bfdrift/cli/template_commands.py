@@ -34,7 +34,8 @@ BUILD_DESCRIPTION = (
     "falls outside the 21 x 21 window, window_leak in the summary) stay the same. "
     "bfdrift calibrate makes such a refined template from your sensor's data.")
 
-__all__ = ["BUILD_DESCRIPTION", "band_sources", "read_config", "add_template_parser", "cmd_template_build",
+__all__ = ["BUILD_DESCRIPTION", "band_sources", "read_config", "add_template_parser",
+           "cmd_template_build",
            "cmd_template_summary", "cmd_template_plot", "cmd_template_export",
            "cmd_template_import"]
 

@@ -268,7 +268,8 @@ class MultiBandTemplate(Mapping):
     Parameters
     ----------
     templates : dict
-        band key (:func:`~lsst_bfdrift.templates.template_io.band_key`) -> :class:`DistortionTemplate`.
+        band key (:func:`~lsst_bfdrift.templates.template_io.band_key`) ->
+        :class:`DistortionTemplate`.
     meta : dict, optional
         What the bands share (the calibration, the depth response).
     single : DistortionTemplate, optional
