@@ -11,6 +11,7 @@ import importlib
 import pytest
 
 MODULES = ["lsst_bfdrift.physics.drift", "lsst_bfdrift.physics.polygons",
+           "lsst_bfdrift.physics.depth",
            "lsst_bfdrift.templates.template", "lsst_bfdrift.templates.galsim_io",
            "lsst_bfdrift.geometry.superpose",
            "lsst_bfdrift.geometry.linear", "lsst_bfdrift.correction.task",

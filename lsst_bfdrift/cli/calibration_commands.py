@@ -16,7 +16,10 @@ import os
 import sys
 import warnings
 
+from astropy.io import fits
+
 from lsst_bfdrift.calibration.acoeff_model import LinearBasis, load_default_basis
+from lsst_bfdrift.calibration.band_transfer import band_a00_table, calibrated_band_templates
 from lsst_bfdrift.calibration.lsst_products import write_bfk, write_distortion_matrix
 from lsst_bfdrift.calibration.routes import MODELS, calibrate_route
 from lsst_bfdrift.calibration.spot_fit import (SPOT_SPLITS, calibrate_with_spots,
@@ -33,6 +36,8 @@ from lsst_bfdrift.diagnosis.report import (notable_not_excluded, template_change
 from lsst_bfdrift.ptc import covariances as ptc
 from lsst_bfdrift.ptc.data import describe_paths
 from lsst_bfdrift.ptc.inputs import ExposureLevelWarning, read_calibration_input, read_ptc_file
+from lsst_bfdrift.correction.task import BAND_KEYWORDS, exposure_band
+from lsst_bfdrift.physics.depth import normalize_band
 from lsst_bfdrift.utils.errors import InputError, InputFileError, InputNotFoundError
 from lsst_bfdrift.utils.io import data_files, not_fits_reason
 from lsst_bfdrift.utils.progress import Activity, ProgressBar
@@ -198,6 +203,7 @@ def cmd_calibrate(args):
                   {"--out": args.out, "--plot": args.plot, f"--plot ({kind})": stars_plot})
     check_size_goal(args.size_goal, "--size-goal")  # before any file is read
     _check_model_options(args)
+    flats_band = _flats_band(args)  # before minutes of fitting
     for opt, files in (("--stars", args.stars or []), ("--spots", spot_files)):
         for x in files:
             if not os.path.isfile(x):
@@ -239,10 +245,17 @@ def cmd_calibrate(args):
     if joint is not None:
         joint.template.meta["calibration"]["inputs"] = \
             [os.path.abspath(x) for x in args.input + (args.stars or []) + spot_files]
-        joint.template.save(args.out, overwrite=args.overwrite)
+    final = res.template if joint is None else joint.template
+    bands = None
+    if flats_band is None:
+        final.save(args.out, overwrite=args.overwrite)
     else:
-        res.template.save(args.out, overwrite=args.overwrite)
+        bands = calibrated_band_templates(final, flats_band, fit=res.fit, nodes=args.band_nodes,
+                                          progress=not args.quiet)
+        bands.save(args.out, overwrite=args.overwrite)
     summary = res.summary()
+    if bands is not None:
+        summary["bands"] = {"flats": flats_band, "a00": band_a00_table(bands)}
     if joint is not None:
         summary[kind] = joint.summary()
     summary["input"] = data.summary()
@@ -258,7 +271,50 @@ def cmd_calibrate(args):
         print_json(summary)
     else:
         _print_calibration(args, res, joint, data, table)
+        if bands is not None:
+            _print_bands(summary["bands"])
     return 0
+
+
+def _print_bands(info):
+    """The per-band a00 of ``calibrate --band`` (text output)."""
+    print(f"  bands (flats in {info['flats']}): a00 per band, 1/e, with its error from the "
+          "calibration (and from the parameter covariance)")
+    for band, row in info["a00"].items():
+        err = "" if row["a00_err"] is None else f" +- {row['a00_err']:.2g}"
+        perr = "" if row["a00_err_params"] is None else \
+            f" (parameters: +- {row['a00_err_params']:.2g})"
+        print(f"  {band:>6s}: a00 {row['a00']:.4g}{err}{perr}, {row['ratio_a00']:.4f} x the "
+              f"flats' band, mean conversion height {row['mean_height']:.1f} um")
+
+
+def _flats_band(args):
+    """The band of ``--band``: a band name, or 'header' (FILTER/BAND of the inputs); None."""
+    if args.band is None:
+        return None
+    if args.band.strip().lower() != "header":
+        return normalize_band(args.band)
+    found = {}
+    for path in args.input:
+        reason = not_fits_reason(path) if os.path.isfile(path) else "no such file"
+        if reason is not None:
+            raise InputError(f"--band header reads the FILTER or BAND keyword of FITS flats; "
+                             f"{path}: {reason}; give the band (--band r)")
+        with fits.open(path) as hdul:
+            headers = [h.header for h in hdul if h.is_image][:2]
+        meta = {}
+        for h in reversed(headers):  # the image HDU's value over the primary's
+            meta.update({k: h[k] for k in BAND_KEYWORDS if k in h})
+        band, _ = exposure_band(meta)
+        if band is None:
+            raise InputError(f"--band header: {path} has no {' or '.join(BAND_KEYWORDS)} "
+                             "keyword; give the band (--band r)")
+        found[path] = band
+    if len(set(found.values())) > 1:
+        raise InputError("--band header: the flats are of different bands ("
+                         + ", ".join(f"{os.path.basename(p)}: {b}" for p, b in found.items())
+                         + "); calibrate one band at a time")
+    return next(iter(found.values()))
 
 
 def _spot_fields(args):
@@ -285,7 +341,8 @@ def _check_model_options(args):
     given = [opt for opt, on in (("--stars", bool(args.stars)), ("--spots", bool(args.spots)),
                                  ("--free", bool(args.free)),
                                  ("--no-refine", args.no_refine),
-                                 ("--allow-poor-fit", args.allow_poor_fit)) if on]
+                                 ("--allow-poor-fit", args.allow_poor_fit),
+                                 ("--band", args.band is not None)) if on]
     if given:
         raise InputError(f"{', '.join(given)}: options of --model electrostatic (this "
                          f"package's model); --model {args.model} is LSST's route and has none "
@@ -475,6 +532,14 @@ def add_calibrate_parser(subparsers):
                     "PTC text file, an a-matrix table (i j a sigma, or ECSV i, j, a, a_err) or "
                     "cp_pipe's PTC dataset FITS")
     ca.add_argument("--out", required=True, help="calibrated template FITS file")
+    ca.add_argument("--band", help="band of the flats (u, g, r, i, z, y or a physical filter "
+                    "such as r_57), or 'header' (their FILTER or BAND keyword): --out then "
+                    "holds templates for all six bands, the calibrated one carried to each by "
+                    "the model's conversion depths, with its uncertainty")
+    ca.add_argument("--band-nodes", type=int,
+                    default=library_default(calibrated_band_templates, "nodes"),
+                    help="with --band: conversion heights of the model's band templates "
+                    "(each a template build; default: %(default)s)")
     ca.add_argument("--model", choices=MODELS, default=library_default(calibrate_route, "model"),
                     help="electrostatic: this package's model (corrected with --method "
                          "drift); astier23: the Astier & Regnault 2023 model, LSST's DP2 route "

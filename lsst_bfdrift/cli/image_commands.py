@@ -131,6 +131,8 @@ def _correct_config(args):
         cfg.compute_geometry = bool(args.geometry)
     if args.template is not None:
         cfg.template = os.path.abspath(args.template)
+    if args.band is not None:
+        cfg.band = args.band
     if args.saturation is not None:
         if not (math.isfinite(args.saturation) and args.saturation > 0):
             raise InputError(f"--saturation {args.saturation:g} is not a positive level; "
@@ -303,6 +305,9 @@ def add_correct_parser(subparsers):
                     "everywhere; an image stating electrons is refused)")
     co.add_argument("--template", help="template FITS file (default: the config's, else the "
                     "bundled default)")
+    co.add_argument("--band", help="band of the images for a multi-band template (u .. y or "
+                    "a physical filter such as r_57; default: the config's, else each image's "
+                    "BAND or FILTER keyword)")
     co.add_argument("--saturation", type=float, help="level at and above which pixels are "
                     "blocked, in the image's units (default: the config's, else the SATURATE "
                     "keyword)")

@@ -9,11 +9,15 @@ made by :func:`add_template_parser`.
 import os
 
 from lsst_bfdrift.cli._common import (check_outputs, emit, library_default, load_template,
-                                      save_and_report, save_plot, template_input)
+                                      print_json, save_and_report, save_plot, template_input)
+from lsst_bfdrift.physics.depth import BANDS
+from lsst_bfdrift.templates.bands import (DEPTH_RESPONSES, build_band_templates,
+                                          load_templates)
 from lsst_bfdrift.templates.build_config import read_build_config
 from lsst_bfdrift.templates.galsim_export import export_galsim_sensor
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.templates.template import TemplateSettings, build_template
+from lsst_bfdrift.utils.errors import InputError
 
 #: What ``template build --help`` says of the defaults and of the bundled template.
 BUILD_DESCRIPTION = (
@@ -30,7 +34,8 @@ BUILD_DESCRIPTION = (
     "falls outside the 21 x 21 window, window_leak in the summary) stay the same. "
     "bfdrift calibrate makes such a refined template from your sensor's data.")
 
-__all__ = ["BUILD_DESCRIPTION", "read_config", "add_template_parser", "cmd_template_build",
+__all__ = ["BUILD_DESCRIPTION", "band_sources", "read_config", "add_template_parser",
+           "cmd_template_build",
            "cmd_template_summary", "cmd_template_plot", "cmd_template_export",
            "cmd_template_import"]
 
@@ -71,8 +76,53 @@ def cmd_template_build(args):
                                    ("workers", args.workers)) if v is not None}
     if overrides:
         settings = type(settings).from_dict({**settings.to_dict(), **overrides})
+    sources = band_sources(args.band, args.wavelength)
     check_outputs(args, [args.config], {"--out": args.out})
-    return save_and_report(build_template(params, settings, progress=not args.quiet), args)
+    if not sources:
+        for opt, val in (("--sed", args.sed), ("--depth-response", args.depth_response),
+                         ("--nodes", args.nodes)):
+            if val is not None:
+                raise InputError(f"{opt} applies to per-band templates: give --band or "
+                                 "--wavelength as well")
+        return save_and_report(build_template(params, settings, progress=not args.quiet), args)
+    kw = {"depth_response": args.depth_response or "drift"}
+    if args.nodes is not None:
+        kw["nodes"] = args.nodes
+    mb = build_band_templates(params, sources, sed=args.sed, settings=settings,
+                              progress=not args.quiet, **kw)
+    mb.save(args.out, overwrite=True)
+    if args.json:
+        print_json({"out": os.path.abspath(args.out), "bands": list(mb.bands),
+                    "summary": mb.summary()})
+    else:
+        print(f"wrote {args.out} (bands {', '.join(mb.bands)})")
+    return 0
+
+
+def band_sources(bands, wavelengths):
+    """The bands and wavelengths of ``--band`` / ``--wavelength``, in order, once each.
+
+    Parameters
+    ----------
+    bands : list of str or None
+        ``--band`` values: band names ('u' .. 'y') or ``'all'`` (the six).
+    wavelengths : list of float or None
+        ``--wavelength`` values (nm).
+
+    Returns
+    -------
+    list
+        Band names and wavelengths for
+        :func:`~lsst_bfdrift.templates.bands.build_band_templates`; empty
+        without either option.
+    """
+    out = []
+    for b in bands or ():
+        for item in (BANDS if b.strip().lower() == "all" else (b,)):
+            if item not in out:
+                out.append(item)
+    out += [float(w) for w in wavelengths or ()]
+    return out
 
 
 def cmd_template_summary(args):
@@ -88,8 +138,12 @@ def cmd_template_summary(args):
     code : int
         The exit status.
     """
-    tpl = load_template(args.file)
-    return emit(tpl.summary(), args.json)
+    if args.file is None:
+        return emit(load_template(None).summary(), args.json)
+    mb = load_templates(args.file)
+    if mb.single is not None:
+        return emit(mb.single.summary(), args.json)
+    return emit(mb.summary(), args.json)
 
 
 def cmd_template_plot(args):
@@ -191,6 +245,22 @@ def add_template_parser(subparsers):
                    f"else {dflt.tol:g} (1e-4 loses ~20 %% of the area change outside the "
                    "window)")
     b.add_argument("--workers", type=int, help="threads")
+    b.add_argument("--band", action="append", metavar="B",
+                   help="per-band template: drift lines start at the conversion depths of "
+                   f"the band's photons ({', '.join(BANDS)} or 'all'; repeatable); all "
+                   "bands and wavelengths go to one multi-band --out file")
+    b.add_argument("--wavelength", action="append", type=float, metavar="NM",
+                   help="per-wavelength template (nm, within GalSim's silicon absorption "
+                   "table 255-1450; repeatable)")
+    b.add_argument("--sed", help="with --band: spectrum of the light, 'flat' (photons per "
+                   "nm; default), a temperature such as '5800K', or a GalSim SED name "
+                   "(e.g. CWW_E_ext)")
+    b.add_argument("--depth-response", choices=sorted(DEPTH_RESPONSES),
+                   help="with --band: 'drift' (drift lines start at the conversion height; "
+                   "default) or 'galsim' (the entrance-window template times GalSim's mean "
+                   "tanh(z / 12 um))")
+    b.add_argument("--nodes", type=int, help="with --band: conversion heights of the shared "
+                   "grid (default 8: 7 builds for all bands)")
     b.add_argument("--overwrite", action="store_true")
     b.add_argument("--quiet", action="store_true", help="no progress bar")
     b.add_argument("--json", action="store_true", help="print the summary as JSON")

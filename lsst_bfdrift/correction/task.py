@@ -24,12 +24,17 @@ from lsst_bfdrift.correction.steps import (BF_PLANE_DOC, FLAG_BLOCKED, FLAG_EDGE
                                            result_header)
 from lsst_bfdrift.images.electrons import to_electrons
 from lsst_bfdrift.images.exposure import BLOCKING_PLANES
+from lsst_bfdrift.templates.bands import MultiBandTemplate, band_key, load_templates
 from lsst_bfdrift.templates.swept import OperatorCache, refuse_out_of_range
 from lsst_bfdrift.templates.template import DistortionTemplate, load_default_template
 from lsst_bfdrift.utils.config import Struct, Task
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
-__all__ = ["BrighterFatterDriftConfig", "BrighterFatterDriftTask", "stage_order"]
+__all__ = ["BAND_KEYWORDS", "BrighterFatterDriftConfig", "BrighterFatterDriftTask",
+           "exposure_band", "stage_order"]
+
+#: Header keywords that give an exposure's band, in the order they are read.
+BAND_KEYWORDS = ("BAND", "FILTER")
 
 _METHODS = {
     "drift": "time-history series of the template's swept areas (order >= 3), inverted by "
@@ -54,8 +59,14 @@ class BrighterFatterDriftConfig(pexConfig.Config):
     """
 
     template = pexConfig.Field(
-        doc="template FITS file; None uses the bundled default", dtype=str, default=None,
-        optional=True)
+        doc="template FITS file, one template or one per band (bfdrift template build "
+            "--band, bfdrift calibrate); None uses the bundled default", dtype=str,
+        default=None, optional=True)
+    band = pexConfig.Field(
+        doc="band of the exposures ('u' .. 'y' or a physical filter such as 'r_57') for a "
+            "multi-band template; None: the exposure's BAND or FILTER keyword (the Butler's "
+            "physical_filter in the PipelineTask). A band read from the exposure must agree; "
+            "the template must hold it", dtype=str, default=None, optional=True)
     method = pexConfig.ChoiceField(
         doc="correction method", dtype=str, default="drift", allowed=_METHODS, optional=False)
     order = pexConfig.Field(
@@ -229,23 +240,77 @@ class BrighterFatterDriftTask(Task):
         super().__init__(config=config, **kwargs)
         self.config.validate()
         self.config.freeze()
-        if template is not None:
+        if template is None:
+            template = load_default_template() if self.config.template is None else \
+                load_templates(self.config.template)
+        if isinstance(template, MultiBandTemplate) and template.single is not None:
+            template = template.single
+        if isinstance(template, MultiBandTemplate):
+            #: One template per band (None: one template for every band).
+            self.templates = template
+            #: The template of the last run (of the config's band before any run).
+            self.template = None
+            if self.config.band is not None:
+                self.template = template.select(self.config.band, where="config.band")
+        elif isinstance(template, DistortionTemplate):
+            self.templates = None
             self.template = template
-        elif self.config.template is None:
-            self.template = load_default_template()
         else:
-            self.template = DistortionTemplate.load(self.config.template)
-        self._cache = None
+            raise InputTypeError(f"template must be a DistortionTemplate or a "
+                                 f"MultiBandTemplate, got {type(template).__name__}")
+        if self.config.band is not None:
+            band_key(self.config.band)  # an unknown band is refused here, not at run()
+        self._caches, self._cache = {}, None
 
-    def _operators(self, dtype):
-        """Swept-area operators of the template, kept between calls to run()."""
-        c = self._cache
-        if c is None or not c.matches(self.template, self.config.workers, dtype):
-            c = self._cache = OperatorCache(self.template, workers=self.config.workers,
-                                            dtype=dtype)
+    def _operators(self, dtype, template=None):
+        """Swept-area operators of ``template`` (default: the Task's), kept between runs."""
+        template = self.template if template is None else template
+        c = self._caches.get(id(template))
+        if c is None or not c.matches(template, self.config.workers, dtype):
+            if len(self._caches) >= 6:  # one per band at most
+                self._caches.clear()
+            c = self._caches[id(template)] = OperatorCache(template, workers=self.config.workers,
+                                                           dtype=dtype)
+        self._cache = c  # the last used
         return c
 
-    def run(self, exposure, *, progress=None):
+    def select_template(self, meta=None, *, band=None):
+        """The template for an exposure and the band it was chosen for.
+
+        Parameters
+        ----------
+        meta : mapping, optional
+            The exposure's header (its :data:`BAND_KEYWORDS` are read).
+        band : str, optional
+            The band given by the caller (the PipelineTask's physical_filter).
+
+        Returns
+        -------
+        template : DistortionTemplate
+        band : str or None
+            The band key (None with a single template for every band).
+        source : str or None
+            Where the band came from (``'BAND'``, ``'FILTER'``, ``'config'``,
+            ``'caller'``).
+
+        Raises
+        ------
+        InputError
+            Multi-band template: no band (naming the keywords read), sources
+            that disagree, or a band the template does not hold.
+        """
+        if self.templates is None:
+            return self.template, None, None
+        key, source = exposure_band(meta, band=band, config_band=self.config.band)
+        if key is None:
+            raise InputError(f"the exposure gives no band (read header keywords "
+                             f"{', '.join(BAND_KEYWORDS)}; no config.band, no band from the "
+                             f"caller), and the template holds several "
+                             f"({', '.join(self.templates.bands)}): set config.band or the "
+                             "exposure's BAND/FILTER keyword")
+        return self.templates.select(key, where=source), key, source
+
+    def run(self, exposure, *, band=None, progress=None):
         """Correct ``exposure``.
 
         Parameters
@@ -256,6 +321,11 @@ class BrighterFatterDriftTask(Task):
             receive charge and are flagged. A FITS file's BUNIT must say
             electron or ADU (other units, e.g. e/s or MJy/sr, are refused).
             Never modified.
+        band : str, optional
+            The exposure's band from its context (the PipelineTask passes the
+            Butler's physical_filter); with a multi-band template it must
+            agree with the exposure's BAND/FILTER keyword and
+            ``config.band`` when they are given (:meth:`select_template`).
         progress : callable, optional
             Called as ``progress(stage, fraction)`` while the run goes on:
             stages ``'correct'`` and, with ``compute_geometry``, ``'maps'``
@@ -277,7 +347,8 @@ class BrighterFatterDriftTask(Task):
             templates drawn from the calibration uncertainty, None unless
             ``uncertainty_draws``), ``flags`` (uint8, bits FLAG_BLOCKED, FLAG_EDGE),
             ``iterations``, ``converged``, ``warnings`` (what looks wrong with the
-            input: :func:`input_warnings`; also logged).
+            input: :func:`input_warnings`; also logged). With a multi-band
+            template the result header's ``BFBAND`` records the band used.
         """
         cfg = self.config
 
@@ -288,13 +359,16 @@ class BrighterFatterDriftTask(Task):
         image = to_electrons(exposure, gain=cfg.gain, saturation=cfg.saturation,
                              blocking=tuple(cfg.blocking_mask_planes), gain_name=_GAIN_NAME,
                              saturation_name=_SATURATION_NAME)
+        template, band_used, band_source = self.select_template(image.meta, band=band)
+        if band_used is not None:
+            self.template = template
         data = image.data
         finite = np.isfinite(data)
         finite_data = data if finite.all() else np.where(finite, data, 0.0)
         del finite
         blocked = blocked_pixels(image)
         dtype = np.float32 if cfg.fft_precision == "float32" else np.float64
-        ops = self._operators(dtype)
+        ops = self._operators(dtype, template)
         # pixels masked as blocking (a hot pixel, a saturated core) never stop a run
         refuse_out_of_range(
             finite_data if image.mask is None or not image.mask.any()
@@ -310,30 +384,30 @@ class BrighterFatterDriftTask(Task):
         warnings = input_warnings(finite_data if fill is None else
                                   np.where(fill, 0.0, finite_data), blocked) + image.warnings
         ns = cfg.geometry_samples
-        samples = None if ns is None else min(ns, self.template.edge_samples)
+        samples = None if ns is None else min(ns, template.edge_samples)
         geom = dict(area=None, centroid_x=None, centroid_y=None, e1=None, e2=None)
-        first = first_order_pass(self.template, data.shape, cfg, samples=samples, dtype=dtype,
+        first = first_order_pass(template, data.shape, cfg, samples=samples, dtype=dtype,
                                  filled=data is not finite_data)
         # exact maps first: their working arrays are freed before the solver's
         # outputs exist (peak memory, docs/benchmarks.rst)
         if stage_order(cfg)[0] == "maps":
-            geom = exact_maps(self.template, finite_data, cfg, samples=samples, dtype=dtype,
+            geom = exact_maps(template, finite_data, cfg, samples=samples, dtype=dtype,
                               report=report)
         report("correct", 0.0)
         flux, iterations, converged, order, density, solver = apply_method(
-            data, self.template, blocked, cfg, dtype, ops, maps=first,
+            data, template, blocked, cfg, dtype, ops, maps=first,
             progress=lambda f: report("correct", f))
         report("correct", 1.0)
         if stage_order(cfg)[-1] == "maps":  # the linear maps, from the first pass
-            geom = linear_maps(self.template, finite_data, cfg, samples=samples, dtype=dtype,
+            geom = linear_maps(template, finite_data, cfg, samples=samples, dtype=dtype,
                                first=first, ops=ops, report=report)
         del first
         flux, moved, finite_data = flux_moved(flux, finite_data, blocked, fill, recorded)
         moved_err = None
         if cfg.uncertainty_draws:
-            moved_err = flux_moved_error(self.template, data, finite_data, blocked, moved, cfg,
+            moved_err = flux_moved_error(template, data, finite_data, blocked, moved, cfg,
                                          dtype)
-        flags = edge_flags(blocked, self.template.center)
+        flags = edge_flags(blocked, template.center)
         if not converged:
             self.log.warning("brighter-fatter correction did not converge in %d iterations",
                              iterations)
@@ -341,11 +415,13 @@ class BrighterFatterDriftTask(Task):
             raise InputError("input refused (on_input_warning='raise'): " + "; ".join(warnings))
         for w in warnings:
             self.log.warning("%s", w)
-        header = result_header(image.meta, cfg, self.template, warnings=len(warnings),
+        header = result_header(image.meta, cfg, template, warnings=len(warnings),
                                order=order, density=density, iterations=iterations,
                                converged=converged, solver=solver,
                                filled=0 if fill is None else int(fill.sum()), gain=image.gain,
                                saturation=image.saturation)
+        if band_used is not None:
+            header["BFBAND"] = (band_used, f"band of the BF template (from {band_source})")
         if moved_err is not None:
             header["BFUNCN"] = (cfg.uncertainty_draws, "template draws of flux_moved_err")
         out = package_output(image, flux, blocked, flags, header, moved_err,
@@ -353,3 +429,42 @@ class BrighterFatterDriftTask(Task):
         return Struct(exposure=out, warnings=warnings, flux_moved=moved, flux_moved_err=moved_err,
                       flags=flags, iterations=iterations, converged=bool(converged),
                       header=header, **geom)
+
+
+def exposure_band(meta=None, *, band=None, config_band=None):
+    """The band of an exposure: (band key, where it came from), or (None, None).
+
+    Read from ``config_band``, ``band`` (the caller, e.g. the Butler's
+    physical_filter) and the header keywords :data:`BAND_KEYWORDS` of
+    ``meta``; LSST physical filters (``'r_57'``) give their band. A caller's
+    or header value that names no band (``'unknown'``, ``'SDSSr~empty'``)
+    is ignored when another source gives one.
+
+    Raises
+    ------
+    InputError
+        The sources name different bands (all are named), or the caller's or
+        the config's band is unknown, or the only band values name no band.
+    """
+    found, unknown = [], []
+    if config_band is not None:
+        found.append((band_key(config_band), "config"))
+    get = (lambda k: None) if meta is None else meta.get
+    for key in ("caller",) + BAND_KEYWORDS:
+        value = band if key == "caller" else get(key)
+        if value is None or (isinstance(value, str) and not value.strip()):
+            continue
+        try:
+            found.append((band_key(value if isinstance(value, str) else str(value)), key))
+        except InputError:
+            unknown.append(f"{key}={value!r}")  # e.g. a physical filter 'unknown' 
+    if len({k for k, _ in found}) > 1:
+        raise InputError("the exposure's band is ambiguous: " + ", ".join(
+            f"{s} says {k!r}" for k, s in found) + "; they must agree")
+    if found:
+        return found[0]
+    if unknown:
+        raise InputError(f"the exposure's band value(s) {', '.join(unknown)} name no LSST "
+                         f"band (u, g, r, i, z, y, or a physical filter such as 'r_57'); set "
+                         "config.band")
+    return None, None

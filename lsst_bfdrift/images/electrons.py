@@ -421,7 +421,7 @@ def _unpack(exposure):
         data = exposure.image
         bits = (exposure.mask, exposure.mask_planes)
         meta = fits.Header(exposure.header)
-        for key in ("GAIN", "SATURATE"):
+        for key in ("GAIN", "SATURATE", "BAND", "FILTER"):
             if key not in meta and exposure.header_value(key) is not None:
                 meta[key] = exposure.header_value(key)  # INHERIT from the primary
         stated, from_file, mask = exposure.unit(), True, None

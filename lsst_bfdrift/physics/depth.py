@@ -250,12 +250,15 @@ class DepthDistribution:
         """Mean of ``func(z)`` (vectorised, z in um) over the detected photons.
 
         Integrated on a grid in depth that is geometric from 1e-6 um, so that
-        distributions a few nm deep (u band) are resolved.
+        distributions a few nm deep (u band) are resolved, and divided by the
+        integral of the density on the same grid (so that the mean of a
+        bounded function stays within its bounds).
         """
         t = self.thickness
         d = np.concatenate([[0.0], np.geomspace(1e-6, t, int(points))])
         z = t - d
-        return float(np.trapezoid(self.pdf(z) * np.asarray(func(z), float), d))
+        p = self.pdf(z)
+        return float(np.trapezoid(p * np.asarray(func(z), float), d) / np.trapezoid(p, d))
 
     def node_weights(self, nodes):
         """Weights of the heights ``nodes`` (um, increasing, last = thickness).

@@ -25,7 +25,7 @@ import lsst.pipe.base.connectionTypes as cT
 from lsst_bfdrift.correction.task import BrighterFatterDriftTask
 
 __all__ = ["BrighterFatterDriftConnections", "BrighterFatterDriftPipelineConfig",
-           "BrighterFatterDriftPipelineTask", "MAP_NAMES"]
+           "BrighterFatterDriftPipelineTask", "MAP_NAMES", "data_id_band"]
 
 _DIMENSIONS = ("instrument", "exposure", "detector")
 
@@ -86,13 +86,28 @@ class BrighterFatterDriftPipelineTask(pipeBase.PipelineTask):
         super().__init__(**kwargs)
         self.makeSubtask("bf")
 
-    def run(self, input_exposure):
+    def runQuantum(self, butlerQC, inputRefs, outputRefs):
+        """Read the exposure, correct it with its band's template, write the outputs.
+
+        The band is the data ID's ``physical_filter`` (else ``band``), read
+        by :func:`data_id_band`; with a multi-band template it must agree
+        with the exposure's BAND/FILTER keyword and ``bf.band``.
+        """
+        inputs = butlerQC.get(inputRefs)
+        outputs = self.run(**inputs, band=data_id_band(butlerQC.quantum.dataId))
+        butlerQC.put(outputs, outputRefs)
+
+    def run(self, input_exposure, *, band=None):
         """Correct one exposure.
 
         Parameters
         ----------
         input_exposure : MaskedExposure or afw Exposure
             Post-ISR exposure in electrons (or ADU with a gain). Never modified.
+        band : str, optional
+            Its band or physical filter (``runQuantum`` passes the data ID's),
+            for a multi-band template (see
+            :meth:`~lsst_bfdrift.correction.task.BrighterFatterDriftTask.select_template`).
 
         Returns
         -------
@@ -101,9 +116,28 @@ class BrighterFatterDriftPipelineTask(pipeBase.PipelineTask):
             ``geometry_maps`` (dict of 2-d arrays, see :data:`MAP_NAMES`; None when
             ``bf.compute_geometry`` is off).
         """
-        res = self.bf.run(input_exposure)
+        res = self.bf.run(input_exposure, band=band)
         maps = None
         if res.area is not None:
             maps = {name: getattr(res, attr) for attr, name in MAP_NAMES.items()}
             maps.update(iterations=int(res.iterations), converged=bool(res.converged))
         return pipeBase.Struct(corrected_exposure=res.exposure, geometry_maps=maps)
+
+
+def data_id_band(data_id):
+    """The physical filter (else band) of a Butler data ID, or None.
+
+    An exposure's data ID implies its ``physical_filter`` and ``band``
+    dimensions when it is expanded (as in ``runQuantum``); a data ID without
+    them gives None (the exposure's header then says the band).
+    """
+    if data_id is None:
+        return None
+    for name in ("physical_filter", "band"):
+        try:
+            value = data_id[name]
+        except (KeyError, LookupError, TypeError, AttributeError):
+            continue
+        if value:
+            return str(value)
+    return None

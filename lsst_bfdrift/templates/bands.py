@@ -42,14 +42,14 @@ from lsst_bfdrift.physics.depth import (BANDS, GALSIM_ZFIT, conversion_nodes,
 from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.templates.template import (TEMPLATE_SCHEMA_VERSION, DistortionTemplate,
                                              TemplateSettings, _set_meta, build_template)
-from lsst_bfdrift.templates.template_io import read_template_fits, template_file_bands
+from lsst_bfdrift.templates.template_io import (band_key, read_template_fits,
+                                                template_file_bands)
 from lsst_bfdrift.utils.errors import InputError, InputTypeError, TemplateFileError
 from lsst_bfdrift.utils.io import atomic_output, check_output
 from lsst_bfdrift.utils.progress import ProgressBar
 
 __all__ = ["DEPTH_RESPONSES", "MULTIBAND_LAYOUT_VERSION", "MultiBandTemplate",
-           "build_band_templates", "band_key", "band_weights", "combine_templates",
-           "load_templates"]
+           "build_band_templates", "band_weights", "combine_templates", "load_templates"]
 
 #: The depth responses of :func:`build_band_templates`.
 DEPTH_RESPONSES = {
@@ -60,29 +60,6 @@ DEPTH_RESPONSES = {
 
 #: Version of the multi-band file layout (primary BFBANDS, one TEMPLATE_<BAND> per band).
 MULTIBAND_LAYOUT_VERSION = 1
-
-
-def band_key(source):
-    """Name of a band or wavelength in a :class:`MultiBandTemplate`.
-
-    An LSST band gives its letter (:func:`~lsst_bfdrift.physics.depth.normalize_band`);
-    a wavelength (nm) gives e.g. ``'700nm'``.
-    """
-    if isinstance(source, str):
-        s = source.strip().lower()
-        if s.endswith("nm"):
-            try:
-                return f"{float(s[:-2]):g}nm"
-            except ValueError:
-                pass
-        return normalize_band(source)
-    if hasattr(source, "unit"):
-        import astropy.units as u
-
-        source = source.to_value(u.nm, equivalencies=u.spectral())
-    if isinstance(source, bool) or not isinstance(source, (int, float, np.number)):
-        raise InputTypeError(f"a band name or a wavelength in nm is needed, got {source!r}")
-    return f"{float(source):g}nm"
 
 
 def _source(key):
@@ -291,7 +268,8 @@ class MultiBandTemplate(Mapping):
     Parameters
     ----------
     templates : dict
-        band key (:func:`band_key`) -> :class:`DistortionTemplate`.
+        band key (:func:`~lsst_bfdrift.templates.template_io.band_key`) ->
+        :class:`DistortionTemplate`.
     meta : dict, optional
         What the bands share (the calibration, the depth response).
     single : DistortionTemplate, optional

@@ -26,8 +26,8 @@ from astropy.table import Table
 
 from lsst_bfdrift.physics.boundaries import BoundaryGrid, pixel_boundaries
 from lsst_bfdrift.physics.polygons import pixel_polygons, polygon_moments
-from lsst_bfdrift.templates.template_io import (check_template_table, read_template_fits,
-                                                template_file_bands)
+from lsst_bfdrift.templates.template_io import (band_key, check_template_table,
+                                                read_template_fits, template_file_bands)
 from lsst_bfdrift.utils.io import atomic_output, check_output, data_path
 from lsst_bfdrift.utils.progress import ProgressBar
 from lsst_bfdrift.physics.sensor import SensorModel, SensorParameters, strict_from_dict
@@ -553,9 +553,7 @@ class DistortionTemplate:
             raise TemplateFileError(f"{path}: a multi-band template file (bands "
                                     f"{', '.join(bands)}): choose one with band=, or read "
                                     "them all with lsst_bfdrift.templates.load_templates", path)
-        from lsst_bfdrift.physics.depth import normalize_band
-
-        b = normalize_band(band)
+        b = band_key(band)
         if b not in bands:
             raise TemplateFileError(f"{path}: no template for band {b!r}; the file holds bands "
                                     f"{', '.join(bands)}", path)

@@ -12,10 +12,36 @@ import numpy as np
 from astropy.io import fits
 from astropy.table import Table
 
-from lsst_bfdrift.utils.errors import InputNotFoundError, TemplateFileError
+from lsst_bfdrift.physics.depth import normalize_band
+from lsst_bfdrift.utils.errors import InputNotFoundError, InputTypeError, TemplateFileError
 from lsst_bfdrift.utils.io import astropy_message, not_fits_reason
 
-__all__ = ["read_template_fits", "template_file_bands", "check_template_table"]
+__all__ = ["read_template_fits", "template_file_bands", "check_template_table", "band_key"]
+
+
+def band_key(source):
+    """Name of a band or wavelength in a multi-band template file.
+
+    An LSST band gives its letter
+    (:func:`~lsst_bfdrift.physics.depth.normalize_band`: ``'r'``, ``'r_57'``,
+    ``'LSST_r'``); a wavelength (nm, a number, an astropy Quantity or
+    ``'700nm'``) gives e.g. ``'700nm'``.
+    """
+    if isinstance(source, str):
+        s = source.strip().lower()
+        if s.endswith("nm"):
+            try:
+                return f"{float(s[:-2]):g}nm"
+            except ValueError:
+                pass
+        return normalize_band(source)
+    if hasattr(source, "unit"):
+        import astropy.units as u
+
+        source = source.to_value(u.nm, equivalencies=u.spectral())
+    if isinstance(source, bool) or not isinstance(source, (int, float, np.number)):
+        raise InputTypeError(f"a band name or a wavelength in nm is needed, got {source!r}")
+    return f"{float(source):g}nm"
 
 
 def read_template_fits(path):

@@ -26,6 +26,7 @@ from lsst_bfdrift.correction.batch import correct_files
 from lsst_bfdrift.correction.task import BrighterFatterDriftConfig
 from lsst_bfdrift.diagnosis.effects_fit import load_input
 from lsst_bfdrift.geometry.superpose import moment_maps
+from lsst_bfdrift.calibration.band_transfer import calibrated_band_templates
 from lsst_bfdrift.ptc.inputs import read_calibration_input
 from lsst_bfdrift.simulation.flats import simulate_flats
 from lsst_bfdrift.simulation.spots import simulate_spot_series
@@ -76,6 +77,7 @@ SOURCES = [
     ("calibrate", "model", calibrate_route, "model", _same, "astier23"),
     ("calibrate", "free", calibrate, "free", _same, ["xi0"]),
     ("calibrate", "max_chi2_dof", calibrate, "max_chi2_dof", _same, 5.0),
+    ("calibrate", "band_nodes", calibrated_band_templates, "nodes", _same, 5),
     ("calibrate", "holdout", calibrate_with_stars, "holdout", _same, "cross"),
     ("calibrate", "gain", calibrate_with_stars, "gain", _same, 1.5),
     ("calibrate", "fit_slopes", calibrate_with_stars, "fitted_slopes", tuple, ("size", "e1")),

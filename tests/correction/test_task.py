@@ -509,3 +509,96 @@ def test_an_image_with_every_pixel_blocked_is_refused():
         task.run(np.full((20, 20), np.nan))
     with pytest.raises(ValueError, match="0 non-finite, 400 masked"):
         task.run(np.ma.MaskedArray(np.ones((20, 20)), mask=np.ones((20, 20), bool)))
+
+
+# -- per-band templates (issue 45) --------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def two_bands():
+    """A multi-band template: r = the bundled one, y = half its displacements."""
+    from lsst_bfdrift.templates.bands import MultiBandTemplate, combine_templates
+    from lsst_bfdrift.templates.template import load_default_template
+    d = load_default_template()
+    return MultiBandTemplate({"r": d, "y": combine_templates([d], [0.5])})
+
+
+def _band_star(**meta):
+    yy, xx = np.mgrid[:40, :40] - 20.0
+    img = 500.0 + 2e5 / (2 * np.pi * 1.4**2) * np.exp(-0.5 * (xx**2 + yy**2) / 1.4**2)
+    return CCDData(img, unit="electron", meta=meta)
+
+
+_FAST = dict(compute_geometry=False)
+
+
+def test_multi_band_task_uses_the_exposure_band(two_bands):
+    """CONSISTENCY: the multi-band Task on a y exposure equals a Task given the y template."""
+    task = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(**_FAST), template=two_bands)
+    res = task.run(_band_star(FILTER="y_10"))
+    ref = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(**_FAST),
+                                  template=two_bands["y"]).run(_band_star())
+    assert_allclose(res.exposure.data, ref.exposure.data, rtol=1e-12)
+    assert res.header["BFBAND"] == "y" and "FILTER" in res.header.comments["BFBAND"]
+    assert "BFBAND" not in ref.header  # a single template: no band
+    r = task.run(_band_star(BAND="r"))
+    assert r.header["BFBAND"] == "r" and task.template is two_bands["r"]
+    # half the displacements move (to first order) half the flux
+    moved_y, moved_r = np.abs(res.flux_moved).sum(), np.abs(r.flux_moved).sum()
+    assert moved_y == pytest.approx(0.5 * moved_r, rel=0.02)
+    by_arg = task.run(_band_star(), band="y_10")
+    assert_allclose(by_arg.exposure.data, res.exposure.data, rtol=0)
+
+
+def test_multi_band_task_refusals(two_bands):
+    task = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(**_FAST), template=two_bands)
+    with pytest.raises(ValueError, match=r"gives no band \(read header keywords BAND, FILTER"):
+        task.run(_band_star())
+    with pytest.raises(ValueError, match=r"no template for band 'g' \(from FILTER\); the "
+                                         r"template holds bands r, y"):
+        task.run(_band_star(FILTER="g"))
+    with pytest.raises(ValueError, match="band is ambiguous: BAND says 'r', FILTER says 'y'"):
+        task.run(_band_star(BAND="r", FILTER="y"))
+    with pytest.raises(ValueError, match=r"FILTER='SDSSr~empty' name no LSST band"):
+        task.run(_band_star(FILTER="SDSSr~empty"))
+    with pytest.raises(ValueError, match=r"no template for band 'g' \(from config.band\)"):
+        BrighterFatterDriftTask(config=BrighterFatterDriftConfig(band="g", **_FAST),
+                                template=two_bands)
+    with pytest.raises(ValueError, match="unknown band 'w'"):
+        BrighterFatterDriftTask(config=BrighterFatterDriftConfig(band="w", **_FAST))
+    cfg = BrighterFatterDriftConfig(band="r", **_FAST)
+    with pytest.raises(ValueError, match="config says 'r', FILTER says 'y'"):
+        BrighterFatterDriftTask(config=cfg, template=two_bands).run(_band_star(FILTER="y"))
+    with pytest.raises(TypeError, match="template must be a DistortionTemplate"):
+        BrighterFatterDriftTask(template="t.fits")
+
+
+def test_config_band_and_multi_band_file(two_bands, tmp_path):
+    """CONSISTENCY: config.template naming a multi-band file and config.band choose that band."""
+    path = tmp_path / "bands.fits"
+    two_bands.save(path)
+    task = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(
+        template=str(path), band="y", **_FAST))
+    res = task.run(_band_star(FILTER="SDSSy~empty"))  # an unparsed keyword is ignored
+    ref = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(**_FAST),
+                                  template=two_bands["y"]).run(_band_star())
+    assert_allclose(res.exposure.data, ref.exposure.data, rtol=1e-12)
+    assert res.header["BFBAND"] == "y"
+
+
+def test_single_template_ignores_bands():
+    """A single template serves every band, whatever the exposure says (as before)."""
+    res = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(**_FAST)).run(
+        _band_star(FILTER="SDSSr~empty"))
+    assert "BFBAND" not in res.header
+
+
+def test_exposure_band():
+    from lsst_bfdrift.correction.task import exposure_band
+    assert exposure_band({"FILTER": "r_57"}) == ("r", "FILTER")
+    assert exposure_band({"FILTER": "r_57", "BAND": "r"}) == ("r", "BAND")
+    assert exposure_band({"FILTER": "unknown"}, band="i_39") == ("i", "caller")
+    assert exposure_band({}, config_band="LSST_z") == ("z", "config")
+    assert exposure_band(None) == (None, None)
+    with pytest.raises(ValueError, match="caller says 'i', BAND says 'r'"):
+        exposure_band({"BAND": "r"}, band="i")

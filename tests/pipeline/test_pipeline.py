@@ -213,3 +213,37 @@ def test_pipeline_files_exist():
         seed = yaml.safe_load(fh)
     assert set(seed["storageClasses"]) == set(seed["datastore"]["formatters"]) == \
         {"BfdriftExposure", "BfdriftGeometryMaps"}
+
+
+def test_run_quantum_corrects_with_the_data_id_band(tmp_path):
+    """CONSISTENCY: runQuantum passes the data ID's physical_filter (r_01): a multi-band
+    template's r template is used for a file without BAND/FILTER, recorded in BFBAND."""
+    from lsst.pipe.base.testUtils import makeQuantum, runTestQuantum
+
+    from lsst_bfdrift.templates.bands import MultiBandTemplate, combine_templates
+    from lsst_bfdrift.templates.template import load_default_template
+    d = load_default_template()
+    half = combine_templates([d], [0.5])
+    tpath = tmp_path / "bands.fits"
+    MultiBandTemplate({"r": half, "y": d}).save(tpath)
+    path = _lsst_file(str(tmp_path / "in.fits"), seed=4)
+    butler = _make_repo(str(tmp_path / "repo"), {(1, 0): path})
+    butler.registry.registerDatasetType(DatasetType("bf_corrected_image", DIMS,
+                                                    "BfdriftExposure",
+                                                    universe=butler.dimensions))
+    config = bfpipe.BrighterFatterDriftPipelineConfig()
+    config.bf.template = str(tpath)
+    config.bf.compute_geometry = False
+    task = bfpipe.BrighterFatterDriftPipelineTask(config=config)
+    data_id = butler.registry.expandDataId(instrument="BFCam", exposure=1, detector=0)
+    assert bfpipe.data_id_band(data_id) == "r_01"
+    quantum = makeQuantum(task, butler, data_id, {"input_exposure": data_id,
+                                                  "corrected_exposure": data_id})
+    runTestQuantum(task, butler, quantum, mockRun=False)
+    got = butler.get("bf_corrected_image", instrument="BFCam", exposure=1, detector=0)
+    direct = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(compute_geometry=False),
+                                     template=half).run(read_exposure(path))
+    assert_allclose(got.image, direct.exposure.image, rtol=1e-6, atol=1e-3)
+    assert got.header_value("BFBAND") == "r"
+    with pytest.raises(ValueError, match=r"gives no band \(read header keywords BAND, FILTER"):
+        task.run(read_exposure(path))  # outside the Butler: no data ID, no keyword
