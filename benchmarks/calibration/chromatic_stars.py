@@ -109,19 +109,23 @@ def calibrated_params(sensor):
     return dataclasses.replace(default_start(), **{k: v["value"] for k, v in cal.items()})
 
 
-def band_templates(sensor, cache, *, edge_samples):
+def band_templates(sensor, cache, *, edge_samples, say):
     """{'drift': MultiBandTemplate, 'galsim rule': MultiBandTemplate} (drift ones cached)."""
     params = calibrated_params(sensor)
     path = os.path.join(cache, f"templates_{sensor}_drift_{edge_samples}.fits")
     if os.path.isfile(path):
         drift = MultiBandTemplate.load(path)
+        seconds, cached = float(drift.meta.get("seconds", float("nan"))), True
     else:
         t0 = time.time()
         nodes = [params.collection_height, *DRIFT_NODES, params.thickness]
         settings = TemplateSettings(edge_samples=edge_samples, workers=1)
         drift = build_band_templates(params, BANDS, settings=settings, nodes=nodes)
+        seconds, cached = time.time() - t0, False
+        drift.meta["seconds"] = seconds
         drift.save(path)
-        print(f"  {sensor}: drift band templates built in {time.time() - t0:.0f} s", flush=True)
+    say(f"  {sensor}: drift band templates built in {seconds:.0f} s"
+        + (" (cached)" if cached else ""))
     base = import_galsim_sensor(sensor, match="transfers")
     rule = build_band_templates(SensorParameters(thickness=params.thickness), BANDS,
                                 depth_response="galsim", base=base)
@@ -161,14 +165,16 @@ def pairs_for(sensor, band, sed, stars, cache, tag):
     if os.path.isfile(path):
         d = np.load(path)
         return [{"bf": b, "truth": t, "flux": float(f), "flux_incident": float(fi)}
-                for b, t, f, fi in zip(d["bf"], d["truth"], d["flux"], d["flux_incident"])], None
+                for b, t, f, fi in zip(d["bf"], d["truth"], d["flux"], d["flux_incident"])], (
+            float(d["seconds"]), True)
     t0 = time.time()
     pairs = draw_chromatic_star_pairs(stars, band, sed=sed, sensor=sensor)
     np.savez_compressed(path, bf=np.array([p["bf"] for p in pairs]),
                         truth=np.array([p["truth"] for p in pairs]),
                         flux=np.array([p["flux"] for p in pairs]),
-                        flux_incident=np.array([p["flux_incident"] for p in pairs]))
-    return pairs, time.time() - t0
+                        flux_incident=np.array([p["flux_incident"] for p in pairs]),
+                        seconds=time.time() - t0)
+    return pairs, (time.time() - t0, False)
 
 
 def corrected_rows(pairs, templates):
@@ -233,10 +239,12 @@ def main(argv=None):
     for sensor in args.sensors:
         rec = out["sensors"][sensor] = {}
         say(f"== {sensor}")
-        templates = band_templates(sensor, args.cache, edge_samples=args.edge_samples)
+        templates = band_templates(sensor, args.cache, edge_samples=args.edge_samples, say=say)
         # 1. flats' a00 per band
         flats = flats_a00(sensor, args.cache, args)
         g = galsim_acoeffs(sensor, 1)[0, 0]
+        say(f" flats: {sum(f.get('seconds', 0.0) for f in flats.values()):.0f} s for "
+            f"{len(flats)} exposures")
         f0 = flats["none"]
         say(f" achromatic flat: a00 {f0['a00']:.4e} +- {f0['a00_err']:.1e} /e; GalSim's "
             f"a00 {g:.4e} ({100 * (f0['a00'] / g - 1):+.1f} +- "
@@ -247,10 +255,9 @@ def main(argv=None):
         say(f" 1000 nm flat: a00 {fm['a00']:.4e} +- {fm['a00_err']:.1e} /e, / achromatic "
             f"{ratio:.4f} +- {ratio_err:.4f}; GalSim's rule (mean tanh(z / 12 um) at 1000 nm) "
             f"{fm['rule']:.4f}")
-        rec["flats"]["1000nm"] = fm
         say(" flats' a00 per band (flat spectrum) vs the model from r's: "
             "a00(r) (A00(b) - 1) / (A00(r) - 1)")
-        rec["flats"] = {"achromatic": f0, "galsim_a00": g, "bands": {}}
+        rec["flats"] = {"achromatic": f0, "galsim_a00": g, "1000nm": fm, "bands": {}}
         ar, ar_err = flats["r"]["a00"], flats["r"]["a00_err"]
         for band in BANDS:
             fb = flats[band]
@@ -274,8 +281,8 @@ def main(argv=None):
         per = {}
         for band in BANDS:
             pairs, cost = pairs_for(sensor, band, args.sed, stars, args.cache, tag)
-            if cost:
-                say(f"  {band}: {len(pairs)} star pairs drawn in {cost:.0f} s")
+            say(f"  {band}: {len(pairs)} star pairs drawn in {cost[0]:.0f} s"
+                + (" (cached)" if cost[1] else ""))
             labels = {(name, which): mbt[band if which == "band" else "r"]
                       for name, mbt in templates.items() for which in ("band", "r")}
             fl, rows = corrected_rows(pairs, {f"{n}|{w}": t for (n, w), t in labels.items()})
@@ -342,8 +349,8 @@ def main(argv=None):
         rec["colour"] = {}
         for band in ("z", "y"):
             blue, cost = pairs_for(sensor, band, args.blue_sed, stars, args.cache, tag)
-            if cost:
-                say(f"  {band} {args.blue_sed}: {len(blue)} star pairs drawn in {cost:.0f} s")
+            say(f"  {band} {args.blue_sed}: {len(blue)} star pairs drawn in {cost[0]:.0f} s"
+                + (" (cached)" if cost[1] else ""))
             red = per[band]
             fb, rows_b = corrected_rows(blue, {"drift": templates["drift"][band]})
             fl = np.where(np.isfinite(fb) & np.isfinite(red["flux"]),
