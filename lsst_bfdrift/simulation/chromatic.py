@@ -223,7 +223,7 @@ def draw_chromatic_star_pairs(stars, band, *, sed=None, sensor="lsst_itl_50_8", 
     b = normalize_band(band)
     t = galsim_thickness(sensor)
     out = []
-    for k, s in enumerate(stars):
+    for s in stars:
         seed = int(s["seed"])
         rng = np.random.default_rng(seed)
         ref = sample_wavelengths(20000, b, sed, seed=seed + 1)
