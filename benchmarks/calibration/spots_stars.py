@@ -8,55 +8,70 @@ lsst_itl_50_32):
    with cp_pipe-scale errors (3 % + 1e-9/e; the input (a) of
    ``peers.py``), calibrated by
    :func:`~lsst_bfdrift.calibration.tuning.calibrate` (the template T_a);
-2. **spots**: a spot series of that sensor drawn by galsim.SiliconSensor
-   (:func:`~lsst_bfdrift.simulation.spots.simulate_spot_series`, a seed of
-   its own, never used for stars or flats): an ``--grid`` grid of Gaussian
-   spots of sigma ``--sigma`` px, ``--n-images`` exposures from 1e4 e to a
-   peak pixel of 8e4 e, read noise 5 e, a bias pedestal, pixels clipped at
+2. **spots**: spot series of that sensor drawn by galsim.SiliconSensor
+   (:func:`~lsst_bfdrift.simulation.spots.simulate_spot_series`, a seed per
+   sensor and size, never used for stars or flats), one per spot sigma
+   (``--sigma``, default 1 and 2 px): an ``--grid`` grid (5 x 5) of
+   Gaussian spots, ``--n-images`` (6) exposures from 1e4 e to a peak pixel
+   of 8e4 e, read noise 5 e, a 1000 e bias pedestal, pixels clipped at
    8.5e4 e above it, with BF-free twins;
 3. **flats + spots**: :func:`~lsst_bfdrift.calibration.spot_fit.calibrate_with_spots`
-   of T_a and the series (its size, e1 and e2 slopes; the curl direction
-   always in; two-fold cross-validation over halves of the spots), twice:
+   of T_a and the series (their size, e1 and e2 slopes; the curl direction
+   always in; two-fold cross-validation over halves of the spots):
 
-   * ``spots``: the series as a lab has it (its slopes' errors are the
-     spot fit's stated ones: a few dozen spots measure the e1 slope to
-     tens of % of itself: item 5 below);
+   * ``spots sigma S``: the first size alone, as a lab has it (with several
+     sizes; the plan of item 5 starts from it);
+   * ``spots``: every size, as a lab has them (the slopes' errors are the
+     spot fit's stated ones: 25 spots measure the e1 slope to about its own
+     size, ``spots_measure.py``);
    * ``spots, paired``: the many-spot limit. Each row is measured as BF
      minus its BF-free twin (same photons and noise), so the shot noise of
      the spot shapes cancels and the slopes are those of the BF effect
-     alone, to about 2 % of the e1 slope; this is what a series of many
-     thousand spots measures, and it tests the method (the calibration
-     machinery and the transfer from spots to stars), not the photon count.
+     alone, to a few % of the e1 slope; this is what a series of thousands
+     of spots measures, and it tests the method (the calibration machinery
+     and the transfer from spots to stars), not the photon count.
 
-4. **stars, held out**: the paired GalSim stars of ``calibrate_sensor.py``
-   and ``peers.py`` (Moffat and Kolmogorov, FWHM 0.6-0.9", random centres,
-   fluxes 1e4-1.5e6 e, sky 1000 e through the sensor, each with a no-BF
-   twin; cached by ``--pairs``), used in no fit, corrected by drift with
-   T_a, with each flats + spots template, and with GalSim's own file (the
-   true template).
+4. **stars, held out**: paired GalSim stars as ``calibrate_sensor.py``
+   and ``peers.py`` draw them (Moffat and Kolmogorov, FWHM 0.6-0.9", random
+   centres, fluxes 1e4-1.5e6 e, sky 1000 e through the sensor, each with a
+   no-BF twin; the largest set cached under ``--pairs``, else ``--n-stars``
+   drawn), used in no fit, corrected by drift with T_a, with each flats +
+   spots template, and with GalSim's own file (the true template).
 
 Printed per sensor and PSF: size, e1 and e2 slopes left (% of the
 uncorrected slope; e2 in % of the uncorrected e1 slope, as it has none of
 its own) with errors from the stars; the paired differences on the same
-stars (template minus T_a: what the spots changed); the fits' stated
-precision of the corrected e1 slope (flats alone, flats + spots) and the
-held-out spots. The target of issue 42: with spots, at most 2 % of the size
-slope and 5 % of e1 left on every sensor model.
+stars (template minus T_a: what the spots changed, without the stars'
+noise); each fit's stated precision of the corrected e1 and size slopes
+(flats alone, flats + spots) and its held-out spots. The target of issue
+42: with spots, at most 2 % of the size slope and 5 % of e1 left on every
+sensor model.
 
-Then item 5 (``--no-plan`` leaves it out): the number of spots and exposures that reach a stated
-e1 precision, from the ``spots`` fit's own precision
-(:func:`~lsst_bfdrift.calibration.spot_plan.plan_spot_acquisition`), for the
-fitted design and for others (spot sigma 1, 2, 3 px; half the exposures at
-the top level), goals e1 5 and 2.5 %, size 2 and 1 % (the target at one and
-two standard deviations).
-Writes ``benchmarks/calibration/spots_stars_results.txt`` / ``.json``::
+Then item 5 (``--no-plan`` leaves it out): the spots and spot images that
+state the corrected e1 and size slopes to goals (e1 5 and 2.5 %, size 2 and
+1 %: the target at one and two standard deviations), from the first size's
+fit's own stated precision
+(:func:`~lsst_bfdrift.calibration.spot_plan.plan_spot_acquisition`), for
+its design and others (spot sigma 1, 2, 3 px; three exposures at 0.3 of
+the top flux and three at the top); and, with several sizes, the check of
+the plan against the fit of more spots: the precision the plan predicts for
+the first size's slopes with every size's spots (their information scaled
+by :func:`~lsst_bfdrift.calibration.spot_plan.information_ratio`) against
+the precision that fit states.
 
-    python benchmarks/calibration/spots_stars.py [--sensors ...] [--grid 6 6]
-        [--n-images 6] [--sigma 1.5] [--pairs /work/cache/pairs] [--cache PREFIX]
+Draws and calibrations are cached under ``--cache`` (never in the
+repository), and so is each sensor's record, so that sensors can run as
+separate processes (``--sensors X --out elsewhere``) and a last run with
+every sensor prints them all. Writes
+``benchmarks/calibration/spots_stars_results.txt`` / ``.json``::
+
+    python benchmarks/calibration/spots_stars.py [--sensors ...] [--grid 5 5]
+        [--n-images 6] [--sigma 1 2] [--n-stars 50] [--pairs PREFIX] [--cache PREFIX]
 """
 
 import argparse
 import glob
+import json
 import os
 import pickle
 import shlex
@@ -283,9 +298,10 @@ def run_sensor(sensor, args, say):
             "rows_used": counts["used"], "rows": counts["rows"],
             "levels": list(designs[sigma].levels)}
     s0 = args.sigma[0]
-    runs = {f"spots {sigma_label(s0)}": {sigma_label(s0): series[s0]},
-            "spots": {sigma_label(s): series[s] for s in args.sigma},
+    runs = {"spots": {sigma_label(s): series[s] for s in args.sigma},
             "spots, paired": {sigma_label(s): paired[s] for s in args.sigma}}
+    if len(args.sigma) > 1:  # the first size alone: what the plan starts from
+        runs = {f"spots {sigma_label(s0)}": {sigma_label(s0): series[s0]}, **runs}
     templates = {"flats only": res_a.template}
     fits = {}
     for label, group in runs.items():
@@ -339,7 +355,8 @@ def plan_lines(fits, series, designs, args, say):
     """Item 5: the spots that state e1 and size to the target, from the fit of the first
     spot size alone; and its prediction of the fits of more spots (all sizes together)."""
     s0 = args.sigma[0]
-    name, label = sigma_label(s0), f"spots {sigma_label(s0)}"
+    name = sigma_label(s0)
+    label = f"spots {name}" if len(args.sigma) > 1 else "spots"
     j, d0, n0 = fits[label], designs[s0], n_used_spots(series[s0])
     top = d0.levels[-1]
     plan_designs = {"as fitted": d0}
@@ -382,6 +399,35 @@ def plan_lines(fits, series, designs, args, say):
     return plan
 
 
+def to_json(obj):
+    """Arrays as lists, numpy scalars as floats (write_json's ``default``)."""
+    return obj.tolist() if hasattr(obj, "tolist") else float(obj)
+
+
+def sensor_record(sensor, args, say):
+    """run_sensor's record and printed lines, cached per sensor and settings (sensors can
+    then run as separate processes, and one last run prints them all)."""
+    keep = {k: v for k, v in sorted(vars(args).items()) if k not in ("sensors", "out")}
+    key = zlib.crc32(json.dumps(keep, sort_keys=True, default=str).encode()) % 100000
+    path = f"{args.cache}_{sensor}_record_{key}.json" if args.cache else None
+    if path and os.path.isfile(path):
+        with open(path) as fh:
+            cached = json.load(fh)
+        for line in cached["lines"]:
+            say(line)
+        return cached["record"]
+    lines = []
+
+    def say_and_keep(line):
+        lines.append(line)
+        say(line)
+
+    rec = run_sensor(sensor, args, say_and_keep)
+    if path:
+        write_json(path, {"record": rec, "lines": lines}, indent=1, default=to_json)
+    return rec
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     ap.add_argument("--sensors", nargs="+",
@@ -413,14 +459,14 @@ def main(argv=None):
         lines.append(s)
 
     for sensor in args.sensors:
-        out["sensors"][sensor] = run_sensor(sensor, args, say)
+        out["sensors"][sensor] = sensor_record(sensor, args, say)
         write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
         write_json(args.out + ".json", {"command": command_line(), **out}, indent=1,
-                   default=float)
+                   default=to_json)
     say("target (issue 42): with spots, <= 2 % of the size slope and <= 5 % of e1 left on the "
         "stars of every sensor model")
     write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-    write_json(args.out + ".json", {"command": command_line(), **out}, indent=1, default=float)
+    write_json(args.out + ".json", {"command": command_line(), **out}, indent=1, default=to_json)
 
 
 if __name__ == "__main__":
