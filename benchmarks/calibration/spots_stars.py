@@ -276,14 +276,17 @@ def run_sensor(sensor, args, say):
     res_a, cost = flats_calibration(sensor, lags=args.lags, cache=args.cache)
     say(f"{sensor}: flats only, a-matrix lags 0..{args.lags}: chi2 {res_a.fit.chi2:.1f} / "
         f"{res_a.fit.dof}" + (f", calibrated in {cost:.0f} s" if cost else " (cached)"))
-    sat = FULL_WELL + BIAS
+    sigmas = args.sigma[:1] if sensor in args.single_size else list(args.sigma)
     series, paired, designs = {}, {}, {}
     rec["spots"] = {}
-    for sigma in args.sigma:
+    for sigma in sigmas:
         sim, cost = spot_simulation(sensor, args, sigma)
         t0 = time.time()
-        bf = SpotSeries(sim["images"], exptimes=sim["exptimes"], saturation=sat)
-        twin = SpotSeries(sim["twins"], exptimes=sim["exptimes"], saturation=sat, grid=bf.grid)
+        # post-ISR images, as a lab corrects them: the bias pedestal is no charge
+        bf = SpotSeries([im - BIAS for im in sim["images"]], exptimes=sim["exptimes"],
+                        saturation=FULL_WELL)
+        twin = SpotSeries([im - BIAS for im in sim["twins"]], exptimes=sim["exptimes"],
+                          saturation=FULL_WELL, grid=bf.grid)
         series[sigma], paired[sigma] = bf, PairedSpotSeries(bf, twin.catalog)
         designs[sigma] = fitted_design(bf, sigma)
         counts = spot_flag_counts(bf.catalog)
@@ -297,10 +300,10 @@ def run_sensor(sensor, args, say):
             "seed": sim["seed"], "n_spots": len(bf.grid), "n_images": len(sim["images"]),
             "rows_used": counts["used"], "rows": counts["rows"],
             "levels": list(designs[sigma].levels)}
-    s0 = args.sigma[0]
-    runs = {"spots": {sigma_label(s): series[s] for s in args.sigma},
-            "spots, paired": {sigma_label(s): paired[s] for s in args.sigma}}
-    if len(args.sigma) > 1:  # the first size alone: what the plan starts from
+    s0 = sigmas[0]
+    runs = {"spots": {sigma_label(s): series[s] for s in sigmas},
+            "spots, paired": {sigma_label(s): paired[s] for s in sigmas}}
+    if len(sigmas) > 1:  # the first size alone: what the plan starts from
         runs = {f"spots {sigma_label(s0)}": {sigma_label(s0): series[s0]}, **runs}
     templates = {"flats only": res_a.template}
     fits = {}
@@ -331,7 +334,7 @@ def run_sensor(sensor, args, say):
         rec["stars"][psf] = star_table(pairs, templates, say, psf)
         rec["stars"][psf]["seed"] = seed
     if args.plan:
-        rec["plan"] = plan_lines(fits, series, designs, args, say)
+        rec["plan"] = plan_lines(fits, series, designs, sigmas, say)
     return rec
 
 
@@ -351,12 +354,12 @@ def n_used_spots(bf):
     return int(np.unique(np.asarray(cat["spot"])[np.asarray(cat["use"], bool)]).size)
 
 
-def plan_lines(fits, series, designs, args, say):
+def plan_lines(fits, series, designs, sigmas, say):
     """Item 5: the spots that state e1 and size to the target, from the fit of the first
     spot size alone; and its prediction of the fits of more spots (all sizes together)."""
-    s0 = args.sigma[0]
+    s0 = sigmas[0]
     name = sigma_label(s0)
-    label = f"spots {name}" if len(args.sigma) > 1 else "spots"
+    label = f"spots {name}" if len(sigmas) > 1 else "spots"
     j, d0, n0 = fits[label], designs[s0], n_used_spots(series[s0])
     top = d0.levels[-1]
     plan_designs = {"as fitted": d0}
@@ -378,11 +381,11 @@ def plan_lines(fits, series, designs, args, say):
     # the plan against fits of more spots: the fit of every spot size, the
     # precision it states for the first size's corrected slopes
     checks = []
-    if len(args.sigma) > 1:
+    if len(sigmas) > 1:
         for q, key in PLAN_QUANTITIES.items():
             ratios = {s: (1.0 if s == s0 else information_ratio(
-                j.flats_template, designs[s], d0, quantity=q)) for s in args.sigma}
-            n_eff = sum(n_used_spots(series[s]) * ratios[s] for s in args.sigma)
+                j.flats_template, designs[s], d0, quantity=q)) for s in sigmas}
+            n_eff = sum(n_used_spots(series[s]) * ratios[s] for s in sigmas)
             pred = precision_for_spots(st[q]["flats_percent"], st[q]["joint_percent"], n0,
                                        n_eff)
             stated = fits["spots"].uncertainty[key][name]["joint_percent"]
@@ -390,7 +393,7 @@ def plan_lines(fits, series, designs, args, say):
                                                                   in ratios.items()},
                            "n_spots_equivalent": n_eff, "predicted_percent": pred,
                            "stated_percent": stated})
-            counts = " + ".join(str(n_used_spots(series[s])) for s in args.sigma)
+            counts = " + ".join(str(n_used_spots(series[s])) for s in sigmas)
             say(f"  check: the fit of all spot sizes ({counts} spots; information per spot x "
                 f"{', '.join(f'{r:.2f}' for r in ratios.values())}, {n_eff:.0f} spots of "
                 f"sigma {s0:g}): {q} of {name} predicted +- {pred:.1f} %, stated +- "
@@ -439,6 +442,8 @@ def main(argv=None):
     ap.add_argument("--n-images", type=int, default=6)
     ap.add_argument("--sigma", type=float, nargs="+", default=[1.0, 2.0],
                     help="spot sigmas (px): one series each, fitted together")
+    ap.add_argument("--single-size", nargs="*", default=[], metavar="SENSOR",
+                    help="sensors drawn and fitted with the first --sigma only (compute)")
     ap.add_argument("--updates", type=float, default=300.0)
     ap.add_argument("--seed", type=int, default=4242, help="seed of the spots' halves")
     ap.add_argument("--n-stars", type=int, default=200,
@@ -458,6 +463,12 @@ def main(argv=None):
         print(s, flush=True)
         lines.append(s)
 
+    load = os.getloadavg()
+    say(f"machine: {os.cpu_count()} cores, load average {load[0]:.1f} / {load[1]:.1f} / "
+        f"{load[2]:.1f} (1 / 5 / 15 min) at the start of this run; times are wall-clock "
+        "seconds at nice 10 on the shared machine (a sensor's record, cached, keeps those "
+        "of the run that made it)")
+    out["machine"] = {"cores": os.cpu_count(), "load_average": list(load)}
     for sensor in args.sensors:
         out["sensors"][sensor] = sensor_record(sensor, args, say)
         write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")

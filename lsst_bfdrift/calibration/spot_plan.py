@@ -26,8 +26,9 @@ as :func:`~lsst_bfdrift.calibration.star_result.fields_for_precision` for
 star fields). Along one direction of the fit this is exact; with several
 directions it is the rate along the one the spots fix best, so it can
 understate the spots needed when the goal asks for directions the fitted
-series hardly constrained (the benchmark ``spots_stars.py --plan``
-compares the plan with fits of more spots).
+series hardly constrained (the benchmark
+``benchmarks/calibration/spots_stars.py`` compares the plan with the fit
+of more spots).
 
 A design (:class:`SpotDesign`) is the spot sigma, the mean spot flux of
 each exposure, the read noise and background. The information of one spot
@@ -43,11 +44,14 @@ with the row errors :math:`\\sigma_q(F)` those the measurement propagates
 for a pixel-integrated Gaussian spot of flux F with Poisson noise, read
 noise and background (:func:`spot_row_errors`: the same fixed weight,
 :func:`~lsst_bfdrift.catalogs.spots.fixed_weight_moments`). Photon noise
-makes :math:`\\sigma_q^2 \\propto 1 / F` at high flux, so the information
-grows as the cube of the largest flux: the brightest unsaturated exposure
-dominates, and a spot of sigma s saturates at about ``peak / p(s)`` e
-(:func:`gaussian_peak_fraction`, ``p`` the peak pixel's share), so wider spots carry
-more information per spot and per exposure.
+makes :math:`\\sigma_q^2 \\propto 1 / F` at high flux, so the weights grow
+with the flux and the information as the cube of the largest flux: the
+lever arm is best spent where the photons are (three exposures at 0.3 of
+the top flux and three at the top carry 1.5 times the information of six
+geometric levels from 1e4 e). A spot of sigma s saturates at about
+``peak / p(s)`` e (:func:`gaussian_peak_fraction`, ``p`` the peak pixel's
+share), so a wider spot carries more information per spot on its slope in
+absolute terms, but its slope is smaller (:func:`information_ratio`).
 """
 
 import dataclasses
