@@ -402,6 +402,39 @@ def plan_lines(fits, series, designs, sigmas, say):
     return plan
 
 
+#: The issue-42 target: at most this much of the size and e1 slopes left (%).
+TARGET = {"size": 2.0, "e1": 5.0}
+
+
+def verdict(value, error, limit):
+    """'met' (|value| <= limit), 'within 1 sigma' or 'not met'."""
+    if abs(value) <= limit:
+        return "met"
+    return "within 1 sigma" if abs(value) - limit <= error else "not met"
+
+
+def target_table(sensors, say):
+    """Per sensor, PSF and flats + spots template: size and e1 left against the target."""
+    rows = []
+    say("summary: % left on the held-out stars, flats + spots against the target "
+        f"(size <= {TARGET['size']:g} %, e1 <= {TARGET['e1']:g} %)")
+    for sensor, rec in sensors.items():
+        for psf, tab in rec["stars"].items():
+            for name in tab:
+                if not name.startswith("flats + spots") or " minus " in name:
+                    continue
+                r = {"sensor": sensor, "psf": psf, "template": name}
+                for q in ("size", "e1"):
+                    v, e = tab[name][q]
+                    r[q] = [v, e]
+                    r[f"{q}_target"] = verdict(v, e, TARGET[q])
+                rows.append(r)
+                say(f"  {sensor:15s} {psf:10s} {name:22s} size {r['size'][0]:+5.1f} +- "
+                    f"{r['size'][1]:3.1f} ({r['size_target']}), e1 {r['e1'][0]:+6.1f} +- "
+                    f"{r['e1'][1]:4.1f} ({r['e1_target']})")
+    return rows
+
+
 def to_json(obj):
     """Arrays as lists, numpy scalars as floats (write_json's ``default``)."""
     return obj.tolist() if hasattr(obj, "tolist") else float(obj)
@@ -476,6 +509,7 @@ def main(argv=None):
                    default=to_json)
     say("target (issue 42): with spots, <= 2 % of the size slope and <= 5 % of e1 left on the "
         "stars of every sensor model")
+    out["target"] = target_table(out["sensors"], say)
     write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
     write_json(args.out + ".json", {"command": command_line(), **out}, indent=1, default=to_json)
 
