@@ -57,6 +57,10 @@ Subcommands
     of sigma_x, sigma_y, ln T, e1 and e2 against flux with errors from the
     image-to-image and spot-to-spot scatter; with a template, the slopes it
     predicts (drift forward model) against the measured ones.
+``bfdrift spot-plan CALIBRATION_JSON SPOT_IMAGE... [--goal-e1 PCT...] [--sigma S...] [--json]``
+    How many spots (and spot images) state the corrected e1 and size slopes
+    to goal precisions, from the stated precision of a ``calibrate --spots``
+    fit, for the fitted series' design and for other spot sizes.
 ``bfdrift spot-sim OUTDIR [--sensor NAME] [--grid NX NY] [--sigma S] [--twin] [--json]``
     Spot-grid series drawn by galsim.SiliconSensor, one FITS file per
     exposure time (EXPTIME, BUNIT), optionally with BF-free twins.
@@ -78,7 +82,7 @@ with up to two tables: ``sensor`` (keys of
 Each subcommand's options and code are in one module: ``template`` in
 :mod:`~lsst_bfdrift.cli.template_commands`; ``correct`` and ``maps`` in
 :mod:`~lsst_bfdrift.cli.image_commands`; ``flat-sim``, ``star-sim`` and
-``spot-sim`` in :mod:`~lsst_bfdrift.cli.simulation_commands`; ``spots`` in
+``spot-sim`` in :mod:`~lsst_bfdrift.cli.simulation_commands`; ``spots`` and ``spot-plan`` in
 :mod:`~lsst_bfdrift.cli.spot_commands`; ``calibrate``, ``ptc`` and
 ``diagnose`` in :mod:`~lsst_bfdrift.cli.calibration_commands`;
 ``validate-stars``, ``validate-sky`` and ``reproduce`` in
@@ -99,7 +103,7 @@ from lsst_bfdrift.cli.image_commands import (add_correct_parser, add_maps_parser
                                              sample_image_path)
 from lsst_bfdrift.cli.simulation_commands import (add_flat_sim_parser, add_spot_sim_parser,
                                                   add_star_sim_parser)
-from lsst_bfdrift.cli.spot_commands import add_spots_parser
+from lsst_bfdrift.cli.spot_commands import add_spot_plan_parser, add_spots_parser
 from lsst_bfdrift.cli.template_commands import add_template_parser, read_config
 from lsst_bfdrift.cli.validation_commands import (add_reproduce_parser, add_validate_sky_parser,
                                                   add_validate_stars_parser)
@@ -130,7 +134,7 @@ def build_parser():
     for add in (add_template_parser, add_calibrate_parser, add_ptc_parser, add_flat_sim_parser,
                 add_star_sim_parser, add_correct_parser, add_validate_stars_parser,
                 add_reproduce_parser, add_validate_sky_parser, add_diagnose_parser,
-                add_maps_parser, add_spots_parser, add_spot_sim_parser,
+                add_maps_parser, add_spots_parser, add_spot_plan_parser, add_spot_sim_parser,
                 add_butler_put_parser):
         add(sub)
     show_defaults(p)

@@ -1,5 +1,5 @@
-"""``bfdrift spots``: the brighter-fatter slopes of a spot-projector series (options and
-command).
+"""``bfdrift spots``: the brighter-fatter slopes of a spot-projector series; ``bfdrift
+spot-plan``: the spots a lab needs for a goal precision (options and commands).
 
 The options' defaults are those of the functions they feed
 (:class:`~lsst_bfdrift.catalogs.spot_series.SpotSeries`,
@@ -7,10 +7,13 @@ The options' defaults are those of the functions they feed
 comment says why not.
 """
 
+import json
 import os
 
 import numpy as np
 
+from lsst_bfdrift.calibration.spot_plan import (PLAN_GOALS, PLAN_QUANTITIES, SpotDesign,
+                                                plan_spot_acquisition, series_design)
 from lsst_bfdrift.catalogs.spot_series import SpotSeries
 from lsst_bfdrift.catalogs.spot_slopes import SPOT_MODELS, compare_slopes, predict_spot_slopes
 from lsst_bfdrift.catalogs.spots import SPOT_QUANTITIES
@@ -20,7 +23,8 @@ from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
 from lsst_bfdrift.utils.io import atomic_output
 
-__all__ = ["add_spots_parser", "cmd_spots", "spots_summary", "SPOTS_MATCH"]
+__all__ = ["add_spots_parser", "cmd_spots", "spots_summary", "SPOTS_MATCH",
+           "add_spot_plan_parser", "cmd_spot_plan"]
 
 #: How ``spots --galsim-sensor`` imports the sensor's file: matched to GalSim's
 #: transfers, as ``validate-stars`` does (its prediction of GalSim's own spots
@@ -221,4 +225,153 @@ def add_spots_parser(subparsers):
     sp.add_argument("--json", action="store_true")
     sp.add_argument("--quiet", action="store_true")
     sp.set_defaults(func=cmd_spots)
+    return sp
+
+
+def _calibration_spots(path, series_name):
+    """The ``spots`` of a ``calibrate --json`` file, the series planned from, its entry
+    in ``fields`` and the template written (``out``)."""
+    try:
+        with open(path) as fh:
+            doc = json.load(fh)
+    except FileNotFoundError:
+        raise InputNotFoundError(f"{path}: no such file", path) from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path}: not the JSON of bfdrift calibrate --spots --json ({exc})") \
+            from None
+    spots = doc.get("spots") if isinstance(doc, dict) else None
+    unc = (spots or {}).get("uncertainty") or {}
+    stated = unc.get(PLAN_QUANTITIES["e1"]) or {}
+    if not stated:
+        raise InputError(f"{path}: no stated spot precision (the JSON of bfdrift calibrate "
+                         "--spots ... --json, without --model-directions-only, has it)")
+    names = sorted(stated)
+    if series_name is None:
+        if len(names) > 1:
+            raise InputError(f"{path} fitted {len(names)} spot series; name one with --series "
+                             f"({', '.join(names)})")
+        series_name = names[0]
+    elif series_name not in stated:
+        raise InputError(f"--series {series_name!r} is not a fitted spot series of {path} "
+                         f"({', '.join(names)})")
+    field = next((f for f in spots.get("fields", []) if f.get("name") == series_name), {})
+    return spots, series_name, field, doc.get("out")
+
+
+def cmd_spot_plan(args):
+    """``bfdrift spot-plan``: spots and exposures that reach goal precisions.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+
+    Returns
+    -------
+    code : int
+        The exit status.
+    """
+    for path in list(args.images) + [args.calibration]:
+        if not os.path.exists(path):
+            raise InputNotFoundError(f"{path}: no such file", path)
+    goals = {"e1": tuple(args.goal_e1), "size": tuple(args.goal_size)}
+    for q, gs in goals.items():
+        if not all(np.isfinite(g) and g > 0 for g in gs):
+            raise InputError(f"--goal-{q} must be positive percentages, got {list(gs)}")
+    spots, name, field, out_path = _calibration_spots(args.calibration, args.series)
+    series = SpotSeries(args.images, gain=args.gain, saturation=args.saturation,
+                        gain_name="--gain", saturation_name="--saturation",
+                        progress=not args.quiet)
+    fitted, n_spots = series_design(series, read_noise=args.read_noise,
+                                    background=args.background)
+    if field.get("n_usable") and field.get("n_fit") is not None:
+        # holdout 'split' fits half the spots: the fitted share of the usable rows
+        n_spots = max(1, int(round(n_spots * field["n_fit"] / field["n_usable"])))
+    designs = {"as fitted": fitted}
+    template, template_label = None, None
+    if args.sigma:
+        template_label = args.template or out_path
+        if not template_label or not os.path.isfile(template_label):
+            raise InputError("--sigma plans other spot sizes, whose information is scaled by "
+                             "a template's slopes: give --template (the calibrate --out file "
+                             f"{out_path!r} is not there)")
+        template = load_template(template_label)
+        for sig in args.sigma:
+            designs[f"sigma {sig:g}"] = SpotDesign.saturating(
+                sig, len(fitted.levels), flux_min=fitted.levels[0], peak_max=args.peak_max,
+                read_noise=args.read_noise, background=args.background)
+    plan = plan_spot_acquisition(spots, name, fitted_design=fitted, n_spots=n_spots,
+                                 designs=designs, goals=goals, template=template)
+    plan.update(series=name, calibration=os.path.abspath(args.calibration),
+                inputs=[os.path.abspath(p) for p in args.images], template=template_label,
+                fitted_design={"sigma": fitted.sigma, "levels": list(fitted.levels),
+                               "read_noise": fitted.read_noise,
+                               "background": fitted.background,
+                               "weight_sigma": fitted.weight})
+    if args.json:
+        print_json(plan)
+        return 0
+    st = plan["stated"]
+    print(f"spot series {name}: {n_spots} spots x {len(fitted.levels)} levels "
+          f"({fitted.levels[0]:.3g}-{fitted.levels[-1]:.3g} e), spot sigma "
+          f"{fitted.sigma:.2f} px; stated precision of the corrected e1 slope +- "
+          f"{st['e1']['flats_percent']:.1f} % (flats alone) -> +- "
+          f"{st['e1']['joint_percent']:.1f} % (with the spots), size +- "
+          f"{st['size']['flats_percent']:.1f} % -> +- {st['size']['joint_percent']:.1f} %")
+    for row in plan["rows"]:
+        print(f"  {row['text']}")
+    return 0
+
+
+def add_spot_plan_parser(subparsers):
+    """Add ``spot-plan`` to the subcommands of ``bfdrift``.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``add_subparsers()`` of the top-level parser.
+
+    Returns
+    -------
+    parser : argparse.ArgumentParser
+    """
+    def default(name):
+        return library_default(SpotDesign, name)
+
+    sp = subparsers.add_parser(
+        "spot-plan", help="spots and exposures a lab needs to state the corrected e1 and size "
+                          "slopes to a goal, from a calibrate --spots fit's stated precision")
+    sp.add_argument("calibration", metavar="CALIBRATION_JSON",
+                    help="the output of bfdrift calibrate ... --spots ... --json")
+    sp.add_argument("images", nargs="+", metavar="SPOT_IMAGE",
+                    help="the fitted spot series' images (its levels, spot size and spots)")
+    sp.add_argument("--series", help="the fitted series planned from (its name in the JSON; "
+                                     "needed when several were fitted)")
+    sp.add_argument("--goal-e1", type=float, nargs="+", default=list(PLAN_GOALS["e1"]),
+                    metavar="PERCENT", help="goal standard deviations of the corrected e1 "
+                    "slope (%% of the e1 slope the flats template removes)")
+    sp.add_argument("--goal-size", type=float, nargs="+", default=list(PLAN_GOALS["size"]),
+                    metavar="PERCENT", help="goal standard deviations of the corrected size "
+                    "slope (%% of the uncorrected size slope)")
+    sp.add_argument("--read-noise", type=float, default=default("read_noise"),
+                    help="read noise of the spot images (e rms)")
+    sp.add_argument("--background", type=float, default=default("background"),
+                    help="background of the spot images (e per pixel)")
+    sp.add_argument("--sigma", type=float, nargs="+", metavar="PX",
+                    help="also plan for these spot sigmas (px), levels from the series' "
+                         "faintest to a peak pixel of --peak-max")
+    sp.add_argument("--peak-max", type=float,
+                    default=library_default(SpotDesign.saturating, "peak_max"),
+                    help="with --sigma: peak pixel of the brightest level (e)")
+    sp.add_argument("--template", help="with --sigma: the template whose slopes scale the "
+                                       "information of other spot sizes (default: the "
+                                       "calibration's --out)")
+    sp.add_argument("--gain", type=float, default=library_default(SpotSeries, "gain"),
+                    help="e/ADU of images in ADU without a GAIN keyword")
+    sp.add_argument("--saturation", type=float,
+                    default=library_default(SpotSeries, "saturation"),
+                    help="saturation level (image unit; default: SATURATE keyword)")
+    sp.add_argument("--json", action="store_true")
+    sp.add_argument("--quiet", action="store_true")
+    sp.set_defaults(func=cmd_spot_plan)
     return sp

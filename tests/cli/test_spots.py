@@ -210,3 +210,66 @@ def test_calibrate_with_spots_refuses_bad_series(capsys, tmp_path, monkeypatch):
     assert main(argv + ["--model", "astier23"]) == 2
     assert "--spots: options of --model electrostatic" in capsys.readouterr().err
     assert calls == [] and not out.exists()
+
+
+# --------------------------------------------------------------------------- spot-plan
+
+def _plan_json(path, names=("spot*",), *, out=None):
+    """The part of ``calibrate --spots --json`` that spot-plan reads: the stated
+    precisions of each fitted series (``spots.uncertainty``) and its counts."""
+    unc = {"e1_slope_sigma": {n: {"flats_percent": 40.0, "joint_percent": 20.0}
+                              for n in names},
+           "size_slope_sigma": {n: {"flats_percent": 8.0, "joint_percent": 1.5}
+                                for n in names}}
+    doc = {"spots": {"uncertainty": unc, "fields": [
+        {"name": n, "kind": "spots", "n_usable": 27, "n_fit": 27} for n in names]},
+        "out": out or str(path) + ".missing.fits"}
+    with open(path, "w") as fh:
+        json.dump(doc, fh)
+    return str(path)
+
+
+def test_spot_plan_is_the_library_plan_of_the_stated_precision(capsys, tmp_path):
+    """Consistency of the command with the library: spot-plan measures the series'
+    design (9 spots, 3 levels) and prints spots_for_precision of the stated
+    precisions for each goal, in JSON and in text."""
+    from lsst_bfdrift.calibration.spot_plan import spots_for_precision
+
+    files = _spot_files(tmp_path)
+    cal = _plan_json(tmp_path / "cal.json")
+    assert main(["spot-plan", cal, *files, "--goal-e1", "5", "--goal-size", "1", "--json",
+                 "--quiet"]) == 0
+    plan = json.loads(capsys.readouterr().out)
+    assert plan["series"] == "spot*" and plan["n_spots_fitted"] == 9
+    assert len(plan["fitted_design"]["levels"]) == 3
+    assert plan["fitted_design"]["sigma"] == pytest.approx(1.5, abs=0.2)
+    rows = {r["quantity"]: r for r in plan["rows"]}
+    assert rows["e1"]["spots"] == spots_for_precision(40.0, 20.0, 9, 5.0) > 9
+    assert rows["e1"]["exposures"] == 3 * rows["e1"]["spots"]
+    assert rows["size"]["spots"] == spots_for_precision(8.0, 1.5, 9, 1.0)
+    assert main(["spot-plan", cal, *files, "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "9 spots x 3 levels" in text and "+- 40.0 % (flats alone) -> +- 20.0 %" in text
+    assert f"e1 to +- 5 %: {spots_for_precision(40.0, 20.0, 9, 5.0)} spots" in text
+
+
+def test_spot_plan_refuses_bad_input(capsys, tmp_path):
+    """Bad input: a JSON without a spot fit's stated precision, several fitted
+    series without --series (the names listed), an unknown --series, a goal not
+    positive, and other spot sizes without a template (each exit 2 with the
+    reason)."""
+    files = _spot_files(tmp_path)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"a_fit": {}}))
+    assert main(["spot-plan", str(bad), *files, "--quiet"]) == 2
+    assert "no stated spot precision" in capsys.readouterr().err
+    two = _plan_json(tmp_path / "two.json", names=("a*", "b*"))
+    assert main(["spot-plan", two, *files, "--quiet"]) == 2
+    assert "fitted 2 spot series; name one with --series (a*, b*)" in capsys.readouterr().err
+    assert main(["spot-plan", two, *files, "--series", "c*", "--quiet"]) == 2
+    assert "--series 'c*' is not a fitted spot series" in capsys.readouterr().err
+    cal = _plan_json(tmp_path / "cal.json")
+    assert main(["spot-plan", cal, *files, "--goal-e1", "-5", "--quiet"]) == 2
+    assert "--goal-e1 must be positive percentages, got [-5.0]" in capsys.readouterr().err
+    assert main(["spot-plan", cal, *files, "--sigma", "2", "--quiet"]) == 2
+    assert "give --template" in capsys.readouterr().err
