@@ -6,6 +6,9 @@ if "PYTEST_XDIST_WORKER" in os.environ:
     # one worker per core: GalSim's OpenMP threads on top of them oversubscribe
     # the cores (star drawing 8 times slower); set before GalSim is loaded
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    # likewise numba's parallel kernels: two workers of two threads each on two
+    # cores made the numba-bound tests 35 % slower than one thread per worker
+    os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
 import numpy as np
 import pytest
