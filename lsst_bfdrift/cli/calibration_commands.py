@@ -98,7 +98,7 @@ def read_with_progress(command, files, *, quiet=False, **kwargs):
 def fit_with_progress(command, data, *, quiet=False):
     """:func:`~lsst_bfdrift.calibration.tuning.measured_acoeffs` saying what runs
     (``COMMAND: covariance model fit (b_ij free and fixed) ...``, then its time
-    and model evaluations; silent for inputs that need no fit).
+    and model and Jacobian evaluations; silent for inputs that need no fit).
 
     Parameters
     ----------
@@ -113,7 +113,7 @@ def fit_with_progress(command, data, *, quiet=False):
     AcoeffTable
     """
     with Activity(f"{command}: covariance model fit (Astier et al. 2019; b_ij fixed, then "
-                  "free)", unit="model evaluations", enabled=not quiet) as act:
+                  "free)", unit="model and Jacobian evaluations", enabled=not quiet) as act:
         return measured_acoeffs(data, progress=act)
 
 
@@ -374,7 +374,7 @@ def cmd_ptc(args):
                              "file or FITS flat pairs")
         table = {"mu": data.mu, "cov": data.cov, "npix": data.npix}
         with Activity("ptc: covariance model fit (Astier et al. 2019; b_ij fixed, then free)",
-                      unit="model evaluations", enabled=not args.quiet) as act:
+                      unit="model and Jacobian evaluations", enabled=not args.quiet) as act:
             fit = _named_fit(describe_paths(files), ptc.fit_covariance_model, table["mu"],
                              table["cov"], npix=table["npix"], progress=act)
         out = {"input": files, "model": "full covariance model (Astier et al. 2019 eq. 20)",

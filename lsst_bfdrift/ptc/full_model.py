@@ -219,8 +219,7 @@ def covariance_model_jacobian(mu, gain, a, b, noise):
 
 
 def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max=None,
-                         fit_b="auto", gain=None, fit_noise=True, progress=None, jac="exact",
-                         start=None):
+                         fit_b="auto", gain=None, fit_noise=True, progress=None, jac="exact"):
     """Fit gain, a_ij, b_ij and n_ij of the full model to measured covariances.
 
     Parameters
@@ -255,10 +254,19 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
     fit_noise : bool, optional
         Fit n_ij (else fixed to 0, e.g. for noiseless simulations).
     progress : callable, optional
-        Called with no argument after each evaluation of the model (e.g. an
-        :class:`~lsst_bfdrift.utils.progress.Activity`): the number of
-        iterations is not known in advance. With b_ij free the fit is long
-        (7 levels of 9 x 9 lags: about 60000 evaluations, 2 minutes).
+        Called with no argument after each evaluation of the model and of its
+        Jacobian (e.g. an :class:`~lsst_bfdrift.utils.progress.Activity`):
+        the number of iterations is not known in advance. With b_ij free the
+        fit takes most iterations (7 levels of 9 x 9 lags: about 250, each a
+        singular value decomposition of the 567 x 244 Jacobian).
+    jac : {'exact', '2-point'}, optional
+        The Jacobian given to ``least_squares``: 'exact'
+        (:func:`covariance_model_jacobian`, the default) or the former
+        forward differences, one model evaluation per free parameter (244 at
+        lag 8; about 150 times slower with b_ij free). Both stop where the
+        cost changes by less than 1e-8 relative: on the same input their
+        a_ij differ by a few 1e-4 of their errors (the exact one ends closer
+        to the minimum).
 
     Returns
     -------
@@ -333,10 +341,6 @@ def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max
     free = np.concatenate([[gain is None], np.ones(n1, bool), np.full(n1, bool(fit_b)),
                            np.full(n1, bool(fit_noise))])
     full0 = np.concatenate([[g0], a0.ravel(), np.zeros(n1), n0.ravel()])
-    if start is not None:  # an earlier fit's parameters (fixed ones keep their values)
-        sv = np.concatenate([[start["gain"]], np.ravel(start["a"]), np.ravel(start["b"]),
-                             np.ravel(start["noise"])])
-        full0[free] = sv[free]
 
     def unpack(q):
         p = full0.copy()
