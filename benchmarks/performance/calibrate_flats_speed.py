@@ -32,6 +32,7 @@ import glob
 import json
 import os
 import platform
+import resource
 import shlex
 import statistics
 import subprocess
@@ -77,26 +78,33 @@ def load():
     return os.getloadavg()[0]
 
 
-def timed(fn):
-    t = time.perf_counter()
+def timed(fn, cpu=None):
+    """(wall seconds, result) of ``fn()``; its CPU seconds appended to ``cpu``."""
+    t, c = time.perf_counter(), time.process_time()
     out = fn()
+    if cpu is not None:
+        cpu.append(time.process_time() - c)
     return time.perf_counter() - t, out
 
 
 def run_cli(files, out):
     """``bfdrift calibrate`` in a fresh process: (seconds, progress lines, the
-    electrostatic calibration's own seconds from its ``--json`` summary)."""
+    electrostatic calibration's own seconds from its ``--json`` summary, CPU
+    seconds of the process)."""
     cmd = [sys.executable, "-c", "import sys; from lsst_bfdrift.cli.main import main; "
            "sys.exit(main(sys.argv[1:]))", "calibrate", *files, "--out", out, "--overwrite",
            "--json"]
     t = time.perf_counter()
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
     p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True,
                        env=dict(os.environ, PYTHONPATH=ROOT))
     dt = time.perf_counter() - t
+    ru2 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (ru2.ru_utime - ru.ru_utime) + (ru2.ru_stime - ru.ru_stime)
     if p.returncode:
         raise RuntimeError(f"bfdrift calibrate failed ({p.returncode}): {p.stderr[-2000:]}")
     lines = [x for x in p.stderr.replace("\r", "\n").splitlines() if x.strip()]
-    return dt, len(lines), json.loads(p.stdout)["seconds"]["total"]
+    return dt, len(lines), json.loads(p.stdout)["seconds"]["total"], cpu
 
 
 def main(argv=None):
@@ -119,6 +127,7 @@ def main(argv=None):
     data = read_calibration_input(files, max_lag=MAX_LAG)  # warm: imports, caches
     mu, cov, npix = np.asarray(data.mu, float), np.asarray(data.cov, float), data.npix
     runs = {k: [] for k in ("read", "fft_256", "fft_2048", "fit_exact", "cli")}
+    cpu_fit = []
     loads = [load()]
     fit_exact = None
     tpl = os.path.join(tempfile.gettempdir(), "calibrate_flats_speed_template.fits")
@@ -127,7 +136,7 @@ def main(argv=None):
         runs["fft_256"].append(timed(lambda: [pair_covariances(a, b, max_lag=MAX_LAG)
                                               for a, b in pairs])[0])
         runs["fft_2048"].append(timed(lambda: pair_covariances(*big, max_lag=MAX_LAG))[0])
-        dt, fit_exact = timed(lambda: fit_covariance_model(mu, cov, npix=npix))
+        dt, fit_exact = timed(lambda: fit_covariance_model(mu, cov, npix=npix), cpu_fit)
         runs["fit_exact"].append(dt)
         runs["cli"].append(run_cli(files, tpl))
         loads.append(load())
@@ -138,22 +147,25 @@ def main(argv=None):
                          progress=lambda: n_exact.__setitem__(0, n_exact[0] + 1))
     fd = None
     if not args.skip_finite_differences:
-        n_fd = [0]
+        n_fd, cpu_fd = [0], []
         t_fd, fd = timed(lambda: fit_covariance_model(
             mu, cov, npix=npix, jac="2-point",
-            progress=lambda: n_fd.__setitem__(0, n_fd[0] + 1)))
+            progress=lambda: n_fd.__setitem__(0, n_fd[0] + 1)), cpu_fd)
         loads.append(load())
     med = {k: statistics.median(v) for k, v in runs.items() if k != "cli"}
     cli_s = statistics.median(x[0] for x in runs["cli"])
     cli_lines = statistics.median(x[1] for x in runs["cli"])
     cli_model = statistics.median(x[2] for x in runs["cli"])
+    cli_cpu = statistics.median(x[3] for x in runs["cli"])
     a = fit_exact["a"]
     lines = [f"bfdrift calibrate on {LEVELS.size} pairs of {SHAPE[0]} x {SHAPE[1]} px GalSim ITL "
              f"flats (lags to {MAX_LAG}), {machine}; {args.repeat} runs, medians (target <= 60 s)",
              f"  whole command (fresh process)        {cli_s:6.1f} s, {cli_lines:.0f} progress "
              "lines on stderr",
-             f"    of which the electrostatic model   {cli_model:6.1f} s (calibrate(): the a-matrix "
-             "route's own cost, after the flats' covariances and their fit)",
+             f"    CPU time of the command            {cli_cpu:6.1f} s (both cores; wall time on "
+             "an idle 2-core machine lies between half of it and all of it)",
+             f"    of which the electrostatic model   {cli_model:6.1f} s wall (calibrate(): the "
+             "a-matrix route's own cost, after the flats' covariances and their fit)",
              f"  covariance measurement, route        {med['read']:6.2f} s = "
              f"{med['read'] / mpx_route:.3f} s/Mpx ({mpx_route:.2f} Mpx of flats: FITS reading, "
              "checks, FFT)",
@@ -161,28 +173,31 @@ def main(argv=None):
              f"{med['fft_256'] / mpx_route:.3f} s/Mpx",
              f"  FFT covariances alone, 2048^2 pair   {med['fft_2048']:6.2f} s = "
              f"{med['fft_2048'] / mpx_big:.3f} s/Mpx",
-             f"  covariance model fit, exact Jacobian {med['fit_exact']:6.1f} s "
-             f"({n_exact[0]} model and Jacobian evaluations; b_ij "
+             f"  covariance model fit, exact Jacobian {med['fit_exact']:6.1f} s, "
+             f"{statistics.median(cpu_fit):.1f} s CPU ({n_exact[0]} model and Jacobian "
+             "evaluations; b_ij "
              f"{'fitted' if fit_exact['b_fitted'] else 'fixed to 0'})"]
     out = {"machine": machine, "repeat": args.repeat, "levels_e": LEVELS.tolist(),
            "shape": SHAPE, "max_lag": MAX_LAG, "median_seconds": med,
            "cli_median_seconds": cli_s, "cli_progress_lines": cli_lines,
-           "cli_electrostatic_median_seconds": cli_model,
+           "cli_electrostatic_median_seconds": cli_model, "cli_cpu_median_seconds": cli_cpu,
            "s_per_mpx": {"route": med["read"] / mpx_route, "fft_256": med["fft_256"] / mpx_route,
                          "fft_2048": med["fft_2048"] / mpx_big},
-           "evaluations_exact": n_exact[0], "runs": runs,
+           "evaluations_exact": n_exact[0], "runs": runs, "cpu_fit_exact": cpu_fit,
            "exact": {"gain": fit_exact["gain"], "a": a.tolist(), "chi2": fit_exact["chi2"],
                      "b_test": fit_exact["b_test"]}}
     if fd is not None:
         rel = np.abs(fit_exact["a"] - fd["a"]) / np.abs(fd["a"])
         sig = np.abs(fit_exact["a"] - fd["a"]) / fd["a_err"]
-        lines.append(f"  former finite-difference fit         {t_fd:6.1f} s ({n_fd[0]} model "
-                     f"evaluations): {t_fd / med['fit_exact']:.0f}x the exact one")
+        lines.append(f"  former finite-difference fit         {t_fd:6.1f} s, {cpu_fd[0]:.1f} s "
+                     f"CPU ({n_fd[0]} model evaluations): {t_fd / med['fit_exact']:.0f}x the "
+                     "exact one's wall time")
         lines.append(f"  exact minus former: gain {abs(fit_exact['gain'] / fd['gain'] - 1):.1e}, "
                      f"a00 {rel[0, 0]:.1e}, a01 {rel[0, 1]:.1e}, a10 {rel[1, 0]:.1e} relative; "
                      f"all a_ij within {sig.max():.1e} of their errors; chi2 "
                      f"{fit_exact['chi2']:.4f} against {fd['chi2']:.4f}")
-        out["finite_differences"] = {"seconds": t_fd, "evaluations": n_fd[0],
+        out["finite_differences"] = {"seconds": t_fd, "cpu_seconds": cpu_fd[0],
+                                     "evaluations": n_fd[0],
                                      "gain": fd["gain"], "a": fd["a"].tolist(),
                                      "chi2": fd["chi2"], "b_test": fd["b_test"],
                                      "max_rel_a00_a01_a10": float(max(rel[0, 0], rel[0, 1],
