@@ -31,6 +31,7 @@ from lsst_bfdrift.diagnosis.effects_fit import diagnose, load_input
 from lsst_bfdrift.diagnosis.report import (notable_not_excluded, template_change_lines,
                                            write_report)
 from lsst_bfdrift.ptc import covariances as ptc
+from lsst_bfdrift.ptc.full_model import fit_covariance_model
 from lsst_bfdrift.ptc.data import describe_paths
 from lsst_bfdrift.ptc.inputs import ExposureLevelWarning, read_calibration_input, read_ptc_file
 from lsst_bfdrift.utils.errors import InputError, InputFileError, InputNotFoundError
@@ -375,7 +376,7 @@ def cmd_ptc(args):
         table = {"mu": data.mu, "cov": data.cov, "npix": data.npix}
         with Activity("ptc: covariance model fit (Astier et al. 2019; b_ij fixed, then free)",
                       unit="model and Jacobian evaluations", enabled=not args.quiet) as act:
-            fit = _named_fit(describe_paths(files), ptc.fit_covariance_model, table["mu"],
+            fit = _named_fit(describe_paths(files), fit_covariance_model, table["mu"],
                              table["cov"], npix=table["npix"], progress=act)
         out = {"input": files, "model": "full covariance model (Astier et al. 2019 eq. 20)",
                "gain": fit["gain"], "gain_err": fit["gain_err"], "npairs": int(data.mu.size),
