@@ -51,7 +51,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable  # noqa: E402
-from lsst_bfdrift.ptc.covariances import fit_covariance_model  # noqa: E402
+from lsst_bfdrift.ptc.full_model import fit_covariance_model  # noqa: E402
 from lsst_bfdrift.calibration.tuning import calibrate, refine_template  # noqa: E402
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402

@@ -95,7 +95,8 @@ def _progress(what, t0):
 def flats_table(sensor, args):
     """a_ij with errors from GalSim-made flat pairs (Astier et al. 2019 fit),
     corrected for the simulation's discrete filling (1 - 1/steps)."""
-    from lsst_bfdrift.ptc.covariances import fit_covariance_model, measure_ptc
+    from lsst_bfdrift.ptc.covariances import measure_ptc
+    from lsst_bfdrift.ptc.full_model import fit_covariance_model
     from lsst_bfdrift.simulation.flats import simulate_flat_pairs
 
     steps = args.flat_steps

@@ -40,7 +40,8 @@ from lsst_bfdrift.calibration.acoeff_model import (LinearBasis, default_basis_pa
 from lsst_bfdrift.diagnosis.effects_fit import Observations, diagnose  # noqa: E402
 from lsst_bfdrift.simulation.flats import simulate_flat_pairs  # noqa: E402
 from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
-from lsst_bfdrift.ptc.covariances import fit_covariance_model, measure_ptc, read_ptc_text  # noqa: E402
+from lsst_bfdrift.ptc.covariances import measure_ptc, read_ptc_text  # noqa: E402
+from lsst_bfdrift.ptc.full_model import fit_covariance_model  # noqa: E402
 from lsst_bfdrift.diagnosis.report import write_report  # noqa: E402
 from lsst_bfdrift.physics.sensor import SensorParameters  # noqa: E402
 

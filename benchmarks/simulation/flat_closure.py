@@ -9,7 +9,7 @@ of the bundled template, rescaled), independent stacks of periodic flats are
 filled to a series of signal levels
 (:func:`lsst_bfdrift.simulation.flats.simulate_ptc_levels`), the per-pair
 covariances are fitted with the full model of Astier et al. 2019
-(:func:`lsst_bfdrift.ptc.covariances.fit_covariance_model`: a_ij free; gain 1, b_ij and n_ij 0
+(:func:`lsst_bfdrift.ptc.full_model.fit_covariance_model`: a_ij free; gain 1, b_ij and n_ij 0
 fixed at their true values, then again with gain and n_ij free),
 the fitted a_ij are corrected for the discrete filling (divided by
 1 - 1/n) and compared with the template's linear response alpha_ij (and,
@@ -28,7 +28,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
-from lsst_bfdrift.ptc.covariances import fit_covariance_model  # noqa: E402
+from lsst_bfdrift.ptc.full_model import fit_covariance_model  # noqa: E402
 from lsst_bfdrift.simulation.flats import (simulate_ptc_levels,  # noqa: E402
                                       template_area_coefficients, with_responsivity)
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402

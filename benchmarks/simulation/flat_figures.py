@@ -9,7 +9,7 @@ the bundled template's displacements attributed to the matching charge,
 :func:`lsst_bfdrift.simulation.flats.with_responsivity`) a stack of periodic flats
 is filled in steps of 1000 e (the paper: 1024 images, 250 cycles) and the
 paper's all-pairs covariances C_ij / mu are plotted against mu, with the
-model of Astier et al. 2019 (:func:`lsst_bfdrift.ptc.covariances.covariance_model`, third
+model of Astier et al. 2019 (:func:`lsst_bfdrift.ptc.full_model.covariance_model`, third
 order, gain 1) evaluated with the template's linear response alpha_ij
 (:func:`lsst_bfdrift.simulation.flats.template_area_coefficients`) at the
 effective signal of the discrete filling. Writes
@@ -34,7 +34,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
-from lsst_bfdrift.ptc.covariances import covariance_model  # noqa: E402
+from lsst_bfdrift.ptc.full_model import covariance_model  # noqa: E402
 from lsst_bfdrift.simulation.flats import (simulate_flats, template_area_coefficients,  # noqa: E402
                                       with_responsivity)
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402

@@ -56,7 +56,8 @@ import numpy as np
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable, check_consistency
 from lsst_bfdrift.calibration.acoeff_model import electrostatic_acoeffs
 from lsst_bfdrift.calibration.fitting import FitError, fit_parameters
-from lsst_bfdrift.ptc.covariances import fit_covariance_model, fit_ptc_exponential
+from lsst_bfdrift.ptc.covariances import fit_ptc_exponential
+from lsst_bfdrift.ptc.full_model import fit_covariance_model
 from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.templates.refine import lag_multiplicity, match_area_coefficients, template_alpha
 from lsst_bfdrift.templates.template import (TemplateSettings, build_template,
@@ -239,7 +240,7 @@ def measured_acoeffs(data, *, progress=None):
     * Covariances of flat pairs (flats, or cp_pipe's covariances when it
       stores no a-matrix errors): the full covariance model of Astier et al.
       (2019) fitted to them
-      (:func:`~lsst_bfdrift.ptc.covariances.fit_covariance_model`; errors
+      (:func:`~lsst_bfdrift.ptc.full_model.fit_covariance_model`; errors
       from the covariances' own errors or pixel counts), a00 measured by the
       curvature of the PTC.
     * A PTC of means and variances only: a00 alone, from the exponential
@@ -250,7 +251,7 @@ def measured_acoeffs(data, *, progress=None):
     data : CalibrationData
         From :func:`~lsst_bfdrift.ptc.inputs.read_calibration_input`.
     progress : callable, optional
-        Passed to :func:`~lsst_bfdrift.ptc.covariances.fit_covariance_model`
+        Passed to :func:`~lsst_bfdrift.ptc.full_model.fit_covariance_model`
         (called after each evaluation of the covariance model; the other
         inputs need no fit and never call it).
 

@@ -34,6 +34,7 @@ from lsst_bfdrift.diagnosis.effects_fit import diagnose, load_input
 from lsst_bfdrift.diagnosis.report import (notable_not_excluded, template_change_lines,
                                            write_report)
 from lsst_bfdrift.ptc import covariances as ptc
+from lsst_bfdrift.ptc.full_model import fit_covariance_model
 from lsst_bfdrift.ptc.data import describe_paths
 from lsst_bfdrift.ptc.inputs import ExposureLevelWarning, read_calibration_input, read_ptc_file
 from lsst_bfdrift.correction.task import BAND_KEYWORDS, exposure_band
@@ -103,7 +104,7 @@ def read_with_progress(command, files, *, quiet=False, **kwargs):
 def fit_with_progress(command, data, *, quiet=False):
     """:func:`~lsst_bfdrift.calibration.tuning.measured_acoeffs` saying what runs
     (``COMMAND: covariance model fit (b_ij free and fixed) ...``, then its time
-    and model evaluations; silent for inputs that need no fit).
+    and model and Jacobian evaluations; silent for inputs that need no fit).
 
     Parameters
     ----------
@@ -118,7 +119,7 @@ def fit_with_progress(command, data, *, quiet=False):
     AcoeffTable
     """
     with Activity(f"{command}: covariance model fit (Astier et al. 2019; b_ij fixed, then "
-                  "free)", unit="model evaluations", enabled=not quiet) as act:
+                  "free)", unit="model and Jacobian evaluations", enabled=not quiet) as act:
         return measured_acoeffs(data, progress=act)
 
 
@@ -431,8 +432,8 @@ def cmd_ptc(args):
                              "file or FITS flat pairs")
         table = {"mu": data.mu, "cov": data.cov, "npix": data.npix}
         with Activity("ptc: covariance model fit (Astier et al. 2019; b_ij fixed, then free)",
-                      unit="model evaluations", enabled=not args.quiet) as act:
-            fit = _named_fit(describe_paths(files), ptc.fit_covariance_model, table["mu"],
+                      unit="model and Jacobian evaluations", enabled=not args.quiet) as act:
+            fit = _named_fit(describe_paths(files), fit_covariance_model, table["mu"],
                              table["cov"], npix=table["npix"], progress=act)
         out = {"input": files, "model": "full covariance model (Astier et al. 2019 eq. 20)",
                "gain": fit["gain"], "gain_err": fit["gain_err"], "npairs": int(data.mu.size),

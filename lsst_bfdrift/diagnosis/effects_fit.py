@@ -59,7 +59,8 @@ from lsst_bfdrift.diagnosis.findings import assess_observables, credit_findings
 from lsst_bfdrift.ptc.observables import exposure_line, pair_mean_errors
 from lsst_bfdrift.diagnosis.observations import (Observations, edge_signature,
                                                  observations_from_pairs)
-from lsst_bfdrift.ptc.covariances import covariance_model, fit_ptc_exponential, read_ptc_text
+from lsst_bfdrift.ptc.covariances import fit_ptc_exponential, read_ptc_text
+from lsst_bfdrift.ptc.full_model import covariance_model
 from lsst_bfdrift.ptc.inputs import detect_input_kind, read_amatrix_file
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.utils.io import data_files

@@ -13,10 +13,8 @@ Conventions
   coefficients a_ij and b_ij per electron, noise n_ij in e^2.
 * Exponential model (paper eq. 16):
   C00 = (exp(2 a00 mu g) - 1) / (2 a00 g^2) + n00 / g^2.
-* Full model to third order in mu g (paper eq. 20), with ``*`` the 2-d
-  discrete convolution over signed lags and ``ab`` the element-wise product:
-  C = (mu / g) [I + a (mu g) + 2/3 (a*a + ab)(mu g)^2
-  + 1/6 (2 a*a*a + 5 a*ab)(mu g)^3] + n / g^2.
+* The full model to third order in mu g (paper eq. 20), its Jacobian and
+  its fit are in :mod:`lsst_bfdrift.ptc.full_model`.
 """
 
 import os
@@ -24,19 +22,16 @@ import os
 import numpy as np
 from astropy.table import Table
 from scipy import fft as sp_fft
-from scipy import stats as sp_stats
 from scipy.optimize import least_squares
-from scipy.signal import convolve2d
 from lsst_bfdrift.images.exposure import read_image
 from lsst_bfdrift.utils.errors import FitError, InputError, InputFileError
 from lsst_bfdrift.utils.io import open_fits, read_text_rows
 
 __all__ = ["PairCovariance", "pair_covariances", "measure_ptc", "ptc_exponential_model",
-           "fit_ptc_exponential", "ptc_turnoff", "covariance_model", "fit_covariance_model",
-           "read_ptc_text", "read_flat_pair", "count_levels", "MIN_LEVELS", "MIN_PTC_POINTS",
-           "MIN_COVARIANCE_LEVELS", "SIGNAL_RANGE",
+           "fit_ptc_exponential", "ptc_turnoff", "read_ptc_text", "read_flat_pair",
+           "count_levels", "MIN_LEVELS", "MIN_PTC_POINTS", "MIN_COVARIANCE_LEVELS", "SIGNAL_RANGE",
            "EDGE_BORDER", "edge_border", "edge_mask", "least_squares_line",
-           "convolve_lags", "identical_flats"]
+           "identical_flats"]
 
 #: Fewest distinct signal levels of any PTC fit.
 MIN_LEVELS = 3
@@ -44,7 +39,8 @@ MIN_LEVELS = 3
 #: Fewest valid points of the exponential PTC fit (:func:`fit_ptc_exponential`).
 MIN_PTC_POINTS = 4
 
-#: Fewest signal levels of the full covariance model fit (:func:`fit_covariance_model`).
+#: Fewest signal levels of the full covariance model fit
+#: (:func:`~lsst_bfdrift.ptc.full_model.fit_covariance_model`).
 MIN_COVARIANCE_LEVELS = 5
 
 #: Signals (ADU or e) a PTC point may have: beyond, the fit's arithmetic fails
@@ -546,208 +542,6 @@ def fit_ptc_exponential(mu, var, *, sigma=None, mu_max="auto", p0=None):
     out["npoints"] = int(len(m))
     out["mu_max"] = float(m.max())
     return out
-
-
-def _full_lags(q):
-    """Extend a quadrant array q[di, dj] (di, dj >= 0) to signed lags."""
-    top = np.concatenate([q[::-1, ::-1][:-1], q[:, ::-1]], axis=0)[:, :-1]
-    right = np.concatenate([q[::-1][:-1], q], axis=0)
-    return np.concatenate([top, right], axis=1)
-
-
-def convolve_lags(x, y):
-    """Convolution of two quadrant arrays on signed lags, on the quadrant of x's size.
-
-    Each array q[di, dj] (di, dj >= 0) stands for its mirror images at
-    negative lags (q[-i, j] = q[i, -j] = q[i, j]); the result is the 2-d
-    convolution of the two signed-lag arrays, at lags 0 to L of ``x``: the
-    a * a terms of :func:`covariance_model`.
-
-    Parameters
-    ----------
-    x, y : ndarray, shape (L + 1, L + 1)
-        Quadrant arrays indexed [di, dj].
-
-    Returns
-    -------
-    ndarray, shape (L + 1, L + 1)
-    """
-    L = x.shape[0] - 1
-    full = convolve2d(_full_lags(x), _full_lags(y), mode="same")
-    return full[L:, L:]
-
-
-def covariance_model(mu, gain, a, b, noise):
-    """Full covariance model of Astier et al. 2019 (eq. 20), third order.
-
-    Parameters
-    ----------
-    mu : array_like, shape (n,)
-        Signals (ADU).
-    gain : float
-        e/ADU.
-    a, b, noise : ndarray, shape (L + 1, L + 1)
-        a_ij, b_ij (1/e) and n_ij (e^2) indexed [di, dj].
-
-    Returns
-    -------
-    ndarray, shape (n, L + 1, L + 1)
-        C_ij (ADU^2).
-    """
-    mu = np.atleast_1d(np.asarray(mu, dtype=float))
-    a = np.asarray(a, float)
-    b = np.asarray(b, float)
-    aa = convolve_lags(a, a)
-    ab = a * b
-    aaa = convolve_lags(aa, a)
-    a_ab = convolve_lags(a, ab)
-    x = (mu * gain)[:, None, None]
-    eye = np.zeros_like(a)
-    eye[0, 0] = 1.0
-    bracket = eye + a * x + (2.0 / 3.0) * (aa + ab) * x**2 + (2.0 * aaa + 5.0 * a_ab) * x**3 / 6.0
-    return mu[:, None, None] / gain * bracket + np.asarray(noise, float) / gain**2
-
-
-def fit_covariance_model(mu, cov, *, sigma=None, npix=None, max_lag=None, mu_max=None,
-                         fit_b="auto", gain=None, fit_noise=True, progress=None):
-    """Fit gain, a_ij, b_ij and n_ij of the full model to measured covariances.
-
-    Parameters
-    ----------
-    mu : array_like, shape (n,)
-        Signals (ADU).
-    cov : array_like, shape (n, L + 1, L + 1)
-        Measured C_ij (ADU^2), indexed [k, di, dj].
-    sigma : array_like, same shape as ``cov``, optional
-        Errors of the covariances (ADU^2).
-    npix : array_like, same shape as ``cov``, optional
-        Pixel pairs behind each covariance (from :func:`measure_ptc`); used
-        when ``sigma`` is not given: sigma = C00 sqrt(2 / N) at lag 0,
-        C00 sqrt(1 / N) on the axes and C00 sqrt(1 / (2 N)) off them (errors of
-        sample covariances; off-axis values average two independent products). With
-        neither, all points of a signal level get the weight 1 / C00 and the
-        parameter errors are scaled to the scatter (sqrt(chi2/dof)).
-    max_lag : int, optional
-        Fit lags up to this value only.
-    mu_max : float, optional
-        Exclude signals above (ADU).
-    fit_b : bool or 'auto', optional
-        Fit b_ij (True), fix them to 0 (False), or let the data decide
-        ('auto', the default): b_ij are kept only when they lower chi2 by more
-        than the 99th percentile of chi2 with as many degrees of freedom as
-        b_ij (a likelihood-ratio test). With a few signal levels b_ij are
-        degenerate with a_ij: freed without need they multiply the errors of
-        a_ij by 3-4 and bias them (GalSim flats, 12 levels: a01 4.2e-7 +- 7e-8
-        against the true 1.95e-7; 2.3e-7 +- 1.9e-8 with b = 0).
-    gain : float, optional
-        Known gain (e/ADU), held fixed (its error is then 0); default: fitted.
-    fit_noise : bool, optional
-        Fit n_ij (else fixed to 0, e.g. for noiseless simulations).
-    progress : callable, optional
-        Called with no argument after each evaluation of the model (e.g. an
-        :class:`~lsst_bfdrift.utils.progress.Activity`): the number of
-        iterations is not known in advance. With b_ij free the fit is long
-        (7 levels of 9 x 9 lags: about 60000 evaluations, 2 minutes).
-
-    Returns
-    -------
-    dict
-        ``gain``, ``a``, ``b``, ``noise`` (arrays [di, dj]) with ``*_err``,
-        ``chi2``, ``dof``, ``residuals`` (measured - model, ADU^2), and
-        ``b_fitted`` (bool) with ``b_test`` (the 'auto' test: ``delta_chi2``,
-        ``dof``, ``p_value``; None otherwise).
-    """
-    if fit_b == "auto":
-        kw = dict(sigma=sigma, npix=npix, max_lag=max_lag, mu_max=mu_max, gain=gain,
-                  fit_noise=fit_noise, progress=progress)
-        without = fit_covariance_model(mu, cov, fit_b=False, **kw)
-        with_b = fit_covariance_model(mu, cov, fit_b=True, **kw)
-        n_b = int(without["dof"] - with_b["dof"])
-        delta = float(without["chi2"] - with_b["chi2"])
-        p = float(sp_stats.chi2.sf(delta, max(n_b, 1)))
-        best = with_b if p < 0.01 else without
-        best["b_test"] = {"delta_chi2": delta, "dof": n_b, "p_value": p}
-        return best
-    if fit_b not in (True, False):
-        raise InputError(f"fit_b must be True, False or 'auto', got {fit_b!r}")
-    mu = np.asarray(mu, dtype=float)
-    cov = np.asarray(cov, dtype=float)
-    if cov.ndim != 3 or cov.shape[0] != mu.size or cov.shape[1] != cov.shape[2]:
-        raise InputError(f"cov must have shape (n, L+1, L+1) with n = len(mu), got {cov.shape}")
-    L = cov.shape[1] - 1 if max_lag is None else int(max_lag)
-    cov = cov[:, :L + 1, :L + 1]
-    good = np.isfinite(mu) & np.all(np.isfinite(cov), axis=(1, 2))
-    if mu_max is not None:
-        good &= mu <= mu_max
-    m, c = mu[good], cov[good]
-    if m.size < MIN_COVARIANCE_LEVELS:
-        raise InputError(f"need at least {MIN_COVARIANCE_LEVELS} signal levels, got {m.size}")
-    known = sigma is not None or npix is not None
-    if sigma is not None:
-        s = np.asarray(sigma, float)[good][:, :L + 1, :L + 1]
-    elif npix is not None:
-        # errors of sample covariances of N pixel pairs (as the diagnosis): lag 0
-        # sqrt(2) V / sqrt(N), on the axes V / sqrt(N), off the axes V / sqrt(2 N)
-        # ((i, j) and (i, -j) are averaged: independent products)
-        n = np.asarray(npix, float)[good][:, :L + 1, :L + 1]
-        s = c[:, 0, 0][:, None, None] * np.sqrt(0.5 / n)
-        s[:, 0, :] *= np.sqrt(2.0)
-        s[:, :, 0] *= np.sqrt(2.0)
-        s[:, 0, 0] *= np.sqrt(2.0)
-    else:
-        s = np.broadcast_to(c[:, 0, 0][:, None, None], c.shape).copy()
-    if np.any(~(s > 0)):
-        raise InputError("covariance errors must be positive")
-    exp = fit_ptc_exponential(m, c[:, 0, 0], mu_max=None)
-    g0 = exp["gain"] if gain is None else float(gain)
-    if gain is not None and not (np.isfinite(g0) and g0 > 0):
-        raise InputError(f"gain must be positive, got {gain!r}")
-    n1 = (L + 1) ** 2
-    # start: a_ij from the slope of C_ij / (mu/g) against mu g
-    a0 = np.zeros((L + 1, L + 1))
-    x = m * g0
-    for i in range(L + 1):
-        for j in range(L + 1):
-            y = c[:, i, j] * g0 / m
-            if i == j == 0:
-                a0[0, 0] = exp["a00"]
-            else:
-                a0[i, j] = least_squares_line(x, y)[0] if m.size > 2 else 0.0
-    n0 = np.zeros((L + 1, L + 1))
-    n0[0, 0] = exp["noise"] if fit_noise else 0.0
-
-    # full vector [gain, a, b, n]; only the free entries are fitted
-    free = np.concatenate([[gain is None], np.ones(n1, bool), np.full(n1, bool(fit_b)),
-                           np.full(n1, bool(fit_noise))])
-    full0 = np.concatenate([[g0], a0.ravel(), np.zeros(n1), n0.ravel()])
-
-    def unpack(q):
-        p = full0.copy()
-        p[free] = q
-        return (p[0], p[1:1 + n1].reshape(L + 1, L + 1),
-                p[1 + n1:1 + 2 * n1].reshape(L + 1, L + 1), p[-n1:].reshape(L + 1, L + 1))
-
-    def resid(q):
-        g, a, b, nz = unpack(q)
-        if progress is not None:
-            progress()
-        return ((covariance_model(m, g, a, b, nz) - c) / s).ravel()
-
-    scale = np.concatenate([[0.1], np.full(n1, 1e-7), np.full(n1, 1e-8), np.full(n1, 10.0)])
-    res = _fit(resid, full0[free], x_scale=scale[free], method="trf")
-    names = np.array(["gain"] + [f"a{i}" for i in range(n1)] + [f"b{i}" for i in range(n1)]
-                     + [f"n{i}" for i in range(n1)])[free].tolist()
-    stats = _fit_result(res, names, c.size, known_sigma=known)
-    errs = np.zeros(full0.size)
-    errs[free] = np.sqrt(np.diag(np.array(stats["covariance"])))
-    g, a, b, nz = unpack(res.x)
-    ge, ae, be, ne = (errs[0], errs[1:1 + n1].reshape(L + 1, L + 1),
-                      errs[1 + n1:1 + 2 * n1].reshape(L + 1, L + 1),
-                      errs[-n1:].reshape(L + 1, L + 1))
-    return {"gain": float(g), "gain_err": float(ge), "a": a, "a_err": ae, "b": b,
-            "b_err": be, "noise": nz, "noise_err": ne, "chi2": stats["chi2"],
-            "dof": stats["dof"], "mu": m, "b_fitted": bool(fit_b), "b_test": None,
-            "residuals": c - covariance_model(m, g, a, b, nz)}
 
 
 def read_ptc_text(path):

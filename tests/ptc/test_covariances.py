@@ -5,8 +5,7 @@ import pytest
 from astropy.io import fits
 from numpy.testing import assert_allclose
 
-from lsst_bfdrift.ptc.covariances import (covariance_model, fit_covariance_model,
-                                          fit_ptc_exponential, measure_ptc, pair_covariances,
+from lsst_bfdrift.ptc.covariances import (fit_ptc_exponential, measure_ptc, pair_covariances,
                                           ptc_exponential_model, read_ptc_text)
 from lsst_bfdrift.utils.errors import InputError
 
@@ -80,35 +79,6 @@ def test_bad_pairs(kw, match):
         pair_covariances(**kw)
 
 
-def test_full_model_reduces_to_exponential_series():
-    """With only a00 and b = 0 the full model's C00 is the exponential model's
-    third-order Taylor series: (e^{2x} - 1) / 2x = 1 + x + 2x^2/3 + x^3/3 + ..."""
-    L = 3
-    a = np.zeros((L + 1, L + 1))
-    a[0, 0] = -2e-6
-    mu = np.array([1e3, 1e4, 3e4])
-    g = 0.8
-    c = covariance_model(mu, g, a, np.zeros_like(a), np.zeros_like(a))
-    x = a[0, 0] * mu * g
-    assert_allclose(c[:, 0, 0], mu / g * (1 + x + 2 * x**2 / 3 + x**3 / 3), rtol=1e-12)
-    assert_allclose(c[:, 0, 0], ptc_exponential_model(mu, g, a[0, 0], 0.0), rtol=1e-6)
-    assert_allclose(c[:, 1:, :], 0.0, atol=1e-30)
-
-
-def test_full_model_convolution_terms():
-    """a*a at lag (1, 0) equals 2 a00 a10 + 2 a10 a20 + ... (direct sum)."""
-    a = np.zeros((3, 3))
-    a[0, 0], a[1, 0], a[0, 1], a[1, 1] = -1.0, 0.2, 0.3, 0.05
-    from lsst_bfdrift.ptc.covariances import convolve_lags
-    aa = convolve_lags(a, a)
-
-    def full(i, j):
-        i, j = abs(i), abs(j)
-        return a[i, j] if i < 3 and j < 3 else 0.0
-    ref = sum(full(p, q) * full(1 - p, 0 - q) for p in range(-3, 4) for q in range(-3, 4))
-    assert aa[1, 0] == pytest.approx(ref)
-
-
 def test_turnoff():
     from lsst_bfdrift.ptc.covariances import ptc_turnoff
     mu = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
@@ -133,46 +103,6 @@ def test_measured_e2v_ptc():
     assert abs(r["a00"]) == pytest.approx(2.68e-6, rel=0.1)
     assert r["a00"] < 0
     assert r["gain_err"] < 0.01 and r["a00_err"] < 3e-7
-
-
-def test_full_fit_recovers_synthetic(rng):
-    L = 2
-    a = np.array([[-2e-6, 3e-7, 5e-8], [1.2e-7, 4e-8, 1e-8], [2e-8, 1e-8, 5e-9]])
-    b = np.zeros_like(a)
-    noise = np.zeros_like(a)
-    noise[0, 0] = 25.0
-    g = 0.8
-    mu = np.geomspace(500, 9e4, 30)
-    c = covariance_model(mu, g, a, b, noise)
-    err = np.sqrt(2.0 / 1e6) * (mu / g)[:, None, None] * np.ones_like(c)
-    c_noisy = c + rng.normal(0, 1, c.shape) * err
-    r = fit_covariance_model(mu, c_noisy, sigma=err, fit_b=False)
-    assert r["gain"] == pytest.approx(g, abs=4 * r["gain_err"])
-    assert np.all(np.abs(r["a"] - a) < 4 * r["a_err"] + 1e-12)
-    assert r["chi2"] / r["dof"] < 1.5
-
-
-def test_full_fit_with_known_gain_and_no_noise(rng):
-    """Gain held at its true value and n_ij at zero: fewer parameters, smaller
-    errors on a_ij, still unbiased; a wrong fixed gain is detected by chi2."""
-    a = np.array([[-2e-6, 3e-7], [1.2e-7, 4e-8]])
-    g = 0.8
-    mu = np.geomspace(500, 9e4, 30)
-    c = covariance_model(mu, g, a, np.zeros_like(a), np.zeros_like(a))
-    err = np.sqrt(2.0 / 1e6) * (mu / g)[:, None, None] * np.ones_like(c)
-    c_noisy = c + rng.normal(0, 1, c.shape) * err
-    free = fit_covariance_model(mu, c_noisy, sigma=err, fit_b=False)
-    fixed = fit_covariance_model(mu, c_noisy, sigma=err, fit_b=False, gain=g, fit_noise=False)
-    assert fixed["gain"] == g and fixed["gain_err"] == 0.0
-    assert np.all(fixed["noise"] == 0) and np.all(fixed["noise_err"] == 0)
-    assert np.all(np.abs(fixed["a"] - a) < 4 * fixed["a_err"])
-    assert fixed["a_err"][0, 0] < 0.8 * free["a_err"][0, 0]
-    assert fixed["chi2"] / fixed["dof"] < 1.5
-    wrong = fit_covariance_model(mu, c_noisy, sigma=err, fit_b=False, gain=1.02 * g,
-                                 fit_noise=False)
-    assert wrong["chi2"] / wrong["dof"] > 5
-    with pytest.raises(ValueError, match="gain"):
-        fit_covariance_model(mu, c_noisy, sigma=err, gain=-1.0)
 
 
 def test_static_term_equals_direct_sums_and_finds_a_common_pattern():

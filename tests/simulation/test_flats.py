@@ -95,7 +95,7 @@ def test_ptc_levels_are_unbiased_without_bf(small_template):
 def test_ptc_fit_closes_on_the_template(small_template):
     """Closure: the full-model fit of independent simulated flat levels returns
     the template's linear response a_ij within its errors."""
-    from lsst_bfdrift.ptc.covariances import fit_covariance_model
+    from lsst_bfdrift.ptc.full_model import fit_covariance_model
     t = small_template
     tab = simulate_ptc_levels(t, np.linspace(4e3, 3.2e4, 8), steps_per_level=20, n_images=128,
                               shape=(12, 12), max_lag=2, seed=7)
