@@ -374,8 +374,8 @@ def test_validate_stars_defaults(capsys):
 
 def test_calibrate_from_a_ptc_and_refusals(capsys, tmp_path):
     """bfdrift calibrate on the measured e2v PTC (a00 from its curvature):
-    one parameter, the template and a plot written; an existing --out, an
-    --out that is an input and a poor fit are refused with nothing written."""
+    one parameter, the template and a plot written; an existing --out and an
+    --out that is an input are refused with nothing written."""
     from lsst_bfdrift.templates.template import DistortionTemplate
 
     ptc = "/work/shared/data/measured/eotest_e2v_ptc_amp05.txt"
@@ -401,13 +401,19 @@ def test_calibrate_from_a_ptc_and_refusals(capsys, tmp_path):
                         "--overwrite", "--quiet")
     assert code == 3 and "input" in err
     assert not (tmp_path / "s.fits").exists()
+
+
+def test_calibrate_poor_fit_refused_unrefined_and_written_refined(capsys, tmp_path):
+    """issue 41: refined to the data, a poor physics fit is written with its misfit
+    stated and carried into the uncertainty; without refinement it is refused and
+    nothing is written (separate from the PTC test so the two run on two workers)."""
+    from lsst_bfdrift.templates.template import DistortionTemplate
+
     tight = tmp_path / "tight.txt"
     itl = np.loadtxt("/work/shared/data/measured/itl_covariances_21oct19.txt", skiprows=1)
     itl[:, 3] = 1e-4 * np.abs(itl[:, 2]) + 1e-14  # errors no model meets
     np.savetxt(tight, itl[(itl[:, 0] <= 2) & (itl[:, 1] <= 2)], header="i j a sigma")
     bad = tmp_path / "bad.fits"
-    # issue 41: refined to the data, a poor physics fit is written with its misfit stated
-    # and carried into the uncertainty; without refinement it is still refused
     code, _, err = _run(capsys, "calibrate", str(tight), "--out", str(bad), "--free", "v_bss",
                         "--quiet", "--no-refine")
     assert code == 4 and "poor fit" in err and "worst lags" in err and not bad.exists()
