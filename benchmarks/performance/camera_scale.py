@@ -167,12 +167,12 @@ def main():
     need_cpu = VISIT_CCDS / (cpu_rate * args.budget)
     lines = [
         f"# command: {command_line()}",
-        f"{args.n} images of {args.size} x {args.size} float32 (sky 1200 e, 400 stars), default Task "
-        "(drift + geometry maps),",
+        f"{args.n} images of {args.size} x {args.size} float32 (sky 1200 e, 400 stars), "
+        "default Task (drift + geometry maps),",
         "FITS read + correct + maps + FITS write per image (correct_files); NUMBA_NUM_THREADS=1, "
         "OMP_NUM_THREADS=1, Task workers=1.",
-        f"Machine: {os.cpu_count()} cores ({platform.machine()}, Python {platform.python_version()}), "
-        "shared with other jobs; 1-min load average",
+        f"Machine: {os.cpu_count()} cores ({platform.machine()}, "
+        f"Python {platform.python_version()}), shared with other jobs; 1-min load average",
         f"{load_before[0]:.2f} before, {load_after[0]:.2f} after, "
         f"{', '.join(f'{x:.2f}' for x in loads)} after each round (2: this job alone).",
         f"Medians of {args.repeat} rounds, serial and dask alternated, after one untimed round "
