@@ -28,27 +28,11 @@ from scipy.signal import convolve2d
 
 from lsst_bfdrift.ptc.covariances import (MIN_COVARIANCE_LEVELS, _fit, _fit_result,
                                           fit_ptc_exponential, least_squares_line)
+from lsst_bfdrift.simulation.effects import full_lags
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["full_lags", "convolve_lags", "lag_operator", "covariance_model",
+__all__ = ["convolve_lags", "lag_operator", "covariance_model",
            "covariance_model_jacobian", "fit_covariance_model"]
-
-
-def full_lags(q):
-    """Extend a quadrant array q[di, dj] (di, dj >= 0) to signed lags.
-
-    Parameters
-    ----------
-    q : ndarray, shape (L + 1, L + 1)
-
-    Returns
-    -------
-    ndarray, shape (2 L + 1, 2 L + 1)
-        Indexed [di + L, dj + L].
-    """
-    top = np.concatenate([q[::-1, ::-1][:-1], q[:, ::-1]], axis=0)[:, :-1]
-    right = np.concatenate([q[::-1][:-1], q], axis=0)
-    return np.concatenate([top, right], axis=1)
 
 
 def convolve_lags(x, y):
