@@ -19,7 +19,10 @@ series of exposure times, so that the same spots are seen at many fluxes
 3. **Measuring** (:func:`measure_spots`): per spot and image, in a stamp
    around the grid position, the background is the 3-sigma-clipped median of
    an annulus (``radius + 2`` to ``radius + 2 + annulus_width`` px; it also
-   removes a bias pedestal), and the moments are taken with a **fixed
+   removes what is left of a bias pedestal; a pedestal stated in the header
+   as ``BIASLVL``, e, as ``bfdrift spot-sim --bias`` writes it, is subtracted
+   when the images are read, so that a correction of the images sees only
+   the collected charge), and the moments are taken with a **fixed
    circular Gaussian weight** of ``weight_sigma`` px, the same for every
    spot and every image of the series, centred on the weighted centroid
    (iterated) and cut at ``radius`` px (:func:`fixed_weight_moments`).
@@ -135,6 +138,9 @@ class SpotExposure:
         Pixels at or above the level, or in a SAT plane.
     gain : float
         e/ADU applied (1 for an image in electrons).
+    bias : float
+        Bias pedestal (e) subtracted from ``data`` and ``saturation``: the
+        header's ``BIASLVL`` (0 without it).
     """
 
     data: np.ndarray
@@ -144,6 +150,7 @@ class SpotExposure:
     saturation: float = None
     saturated: np.ndarray = None
     gain: float = 1.0
+    bias: float = 0.0
 
     def with_data(self, data):
         """A copy holding ``data`` (e.g. a corrected image) with this image's mask,
@@ -217,11 +224,14 @@ def read_spot_images(images, *, gain=None, saturation=None, exptimes=None, names
     Returns
     -------
     list of SpotExposure
+        Each image in electrons less its header's ``BIASLVL`` (e; a bias
+        pedestal left in the image, as ``bfdrift spot-sim --bias`` states
+        it; also taken from the saturation level), on a copy.
 
     Raises
     ------
     InputError
-        No image; an image in ADU without a gain (the message names
+        No image; a ``BIASLVL`` that is not a finite number; an image in ADU without a gain (the message names
         ``BUNIT = 'electron'`` and the gain option); an image without a
         positive ``EXPTIME`` (when ``exptimes`` is not given); images of
         different shapes; ``exptimes`` or ``names`` of another length.
@@ -242,6 +252,7 @@ def read_spot_images(images, *, gain=None, saturation=None, exptimes=None, names
                            saturation_name=saturation_name)
         img.warn()
         exptime = _exptime(img, None if exptimes is None else exptimes[k], name)
+        bias = _bias_level(img, name)
         if out and img.data.shape != out[0].data.shape:
             (ny0, nx0), (ny, nx) = out[0].data.shape, img.data.shape
             raise InputError(f"spot images differ in shape: {out[0].name} is {nx0} x {ny0} px, "
@@ -250,9 +261,27 @@ def read_spot_images(images, *, gain=None, saturation=None, exptimes=None, names
         sat = img.saturated
         if img.sat_plane is not None:
             sat = img.sat_plane if sat is None else (sat | img.sat_plane)
-        out.append(SpotExposure(data=img.data, bad=img.bad, exptime=exptime, name=name,
-                                saturation=img.saturation, saturated=sat, gain=img.gain))
+        data, level = img.data, img.saturation
+        if bias != 0.0:
+            data = data - bias  # a copy: the input is never modified
+            level = None if level is None else level - bias
+        out.append(SpotExposure(data=data, bad=img.bad, exptime=exptime, name=name,
+                                saturation=level, saturated=sat, gain=img.gain, bias=bias))
     return out
+
+
+def _bias_level(img, name):
+    """The bias pedestal (e) an image's header states as ``BIASLVL`` (0 without it)."""
+    exposure = img.exposure
+    value = exposure.header_value("BIASLVL") if hasattr(exposure, "header_value") \
+        else img.meta.get("BIASLVL")
+    if value is None:
+        return 0.0
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)) \
+            or not np.isfinite(value):
+        raise InputError(f"{name}: BIASLVL = {value!r} is not a bias level (e); remove the "
+                         "keyword or give the pedestal left in the image in electrons")
+    return float(value)
 
 
 def _exptime(img, given, name):

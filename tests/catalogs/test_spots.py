@@ -266,6 +266,39 @@ def test_bad_inputs_are_clear_errors(tmp_path):
         SpotSeries(images, exptimes=[1.0] * 3)
 
 
+def test_a_stated_bias_pedestal_is_subtracted_on_read(tmp_path):
+    """Correctness (exact arithmetic): images whose header states BIASLVL are
+    read less that pedestal (data and saturation level), the files are left
+    as they were, and the series' rows and its drift-corrected rows equal
+    those of the same images written without the pedestal; a BIASLVL that is
+    not a number is refused."""
+    images, times, _ = _series(41, n_images=3, fluxes=(2e4, 4e5))
+    plain = [_write(tmp_path / f"p{k}.fits", im, EXPTIME=t, BUNIT="electron", SATURATE=9e4)
+             for k, (im, t) in enumerate(zip(images, times))]
+    biased = [_write(tmp_path / f"b{k}.fits", im + 1000.0, EXPTIME=t, BUNIT="electron",
+                     SATURATE=9e4 + 1000.0, BIASLVL=1000.0)
+              for k, (im, t) in enumerate(zip(images, times))]
+    ex = read_spot_images(biased)
+    ref = read_spot_images(plain)
+    with fits.open(biased[0]) as hdul:
+        on_disk = hdul[0].data.astype(float)
+    assert_allclose(on_disk, np.asarray(images[0], np.float32) + 1000.0, rtol=0, atol=0.07)
+    for a, b in zip(ex, ref):
+        assert a.bias == 1000.0 and b.bias == 0.0
+        assert_allclose(a.saturation, b.saturation)
+        assert_allclose(a.data, b.data, rtol=0, atol=1e-3)  # float32 rounding of +1000
+    s_b, s_p = SpotSeries(biased), SpotSeries(plain)
+    for key in ("flux", "sigma_x", "sigma_y"):
+        assert_allclose(s_b.catalog[key].value, s_p.catalog[key].value, rtol=1e-6)
+    t = load_default_template()
+    for key in ("sigma_x", "sigma_y", "e1"):
+        assert_allclose(s_b.corrected_catalog(t)[key].value,
+                        s_p.corrected_catalog(t)[key].value, rtol=1e-5, atol=1e-7)
+    bad = _write(tmp_path / "x.fits", images[0], EXPTIME=1.0, BUNIT="electron", BIASLVL="high")
+    with pytest.raises(ValueError, match=r"BIASLVL = 'high' is not a bias level"):
+        read_spot_images([bad])
+
+
 def test_too_few_usable_rows_name_the_exclusions():
     """Bad input: when saturation leaves too few rows, the slope fit says how
     many rows each flag took."""
