@@ -26,12 +26,15 @@ Per GalSim sensor (default lsst_itl_50_8 and lsst_e2v_50_8):
    corrected by ``drift`` with each band's template and with the r band's.
    Slopes are per detected electron (a y photon crosses the silicon one
    time in three: per incident photon its slope looks a third weaker).
-   Two sets of templates:
+   Three sets of templates:
 
    * ``drift`` (the model): drift lines start at the conversion heights of
      the band's photons (``depth_response='drift'``), the sensor's
      parameters those :func:`~lsst_bfdrift.calibration.tuning.calibrate`
      found from GalSim's a-matrix (``calibrate_sensor_<itl|e2v>_results.json``);
+   * ``drift, window``: the same templates cropped to GalSim's window (its
+     files stop about 4 px from the aggressor; ``DistortionTemplate.cropped``):
+     the part of the model's change between bands that GalSim's files can hold;
    * ``galsim rule``: GalSim's sensor file (``import_galsim_sensor``,
      ``match='transfers'``) scaled by the band's mean tanh(z / 12 um)
      (``depth_response='galsim'``), GalSim's own rule: a check of the
@@ -129,7 +132,28 @@ def band_templates(sensor, cache, *, edge_samples, say):
     base = import_galsim_sensor(sensor, match="transfers")
     rule = build_band_templates(SensorParameters(thickness=params.thickness), BANDS,
                                 depth_response="galsim", base=base)
-    return {"drift": drift, "galsim rule": rule}
+    # the model's templates within GalSim's window (its files stop about 4 px from the
+    # aggressor): how much of the model's change between bands is its far field
+    window = MultiBandTemplate({b: drift[b].cropped(base.size) for b in drift.bands})
+    return {"drift": drift, "drift, window": window, "galsim rule": rule}
+
+
+def edge_shift_sums(template, radii=(0, 1, 2, 4, None)):
+    """Summed abs(normal displacement) of the edges (px, averaged over each edge's
+    samples) within Chebyshev distance R of the aggressor (R = 0: its own four
+    edges; None: the whole template), per R."""
+    c, n = template.center, template.size
+    v, h = np.abs(template.vedge_d).mean(-1), np.abs(template.hedge_d).mean(-1)
+    jv, iv = np.mgrid[:n, :n + 1]
+    jh, ih = np.mgrid[:n + 1, :n]
+    # an edge's distance: the larger of its pixel rows' (columns') offsets
+    dv = np.maximum(np.abs(jv - c), np.minimum(np.abs(iv - c), np.abs(iv - 1 - c)))
+    dh = np.maximum(np.abs(ih - c), np.minimum(np.abs(jh - c), np.abs(jh - 1 - c)))
+    out = {}
+    for r in radii:
+        r_ = n if r is None else r
+        out["all" if r is None else f"R<={r}"] = float(v[dv <= r_].sum() + h[dh <= r_].sum())
+    return out
 
 
 def flats_a00(sensor, cache, args):
@@ -274,6 +298,22 @@ def main(argv=None):
                 text += f"; {name} model / r {m[band] / m['r']:.4f}"
             rec["flats"]["bands"][band] = row
             say(text)
+        fu, fy = rec["flats"]["bands"]["u"], rec["flats"]["bands"]["y"]
+        yu = fy["measured"] / fu["measured"]
+        yu_err = abs(yu) * np.hypot(fy["measured_err"] / fy["measured"],
+                                    fu["measured_err"] / fu["measured"])
+        rec["flats"]["y_over_u"] = {"galsim": (yu, yu_err), **{
+            name: fy[f"model_ratio_{name}"] / fu[f"model_ratio_{name}"] for name in templates}}
+        say(f" a00 y / u: GalSim's flats {yu:.4f} +- {yu_err:.4f}; "
+            + "; ".join(f"{name} model {v:.4f}" for name, v in rec["flats"]["y_over_u"].items()
+                        if name != "galsim")
+            + "; LSSTCam's flats (DMTN-336): about 0.94 (a00 about 6 % weaker in y than in u)")
+        drift = templates["drift"]
+        sums = {b: edge_shift_sums(drift[b]) for b in ("u", "r", "y")}
+        rec["edge_shift_sums"] = sums
+        say(" the model's summed edge displacements, y / r by distance from the aggressor: "
+            + ", ".join(f"{k} {sums['y'][k] / sums['r'][k]:.3f}" for k in sums["r"])
+            + " (GalSim's rule: one scale for every edge)")
         # 2. paired stars per band
         stars = star_list(args.n_stars, psf=args.psf, flux=tuple(args.flux),
                           seed=zlib.crc32(f"{sensor}:chromatic".encode()) % 100000)
@@ -328,7 +368,7 @@ def main(argv=None):
                     verdict = ("holds" if holds else "misses") if resolved else (
                         "change not resolved; |dC - needed| " +
                         ("<=" if abs(miss) <= 2 * err else ">") + " 2 sigma")
-                    text += (f"\n      {name:11s}: left {100 * left_b[0] / unc[0]:+5.1f} % of the "
+                    text += (f"\n      {name:13s}: left {100 * left_b[0] / unc[0]:+5.1f} % of the "
                              f"band's slope (r tpl {100 * left_r[0] / unc[0]:+5.1f} %); dC "
                              f"{100 * dc[0] / s_r[c]:+6.2f} +- {100 * dc[1] / abs(s_r[c]):.2f}, "
                              f"needed {100 * need[0] / s_r[c]:+6.2f} +- "

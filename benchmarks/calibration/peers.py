@@ -12,7 +12,9 @@ this package's, side by side (:mod:`lsst_bfdrift.calibration.routes`):
 * for reference, GalSim's own file (the true template) corrected by ``drift``;
 * to tell the links of the chain apart (template against correction
   method): the Astier & Regnault template corrected by ``drift``, and the
-  true template corrected by ``astier23``.
+  true template corrected by ``astier23``; and the calibrated template
+  cropped to GalSim's window (``electrostatic, window``: the part of the
+  residual that the model's far field beyond GalSim's files makes).
 
 Inputs per GalSim sensor model (lags 0..``--lags``, default 3: GalSim's
 sensor files stop about 4 px from the aggressor, so its a_ij beyond lag 3
@@ -220,6 +222,10 @@ def main(argv=None):
                 # the links of the chain: each template with the other method
                 templates["astier23 shifts, drift"] = (routes["astier23"].template, "drift")
                 templates["true template, astier23"] = (true_tpl, "astier23")
+                # the calibrated template within GalSim's window (its files stop about
+                # 4 px from the aggressor): what the model's far field does to the stars
+                templates["electrostatic, window"] = (
+                    routes["electrostatic"].template.cropped(true_tpl.size), "drift")
                 res = run_case(pairs, templates, args)
                 fl, base_rows = next(iter(res.values()))
                 u, ok = slopes(fl, base_rows["uncorrected"])
@@ -235,7 +241,7 @@ def main(argv=None):
                         f"{q} {row[name][q][0]:+6.1f} +- {row[name][q][1]:4.1f}"
                         for _, q in QUANTITIES))
                 # paired differences (same stars): package minus each LSST route
-                for other in ("astier23", "coulton18", "true template"):
+                for other in ("astier23", "coulton18", "true template", "electrostatic, window"):
                     d = {}
                     for col, q in QUANTITIES:
                         a_rows, b_rows = res["electrostatic"][1], res[other][1]

@@ -221,6 +221,41 @@ class DistortionTemplate:
                                   self.fractions, self.charge * f, vedge_t=t, hedge_t=h,
                                   meta=self.meta, pixel_table=None)
 
+    def cropped(self, size):
+        """The template restricted to the central ``size`` x ``size`` pixels.
+
+        The boundaries of those pixels are kept as they are; those outside
+        no longer move. What the crop drops is what a window of that size
+        cannot describe: for example GalSim's sensor files, which stop about
+        4 px from the aggressor (``size=9``), against this model's far field.
+
+        Parameters
+        ----------
+        size : int
+            Odd side (px) of the neighbourhood kept, at most :attr:`size`.
+
+        Returns
+        -------
+        DistortionTemplate
+            Same charge (e), samples and provenance (``meta['cropped_from']``
+            records the original side).
+        """
+        m = int(size)
+        if m != size or m < 1 or m % 2 != 1 or m > self.size:
+            raise InputError(f"crop size must be an odd number of pixels from 1 to "
+                             f"{self.size}, got {size!r}")
+        lo = self.center - m // 2
+        px, edge = slice(lo, lo + m), slice(lo, lo + m + 1)
+
+        def cut(arr, rows, cols):
+            return None if arr is None else arr[rows, cols].copy()
+
+        meta = dict(self.meta, cropped_from=self.size)
+        return DistortionTemplate(cut(self.corner_d, edge, edge), cut(self.vedge_d, px, edge),
+                                  cut(self.hedge_d, edge, px), self.fractions, self.charge,
+                                  vedge_t=cut(self.vedge_t, px, edge),
+                                  hedge_t=cut(self.hedge_t, edge, px), meta=meta)
+
     def boundary_grid(self, charge=None):
         """Absolute boundaries of the neighbourhood with aggressor ``charge`` (e).
 

@@ -300,3 +300,25 @@ def test_template_build_help_says_how_the_bundled_template_differs(capsys):
     for phrase in ("SensorParameters()", "TemplateSettings()", "32 samples per edge",
                    "refine_template", "ratio_01_10 (2.39 -> 2.64)", "window leak (2.7 %"):
         assert phrase in text, phrase
+
+
+def test_cropped_template_keeps_the_central_polygons():
+    """Correctness (exact slicing against the full template's own polygons):
+    the central 9 x 9 pixels of a cropped template have the vertices of the
+    full template's same pixels, the crop of the bundled 21 x 21 default
+    loses the area change beyond 4 px (its window leak grows), a crop of the
+    whole size is the template itself, and even or too large sizes are refused."""
+    t = load_default_template()
+    c, k = t.center, 4
+    small = t.cropped(9)
+    assert small.size == 9 and small.charge == t.charge and small.meta["cropped_from"] == 21
+    xs, ys = small.polygons()
+    xf, yf = t.polygons()
+    assert_allclose(xs, xf[c - k:c + k + 1, c - k:c + k + 1], rtol=0, atol=1e-12)
+    assert_allclose(ys, yf[c - k:c + k + 1, c - k:c + k + 1], rtol=0, atol=1e-12)
+    assert small.summary()["window_leak"] > t.summary()["window_leak"] + 0.02
+    same = t.cropped(21)
+    assert_allclose(same.moments().area, t.moments().area, rtol=0, atol=0)
+    for bad in (8, 23, 0, 9.5):
+        with pytest.raises(ValueError, match="crop size must be an odd number"):
+            t.cropped(bad)
