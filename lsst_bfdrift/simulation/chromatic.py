@@ -14,7 +14,12 @@ these facts; no code taken):
   files); a photon with z < 0 (it crossed the silicon) is dropped;
 * the displacement of every pixel vertex is multiplied by tanh(z / 12 um)
   (:data:`~lsst_bfdrift.physics.depth.GALSIM_ZFIT`) when that photon is
-  tested; the stored distortions assume conversion at the top of the silicon;
+  tested against the pixel's polygon; the stored distortions assume
+  conversion at the top of the silicon. That test runs only for photons
+  between the pixel's inscribed and bounding boxes of the unscaled polygon
+  (inside the first: inside; outside the second: outside), so where an
+  edge is shifted straight the scale does not act and the images carry a
+  small part of the rule (``benchmarks/simulation/galsim_depth_rule.py``);
 * the diffusion step is proportional to sqrt(z t).
 
 The bands, spectra and depth distributions are those of
