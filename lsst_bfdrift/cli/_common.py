@@ -24,7 +24,12 @@ from lsst_bfdrift.utils.io import check_output, remove_stale_temporaries
 __all__ = ["library_default", "load_template", "print_json", "emit", "check_outputs",
            "template_input", "save_and_report", "save_plot", "check_output_dir",
            "OUTPUT_OPTIONS", "output_dirs", "remove_stale_outputs", "Terminated",
-           "sigterm_raises"]
+           "sigterm_raises", "add_common_options"]
+
+#: Help of the options every command shares (:func:`add_common_options`).
+COMMON_HELP = {"overwrite": "replace existing outputs",
+               "json": "print the result as JSON on stdout",
+               "quiet": "no progress on stderr"}
 
 
 def library_default(func, name):
@@ -54,6 +59,24 @@ def library_default(func, name):
     if default is inspect.Parameter.empty:
         raise ValueError(f"{func.__qualname__}({name}=...) has no default")
     return default
+
+
+def add_common_options(parser, *names, **helps):
+    """Add the shared flags ``--overwrite``, ``--json``, ``--quiet`` (those named).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        A subcommand's parser.
+    *names : str
+        Of ``'overwrite'``, ``'json'``, ``'quiet'``, in the order of the help.
+    **helps : str
+        A help text of the command's own for one of them (default
+        :data:`COMMON_HELP`).
+    """
+    for name in names:
+        parser.add_argument(f"--{name}", action="store_true",
+                            help=helps.get(name, COMMON_HELP[name]))
 
 
 def load_template(path):

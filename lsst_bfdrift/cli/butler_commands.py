@@ -8,7 +8,7 @@ middleware (the ``[lsst]`` extra) is imported only when the command runs, so
 
 import os
 
-from lsst_bfdrift.cli._common import print_json
+from lsst_bfdrift.cli._common import add_common_options, print_json
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.utils.progress import ProgressBar
 
@@ -65,17 +65,7 @@ def cmd_butler_put(args):
 
 
 def add_butler_put_parser(subparsers):
-    """Add ``butler-put`` to the subcommands of ``bfdrift``.
-
-    Parameters
-    ----------
-    subparsers : argparse._SubParsersAction
-        The ``add_subparsers()`` of the top-level parser.
-
-    Returns
-    -------
-    parser : argparse.ArgumentParser
-    """
+    """Add ``butler-put`` to ``subparsers`` (the ``bfdrift`` subcommands); return its parser."""
     p = subparsers.add_parser(
         "butler-put", help="put FITS exposures into a Butler run collection (for pipetask)",
         description="Put FITS exposures (electrons; LSST Exposure, CCDData or plain layout) "
@@ -97,7 +87,6 @@ def add_butler_put_parser(subparsers):
                    "pipeline's input, post_isr_image)")
     p.add_argument("--filter", help="physical filter recorded for new exposures (default: "
                    "the FILTER keyword, else 'unknown')")
-    p.add_argument("--json", action="store_true")
-    p.add_argument("--quiet", action="store_true")
+    add_common_options(p, "json", "quiet")
     p.set_defaults(func=cmd_butler_put)
     return p

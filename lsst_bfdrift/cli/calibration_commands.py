@@ -27,8 +27,8 @@ from lsst_bfdrift.calibration.spot_fit import (SPOT_SPLITS, calibrate_with_spots
 from lsst_bfdrift.calibration.star_fit import calibrate_with_stars, check_size_goal
 from lsst_bfdrift.calibration.tuning import CalibrationWarning, calibrate, measured_acoeffs
 from lsst_bfdrift.catalogs.spot_series import SpotSeries
-from lsst_bfdrift.cli._common import (check_output_dir, check_outputs, emit, library_default,
-                                      print_json, save_plot)
+from lsst_bfdrift.cli._common import (add_common_options, check_output_dir, check_outputs, emit,
+                                      library_default, print_json, save_plot)
 from lsst_bfdrift.diagnosis import consequence
 from lsst_bfdrift.diagnosis.effects_fit import diagnose, load_input
 from lsst_bfdrift.diagnosis.report import (notable_not_excluded, template_change_lines,
@@ -510,17 +510,7 @@ def cmd_diagnose(args):
 
 
 def add_calibrate_parser(subparsers):
-    """Add ``calibrate`` to the subcommands of ``bfdrift``.
-
-    Parameters
-    ----------
-    subparsers : argparse._SubParsersAction
-        The ``add_subparsers()`` of the top-level parser.
-
-    Returns
-    -------
-    parser : argparse.ArgumentParser
-    """
+    """Add ``calibrate`` to ``subparsers`` (the ``bfdrift`` subcommands); return its parser."""
     def stars_default(name):
         return library_default(calibrate_with_stars, name)
 
@@ -616,47 +606,25 @@ def add_calibrate_parser(subparsers):
     ca.add_argument("--plot", help="write a PNG: a_ij against lag, pulls, correlations")
     ca.add_argument("--overwrite", action="store_true",
                     help="replace an existing --out or --plot")
-    ca.add_argument("--json", action="store_true")
-    ca.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_common_options(ca, "json", "quiet")
     ca.set_defaults(func=cmd_calibrate)
     return ca
 
 
 def add_ptc_parser(subparsers):
-    """Add ``ptc`` to the subcommands of ``bfdrift``.
-
-    Parameters
-    ----------
-    subparsers : argparse._SubParsersAction
-        The ``add_subparsers()`` of the top-level parser.
-
-    Returns
-    -------
-    parser : argparse.ArgumentParser
-    """
+    """Add ``ptc`` to ``subparsers`` (the ``bfdrift`` subcommands); return its parser."""
     pt = subparsers.add_parser("ptc", help="photon transfer curve fit (gain, a_ij)")
     pt.add_argument("files", nargs="+", help="PTC text file, or FITS flats in pairs (files, or "
                     "one directory: its FITS files sorted by name)")
     # not read_calibration_input's 8 (calibrate's): see PTC_MAX_LAG
     pt.add_argument("--max-lag", type=int, default=PTC_MAX_LAG, help="largest covariance lag")
-    pt.add_argument("--json", action="store_true")
-    pt.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    add_common_options(pt, "json", "quiet")
     pt.set_defaults(func=cmd_ptc)
     return pt
 
 
 def add_diagnose_parser(subparsers):
-    """Add ``diagnose`` to the subcommands of ``bfdrift``.
-
-    Parameters
-    ----------
-    subparsers : argparse._SubParsersAction
-        The ``add_subparsers()`` of the top-level parser.
-
-    Returns
-    -------
-    parser : argparse.ArgumentParser
-    """
+    """Add ``diagnose`` to ``subparsers`` (the ``bfdrift`` subcommands); return its parser."""
     dg = subparsers.add_parser("diagnose", help="residual of the model and the effects "
                                "explaining it")
     dg.add_argument("input", help="a_ij table, PTC text file or directory of flat pairs")

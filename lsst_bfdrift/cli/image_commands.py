@@ -17,8 +17,8 @@ import warnings
 import numpy as np
 from astropy.io import fits
 
-from lsst_bfdrift.cli._common import (check_outputs, emit, library_default, load_template,
-                                      print_json, save_plot, template_input)
+from lsst_bfdrift.cli._common import (add_common_options, check_outputs, emit, library_default,
+                                      load_template, print_json, save_plot, template_input)
 from lsst_bfdrift.correction.batch import correct_files, output_pairs
 from lsst_bfdrift.correction.task import BrighterFatterDriftConfig
 from lsst_bfdrift.geometry.superpose import moment_maps
@@ -277,21 +277,13 @@ def _written_by_bfdrift(path):
 
 
 def add_correct_parser(subparsers):
-    """Add ``correct`` to the subcommands of ``bfdrift``.
+    """Add ``correct`` to ``subparsers`` (the ``bfdrift`` subcommands); return its parser.
 
     The Task's options are None by default: the config's field stays (its
     value, from :class:`~lsst_bfdrift.correction.task.BrighterFatterDriftConfig`,
     is quoted in the help); the dask options default to
     :func:`~lsst_bfdrift.correction.batch.correct_files`'s.
 
-    Parameters
-    ----------
-    subparsers : argparse._SubParsersAction
-        The ``add_subparsers()`` of the top-level parser.
-
-    Returns
-    -------
-    parser : argparse.ArgumentParser
     """
     cfg = BrighterFatterDriftConfig()
     co = subparsers.add_parser("correct", help="brighter-fatter correction of FITS images")
@@ -332,24 +324,13 @@ def add_correct_parser(subparsers):
                     help="LocalCluster workers")
     co.add_argument("--processes", action="store_true",
                     help="LocalCluster workers as processes (default: threads)")
-    co.add_argument("--json", action="store_true")
-    co.add_argument("--quiet", action="store_true")
+    add_common_options(co, "json", "quiet")
     co.set_defaults(func=cmd_correct)
     return co
 
 
 def add_maps_parser(subparsers):
-    """Add ``maps`` to the subcommands of ``bfdrift``.
-
-    Parameters
-    ----------
-    subparsers : argparse._SubParsersAction
-        The ``add_subparsers()`` of the top-level parser.
-
-    Returns
-    -------
-    parser : argparse.ArgumentParser
-    """
+    """Add ``maps`` to ``subparsers`` (the ``bfdrift`` subcommands); return its parser."""
     m = subparsers.add_parser("maps", help="pixel geometry maps of an image (main job)")
     m.add_argument("image", nargs="?", help="FITS image in electrons (default: bundled sample)")
     m.add_argument("--template", help="template FITS file (default: bundled)")
@@ -360,7 +341,6 @@ def add_maps_parser(subparsers):
     m.add_argument("--samples", type=int, default=library_default(moment_maps, "samples"),
                    help="resample the template's edges to this many samples (faster; 8 "
                         "keeps the maps within ~1e-5 of the full ones); default: all")
-    m.add_argument("--json", action="store_true")
-    m.add_argument("--quiet", action="store_true")
+    add_common_options(m, "json", "quiet")
     m.set_defaults(func=cmd_maps)
     return m

@@ -11,8 +11,9 @@ comment says why not.
 
 import os
 
-from lsst_bfdrift.cli._common import (check_output_dir, check_outputs, library_default,
-                                      load_template, print_json, save_plot, template_input)
+from lsst_bfdrift.cli._common import (add_common_options, check_output_dir, check_outputs,
+                                      library_default, load_template, print_json, save_plot,
+                                      template_input)
 from lsst_bfdrift.simulation.flats import simulate_flats, with_responsivity
 from lsst_bfdrift.simulation.spots import SPOT_PROFILES, simulate_spot_series, write_spot_series
 from lsst_bfdrift.simulation.stars import make_psf, simulate_star
@@ -166,17 +167,7 @@ def cmd_spot_sim(args):
 
 
 def add_flat_sim_parser(subparsers):
-    """Add ``flat-sim`` to the subcommands of ``bfdrift``.
-
-    Parameters
-    ----------
-    subparsers : argparse._SubParsersAction
-        The ``add_subparsers()`` of the top-level parser.
-
-    Returns
-    -------
-    parser : argparse.ArgumentParser
-    """
+    """Add ``flat-sim`` to ``subparsers`` (the ``bfdrift`` subcommands); return its parser."""
     def default(name):
         return library_default(simulate_flats, name)
 
@@ -200,29 +191,19 @@ def add_flat_sim_parser(subparsers):
     fs.add_argument("--seed", type=int, default=CLI_SEED, help="random seed")
     fs.add_argument("--out", help="write the per-step table (ECSV)")
     fs.add_argument("--plot", help="write a PNG of covariances against mean")
-    fs.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    fs.add_argument("--json", action="store_true")
-    fs.add_argument("--quiet", action="store_true")
+    add_common_options(fs, "overwrite", "json", "quiet")
     fs.set_defaults(func=cmd_flat_sim)
     return fs
 
 
 def add_star_sim_parser(subparsers):
-    """Add ``star-sim`` to the subcommands of ``bfdrift``.
+    """Add ``star-sim`` to ``subparsers`` (the ``bfdrift`` subcommands); return its parser.
 
     The PSF options (``--psf``, ``--fwhm``, ``--flux``) have no library
     default; ``--e`` and ``--beta`` differ from
     :func:`~lsst_bfdrift.simulation.stars.make_psf`'s round PSF on purpose
     (see the comments).
 
-    Parameters
-    ----------
-    subparsers : argparse._SubParsersAction
-        The ``add_subparsers()`` of the top-level parser.
-
-    Returns
-    -------
-    parser : argparse.ArgumentParser
     """
     def default(name):
         return library_default(simulate_star, name)
@@ -251,25 +232,13 @@ def add_star_sim_parser(subparsers):
     ss.add_argument("--seed", type=int, default=CLI_SEED, help="random seed")
     ss.add_argument("--out", help="write the per-step table (ECSV)")
     ss.add_argument("--plot", help="write a PNG like the paper's Fig. 7")
-    ss.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    ss.add_argument("--json", action="store_true")
-    ss.add_argument("--quiet", action="store_true")
+    add_common_options(ss, "overwrite", "json", "quiet")
     ss.set_defaults(func=cmd_star_sim)
     return ss
 
 
 def add_spot_sim_parser(subparsers):
-    """Add ``spot-sim`` to the subcommands of ``bfdrift``.
-
-    Parameters
-    ----------
-    subparsers : argparse._SubParsersAction
-        The ``add_subparsers()`` of the top-level parser.
-
-    Returns
-    -------
-    parser : argparse.ArgumentParser
-    """
+    """Add ``spot-sim`` to ``subparsers`` (the ``bfdrift`` subcommands); return its parser."""
     def default(name):
         return library_default(simulate_spot_series, name)
 
@@ -310,8 +279,6 @@ def add_spot_sim_parser(subparsers):
     sp.add_argument("--updates", type=float, default=default("updates"),
                     help="GalSim boundary updates per spot and exposure")
     sp.add_argument("--seed", type=int, default=default("seed"))
-    sp.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    sp.add_argument("--json", action="store_true")
-    sp.add_argument("--quiet", action="store_true")
+    add_common_options(sp, "overwrite", "json", "quiet")
     sp.set_defaults(func=cmd_spot_sim)
     return sp

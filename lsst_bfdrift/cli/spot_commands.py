@@ -17,8 +17,8 @@ from lsst_bfdrift.calibration.spot_plan import (PLAN_GOALS, PLAN_QUANTITIES, Spo
 from lsst_bfdrift.catalogs.spot_series import SpotSeries
 from lsst_bfdrift.catalogs.spot_slopes import SPOT_MODELS, compare_slopes, predict_spot_slopes
 from lsst_bfdrift.catalogs.spots import SPOT_QUANTITIES
-from lsst_bfdrift.cli._common import (check_outputs, library_default, load_template,
-                                      print_json, save_plot)
+from lsst_bfdrift.cli._common import (add_common_options, check_outputs, library_default,
+                                      load_template, print_json, save_plot)
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.utils.errors import InputError, InputNotFoundError
 from lsst_bfdrift.utils.io import atomic_output
@@ -181,17 +181,7 @@ def cmd_spots(args):
 
 
 def add_spots_parser(subparsers):
-    """Add ``spots`` to the subcommands of ``bfdrift``.
-
-    Parameters
-    ----------
-    subparsers : argparse._SubParsersAction
-        The ``add_subparsers()`` of the top-level parser.
-
-    Returns
-    -------
-    parser : argparse.ArgumentParser
-    """
+    """Add ``spots`` to ``subparsers`` (the ``bfdrift`` subcommands); return its parser."""
     def default(name):
         return library_default(SpotSeries, name)
 
@@ -221,9 +211,7 @@ def add_spots_parser(subparsers):
                     choices=SPOT_MODELS, help="BF-free spot profile of the prediction")
     sp.add_argument("--catalog", help="write the per-spot, per-image rows (ECSV)")
     sp.add_argument("--plot", help="write a PNG: moments against flux with the slopes")
-    sp.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    sp.add_argument("--json", action="store_true")
-    sp.add_argument("--quiet", action="store_true")
+    add_common_options(sp, "overwrite", "json", "quiet")
     sp.set_defaults(func=cmd_spots)
     return sp
 
@@ -324,17 +312,7 @@ def cmd_spot_plan(args):
 
 
 def add_spot_plan_parser(subparsers):
-    """Add ``spot-plan`` to the subcommands of ``bfdrift``.
-
-    Parameters
-    ----------
-    subparsers : argparse._SubParsersAction
-        The ``add_subparsers()`` of the top-level parser.
-
-    Returns
-    -------
-    parser : argparse.ArgumentParser
-    """
+    """Add ``spot-plan`` to ``subparsers`` (the ``bfdrift`` subcommands); return its parser."""
     def default(name):
         return library_default(SpotDesign, name)
 
@@ -371,7 +349,6 @@ def add_spot_plan_parser(subparsers):
     sp.add_argument("--saturation", type=float,
                     default=library_default(SpotSeries, "saturation"),
                     help="saturation level (image unit; default: SATURATE keyword)")
-    sp.add_argument("--json", action="store_true")
-    sp.add_argument("--quiet", action="store_true")
+    add_common_options(sp, "json", "quiet")
     sp.set_defaults(func=cmd_spot_plan)
     return sp

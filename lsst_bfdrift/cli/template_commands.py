@@ -8,8 +8,9 @@ made by :func:`add_template_parser`.
 
 import os
 
-from lsst_bfdrift.cli._common import (check_outputs, emit, library_default, load_template,
-                                      print_json, save_and_report, save_plot, template_input)
+from lsst_bfdrift.cli._common import (add_common_options, check_outputs, emit, library_default,
+                                      load_template, print_json, save_and_report, save_plot,
+                                      template_input)
 from lsst_bfdrift.physics.depth import BANDS
 from lsst_bfdrift.templates.bands import (DEPTH_RESPONSES, build_band_templates,
                                           load_templates)
@@ -261,9 +262,7 @@ def add_template_parser(subparsers):
                    "tanh(z / 12 um))")
     b.add_argument("--nodes", type=int, help="with --band: conversion heights of the shared "
                    "grid (default 8: 7 builds for all bands)")
-    b.add_argument("--overwrite", action="store_true")
-    b.add_argument("--quiet", action="store_true", help="no progress bar")
-    b.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_common_options(b, "overwrite", "quiet", "json")
     b.set_defaults(func=cmd_template_build)
     s = tsub.add_parser("summary", help="key numbers of a template")
     s.add_argument("file", nargs="?", help="template FITS file (default: bundled)")
@@ -283,13 +282,11 @@ def add_template_parser(subparsers):
     ex.add_argument("--vertices", type=int,
                     default=library_default(export_galsim_sensor, "num_vertices"),
                     help="vertices per edge (default: the template's edge samples)")
-    ex.add_argument("--overwrite", action="store_true", help="replace existing files")
-    ex.add_argument("--json", action="store_true")
+    add_common_options(ex, "overwrite", "json")
     ex.set_defaults(func=cmd_template_export)
     g = tsub.add_parser("import-galsim", help="convert a GalSim sensor file")
     g.add_argument("name", help="sensor name (e.g. lsst_itl_50_8) or path prefix")
     g.add_argument("--out", required=True, help="output template FITS file")
-    g.add_argument("--overwrite", action="store_true")
-    g.add_argument("--json", action="store_true")
+    add_common_options(g, "overwrite", "json")
     g.set_defaults(func=cmd_template_import)
     return tp

@@ -10,8 +10,9 @@ says why not.
 import json
 import os
 
-from lsst_bfdrift.cli._common import (check_output_dir, check_outputs, emit, library_default,
-                                      load_template, print_json, save_plot, template_input)
+from lsst_bfdrift.cli._common import (add_common_options, check_output_dir, check_outputs, emit,
+                                      library_default, load_template, print_json, save_plot,
+                                      template_input)
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.templates.template import DistortionTemplate
 from lsst_bfdrift.utils.io import atomic_output
@@ -145,17 +146,7 @@ def cmd_validate_sky(args):
 
 
 def add_validate_stars_parser(subparsers):
-    """Add ``validate-stars`` to the subcommands of ``bfdrift``.
-
-    Parameters
-    ----------
-    subparsers : argparse._SubParsersAction
-        The ``add_subparsers()`` of the top-level parser.
-
-    Returns
-    -------
-    parser : argparse.ArgumentParser
-    """
+    """Add ``validate-stars`` to ``subparsers`` (the ``bfdrift`` subcommands); return its parser."""
     def default(name):
         return library_default(draw_star_pairs, name)
 
@@ -177,49 +168,28 @@ def add_validate_stars_parser(subparsers):
                     help="smallest GalSim nrecalc (photons)")
     vs.add_argument("--sky", type=float, default=default("sky"), help="sky level (e per pixel)")
     vs.add_argument("--seed", type=int, default=default("seed"))
-    vs.add_argument("--json", action="store_true")
-    vs.add_argument("--quiet", action="store_true")
+    add_common_options(vs, "json", "quiet")
     vs.set_defaults(func=cmd_validate_stars)
     return vs
 
 
 def add_reproduce_parser(subparsers):
-    """Add ``reproduce`` to the subcommands of ``bfdrift``.
-
-    Parameters
-    ----------
-    subparsers : argparse._SubParsersAction
-        The ``add_subparsers()`` of the top-level parser.
-
-    Returns
-    -------
-    parser : argparse.ArgumentParser
-    """
+    """Add ``reproduce`` to ``subparsers`` (the ``bfdrift`` subcommands); return its parser."""
     rp = subparsers.add_parser("reproduce", help="the paper's numbers with the calibrated "
                                "model")
     rp.add_argument("--out", help="directory for figures, template and JSON")
     rp.add_argument("--quick", action="store_true", help="small template and scan (tests)")
-    rp.add_argument("--overwrite", action="store_true")
-    rp.add_argument("--json", action="store_true")
-    rp.add_argument("--quiet", action="store_true")
+    add_common_options(rp, "overwrite", "json", "quiet")
     rp.set_defaults(func=cmd_reproduce)
     return rp
 
 
 def add_validate_sky_parser(subparsers):
-    """Add ``validate-sky`` to the subcommands of ``bfdrift``.
+    """Add ``validate-sky`` to ``subparsers`` (the ``bfdrift`` subcommands); return its parser.
 
     ``validate_sky``'s ``seed`` and ``history`` are not options: the command
     uses the function's defaults.
 
-    Parameters
-    ----------
-    subparsers : argparse._SubParsersAction
-        The ``add_subparsers()`` of the top-level parser.
-
-    Returns
-    -------
-    parser : argparse.ArgumentParser
     """
     def default(name):
         return library_default(validate_sky, name)
@@ -246,8 +216,6 @@ def add_validate_sky_parser(subparsers):
     vk.add_argument("--n-boot", type=int, default=default("n_boot"), help="bootstrap resamples")
     vk.add_argument("--catalog", help="write the (corrected) star catalog (ECSV)")
     vk.add_argument("--plot", help="write a PNG: size/ellipticity vs flux and whiskers")
-    vk.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    vk.add_argument("--json", action="store_true")
-    vk.add_argument("--quiet", action="store_true")
+    add_common_options(vk, "overwrite", "json", "quiet")
     vk.set_defaults(func=cmd_validate_sky)
     return vk
