@@ -18,6 +18,7 @@ from lsst_bfdrift.physics.drift import compile_model, drift_lines
 from lsst_bfdrift.utils.errors import ComputationError, InputError
 
 __all__ = ["BoundaryGrid", "bisect_boundary", "locate_corners", "pixel_boundaries",
+           "centred_boundaries",
            "uniform_fractions", "edge_fractions"]
 
 
@@ -372,3 +373,66 @@ def pixel_boundaries(model, i_range, j_range, *, edge_samples=8, tol=1e-4, z0=No
     cx, cy = _split_run(model, "corner", [I - 0.5, J - 0.5, I - 1, J - 1], dict(kw), workers)
     corners = np.stack([cx.reshape(I.shape), cy.reshape(I.shape)], axis=-1)
     return BoundaryGrid(i0, j0, corners, vedge, hedge, fr)
+
+
+def _mirror_index(k):
+    """Index in the traced quadrant (0..) and sign of full-grid offset ``k`` of a
+    boundary at ``k - 1/2`` (boundaries at negative positions mirror to 1 - k)."""
+    k = np.asarray(k)
+    return np.where(k < 1, 1 - k, k), np.where(k < 1, -1.0, 1.0)
+
+
+def centred_boundaries(model, c, **kwargs):
+    """Boundaries of the pixels within ``c`` of pixel (0, 0), using the model's
+    mirror symmetry when it has it.
+
+    A model symmetric under x -> -x and y -> -y about the centre of pixel
+    (0, 0) (``model.mirror_symmetric``) is traced on the quadrant of pixels
+    0..c only, (c + 1)^2 pixels instead of (2 c + 1)^2, and the other three
+    are its mirror images: a boundary's displacement across itself changes
+    sign under the mirror that moves it, and the samples along an edge run the
+    other way under the mirror along it. Other models are traced whole.
+
+    Parameters
+    ----------
+    model : SensorModel
+        The field model.
+    c : int
+        Half side: pixels -c..c on both axes.
+    **kwargs
+        Passed to :func:`pixel_boundaries`; the edge samples must be placed
+        symmetrically along the edge (both spacings are).
+
+    Returns
+    -------
+    BoundaryGrid
+        The block of pixels -c..c (as ``pixel_boundaries(model, (-c, c + 1),
+        (-c, c + 1), ...)`` gives it, to the bisection's tolerance).
+    """
+    c = int(c)
+    if not getattr(model, "mirror_symmetric", False):
+        return pixel_boundaries(model, (-c, c + 1), (-c, c + 1), **kwargs)
+    q = pixel_boundaries(model, (0, c + 1), (0, c + 1), **kwargs)
+    fr = q.fractions
+    if not np.allclose(fr, 1.0 - fr[::-1], rtol=0, atol=1e-12):
+        return pixel_boundaries(model, (-c, c + 1), (-c, c + 1), **kwargs)
+    nom = q.nominal()
+    dc, dv, dh = q.displacements(nom)
+    offs = np.arange(-c, c + 1)           # pixel offsets
+    bnds = np.arange(-c, c + 2)           # boundary k at k - 1/2
+    # column boundaries: rows mirror (samples reversed), boundaries mirror (sign)
+    jr, ib = np.abs(offs), _mirror_index(bnds)
+    vd = dv[jr][:, ib[0]] * ib[1][None, :, None]
+    vd[offs < 0] = vd[offs < 0][..., ::-1]
+    # row boundaries: boundaries mirror (sign), columns mirror (samples reversed)
+    jb, ic = _mirror_index(bnds), np.abs(offs)
+    hd = dh[jb[0]][:, ic] * jb[1][:, None, None]
+    hd[:, offs < 0] = hd[:, offs < 0][..., ::-1]
+    # corners: each coordinate's displacement flips under its own mirror
+    cd = dc[jb[0]][:, ib[0]].copy()
+    cd[..., 0] *= ib[1][None, :]
+    cd[..., 1] *= jb[1][:, None]
+    full = BoundaryGrid(-c, -c, np.zeros((2 * c + 2, 2 * c + 2, 2)),
+                        np.zeros((2 * c + 1, 2 * c + 2, fr.size)),
+                        np.zeros((2 * c + 2, 2 * c + 1, fr.size)), fr).nominal()
+    return BoundaryGrid(-c, -c, full.corners + cd, full.vedge + vd, full.hedge + hd, fr)

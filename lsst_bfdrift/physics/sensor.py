@@ -396,6 +396,18 @@ class SensorModel:
         return SensorModel(self.params, charge=charge, terms=self.extra_terms,
                            replace_backdrop=self.replace_backdrop)
 
+    @property
+    def mirror_symmetric(self):
+        """True when the model is symmetric under x -> -x and y -> -y about the
+        centre of pixel (0, 0): no sensor edge, bloom stop, per-boundary
+        override, shift or truncation, no extra terms, and charge in pixel
+        (0, 0) alone (the periodic channel stops and clock barriers, the
+        backdrop and the charge's images are symmetric)."""
+        P = self.params
+        return (P.edge is None and P.bloom_stop is None and not P.column_overrides
+                and not P.row_overrides and not P.row_shifts and not P.truncations
+                and not self.extra_terms and set(self.charge) <= {(0, 0)})
+
     # -- evaluation -------------------------------------------------------
     def field(self, x, y, z):
         """Total field (ex, ey, ez) in V/um at points (x, y, z) in um."""

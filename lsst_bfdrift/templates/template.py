@@ -24,7 +24,7 @@ import numpy as np
 from astropy.io import fits
 from astropy.table import Table
 
-from lsst_bfdrift.physics.boundaries import BoundaryGrid, pixel_boundaries
+from lsst_bfdrift.physics.boundaries import BoundaryGrid, centred_boundaries
 from lsst_bfdrift.physics.polygons import pixel_polygons, polygon_moments
 from lsst_bfdrift.templates.template_io import (band_key, check_template_table,
                                                 read_template_fits, template_file_bands)
@@ -700,10 +700,11 @@ def build_template(params=None, settings=None, *, progress=False):
     else:
         bar = ProgressBar(total, "template", enabled=bool(progress))
     with bar:
-        grid = pixel_boundaries(model, (-c, c + 1), (-c, c + 1), progress=bar, **kw)
+        # a model symmetric about the aggressor's axes is traced on a quadrant
+        grid = centred_boundaries(model, c, progress=bar, **kw)
         ref = None
         if settings.baseline == "computed":
-            ref = pixel_boundaries(base, (-c, c + 1), (-c, c + 1), progress=bar, **kw)
+            ref = centred_boundaries(base, c, progress=bar, **kw)
     corner_d, vedge_d, hedge_d = grid.displacements(ref)
     meta = {"source": "lsst_bfdrift.build_template", "params": params.to_dict(),
             "settings": settings.to_dict()}

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from lsst_bfdrift.physics.boundaries import (bisect_boundary, locate_corners, pixel_boundaries,
-                                     uniform_fractions)
+from lsst_bfdrift.physics.boundaries import (bisect_boundary, centred_boundaries, locate_corners,
+                                             pixel_boundaries, uniform_fractions)
 from lsst_bfdrift.physics.drift import landing_pixels
 from lsst_bfdrift.physics.polygons import pixel_polygons, polygon_moments
 from lsst_bfdrift.physics.sensor import SensorModel, SensorParameters
@@ -92,3 +92,38 @@ def test_bad_arguments():
         pixel_boundaries(SensorModel(SensorParameters.paper()), (0, 1), (0, 1), tol=0.5)
     with pytest.raises(ValueError, match="positive integer"):
         uniform_fractions(0)
+
+
+@pytest.mark.parametrize("spacing", ["uniform", "tan"])
+def test_centred_boundaries_of_a_symmetric_model_equal_the_whole_trace(spacing):
+    """Correctness (against tracing every pixel, the direct computation): the
+    quadrant traced and mirrored gives the boundaries of the whole block, to
+    the bit for this model (the bisection is itself symmetric) and in any case
+    within the bisection's tolerance; the charge moves them by far more."""
+    model = SensorModel(SensorParameters()).with_charge({(0, 0): 2e4})
+    assert model.mirror_symmetric
+    kw = dict(edge_samples=4, tol=1e-4, spacing=spacing)
+    whole = pixel_boundaries(model, (-2, 3), (-2, 3), **kw)
+    mirrored = centred_boundaries(model, 2, **kw)
+    assert (mirrored.i0, mirrored.j0, mirrored.shape) == (-2, -2, (5, 5))
+    for name in ("corners", "vedge", "hedge"):
+        assert_allclose(getattr(mirrored, name), getattr(whole, name), rtol=0, atol=1e-4)
+    assert max(np.abs(d).max() for d in whole.displacements()) > 20 * 1e-4
+
+
+def test_centred_boundaries_trace_an_asymmetric_model_whole():
+    """Consistency: a bloom stop, a sensor edge, an override or charge beside
+    the aggressor breaks the mirror symmetry, and such a model is traced whole
+    (the same grid as pixel_boundaries, not a mirrored quadrant)."""
+    P = SensorParameters
+    for params, charge in ((P(bloom_stop=1.0), {(0, 0): 2e4}), (P(edge=-1.5), {(0, 0): 2e4}),
+                           (P(column_overrides=((1, 0.5),)), {(0, 0): 2e4}),
+                           (P(), {(0, 0): 2e4, (1, 0): 1e4})):
+        assert not SensorModel(params).with_charge(charge).mirror_symmetric
+    model = SensorModel(P(bloom_stop=1.0)).with_charge({(0, 0): 2e4})
+    kw = dict(edge_samples=3, tol=1e-4)
+    whole = pixel_boundaries(model, (-1, 2), (-1, 2), **kw)
+    got = centred_boundaries(model, 1, **kw)
+    assert_allclose(got.hedge, whole.hedge, rtol=0, atol=0)
+    # the bloom stop at row boundary 1 moves the top edges unlike the bottom ones
+    assert np.abs(whole.hedge[3] + whole.hedge[0][:, ::-1]).max() > 1e-3
