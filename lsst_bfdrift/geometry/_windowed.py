@@ -22,8 +22,7 @@ import numpy as np
 from scipy import fft as sp_fft
 
 from lsst_bfdrift.geometry._exact import packed_canvas
-from lsst_bfdrift.geometry._linear_kernels import abs_dev_bins
-from lsst_bfdrift.geometry.bounds import reference_level
+from lsst_bfdrift.geometry.bounds import bin_abs_dev, reference_level
 from lsst_bfdrift.geometry.first_order import (_NOMINAL, LINEAR_MAPS, _bin_kernel, _map_store,
                                                convolved_first_order_maps)
 
@@ -37,6 +36,17 @@ _FLOOR_HALF = 4
 #: sample) for which :func:`expected_route` expects windows: above it, noise
 #: alone flags a large share of the bins.
 _EXPECTED_SKY = 0.5
+
+
+def _index_map(size, n):
+    """Pixel index in the n-pixel uniform image
+    (:func:`~lsst_bfdrift.geometry.linear._uniform_response`) of
+    every pixel along an axis of ``size`` >= n pixels."""
+    r = n // 2
+    m = np.full(size, r)
+    m[:r] = np.arange(r)
+    m[size - r:] = np.arange(r + 1, n)
+    return m
 
 
 def signal_floor(lk, q, qbar):
@@ -115,7 +125,7 @@ def expected_route(lk, q, qbar, floor, rtol, *, bin=2):
     return "windows" if sky <= _EXPECTED_SKY else "full"
 
 
-def first_order_bound(lk, q, qbar, weights, *, bin, workers):
+def first_order_bound(lk, q, qbar, weights, *, bin, workers, bin_sums=None):
     """Upper bound of ``max_k weights[k] beta_k(p)`` over each bin's pixels.
 
     Parameters
@@ -131,6 +141,9 @@ def first_order_bound(lk, q, qbar, weights, *, bin, workers):
         Bin side (px).
     workers : int
         FFT threads.
+    bin_sums : ndarray, optional
+        :func:`~lsst_bfdrift.geometry.bounds.bin_abs_dev` of ``q`` (``qbar``,
+        ``bin``, nothing outside) when already computed.
 
     Returns
     -------
@@ -152,9 +165,8 @@ def first_order_bound(lk, q, qbar, weights, *, bin, workers):
     rb = kb.shape[0] // 2
     nby, nbx = -(-ny // b), -(-nx // b)
     g = np.zeros((nby + 2 * rb, nbx + 2 * rb))
-    inner = np.empty((nby, nbx))
-    abs_dev_bins(np.ascontiguousarray(q, dtype=np.float64), float(qbar), b, 0.0, inner)
-    g[rb:rb + nby, rb:rb + nbx] = inner
+    g[rb:rb + nby, rb:rb + nbx] = bin_abs_dev(q, qbar, b, 0.0) if bin_sums is None \
+        else bin_sums
     shape = (sp_fft.next_fast_len(g.shape[0] + 2 * rb),
              sp_fft.next_fast_len(g.shape[1] + 2 * rb))
     kpad = np.zeros(shape, np.float32)
@@ -198,8 +210,6 @@ def windowed_maps(lk, q, boxes, uniform_lin, names, *, map_dtype, dtype, workers
     canvas_size : int
         Pixels of the windows' canvas (margins included).
     """
-    from lsst_bfdrift.geometry.linear import _index_map  # the uniform image's index map
-
     ny, nx = q.shape
     r = lk.reach
     n = 2 * r + 1

@@ -26,10 +26,11 @@ import numpy as np
 
 from lsst_bfdrift.templates.swept import OperatorCache, kernel_abs_sum, refuse_out_of_range
 from lsst_bfdrift.geometry._exact import exact_boxes, exact_windows
-from lsst_bfdrift.geometry._windowed import (expected_route, first_order_bound, signal_floor,
-                                             windowed_maps)
-from lsst_bfdrift.geometry.bounds import (displacement_bound, pixel_displacement_bound,
-                                          reference_level, second_order_bounds)
+from lsst_bfdrift.geometry._windowed import (_index_map, expected_route, first_order_bound,
+                                             signal_floor, windowed_maps)
+from lsst_bfdrift.geometry.bounds import (bin_abs_dev, displacement_bound,
+                                          pixel_displacement_bound, reference_level,
+                                          second_order_bounds)
 from lsst_bfdrift.geometry.first_order import (LINEAR_MAPS, FirstOrderPass,
                                                convolved_first_order_maps, linear_kernels)
 from lsst_bfdrift.geometry.superpose import (MomentMaps, check_charge_image, moment_maps,
@@ -46,16 +47,6 @@ __all__ = ["MEASURED_CONSTANTS", "error_bounds", "linear_moment_maps", "first_or
 #: (4, 12.8, 12.8, 126, 228 for small eps). These make the default
 #: ``bound='measured'`` of :func:`linear_moment_maps`.
 MEASURED_CONSTANTS = dict(area=4.0, dx=1.6, dy=1.6, e1=4.0, e2=21.0)
-
-
-def _index_map(size, n):
-    """Pixel index in the n-pixel uniform image (:func:`_uniform_response`) of
-    every pixel along an axis of ``size`` >= n pixels."""
-    r = n // 2
-    m = np.full(size, r)
-    m[:r] = np.arange(r)
-    m[size - r:] = np.arange(r + 1, n)
-    return m
 
 
 _CLASSES = {}
@@ -118,16 +109,20 @@ def _uniform_response(template, lk, qbar, samples):
     return corr, eps, np.stack(lin)
 
 
-def _bound_terms(template, lk, q, *, bin, samples, workers, qbar, uniform=None):
+def _bound_terms(template, lk, q, *, bin, samples, workers, qbar, uniform=None,
+                 bin_sums=None):
     """``D`` and ``eps_u`` per bin (px) of :func:`error_bounds` (``uniform``:
-    :func:`_uniform_response`'s result if already computed)."""
+    :func:`_uniform_response`'s result if already computed; ``bin_sums``:
+    :func:`~.bin_abs_dev` with nothing outside, for an image of at least the
+    uniform one's size)."""
     b = int(bin)
     qbar = reference_level(q) if qbar is None else float(qbar)
     ny, nx = q.shape
     n = 2 * lk.reach + 1
     nby, nbx = -(-ny // b), -(-nx // b)
     if ny >= n and nx >= n:
-        d = displacement_bound(lk, q, bin=b, workers=workers, qbar=qbar, outside=0.0)
+        d = displacement_bound(lk, q, bin=b, workers=workers, qbar=qbar, outside=0.0,
+                               bin_sums=bin_sums)
         d += abs(qbar) * lk.net
         eps_small = (_uniform_response(template, lk, qbar, samples) if uniform is None
                      else uniform)[1]
@@ -520,12 +515,14 @@ def _windowed_route(template, lk, q, qbar, names, *, rtol, bin, force, refine, s
         return None
     uniform = _uniform_response(template, lk, qbar, samples)
     tol = {k: 0.9 * rtol * v for k, v in zip(LINEAR_MAPS, floor.tolist())}
+    g = bin_abs_dev(q, qbar, bin, 0.0)  # shared by both bounds
     flag, x = _exact_flags(template, lk, q, qbar, tol, uniform, bound="measured", bin=bin,
-                           samples=samples, workers=workers, refine=refine, keep_x=True)
+                           samples=samples, workers=workers, refine=refine, keep_x=True,
+                           bin_sums=g)
     w = 1.0 / (rtol * floor)
     # beta_k / (rtol S_k) <= m; C_k x / (rtol S_k) <= y, at most 0.9 where
     # the exact moments are not taken (their threshold)
-    m = first_order_bound(lk, q, qbar, w, bin=bin, workers=workers)
+    m = first_order_bound(lk, q, qbar, w, bin=bin, workers=workers, bin_sums=g)
     c = max(MEASURED_CONSTANTS[k] * w[i] for i, k in enumerate(LINEAR_MAPS))
     x *= c
     np.minimum(x, 0.9, out=x)
@@ -656,7 +653,7 @@ def _add_border_terms(template, lk, q, qbar, outs, names, *, samples, uniform=No
 
 
 def _exact_flags(template, lk, q, qbar, tol, uniform, *, bound, bin, samples, workers, refine,
-                 keep_x=False):
+                 keep_x=False, bin_sums=None):
     """The ``bin`` x ``bin`` bins where the a-priori bound (:func:`error_bounds`)
     exceeds the tolerance ``tol`` of some map: where the exact moments are
     needed (bool, shape (ceil(ny / bin), ceil(nx / bin))).
@@ -666,7 +663,8 @@ def _exact_flags(template, lk, q, qbar, tol, uniform, *, bound, bin, samples, wo
     by pixel (:func:`_refined_flag`); ``uniform`` is the border terms'
     :func:`_uniform_response` (None: an image smaller than the uniform one).
     With ``keep_x`` (``bound='measured'``) also returns ``x = D (4 eps_u + D)``
-    per bin (px^2): each map's second-order bound is ``C_k x``.
+    per bin (px^2): each map's second-order bound is ``C_k x``. ``bin_sums``:
+    as for :func:`_bound_terms`.
     """
     if bound != "measured":
         bounds = error_bounds(template, q, samples=samples, bin=bin, bound=bound,
@@ -678,7 +676,7 @@ def _exact_flags(template, lk, q, qbar, tol, uniform, *, bound, bin, samples, wo
     # error_bounds' C_k x > tol_k for some map k, x = D (4 eps_u + D): one
     # threshold on x; and everywhere eps_u + D > 0.05
     d, eps_u = _bound_terms(template, lk, q, bin=bin, samples=samples, workers=workers,
-                            qbar=qbar, uniform=uniform)
+                            qbar=qbar, uniform=uniform, bin_sums=bin_sums)
     threshold = min(tol[k] / MEASURED_CONSTANTS[k] for k in LINEAR_MAPS)
     flag = eps_u + d > 0.05
     eps_u *= 4.0
