@@ -22,6 +22,7 @@ import numpy as np
 from scipy import fft as sp_fft
 
 from lsst_bfdrift.geometry._exact import packed_canvas
+from lsst_bfdrift.geometry._linear_kernels import abs_dev_cell_max
 from lsst_bfdrift.geometry.bounds import bin_abs_dev, reference_level
 from lsst_bfdrift.geometry.first_order import (_NOMINAL, LINEAR_MAPS, _bin_kernel, _map_store,
                                                convolved_first_order_maps)
@@ -31,6 +32,9 @@ __all__ = ["signal_floor", "expected_route", "first_order_bound", "windowed_maps
 #: Half side (px) of the box around the pixel farthest from the reference
 #: level whose first-order maps give :func:`signal_floor`.
 _FLOOR_HALF = 4
+
+#: Cell side (px) of :func:`expected_route`'s estimate of the windows' area.
+_CELL = 16
 
 #: Largest typical bound (``max_k beta_k / (rtol S_k)`` over the sky, from a
 #: sample) for which :func:`expected_route` expects windows: above it, noise
@@ -91,7 +95,7 @@ def _weighted_kernel(lk, weights):
     return np.max(np.abs(lk.kernels) * np.asarray(weights)[:, None, None], axis=0)
 
 
-def expected_route(lk, q, qbar, floor, rtol, *, bin=2):
+def expected_route(lk, q, qbar, floor, rtol, *, bin=2, window_fraction=0.3):
     """'windows' when the sky's bound, estimated from a sample of the image,
     leaves room for windows; else 'full'.
 
@@ -107,22 +111,34 @@ def expected_route(lk, q, qbar, floor, rtol, *, bin=2):
         The maps' tolerance (fraction of each map's signal).
     bin : int, optional
         Bin side (px) of :func:`first_order_bound`.
+    window_fraction : float, optional
+        Largest share of the image the windows may cover.
 
     Notes
     -----
     A guess, not a bound (the route does not change the accuracy, only the
-    time): the typical :func:`first_order_bound` (weights ``1 / (rtol
+    time). First the typical :func:`first_order_bound` (weights ``1 / (rtol
     floor_k)``) of the sky, with the median of ``abs(q - qbar)`` over at most
-    ~65000 pixels on a grid in every pixel. Above ``_EXPECTED_SKY`` the
-    windows would cover most of the image.
+    ~65000 pixels on a grid in every pixel: above ``_EXPECTED_SKY`` the
+    windows would cover most of the image. Then the windows' area: every
+    ``_CELL`` x ``_CELL`` cell holding a pixel whose own term of the bound
+    exceeds 1 where it lies (a source) is taken for a window of the cell
+    and the template's reach around it; 'full' when those cover more than
+    ``window_fraction`` of the image (a crowded field).
     """
     if not np.all(floor > 0.0):
         return "full"
     b = int(bin)
     step = max(1, int(np.sqrt(q.size / 65536.0)))
     g = float(np.median(np.abs(q[::step, ::step] - qbar)))
-    sky = g * b * b * _bin_kernel(_weighted_kernel(lk, 1.0 / (rtol * floor)), b).sum()
-    return "windows" if sky <= _EXPECTED_SKY else "full"
+    kernel = _weighted_kernel(lk, 1.0 / (rtol * floor))
+    if g * b * b * _bin_kernel(kernel, b).sum() > _EXPECTED_SKY:
+        return "full"
+    cells = np.empty((-(-q.shape[0] // _CELL), -(-q.shape[1] // _CELL)))
+    abs_dev_cell_max(np.ascontiguousarray(q, dtype=np.float64), float(qbar), _CELL, cells)
+    hot = int(np.count_nonzero(cells * kernel.max() > 1.0))
+    area = hot * (_CELL + 2 * lk.reach) ** 2
+    return "windows" if area <= window_fraction * q.size else "full"
 
 
 def first_order_bound(lk, q, qbar, weights, *, bin, workers, bin_sums=None):

@@ -17,7 +17,10 @@ second-order terms of the image's uniform level near its border
 exceeds the tolerance (:func:`_exact_flags`); the exact moments there
 (:func:`_add_exact_moments`: in windows, or on the whole image when the
 windows would cover most of it); the maps assembled
-(:func:`_assembled`).
+(:func:`_assembled`). Without a first-order pass given, the windowed route
+(:func:`_windowed_route`, :func:`_windowed_maps_out`; the pieces in
+:mod:`~lsst_bfdrift.geometry._windowed`) computes the first order only
+where the charge varies, when :func:`first_order_route` expects it to pay.
 """
 
 import threading
@@ -188,7 +191,7 @@ def error_bounds(template, q, *, samples=None, bin=2, bound="measured", workers=
     return {k: 2.0 * an[k] for k in LINEAR_MAPS}
 
 
-def first_order_route(template, charge, *, rtol=1e-3, samples=None, bin=2):
+def first_order_route(template, charge, *, rtol=1e-3, samples=None, bin=2, window_fraction=0.3):
     """The first-order route :func:`linear_moment_maps` expects to take with
     ``route='auto'`` (its guess from a sample of the image, before the bound).
 
@@ -203,20 +206,25 @@ def first_order_route(template, charge, *, rtol=1e-3, samples=None, bin=2):
         As for :func:`linear_moment_maps`.
     bin : int, optional
         As for :func:`linear_moment_maps`.
+    window_fraction : float, optional
+        As for :func:`linear_moment_maps`.
 
     Returns
     -------
     str
-        'windows' when the sky's noise leaves room for windows (the bound
-        may still find that they cover too much of the image), else 'full'
-        (also for an image smaller than 2 reach + 1 pixels a side).
+        'windows' when the sky's noise leaves room for windows and the
+        sources' windows would cover at most ``window_fraction`` of the
+        image by the estimate of :func:`~._windowed.expected_route` (the
+        bound may still find that they cover more), else 'full' (also for
+        an image smaller than 2 reach + 1 pixels a side).
 
     Notes
     -----
     A caller that computes the first-order maps itself (the Task, from the
     correction's first pass) skips that work when this says 'windows'. It
     costs a pass for the image's extreme pixel and the first-order maps of
-    a box around it (about 30 ms on a 4096 x 4096 image).
+    a box around it (about 30 ms on a 4096 x 4096 image), and one more
+    pass (about 40 ms) when the sky leaves room for windows.
     """
     q = np.asarray(charge, dtype=np.float64)
     lk = linear_kernels(template, samples=samples)
@@ -225,7 +233,8 @@ def first_order_route(template, charge, *, rtol=1e-3, samples=None, bin=2):
         return "full"
     qbar = reference_level(q)
     floor, _ = signal_floor(lk, q, qbar)
-    return expected_route(lk, q, qbar, floor, float(rtol), bin=bin)
+    return expected_route(lk, q, qbar, floor, float(rtol), bin=bin,
+                          window_fraction=window_fraction)
 
 
 def _refined_flag(lk, q, flag, b, qbar, eps_small, threshold):
@@ -511,7 +520,7 @@ def _windowed_route(template, lk, q, qbar, names, *, rtol, bin, force, refine, s
         return None
     floor, fbox = signal_floor(lk, q, qbar)
     if not np.all(floor > 0.0) or (not force and expected_route(
-            lk, q, qbar, floor, rtol, bin=bin) == "full"):
+            lk, q, qbar, floor, rtol, bin=bin, window_fraction=window_fraction) == "full"):
         return None
     uniform = _uniform_response(template, lk, qbar, samples)
     tol = {k: 0.9 * rtol * v for k, v in zip(LINEAR_MAPS, floor.tolist())}
