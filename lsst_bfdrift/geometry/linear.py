@@ -312,7 +312,8 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
         Filled with ``method`` ('linear', 'linear+exact' or 'exact'),
         ``route`` ('full' or 'windows'), ``first_order_fraction`` (pixels of
         the first-order convolutions, margins included, over the image
-        size: 1 on the full route), ``signal`` (S per map), ``tolerance``
+        size: 1 on the full route), ``first_order_windows`` (their number,
+        windowed route only), ``signal`` (S per map), ``tolerance``
         (per map), ``windows``,
         ``exact_fraction`` (flagged bins' share of the image) and
         ``canvas_fraction`` (pixels run through ``moment_maps``, margins
