@@ -22,7 +22,7 @@ from scipy.ndimage import uniform_filter
 from lsst_bfdrift.correction.solvers import (MAX_SWEEP, area_coefficients, correct_coulton18,
                                              correct_half_shift, correct_image, coulton18_kernel)
 from lsst_bfdrift.geometry.first_order import FirstOrderPass
-from lsst_bfdrift.geometry.linear import linear_moment_maps
+from lsst_bfdrift.geometry.linear import first_order_route, linear_moment_maps
 from lsst_bfdrift.geometry.superpose import moment_maps
 from lsst_bfdrift.images.exposure import add_mask_plane
 from lsst_bfdrift.templates.refine import draw_templates
@@ -181,20 +181,25 @@ def apply_method(data, template, blocked, cfg, dtype, cache, *, maps=None, progr
     return flux, iterations, converged, order, density, solver
 
 
-def first_order_pass(template, shape, cfg, *, samples, dtype, filled):
+def first_order_pass(template, image, cfg, *, samples, dtype, filled):
     """The first-order geometry maps the correction's first pass fills, or None.
 
     The linear maps take their first order from the correction's first pass
     when that pass applies the swept-area operator to the very image the
     maps are of: astier23, and drift with the sparse series; not when masked
-    pixels were filled (``filled``).
+    pixels were filled (``filled``), nor when the maps' windowed route is
+    expected (:func:`~lsst_bfdrift.geometry.linear.first_order_route`: the
+    first order then only in windows where the charge varies).
     """
     linear = cfg.compute_geometry and cfg.geometry_method == "linear"
     if not linear or filled or not (
             cfg.method == "astier23"
             or (cfg.method == "drift" and cfg.sparse and cfg.start == "series")):
         return None
-    return FirstOrderPass(template, shape, maps=MAP_NAMES, samples=samples, dtype=dtype)
+    if first_order_route(template, image, rtol=cfg.geometry_tolerance,
+                         samples=samples) == "windows":
+        return None
+    return FirstOrderPass(template, image.shape, maps=MAP_NAMES, samples=samples, dtype=dtype)
 
 
 def _as_geometry(maps):

@@ -386,7 +386,7 @@ class BrighterFatterDriftTask(Task):
         ns = cfg.geometry_samples
         samples = None if ns is None else min(ns, template.edge_samples)
         geom = dict(area=None, centroid_x=None, centroid_y=None, e1=None, e2=None)
-        first = first_order_pass(template, data.shape, cfg, samples=samples, dtype=dtype,
+        first = first_order_pass(template, finite_data, cfg, samples=samples, dtype=dtype,
                                  filled=data is not finite_data)
         # exact maps first: their working arrays are freed before the solver's
         # outputs exist (peak memory, docs/benchmarks.rst)

@@ -17,7 +17,7 @@ from lsst_bfdrift.geometry._convolve import Convolver, block_stack
 from lsst_bfdrift.geometry._moment_kernels import stack_moments, stack_moments_serial
 from lsst_bfdrift.geometry.superpose import MomentMaps, resample_template
 
-__all__ = ["exact_boxes", "exact_windows"]
+__all__ = ["exact_boxes", "exact_windows", "packed_canvas"]
 
 
 def exact_boxes(flag, b, shape, *, band, block=32):
@@ -84,6 +84,30 @@ def exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtype
     """
     if not boxes:
         return 0
+    canvas, place = packed_canvas(q, boxes, r)
+    tick = None
+    if progress is not None:
+        done = [0]
+        size = canvas.size
+
+        def tick(n):
+            done[0] += n
+            progress(min(done[0] / max(size, 1), 1.0))
+    return _box_moments(template, canvas, place, outs, names, samples=samples,
+                        workers=workers, dtype=dtype, strip=strip, progress=tick)
+
+
+def packed_canvas(q, boxes, r):
+    """One canvas holding every box of ``q`` with ``r`` pixels of its charge
+    around it, on shelves (no pixel of a box within ``r`` of another slot's
+    charge; beyond the image border a margin holds no charge).
+
+    Returns
+    -------
+    canvas : ndarray, float64
+    place : list of (int, int, tuple)
+        (row, col, box): the box's first pixel at (row, col) of the canvas.
+    """
     ny, nx = q.shape
     slots = sorted(((y1 - y0 + 2 * r, x1 - x0 + 2 * r, (y0, y1, x0, x1))
                     for y0, y1, x0, x1 in boxes), reverse=True)
@@ -100,16 +124,7 @@ def exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtype
     for cy, cx, (y0, y1, x0, x1) in place:
         a0, a1, b0, b1 = max(y0 - r, 0), min(y1 + r, ny), max(x0 - r, 0), min(x1 + r, nx)
         canvas[cy + a0 - y0:cy + a1 - y0, cx + b0 - x0:cx + b1 - x0] = q[a0:a1, b0:b1]
-    tick = None
-    if progress is not None:
-        done = [0]
-        size = canvas.size
-
-        def tick(n):
-            done[0] += n
-            progress(min(done[0] / max(size, 1), 1.0))
-    return _box_moments(template, canvas, place, outs, names, samples=samples,
-                        workers=workers, dtype=dtype, strip=strip, progress=tick)
+    return canvas, place
 
 
 def _box_moments(template, canvas, place, outs, names, *, samples, workers, dtype, strip,

@@ -9,7 +9,8 @@ five times the time on a 4k x 4k image).
 import numba
 import numpy as np
 
-__all__ = ["abs_dev_bins", "pixel_abs_dev_sums", "store_tile", "combine_rows"]
+__all__ = ["abs_dev_bins", "abs_dev_cell_max", "pixel_abs_dev_sums", "store_tile",
+           "combine_rows"]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -46,6 +47,31 @@ def abs_dev_bins(q, qbar, b, outside, out):
                         s += aq
                 row[bx] += s
         out[by, :] = row
+
+
+@numba.njit(parallel=True, cache=True)
+def abs_dev_cell_max(q, qbar, c, out):
+    """Largest ``abs(q - qbar)`` over each ``c`` x ``c`` cell of ``q``.
+
+    Parameters
+    ----------
+    q : (ny, nx) float64, charge (e)
+    qbar : float, reference level (e)
+    c : int, cell side (px)
+    out : (ceil(ny / c), ceil(nx / c)) float64, written
+    """
+    ny, nx = q.shape
+    ncy, ncx = out.shape
+    for cy in numba.prange(ncy):
+        row = np.zeros(ncx)
+        for j in range(cy * c, min(cy * c + c, ny)):
+            qj = q[j]
+            for cx in range(ncx):
+                m = row[cx]
+                for i in range(cx * c, min(cx * c + c, nx)):
+                    m = max(m, abs(qj[i] - qbar))
+                row[cx] = m
+        out[cy, :] = row
 
 
 @numba.njit(parallel=True, cache=True)

@@ -16,7 +16,7 @@ from scipy import fft as sp_fft
 from lsst_bfdrift.geometry._linear_kernels import abs_dev_bins, pixel_abs_dev_sums
 
 __all__ = ["second_order_bounds", "displacement_bound", "pixel_displacement_bound",
-           "reference_level"]
+           "reference_level", "bin_abs_dev"]
 
 
 def second_order_bounds(eps, chi=4.0):
@@ -99,7 +99,31 @@ def reference_level(q):
     return float(np.median(q[::step, ::step]))
 
 
-def displacement_bound(lk, q, *, bin=2, workers=1, qbar=None, outside=None):
+def bin_abs_dev(q, qbar, b, outside):
+    """Sums of ``abs(q - qbar)`` over ``b`` x ``b`` bins (e).
+
+    Parameters
+    ----------
+    q : ndarray, shape (ny, nx), float64
+        Charge (e), finite.
+    qbar : float
+        Reference level (e).
+    b : int
+        Bin side (px).
+    outside : float
+        Counted for each pixel of a partial bin beyond the image (e).
+
+    Returns
+    -------
+    ndarray, shape (ceil(ny / b), ceil(nx / b))
+    """
+    out = np.empty((-(-q.shape[0] // int(b)), -(-q.shape[1] // int(b))))
+    abs_dev_bins(np.ascontiguousarray(q, dtype=np.float64), float(qbar), int(b),
+                 float(outside), out)
+    return out
+
+
+def displacement_bound(lk, q, *, bin=2, workers=1, qbar=None, outside=None, bin_sums=None):
     """Upper bound of every boundary displacement of each pixel (px), per bin.
 
     Parameters
@@ -117,6 +141,10 @@ def displacement_bound(lk, q, *, bin=2, workers=1, qbar=None, outside=None):
         Value of ``g`` outside the image (e); default ``abs(qbar)``, which
         bounds the whole displacement. 0 bounds the displacement of
         ``q - qbar`` (inside the image, zero outside) alone.
+    bin_sums : ndarray, shape (ceil(ny / bin), ceil(nx / bin)), optional
+        The sums of ``abs(q - qbar)`` over the bins (``outside`` for the
+        pixels of a partial bin beyond the image) when already computed
+        (:func:`bin_abs_dev`); not modified.
 
     Returns
     -------
@@ -142,9 +170,8 @@ def displacement_bound(lk, q, *, bin=2, workers=1, qbar=None, outside=None):
     nby, nbx = -(-ny // b), -(-nx // b)
     out_level = abs(qbar) if outside is None else float(outside)
     g = np.full((nby + 2 * rb, nbx + 2 * rb), out_level * b * b)
-    inner = np.empty((nby, nbx))
-    abs_dev_bins(np.ascontiguousarray(q, dtype=np.float64), qbar, b, out_level, inner)
-    g[rb:rb + nby, rb:rb + nbx] = inner
+    g[rb:rb + nby, rb:rb + nbx] = bin_abs_dev(q, qbar, b, out_level) if bin_sums is None \
+        else bin_sums
     shape = (sp_fft.next_fast_len(g.shape[0] + 2 * rb), sp_fft.next_fast_len(g.shape[1] + 2 * rb))
     d = sp_fft.irfft2(sp_fft.rfft2(g.astype(np.float32), shape, workers=workers)
                       * lk.bin_spectrum(b, shape, workers), shape, workers=workers)

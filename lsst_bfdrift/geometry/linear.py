@@ -17,7 +17,10 @@ second-order terms of the image's uniform level near its border
 exceeds the tolerance (:func:`_exact_flags`); the exact moments there
 (:func:`_add_exact_moments`: in windows, or on the whole image when the
 windows would cover most of it); the maps assembled
-(:func:`_assembled`).
+(:func:`_assembled`). Without a first-order pass given, the windowed route
+(:func:`_windowed_route`, :func:`_windowed_maps_out`; the pieces in
+:mod:`~lsst_bfdrift.geometry._windowed`) computes the first order only
+where the charge varies, when :func:`first_order_route` expects it to pay.
 """
 
 import threading
@@ -26,15 +29,18 @@ import numpy as np
 
 from lsst_bfdrift.templates.swept import OperatorCache, kernel_abs_sum, refuse_out_of_range
 from lsst_bfdrift.geometry._exact import exact_boxes, exact_windows
-from lsst_bfdrift.geometry.bounds import (displacement_bound, pixel_displacement_bound,
-                                          reference_level, second_order_bounds)
+from lsst_bfdrift.geometry._windowed import (_index_map, expected_route, first_order_bound,
+                                             signal_floor, windowed_maps)
+from lsst_bfdrift.geometry.bounds import (bin_abs_dev, displacement_bound,
+                                          pixel_displacement_bound, reference_level,
+                                          second_order_bounds)
 from lsst_bfdrift.geometry.first_order import (LINEAR_MAPS, FirstOrderPass,
                                                convolved_first_order_maps, linear_kernels)
 from lsst_bfdrift.geometry.superpose import (MomentMaps, check_charge_image, moment_maps,
                                              resample_template, superpose_boundaries)
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["MEASURED_CONSTANTS", "error_bounds", "linear_moment_maps"]
+__all__ = ["MEASURED_CONSTANTS", "error_bounds", "linear_moment_maps", "first_order_route"]
 
 #: abs(exact - linear) <= C eps**2 per map (eps: the pixel's largest boundary
 #: displacement component, px; eps <= 0.05): twice the largest ratio measured
@@ -44,16 +50,6 @@ __all__ = ["MEASURED_CONSTANTS", "error_bounds", "linear_moment_maps"]
 #: (4, 12.8, 12.8, 126, 228 for small eps). These make the default
 #: ``bound='measured'`` of :func:`linear_moment_maps`.
 MEASURED_CONSTANTS = dict(area=4.0, dx=1.6, dy=1.6, e1=4.0, e2=21.0)
-
-
-def _index_map(size, n):
-    """Pixel index in the n-pixel uniform image (:func:`_uniform_response`) of
-    every pixel along an axis of ``size`` >= n pixels."""
-    r = n // 2
-    m = np.full(size, r)
-    m[:r] = np.arange(r)
-    m[size - r:] = np.arange(r + 1, n)
-    return m
 
 
 _CLASSES = {}
@@ -88,8 +84,9 @@ def _binned_eps(eps, rowmap, colmap, b, nby, nbx):
 
 
 def _uniform_response(template, lk, qbar, samples):
-    """Exact minus linear maps (5, n, n) and the largest boundary displacement
-    (n, n) of the pixels of a uniform image of level ``qbar`` (e), n = 2 reach + 1.
+    """Exact minus linear maps (5, n, n), the largest boundary displacement
+    (n, n) and the linear maps (5, n, n; nominal included) of the pixels of a
+    uniform image of level ``qbar`` (e), n = 2 reach + 1.
 
     Pixel (j, i) of an image of at least n x n pixels responds to a uniform
     level as pixel (rowmap(j), colmap(i)) of this one (:func:`_index_map`):
@@ -112,22 +109,26 @@ def _uniform_response(template, lk, qbar, samples):
         h = np.maximum(h, np.abs(g.hedge_t).max(-1))
     eps = np.maximum.reduce([c[:-1, :-1], c[1:, :-1], c[:-1, 1:], c[1:, 1:],
                              v[:, :-1], v[:, 1:], h[:-1], h[1:]])
-    return corr, eps
+    return corr, eps, np.stack(lin)
 
 
-def _bound_terms(template, lk, q, *, bin, samples, workers, qbar, uniform=None):
+def _bound_terms(template, lk, q, *, bin, samples, workers, qbar, uniform=None,
+                 bin_sums=None):
     """``D`` and ``eps_u`` per bin (px) of :func:`error_bounds` (``uniform``:
-    :func:`_uniform_response`'s result if already computed)."""
+    :func:`_uniform_response`'s result if already computed; ``bin_sums``:
+    :func:`~.bin_abs_dev` with nothing outside, for an image of at least the
+    uniform one's size)."""
     b = int(bin)
     qbar = reference_level(q) if qbar is None else float(qbar)
     ny, nx = q.shape
     n = 2 * lk.reach + 1
     nby, nbx = -(-ny // b), -(-nx // b)
     if ny >= n and nx >= n:
-        d = displacement_bound(lk, q, bin=b, workers=workers, qbar=qbar, outside=0.0)
+        d = displacement_bound(lk, q, bin=b, workers=workers, qbar=qbar, outside=0.0,
+                               bin_sums=bin_sums)
         d += abs(qbar) * lk.net
-        _, eps_small = _uniform_response(template, lk, qbar, samples) if uniform is None \
-            else uniform
+        eps_small = (_uniform_response(template, lk, qbar, samples) if uniform is None
+                     else uniform)[1]
         eps_u = _binned_eps(eps_small, _index_map(ny, n), _index_map(nx, n), b, nby, nbx)
     else:
         d = displacement_bound(lk, q, bin=b, workers=workers, qbar=qbar)
@@ -190,6 +191,52 @@ def error_bounds(template, q, *, samples=None, bin=2, bound="measured", workers=
     return {k: 2.0 * an[k] for k in LINEAR_MAPS}
 
 
+def first_order_route(template, charge, *, rtol=1e-3, samples=None, bin=2, window_fraction=0.3):
+    """The first-order route :func:`linear_moment_maps` expects to take with
+    ``route='auto'`` (its guess from a sample of the image, before the bound).
+
+    Parameters
+    ----------
+    template : DistortionTemplate
+    charge : ndarray, shape (ny, nx), float64
+        Charge (e), finite.
+    rtol : float, optional
+        As for :func:`linear_moment_maps`.
+    samples : int, optional
+        As for :func:`linear_moment_maps`.
+    bin : int, optional
+        As for :func:`linear_moment_maps`.
+    window_fraction : float, optional
+        As for :func:`linear_moment_maps`.
+
+    Returns
+    -------
+    str
+        'windows' when the sky's noise leaves room for windows and the
+        sources' windows would cover at most ``window_fraction`` of the
+        image by the estimate of :func:`~._windowed.expected_route` (the
+        bound may still find that they cover more), else 'full' (also for
+        an image smaller than 2 reach + 1 pixels a side).
+
+    Notes
+    -----
+    A caller that computes the first-order maps itself (the Task, from the
+    correction's first pass) skips that work when this says 'windows'. It
+    costs a pass for the image's extreme pixel and the first-order maps of
+    a box around it (about 30 ms on a 4096 x 4096 image), and one more
+    pass (about 40 ms) when the sky leaves room for windows.
+    """
+    q = np.asarray(charge, dtype=np.float64)
+    lk = linear_kernels(template, samples=samples)
+    n = 2 * lk.reach + 1
+    if q.ndim != 2 or q.shape[0] < n or q.shape[1] < n:
+        return "full"
+    qbar = reference_level(q)
+    floor, _ = signal_floor(lk, q, qbar)
+    return expected_route(lk, q, qbar, floor, float(rtol), bin=bin,
+                          window_fraction=window_fraction)
+
+
 def _refined_flag(lk, q, flag, b, qbar, eps_small, threshold):
     """The flagged ``b`` x ``b`` bins whose pixels, with the bound of each pixel
     (:func:`~.pixel_displacement_bound`, no bins), still exceed ``threshold``
@@ -215,7 +262,7 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
                        bound="measured", bin=2, max_fraction=0.5, workers=1,
                        dtype=np.float32, strip=512, maps=None, info=None, first_order=None,
                        ops=None, refine=True, check_range=True, map_dtype=np.float64,
-                       progress=None):
+                       progress=None, route="auto", window_fraction=0.3):
     """Area, centroid-shift and ellipticity maps: linear, exact where needed.
 
     Parameters
@@ -263,7 +310,11 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
         Maps to keep, of :data:`LINEAR_MAPS` (default: all five).
     info : dict, optional
         Filled with ``method`` ('linear', 'linear+exact' or 'exact'),
-        ``signal`` (S per map), ``tolerance`` (per map), ``windows``,
+        ``route`` ('full' or 'windows'), ``first_order_fraction`` (pixels of
+        the first-order convolutions, margins included, over the image
+        size: 1 on the full route), ``first_order_windows`` (their number,
+        windowed route only), ``signal`` (S per map), ``tolerance``
+        (per map), ``windows``,
         ``exact_fraction`` (flagged bins' share of the image) and
         ``canvas_fraction`` (pixels run through ``moment_maps``, margins
         included, over the image size).
@@ -292,6 +343,21 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
         the first-order maps by blocks of rows (unless ``first_order`` is
         complete), the bound, then the exact moments by rows of the image or
         of their boxes; 1 at the end. It does not change the maps.
+    route : {'auto', 'full', 'windows'}, optional
+        How the first-order maps are computed without ``first_order``:
+        'full', over the whole image; 'windows', the uniform level's response
+        (exact) everywhere and the first order only in windows where an
+        a-priori bound of the rest exceeds what the tolerance leaves
+        (:mod:`~lsst_bfdrift.geometry._windowed`; same accuracy contract);
+        'auto', the windows when a sample of the image says the sky's noise
+        leaves room for them and they cover at most ``window_fraction`` of
+        the image, else the full route. The windows need ``fallback``,
+        ``bound='measured'`` and an image of at least 2 reach + 1 pixels a
+        side (else the full route is taken); 'windows' with ``first_order``
+        or ``bound='analytic'`` is refused.
+    window_fraction : float, optional
+        Largest share of the image the windows' canvas (margins included)
+        may cover on the 'auto' route.
 
     Returns
     -------
@@ -311,6 +377,19 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
     first-order maps before the border terms (within 1.2 % of the exact
     maps' on a 1e5 e flat, whose signal is at its border; the factor 0.9
     covers it).
+
+    On the windowed route the maps outside the windows are the first-order
+    maps of the uniform level plus its border terms: the exact maps of a
+    uniform image. They differ from the first-order maps of the image by at
+    most ``beta_k`` (the first-order response of ``q - qbar``, bounded per
+    bin), and from the exact maps by at most ``beta_k + C_k x`` (the
+    second-order bound of :func:`error_bounds`); the windows cover every
+    bin where that sum may exceed 0.999 ``rtol S_k`` (no single-precision
+    rounding there: the uniform maps are computed in double precision). The
+    bound and the exact flags use a lower bound of S (the first-order maps
+    around the pixel farthest from the reference level, always in a window);
+    S is then the largest abs(map - nominal) of the first-order maps so
+    assembled.
 
     Examples
     --------
@@ -335,12 +414,24 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
     [True, True, True, True, True]
     """
     names = _checked_names(maps, dtype=dtype, bound=bound, rtol=rtol, strip=strip, bin=bin)
+    _check_route(route, window_fraction, bound=bound, first_order=first_order)
     info = {} if info is None else info
     q = _checked_charge(template, charge, mask=mask, check_range=check_range)
     lk = linear_kernels(template, samples=samples)
+    report = _reporter(progress)
+    qbar = reference_level(q)
+    if route != "full" and first_order is None and fallback:
+        report(0.0)
+        win = _windowed_route(template, lk, q, qbar, names, rtol=rtol, bin=bin,
+                              force=route == "windows", refine=refine, samples=samples,
+                              workers=workers, dtype=dtype, strip=strip, map_dtype=map_dtype,
+                              window_fraction=window_fraction)
+        if win is not None:
+            return _windowed_maps_out(template, lk, q, qbar, names, win, info, rtol=rtol,
+                                      bin=bin, max_fraction=max_fraction, samples=samples,
+                                      workers=workers, dtype=dtype, strip=strip, report=report)
     first_order = _first_order_pass(template, q, first_order, names=names, samples=samples,
                                     map_dtype=map_dtype)
-    report = _reporter(progress)
     # rough shares of the time: the first-order pass (when it runs here), the
     # bound, then the exact moments
     first_share = 0.0 if first_order.complete else 0.4 if fallback else 1.0
@@ -352,10 +443,9 @@ def linear_moment_maps(template, charge, *, mask=None, rtol=1e-3, samples=None, 
     out = _assembled(names, first_order.outs)
     signal = dict(zip(LINEAR_MAPS, first_order.smax.tolist()))
     tol = {k: 0.9 * rtol * v for k, v in signal.items()}
-    info.update(method="linear", signal=signal, tolerance=tol, windows=0,
-                exact_fraction=0.0, canvas_fraction=0.0)
+    info.update(method="linear", route="full", first_order_fraction=1.0, signal=signal,
+                tolerance=tol, windows=0, exact_fraction=0.0, canvas_fraction=0.0)
     # 2. the exact second-order terms of the uniform level near the border
-    qbar = reference_level(q)
     uniform = _add_border_terms(template, lk, q, qbar, first_order.outs, names, samples=samples)
     if not fallback:
         report(1.0)
@@ -395,6 +485,93 @@ def _checked_names(maps, *, dtype, bound, rtol, strip, bin):
     if int(strip) < 1 or int(bin) < 1:
         raise InputError(f"strip and bin must be positive, got {strip!r}, {bin!r}")
     return names
+
+
+def _check_route(route, window_fraction, *, bound, first_order):
+    """Refuse an unknown ``route``, a ``window_fraction`` outside (0, 1], and
+    'windows' with ``first_order`` or ``bound='analytic'``."""
+    if route not in ("auto", "full", "windows"):
+        raise InputError(f"route must be 'auto', 'full' or 'windows', got {route!r}")
+    if not 0.0 < float(window_fraction) <= 1.0:
+        raise InputError(f"window_fraction must be in (0, 1], got {window_fraction!r}")
+    if route == "windows" and (first_order is not None or bound != "measured"):
+        raise InputError("route='windows' needs bound='measured' and no first_order (the "
+                         "windows replace the first-order pass)")
+
+
+def _windowed_route(template, lk, q, qbar, names, *, rtol, bin, force, refine, samples,
+                    workers, dtype, strip, map_dtype, window_fraction):
+    """The windowed route's first-order maps, or None when the full route is
+    to be taken (an image smaller than the uniform one, a zero signal, the
+    sample's guess (:func:`~._windowed.expected_route`) or windows covering
+    more than ``window_fraction`` of the image, unless ``force``).
+
+    Returns
+    -------
+    dict or None
+        ``outs`` (the maps, ``names`` order), ``smax`` (signal per map),
+        ``flag`` (bins of the exact moments, with the signal's lower bound),
+        ``uniform`` (:func:`_uniform_response`), ``windows`` (boxes) and
+        ``size`` (pixels of their canvas).
+    """
+    ny, nx = q.shape
+    r = lk.reach
+    n = 2 * r + 1
+    if ny < n or nx < n:
+        return None
+    floor, fbox = signal_floor(lk, q, qbar)
+    if not np.all(floor > 0.0) or (not force and expected_route(
+            lk, q, qbar, floor, rtol, bin=bin, window_fraction=window_fraction) == "full"):
+        return None
+    uniform = _uniform_response(template, lk, qbar, samples)
+    tol = {k: 0.9 * rtol * v for k, v in zip(LINEAR_MAPS, floor.tolist())}
+    g = bin_abs_dev(q, qbar, bin, 0.0)  # shared by both bounds
+    flag, x = _exact_flags(template, lk, q, qbar, tol, uniform, bound="measured", bin=bin,
+                           samples=samples, workers=workers, refine=refine, keep_x=True,
+                           bin_sums=g)
+    w = 1.0 / (rtol * floor)
+    # beta_k / (rtol S_k) <= m; C_k x / (rtol S_k) <= y, at most 0.9 where
+    # the exact moments are not taken (their threshold)
+    m = first_order_bound(lk, q, qbar, w, bin=bin, workers=workers, bin_sums=g)
+    c = max(MEASURED_CONSTANTS[k] * w[i] for i, k in enumerate(LINEAR_MAPS))
+    x *= c
+    np.minimum(x, 0.9, out=x)
+    m += x
+    need = (m > 0.999) & ~flag
+    del m, x
+    b = int(bin)
+    boxes = exact_boxes(need, b, q.shape, band=-(-r // b)) + [fbox]
+    canvas = sum((y1 - y0 + 2 * r) * (x1 - x0 + 2 * r) for y0, y1, x0, x1 in boxes)
+    if not force and canvas > window_fraction * q.size:
+        return None
+    outs, smax, size = windowed_maps(lk, q, boxes, uniform[2], names, map_dtype=map_dtype,
+                                     dtype=dtype, workers=workers, strip=strip)
+    return dict(outs=outs, smax=np.maximum(smax, floor), flag=flag, uniform=uniform,
+                windows=boxes, size=size)
+
+
+def _windowed_maps_out(template, lk, q, qbar, names, win, info, *, rtol, bin, max_fraction,
+                       samples, workers, dtype, strip, report):
+    """The maps of the windowed route (:func:`_windowed_route`'s ``win``):
+    border terms added, exact moments where flagged; ``info`` filled."""
+    out = _assembled(names, win["outs"])
+    signal = dict(zip(LINEAR_MAPS, win["smax"].tolist()))
+    info.update(method="linear", route="windows", first_order_fraction=win["size"] / q.size,
+                first_order_windows=len(win["windows"]), signal=signal,
+                tolerance={k: 0.9 * rtol * v for k, v in signal.items()}, windows=0,
+                exact_fraction=0.0, canvas_fraction=0.0)
+    _add_border_terms(template, lk, q, qbar, win["outs"], names, samples=samples,
+                      uniform=win["uniform"])
+    report(0.5)
+    if win["flag"].any():
+        def exact(fraction):
+            report(0.5 + 0.5 * min(fraction, 1.0))
+
+        _add_exact_moments(template, q, win["flag"], win["outs"], names, info, reach=lk.reach,
+                           bin=bin, max_fraction=max_fraction, samples=samples,
+                           workers=workers, dtype=dtype, strip=strip, progress=exact)
+    report(1.0)
+    return out
 
 
 def _checked_charge(template, charge, *, mask, check_range):
@@ -455,20 +632,22 @@ def _assembled(names, outs):
     return out
 
 
-def _add_border_terms(template, lk, q, qbar, outs, names, *, samples):
+def _add_border_terms(template, lk, q, qbar, outs, names, *, samples, uniform=None):
     """Add to the maps ``outs`` (``names`` order), within the template's reach
     of the image border, the exact second-order terms of the uniform level
     ``qbar`` (:func:`_uniform_response`).
 
-    Returns :func:`_uniform_response`'s result, or None for an image smaller
-    than the uniform one (2 reach + 1 pixels a side), left unchanged.
+    Returns :func:`_uniform_response`'s result (``uniform`` when given:
+    already computed), or None for an image smaller than the uniform one (2
+    reach + 1 pixels a side), left unchanged.
     """
     ny, nx = q.shape
     r = lk.reach
     n = 2 * r + 1
     if ny < n or nx < n:
         return None
-    uniform = _uniform_response(template, lk, qbar, samples)
+    if uniform is None:
+        uniform = _uniform_response(template, lk, qbar, samples)
     corr = uniform[0]
     rm, cm = _index_map(ny, n), _index_map(nx, n)
     for k, name in enumerate(LINEAR_MAPS):
@@ -483,7 +662,8 @@ def _add_border_terms(template, lk, q, qbar, outs, names, *, samples):
     return uniform
 
 
-def _exact_flags(template, lk, q, qbar, tol, uniform, *, bound, bin, samples, workers, refine):
+def _exact_flags(template, lk, q, qbar, tol, uniform, *, bound, bin, samples, workers, refine,
+                 keep_x=False, bin_sums=None):
     """The ``bin`` x ``bin`` bins where the a-priori bound (:func:`error_bounds`)
     exceeds the tolerance ``tol`` of some map: where the exact moments are
     needed (bool, shape (ceil(ny / bin), ceil(nx / bin))).
@@ -492,6 +672,9 @@ def _exact_flags(template, lk, q, qbar, tol, uniform, *, bound, bin, samples, wo
     threshold) and, with ``refine``, the flagged bins are bounded again pixel
     by pixel (:func:`_refined_flag`); ``uniform`` is the border terms'
     :func:`_uniform_response` (None: an image smaller than the uniform one).
+    With ``keep_x`` (``bound='measured'``) also returns ``x = D (4 eps_u + D)``
+    per bin (px^2): each map's second-order bound is ``C_k x``. ``bin_sums``:
+    as for :func:`_bound_terms`.
     """
     if bound != "measured":
         bounds = error_bounds(template, q, samples=samples, bin=bin, bound=bound,
@@ -503,17 +686,17 @@ def _exact_flags(template, lk, q, qbar, tol, uniform, *, bound, bin, samples, wo
     # error_bounds' C_k x > tol_k for some map k, x = D (4 eps_u + D): one
     # threshold on x; and everywhere eps_u + D > 0.05
     d, eps_u = _bound_terms(template, lk, q, bin=bin, samples=samples, workers=workers,
-                            qbar=qbar, uniform=uniform)
+                            qbar=qbar, uniform=uniform, bin_sums=bin_sums)
     threshold = min(tol[k] / MEASURED_CONSTANTS[k] for k in LINEAR_MAPS)
     flag = eps_u + d > 0.05
     eps_u *= 4.0
     eps_u += d
     eps_u *= d
     flag |= eps_u > threshold
-    del d, eps_u
+    del d
     if refine and uniform is not None and flag.any():
         flag = _refined_flag(lk, q, flag, int(bin), qbar, uniform[1], threshold)
-    return flag
+    return (flag, eps_u) if keep_x else flag
 
 
 def _add_exact_moments(template, q, flag, outs, names, info, *, reach, bin, max_fraction,

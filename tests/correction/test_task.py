@@ -602,3 +602,46 @@ def test_exposure_band():
     assert exposure_band(None) == (None, None)
     with pytest.raises(ValueError, match="caller says 'i', BAND says 'r'"):
         exposure_band({"BAND": "r"}, band="i")
+
+
+def test_windowed_maps_route_in_the_task(monkeypatch):
+    """CONSISTENCY: on a quiet star field (uniform sky) the Task skips the
+    maps' fields in the correction's first pass and takes the windowed
+    route; the correction is bit-identical to the Task without maps (the
+    first pass's swept areas are the same with or without the maps' fields);
+    the maps are within geometry_tolerance x signal of the exact ones. On
+    a 1000 e Poisson sky the first pass computes the maps (full route)."""
+    from lsst_bfdrift.correction import steps
+    from lsst_bfdrift.geometry import linear
+    from lsst_bfdrift.templates.template import load_default_template
+    t = load_default_template()
+    n = 200
+    yy, xx = np.mgrid[0:n, 0:n]
+    q = np.full((n, n), 1000.0)
+    for x, y, f in ((100.3, 99.8, 1.5e6), (40.0, 150.5, 2e5), (160.2, 50.0, 5e4)):
+        q += f * np.exp(-0.5 * ((xx - x)**2 + (yy - y)**2) / 1.5**2) / (2 * np.pi * 1.5**2)
+    routes = []
+    orig = linear.linear_moment_maps
+
+    def spy(*a, **k):
+        info = k["info"] = {}
+        out = orig(*a, **k)
+        routes.append((info["route"], k["first_order"] is None))
+        return out
+
+    monkeypatch.setattr(steps, "linear_moment_maps", spy)
+    none = BrighterFatterDriftTask(BrighterFatterDriftConfig(compute_geometry=False),
+                                   template=t).run(q)
+    lin = BrighterFatterDriftTask(BrighterFatterDriftConfig(), template=t).run(q)
+    ex = BrighterFatterDriftTask(BrighterFatterDriftConfig(geometry_method="exact"),
+                                 template=t).run(q)
+    assert routes == [("windows", True)]
+    assert np.array_equal(lin.exposure, none.exposure)
+    assert np.array_equal(lin.flux_moved, none.flux_moved)
+    for name in ("area", "centroid_x", "centroid_y", "e1", "e2"):
+        nominal = 1.0 if name == "area" else 0.0
+        s = np.abs(getattr(ex, name) - nominal).max()
+        assert np.abs(getattr(lin, name) - getattr(ex, name)).max() <= 1e-3 * s, name
+    noisy = np.random.default_rng(2).poisson(1000.0, (n, n)) + (q - 1000.0)
+    BrighterFatterDriftTask(BrighterFatterDriftConfig(), template=t).run(noisy)
+    assert routes[-1] == ("full", False)
