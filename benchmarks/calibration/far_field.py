@@ -6,8 +6,11 @@ fitted by ``parameter_lags.py`` (its ``parameter_lags_results.json``), the
 model's a_ij at the fitted parameters and GalSim's own, lags 0-9, and their
 sums with the lag weights of the sum rule (1, 2 on the axes, 4 off them):
 plain, and weighted by r^2 (the size response of a wide PSF), inside lag 4
-and beyond it. Backs the size link of the peers benchmark
-(docs/benchmarks.rst, "This package's route against LSST's"). Run::
+and beyond it. The r^2 weight is that of a PSF much wider than the lags;
+the stars of the peers benchmark (docs/benchmarks.rst, "This package's
+route against LSST's") hardly see this far field: cropped to GalSim's
+window, the calibrated template corrects them to 0.1-0.2 % of the size
+slope of the whole one (``peers_links_results``). Run::
 
     python benchmarks/calibration/far_field.py
 

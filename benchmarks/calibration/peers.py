@@ -12,9 +12,12 @@ this package's, side by side (:mod:`lsst_bfdrift.calibration.routes`):
 * for reference, GalSim's own file (the true template) corrected by ``drift``;
 * to tell the links of the chain apart (template against correction
   method): the Astier & Regnault template corrected by ``drift``, and the
-  true template corrected by ``astier23``; and the calibrated template
-  cropped to GalSim's window (``electrostatic, window``: the part of the
-  residual that the model's far field beyond GalSim's files makes).
+  true template corrected by ``astier23``; the calibrated template
+  cropped to GalSim's window (``electrostatic, window``: GalSim's files move
+  no boundary beyond lag 3, so this is what the model's far field does); and
+  GalSim's file matched to its own pixel areas, the a-matrix, instead of its
+  photons' transfers (``true template (areas)``: what a perfect area model
+  would leave on GalSim's stars).
 
 Inputs per GalSim sensor model (lags 0..``--lags``, default 3: GalSim's
 sensor files stop about 4 px from the aggressor, so its a_ij beyond lag 3
@@ -102,6 +105,18 @@ def amatrix_inputs(sensor, lags, draws):
         out.append((f"draw {k}", AcoeffTable(a + sigma * rng.standard_normal(a.shape), sigma,
                                              source=f"GalSim {sensor} a-matrix, draw {k}")))
     return a, out
+
+
+def moved_window(template):
+    """Smallest odd side of the central block that holds every boundary the
+    template moves (7 for GalSim's files: they move nothing beyond lag 3)."""
+    for m in range(1, template.size + 1, 2):
+        inner = template.cropped(m)
+        if all(np.abs(full).sum() <= np.abs(part).sum() * (1 + 1e-12) for full, part in (
+                (template.vedge_d, inner.vedge_d), (template.hedge_d, inner.hedge_d),
+                (template.corner_d, inner.corner_d))):
+            return m
+    return template.size
 
 
 def stated_templates(route, table, n, seed):
@@ -197,6 +212,8 @@ def main(argv=None):
             tab, _ = flats_table(sensor, args)
             inputs.append(("flats", tab))
         true_tpl = import_galsim_sensor(sensor, match="transfers")
+        true_areas = import_galsim_sensor(sensor, match="areas")
+        window = moved_window(true_tpl)
         psf_pairs = {}
         for psf in args.psf:
             pairs, seed, cost = star_pairs(sensor, psf, args)
@@ -222,10 +239,13 @@ def main(argv=None):
                 # the links of the chain: each template with the other method
                 templates["astier23 shifts, drift"] = (routes["astier23"].template, "drift")
                 templates["true template, astier23"] = (true_tpl, "astier23")
-                # the calibrated template within GalSim's window (its files stop about
-                # 4 px from the aggressor): what the model's far field does to the stars
+                # the calibrated template within GalSim's window (its files move no
+                # boundary beyond lag 3): what the model's far field does to the stars
                 templates["electrostatic, window"] = (
-                    routes["electrostatic"].template.cropped(true_tpl.size), "drift")
+                    routes["electrostatic"].template.cropped(window), "drift")
+                # GalSim's file matched to its own pixel areas (its a-matrix) rather
+                # than to its photons' transfers: the template an area model aims at
+                templates["true template (areas)"] = (true_areas, "drift")
                 res = run_case(pairs, templates, args)
                 fl, base_rows = next(iter(res.values()))
                 u, ok = slopes(fl, base_rows["uncorrected"])
@@ -241,7 +261,8 @@ def main(argv=None):
                         f"{q} {row[name][q][0]:+6.1f} +- {row[name][q][1]:4.1f}"
                         for _, q in QUANTITIES))
                 # paired differences (same stars): package minus each LSST route
-                for other in ("astier23", "coulton18", "true template", "electrostatic, window"):
+                for other in ("astier23", "coulton18", "true template", "true template (areas)",
+                              "electrostatic, window"):
                     d = {}
                     for col, q in QUANTITIES:
                         a_rows, b_rows = res["electrostatic"][1], res[other][1]
