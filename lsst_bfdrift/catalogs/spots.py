@@ -231,8 +231,9 @@ def read_spot_images(images, *, gain=None, saturation=None, exptimes=None, names
     Raises
     ------
     InputError
-        No image; a ``BIASLVL`` that is not a finite number; an image in ADU without a gain (the message names
-        ``BUNIT = 'electron'`` and the gain option); an image without a
+        No image; a ``BIASLVL`` that is not a finite number; an image in
+        ADU without a gain (the message names ``BUNIT = 'electron'`` and
+        the gain option); an image without a
         positive ``EXPTIME`` (when ``exptimes`` is not given); images of
         different shapes; ``exptimes`` or ``names`` of another length.
     """
