@@ -85,8 +85,10 @@ def test_files_carry_exptime_unit_saturation_and_read_back(tmp_path):
     assert hdr["BIASLVL"] == 300.0 and hdr["SENSOR"] == "lsst_itl_50_8"
     assert fits.getheader(paths["twins"][0])["IMAGETYP"] == "SPOT NOBF TRUTH"
     ex = read_spot_images(paths["images"])
-    assert_allclose(ex[1].data, sim["images"][1], rtol=1e-6, atol=1e-3)
-    assert_allclose(ex[1].saturation, 8.03e4)
+    # read back in electrons less the stated pedestal (BIASLVL), saturation likewise
+    assert ex[1].bias == 300.0
+    assert_allclose(ex[1].data, sim["images"][1] - 300.0, rtol=1e-6, atol=1e-3)
+    assert_allclose(ex[1].saturation, 8.03e4 - 300.0)
     assert [e.exptime for e in ex] == pytest.approx(sim["exptimes"].value.tolist())
     with pytest.raises(FileExistsError, match="exists"):
         write_spot_series(sim, tmp_path / "s")
