@@ -48,6 +48,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 from astropy.io import fits  # noqa: E402
 
+import bench_task  # noqa: E402  (this folder's bench_task.py: its star field)
 from lsst_bfdrift.correction.batch import correct_files  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
@@ -66,16 +67,8 @@ def command_line():
 
 
 def star_field(n, n_stars=400, *, seed=1):
-    """Sky of 1200 e and ``n_stars`` Gaussian stars (sigma 1.5 px, 1e4 to 1.5e6 e), float32."""
-    rng = np.random.default_rng(seed)
-    img = rng.poisson(1200.0, (n, n)).astype(np.float64)
-    yy, xx = np.mgrid[-8:9, -8:9]
-    for _ in range(n_stars):
-        x, y = rng.integers(20, n - 20, 2)
-        f = 10 ** rng.uniform(4, np.log10(1.5e6))
-        img[y - 8:y + 9, x - 8:x + 9] += f * np.exp(-0.5 * (xx**2 + yy**2) / 1.5**2) / (
-            2 * np.pi * 1.5**2)
-    return img.astype(np.float32)
+    """bench_task.py's sky (1200 e, ``n_stars`` Gaussian stars of 1e4 to 1.5e6 e), float32."""
+    return bench_task.star_field(n, n_stars, seed=seed).astype(np.float32)
 
 
 def write_field(path, img):
