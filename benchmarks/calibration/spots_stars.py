@@ -88,6 +88,7 @@ sys.path.insert(0, HERE)
 from calibrate_sensor import star_pairs  # noqa: E402
 from peers import amatrix_inputs, origin_slope  # noqa: E402
 
+from lsst_bfdrift.calibration.spot_bias import spot_correction_bias  # noqa: E402
 from lsst_bfdrift.calibration.spot_fit import SpotField, calibrate_with_spots  # noqa: E402
 from lsst_bfdrift.calibration.spot_plan import (PLAN_QUANTITIES, SpotDesign,  # noqa: E402
                                                 information_ratio, plan_spot_acquisition,
@@ -221,7 +222,7 @@ def star_table(pairs, templates, say, psf):
         s = star_slopes(fl_n, rows[name])
         out[name] = {q: (100 * s[q][0] / den[q], 100 * s[q][1] / abs(den[q]))
                      for _, q in QUANTITIES}
-        say(f"  {psf:10s} {name:22s} " + "  ".join(
+        say(f"  {psf:10s} {name:38s} " + "  ".join(
             f"{q} {out[name][q][0]:+6.1f} +- {out[name][q][1]:4.1f}" for _, q in QUANTITIES))
     base = "flats only"
     for name in res:
@@ -305,11 +306,26 @@ def run_sensor(sensor, args, say):
             "spots, paired": {sigma_label(s): paired[s] for s in sigmas}}
     if len(sigmas) > 1:  # the first size alone: what the plan starts from
         runs = {f"spots {sigma_label(s0)}": {sigma_label(s0): series[s0]}, **runs}
+    biases = {}
+    if args.bias_centres:
+        rec["correction_bias"] = {}
+        for s in sigmas:
+            t0 = time.time()
+            b = biases[sigma_label(s)] = spot_correction_bias(series[s], res_a.template,
+                                                              centres=args.bias_centres)
+            rec["correction_bias"][sigma_label(s)] = {q: b[q] for q in ("size", "e1", "e2")}
+            say(f" correction's own slopes on the {sigma_label(s)} design (T_a, "
+                f"{b['n_spots']} centres, {len(b['levels'])} levels): size {b['size'][0]:+.2e} "
+                f"+- {b['size'][1]:.1e}, e1 {b['e1'][0]:+.2e} +- {b['e1'][1]:.1e} per 1e5 e "
+                f"({time.time() - t0:.0f} s)")
+        runs.update({f"{k}, bias-corrected": v for k, v in list(runs.items())
+                     if k in ("spots", "spots, paired")})
     templates = {"flats only": res_a.template}
     fits = {}
     for label, group in runs.items():
         t0 = time.time()
-        fields = [SpotField(sr, name=name) for name, sr in group.items()]
+        fields = [SpotField(sr, name=name, bias=biases.get(name) if "bias" in label else None)
+                  for name, sr in group.items()]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the fit's warnings are in its record
             j = calibrate_with_spots(res_a, fields, seed=args.seed)
@@ -429,7 +445,7 @@ def target_table(sensors, say):
                     r[q] = [v, e]
                     r[f"{q}_target"] = verdict(v, e, TARGET[q])
                 rows.append(r)
-                say(f"  {sensor:15s} {psf:10s} {name:22s} size {r['size'][0]:+5.1f} +- "
+                say(f"  {sensor:15s} {psf:10s} {name:38s} size {r['size'][0]:+5.1f} +- "
                     f"{r['size'][1]:3.1f} ({r['size_target']}), e1 {r['e1'][0]:+6.1f} +- "
                     f"{r['e1'][1]:4.1f} ({r['e1_target']})")
     return rows
@@ -485,6 +501,9 @@ def main(argv=None):
                     help="cache prefix of the paired stars (calibrate_sensor.py's)")
     ap.add_argument("--cache", default="/work/cache/spots_val/cal",
                     help="cache prefix of the calibrations and spot series")
+    ap.add_argument("--bias-centres", type=int, default=4,
+                    help="fit the spots also with the correction's own slopes on their design "
+                         "subtracted (spot_correction_bias on centres x centres; 0: not)")
     ap.add_argument("--no-plan", dest="plan", action="store_false",
                     help="leave out item 5 (spots needed, from the stated precision)")
     ap.add_argument("--out", default=os.path.join(HERE, "spots_stars_results"))

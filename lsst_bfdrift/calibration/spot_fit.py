@@ -45,6 +45,10 @@ stands in for a :class:`~lsst_bfdrift.calibration.star_fit.StarField`:
   **images** (``split_by='images'``, paired by exposure time), every spot
   in both: held-out spots test the template on spots it never saw,
   held-out images on fluxes it never saw;
+* what it asks of its slopes is what the drift correction leaves on its
+  design with a right template, not zero (``correction_bias``, by default;
+  :mod:`~lsst_bfdrift.calibration.spot_bias`): about -2 % of the size slope
+  on spots of sigma 1 px, which the correction over-corrects;
 * it needs ``min_spots`` usable spots to fit (per half with 'cross';
   :data:`MIN_FIT_SPOTS`), else a clear error with the count and what was
   flagged.
@@ -60,6 +64,7 @@ import time
 
 import numpy as np
 
+from lsst_bfdrift.calibration.spot_bias import spot_correction_bias
 from lsst_bfdrift.calibration.star_fit import (check_star_inputs, holdout_fields,
                                                joint_calibration, read_star_fields, split_fields)
 from lsst_bfdrift.calibration.star_result import STAR_SLOPES
@@ -100,6 +105,20 @@ def _series_name(series, k):
     return f"spots{k}"
 
 
+def _check_bias(bias):
+    """``bias`` as {quantity: (slope, error)} of floats (None: empty)."""
+    if bias is None:
+        return {}
+    try:
+        out = {q: (float(bias[q][0]), float(bias[q][1])) for q in STAR_SLOPES if q in bias}
+    except (TypeError, ValueError, IndexError) as exc:
+        raise InputError(f"bias must map 'size', 'e1', 'e2' to (slope, error) per 1e5 e, got "
+                         f"{bias!r}") from exc
+    if not all(np.isfinite(v).all() and v[1] >= 0 for v in out.values()):
+        raise InputError(f"bias slopes must be finite with errors >= 0, got {out!r}")
+    return out
+
+
 class SpotField:
     """A spot series prepared for the joint calibration, in a star field's place.
 
@@ -116,6 +135,13 @@ class SpotField:
         (paired by exposure time).
     min_spots : int, optional
         Fewest usable spots to fit (per half with 'cross').
+    bias : dict, optional
+        Quantity -> (slope, error) per 1e5 e: what the drift correction
+        leaves on this series' design with a right template
+        (:func:`~lsst_bfdrift.calibration.spot_bias.spot_correction_bias`).
+        Subtracted from the slopes a correction leaves (its error added in
+        quadrature), so that the fit asks for that instead of zero. None
+        (the default): zero.
 
     Attributes
     ----------
@@ -137,7 +163,7 @@ class SpotField:
     kind = "spots"
 
     def __init__(self, series, *, name=None, fitted_slopes=SPOT_FITTED_SLOPES,
-                 split_by="spots", min_spots=MIN_FIT_SPOTS):
+                 split_by="spots", min_spots=MIN_FIT_SPOTS, bias=None):
         if not isinstance(series, SpotSeries):
             raise InputError(f"series must be a SpotSeries, got {type(series).__name__}")
         if split_by not in SPOT_SPLITS:
@@ -148,6 +174,7 @@ class SpotField:
         self.series, self.name = series, name or "spots"
         self.fitted_slopes = _check_slopes(fitted_slopes, "spot fitted_slopes")
         self.split_by, self.min_spots = split_by, int(min_spots)
+        self.bias = _check_bias(bias)
         cat = series.catalog
         self.spot, self.image = np.asarray(cat["spot"]), np.asarray(cat["image"])
         self.flux = np.asarray(cat["flux"].value, float)
@@ -276,8 +303,11 @@ class SpotField:
         self.corrected_catalog(template)  # keeps the template, so its id stays unique
         key = (None if template is None else id(template), subset.tobytes())
         if key not in self._slopes:
-            self._slopes[key] = self.series.slopes(template, use=subset,
-                                                   quantities=STAR_SLOPES)
+            out = self.series.slopes(template, use=subset, quantities=STAR_SLOPES)
+            if template is not None:
+                for q, (b, be) in self.bias.items():
+                    out[q] = (out[q][0] - b, float(np.hypot(out[q][1], be)))
+            self._slopes[key] = out
         return dict(self._slopes[key])
 
 
@@ -374,7 +404,7 @@ def calibrate_with_spots(result, spots, *, stars=(), holdout="auto", split_by="s
                          saturation=None, min_snr=30.0, min_stars=30, min_spots=MIN_FIT_SPOTS,
                          flats_uncertainty=True, fitted_slopes=("size",),
                          spot_slopes=SPOT_FITTED_SLOPES, scale_star_errors=True,
-                         size_goal=3.0, progress=False):
+                         size_goal=3.0, correction_bias=True, bias_centres=3, progress=False):
     """Refit a calibration jointly to its a-matrix and to spot series (and star fields).
 
     Parameters
@@ -415,7 +445,20 @@ def calibrate_with_spots(result, spots, *, stars=(), holdout="auto", split_by="s
     spot_slopes : sequence of {'size', 'e1', 'e2'}, optional
         The slopes fitted on the spot series (default all three: a series
         measures its e1 slope as well as its size slope).
-    scale_star_errors, size_goal, progress
+    scale_star_errors, size_goal
+        As :func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars`.
+    correction_bias : bool, optional
+        Ask of every series (without a ``bias`` of its own) the slopes the
+        drift correction leaves on its design with a right template instead
+        of zero: :func:`~lsst_bfdrift.calibration.spot_bias.spot_correction_bias`
+        with ``result``'s template on ``bias_centres`` x ``bias_centres``
+        sub-pixel centres (about 5-15 s per series; the series' field records
+        keep it as ``correction_bias``). On GalSim's spots of 1 and 2 px it
+        moves the size slope left on held-out stars by -0.1 to -1.5 % points
+        toward zero (``benchmarks/calibration/spots_stars.py``). Default True.
+    bias_centres : int, optional
+        Sub-pixel centres per side of that simulation.
+    progress : bool, optional
         As :func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars`.
 
     Returns
@@ -443,6 +486,11 @@ def calibrate_with_spots(result, spots, *, stars=(), holdout="auto", split_by="s
     spot_fields = read_spot_fields(spots, gain=gain, saturation=saturation,
                                    fitted_slopes=spot_slopes, split_by=split_by,
                                    min_spots=min_spots, progress=progress)
+    if correction_bias:
+        for f in spot_fields:
+            if not f.bias:  # a series' own stated bias is kept
+                f.bias = _check_bias(spot_correction_bias(f.series, result.template,
+                                                          centres=bias_centres))
     stars = list(stars) if not isinstance(stars, (str, np.ndarray)) else [stars]
     star_fields = read_star_fields(stars, gain=gain, min_snr=min_snr) if stars else []
     fields = star_fields + spot_fields

@@ -576,14 +576,17 @@ def fields_summary(fields, fit_fields, hold_fields):
     list of dict
         ``name``, ``kind`` (``stars`` or ``spots``), ``n_detections``
         (sources detected; spots in the grid), ``n_usable``, ``n_fit``,
-        ``n_held_out`` (stars; spot rows, one per spot and image) and
-        ``flagged`` (counts per flag).
+        ``n_held_out`` (stars; spot rows, one per spot and image),
+        ``flagged`` (counts per flag) and, for a spot series fitted with one,
+        ``correction_bias`` (quantity -> (slope, error) per 1e5 e).
     """
     return [{"name": f.name, "kind": f.kind, "n_detections": f.n_detections,
              "n_usable": int(f.usable.sum()),
              "n_fit": int(f.fit_stars.sum()) if f in fit_fields else 0,
              "n_held_out": int(f.held_out.sum()) if f in hold_fields else 0,
-             "flagged": f.flag_counts} for f in fields]
+             "flagged": f.flag_counts}
+            | ({"correction_bias": dict(f.bias)} if getattr(f, "bias", None) else {})
+            for f in fields]
 
 
 def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_directions=6,
@@ -768,7 +771,9 @@ def joint_calibration(result, fields, *, holdout="auto", seed=20151, max_directi
         "holdout": mode, "directions": final["chosen"],
         "coefficients": coefficients, "flats_uncertainty": uncertainty,
         "chi2_amatrix": chi2["joint"]["amatrix"], "chi2_stars": chi2["joint"]["stars"],
-        "tension": tension, "held_out": held}, key=meta_key)
+        "tension": tension, "held_out": held,
+        "correction_bias": {f.name: dict(f.bias) for f in fields if getattr(f, "bias", None)}},
+        key=meta_key)
     bar.done = bar.total
     if progress:
         bar._draw(final=True)

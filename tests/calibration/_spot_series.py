@@ -33,7 +33,7 @@ def _gaussian(side, x0, y0, sigma):
 
 
 def forward_spot_images(template, *, grid=5, pitch=26, levels=LEVELS, sigma=1.5, n_phases=4,
-                        read_noise=1.0, seed=7):
+                        read_noise=1.0, seed=7, margin=20):
     """A spot series recorded through ``template`` by the drift forward model.
 
     Parameters
@@ -52,6 +52,8 @@ def forward_spot_images(template, *, grid=5, pitch=26, levels=LEVELS, sigma=1.5,
     read_noise : float
         Gaussian noise (e rms).
     seed : int
+    margin : int
+        Distance (px) of the outer spots from the image edge.
 
     Returns
     -------
@@ -61,7 +63,7 @@ def forward_spot_images(template, *, grid=5, pitch=26, levels=LEVELS, sigma=1.5,
         s.
     """
     rng = np.random.default_rng(seed)
-    side, h, margin = 31, 15, 20
+    side, h = 31, 15
     shape = (pitch * (grid - 1) + 2 * margin,) * 2
     phases = [(rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5)) for _ in range(n_phases)]
     swept = SweptAreas(template, (side, side))

@@ -142,6 +142,7 @@ ALSO_FEEDS = [
     ("calibrate", "no_refine", calibrate, "refine", _not),
     ("calibrate", "allow_poor_fit", calibrate, "allow_poor_fit", _same),
     ("calibrate", "model_directions_only", calibrate_with_stars, "flats_uncertainty", _not),
+    ("calibrate", "spot_correction_bias", calibrate_with_spots, "correction_bias", _same),
     ("correct", "processes", correct_files, "processes", _same),
     ("validate-stars", "sky", validate_stars, "sky", _same),
     ("validate-stars", "sensor", import_galsim_sensor, "name", _same),

@@ -180,10 +180,12 @@ def test_calibrate_with_spots_end_to_end(capsys, tmp_path, monkeypatch):
     assert "with 1 spot series: directions curl" in text
     assert "driven by the a_ij moved" in text and "held-out spots of" in text
     assert "(a-matrix and 1 spot series)" in text
+    assert "asked to keep the correction's own slopes on its design (per 1e5 e): size " in text
     meta = DistortionTemplate.load(out).meta["calibration"]
     s = meta["spots"]
     assert s["directions"][0] == "curl" and s["kinds"] == ["spots"] and s["holdout"] == "split"
     assert 0 <= s["tension"]["p_value"] <= 1 and s["tension"]["drivers"]["slopes"]
+    assert set(s["correction_bias"][s["fields"][0]]) == {"size", "e1", "e2"}
     held = s["held_out"][s["fields"][0]]
     assert held["kind"] == "spots" and held["n_stars"] > 0
     assert meta["inputs"] == [os.path.abspath(p) for p in [flats] + spots]
