@@ -173,7 +173,8 @@ def qdist_templates(args):
             per_star_rows(pairs, tpl_m), rows_q,
             f"template qdist={qd}-matched minus qdist=3-matched, {cad}", lines)
     # the files now come from the previous run's command(s) and this one
-    heads = [ln for ln in lines if ln.startswith("# command: ")] + [f"# command: {command_line(__file__)}"]
+    heads = ([ln for ln in lines if ln.startswith("# command: ")]
+             + [f"# command: {command_line(__file__)}"])
     lines = heads + [ln for ln in lines if not ln.startswith("# command: ")]
     out["command"] = " && ".join(h[len("# command: "):] for h in heads)
     write_json(args.out + ".json", out, indent=2)
