@@ -28,7 +28,6 @@ Writes ``benchmarks/calibration/band_templates_results.txt`` and ``.json``.
 
 import dataclasses
 import os
-import shlex
 import sys
 import time
 
@@ -40,9 +39,10 @@ from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.templates.bands import combine_templates
 from lsst_bfdrift.templates.template import (TemplateSettings, build_template,
                                              load_default_template)
-from lsst_bfdrift.utils.io import write_json, write_text
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 LAGS = {"A00": (0, 0), "A01": (0, 1), "A10": (1, 0), "A11": (1, 1), "A02": (0, 2),
         "A20": (2, 0)}
 SEDS = {"red (CWW_E_ext)": "CWW_E_ext", "blue (15000 K)": 15000.0}
@@ -56,12 +56,10 @@ def area_changes(template):
 
 
 def main():
-    cmd = "python benchmarks/calibration/band_templates.py" + "".join(
-        " " + shlex.quote(a) for a in sys.argv[1:])
     meta = load_default_template().meta
     params = SensorParameters.from_dict(meta["params"])
     t, z0 = params.thickness, params.z_collect
-    lines, out = [], {"command": cmd, "params": params.to_dict()}
+    lines, out = [], {"params": params.to_dict()}
 
     def say(s=""):
         print(s, flush=True)
@@ -144,9 +142,7 @@ def main():
                 " ".join(f"{r['changes'][k] / u[k]:7.4f}" for k in LAGS))
     out["bands"] = bands
     out["nodes"] = nodes.tolist()
-    write_text(os.path.join(HERE, "band_templates_results.txt"),
-               f"# command: {cmd}\n" + "\n".join(lines) + "\n")
-    write_json(os.path.join(HERE, "band_templates_results.json"), out, indent=1)
+    write_results(os.path.join(HERE, "band_templates_results"), lines, out, script=__file__)
 
 
 if __name__ == "__main__":

@@ -24,19 +24,20 @@ default_template.fits`` and ``default_template_config.json``::
 
 import argparse
 import os
-import shlex
 import sys
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 ROOT = os.path.join(HERE, "..", "..")
 
 from lsst_bfdrift.ptc.acoeffs import read_acoeff_table  # noqa: E402
 from lsst_bfdrift.calibration.tuning import CHARGE, calibrate, refine_template  # noqa: E402
 from lsst_bfdrift.physics.sensor import SensorParameters  # noqa: E402
 from lsst_bfdrift.templates.template import TemplateSettings, build_template  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
+from lsst_bfdrift.utils.io import write_json  # noqa: E402
 
 ITL = os.path.join(ROOT, "..", "shared", "data", "measured", "itl_covariances_21oct19.txt")
 DATA = os.path.join(ROOT, "lsst_bfdrift", "data")
@@ -45,12 +46,6 @@ START = SensorParameters.paper().replace(xi0=2952.0, channel_depth=0.368,
                                          clock_separation=0.52, collection_height=0.5)
 #: settings of the shipped default template
 SETTINGS = TemplateSettings(size=21, edge_samples=32, aggressor_charge=CHARGE, tol=1e-5)
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def main(argv=None):
@@ -78,11 +73,8 @@ def main(argv=None):
              "  correlation: " + np.array2string(np.asarray(f.correlation), precision=3),
              f"  SensorParameters() defaults: {rounded}"]
     print("\n".join(lines))
-    write_text(os.path.join(HERE, "calibrate_default_results.txt"),
-               f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-    write_json(os.path.join(HERE, "calibrate_default_results.json"),
-               {"command": command_line(), **res.summary(), "rounded": rounded}, indent=1,
-               default=float)
+    write_results(os.path.join(HERE, "calibrate_default_results"), lines,
+                  {**res.summary(), "rounded": rounded}, script=__file__, json_default=float)
     if args.write:
         if params != SensorParameters():
             print("note: SensorParameters() differs from the fit; update its defaults to",

@@ -41,7 +41,6 @@ Writes ``benchmarks/calibration/calibrate_noise_floor_results.txt`` and ``.json`
 import argparse
 import os
 import platform
-import shlex
 import sys
 import time
 import zlib
@@ -49,6 +48,8 @@ import zlib
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable  # noqa: E402
 from lsst_bfdrift.ptc.full_model import fit_covariance_model  # noqa: E402
@@ -57,14 +58,7 @@ from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.templates.refine import draw_templates, match_area_coefficients  # noqa: E402
 from lsst_bfdrift.utils.errors import InputError  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.validation.stars import per_star_residuals, residual_slopes  # noqa: E402
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def main(argv=None):
@@ -188,8 +182,7 @@ def main(argv=None):
                     f"{np.sqrt(np.mean(s**2)):5.1f} %, mean {s.mean():+6.1f} %, range "
                     f"{s.min():+6.1f} to {s.max():+6.1f} %")
     say(f"target: <= 3 % of the size slope, <= 5 % of e1. ({time.time() - t_start:.0f} s)")
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-    write_json(args.out + ".json", {"command": command_line(), **rec}, indent=1, default=float)
+    write_results(args.out, lines, rec, script=__file__, json_default=float)
     return 0
 
 

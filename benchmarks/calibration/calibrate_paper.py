@@ -19,29 +19,23 @@ Prints both fits and writes ``benchmarks/calibration/calibrate_paper_results.txt
 """
 
 import os
-import shlex
 import sys
 
 import numpy as np
 
 
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.calibration.sensor_fit import fit_sensor_parameters  # noqa: E402
 from lsst_bfdrift.physics.sensor import SensorParameters  # noqa: E402
 from lsst_bfdrift.templates.template import TemplateSettings, build_template  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 ITL = os.path.join(HERE, "..", "..", "..", "shared", "data", "measured",
                    "itl_covariances_21oct19.txt")
 
 
 LINES = []
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def say(line):
@@ -99,10 +93,8 @@ def main():
     say(f"    model dlnA00 per e {np.log(r.model['A00']) / q:.3e} "
           f"(measured a00 {a[(0, 0)][0]:.3e}, set by the sum rule)")
     out["itl"] = r.as_dict()
-    write_json(os.path.join(HERE, "calibrate_paper_results.json"),
-               {"command": command_line(), **out}, indent=2, default=float)
-    write_text(os.path.join(HERE, "calibrate_paper_results.txt"),
-               f"# command: {command_line()}\n" + "\n".join(LINES) + "\n")
+    write_results(os.path.join(HERE, "calibrate_paper_results"), LINES, out, script=__file__,
+                  json_default=float, indent=2)
 
 
 if __name__ == "__main__":

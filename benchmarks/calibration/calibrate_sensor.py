@@ -34,7 +34,6 @@ writes ``benchmarks/calibration/calibrate_sensor_results.txt`` / ``.json``::
 
 import argparse
 import os
-import shlex
 import sys
 import time
 import zlib
@@ -42,6 +41,8 @@ import zlib
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable  # noqa: E402
 from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
@@ -49,17 +50,10 @@ from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.templates.refine import curl_free_template  # noqa: E402
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.validation.stars import (draw_star_pairs, per_star_residuals,  # noqa: E402
                                            residual_slopes, slope_through_origin as _slope)
 
 METHODS = ("astier23", "drift")
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def star_pairs(sensor, psf, args):
@@ -208,8 +202,7 @@ def main(argv=None):
                 say(f"  paired {name} minus true, drift: size {d['size'][0]:+.2f} +- "
                     f"{d['size'][1]:.2f} %, e1 {d['e1'][0]:+.1f} +- {d['e1'][1]:.1f} %")
     say("target: calibrated drift <= 3 % of the size slope and <= 5 % of e1")
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-    write_json(args.out + ".json", {"command": command_line(), **out}, indent=1, default=float)
+    write_results(args.out, lines, out, script=__file__, json_default=float)
     return 0
 
 

@@ -70,7 +70,6 @@ import argparse
 import dataclasses
 import json
 import os
-import shlex
 import sys
 import time
 import zlib
@@ -86,23 +85,18 @@ from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 from lsst_bfdrift.templates.bands import MultiBandTemplate, build_band_templates
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.templates.template import TemplateSettings
-from lsst_bfdrift.utils.io import write_json, write_text
 from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
 from lsst_bfdrift.validation.stars import slope_through_origin, star_moments
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 REPO = os.path.dirname(os.path.dirname(HERE))
 #: Conversion heights (um) the drift templates are built at (collection height first):
 #: the displacements change with height below about 30 um and are flat above.
 DRIFT_NODES = (3.0, 10.0, 30.0)
 CALIBRATIONS = {"lsst_itl_50_8": "calibrate_sensor_itl_results.json",
                 "lsst_e2v_50_8": "calibrate_sensor_e2v_results.json"}
-
-
-def command_line():
-    """This run's command as typed from the repository root."""
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), REPO)]
-                      + sys.argv[1:])
 
 
 def calibrated_params(sensor):
@@ -415,11 +409,9 @@ def main(argv=None):
 
 def save(lines, out, args, *, complete):
     """Write the results so far (after every sensor, so that a long run keeps them)."""
-    head = "" if complete else "(partial: the run goes on)\n"
-    write_text(args.out + ".txt", f"# command: {command_line()}\n{head}" + "\n".join(lines)
-               + "\n")
-    write_json(args.out + ".json", {"command": command_line(), "complete": complete, **out},
-               indent=1, default=float)
+    head = [] if complete else ["(partial: the run goes on)"]
+    write_results(args.out, head + lines, {"complete": complete, **out}, script=__file__,
+                  json_default=float)
 
 
 if __name__ == "__main__":

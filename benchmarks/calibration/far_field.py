@@ -19,7 +19,6 @@ Writes ``benchmarks/calibration/far_field_results.txt`` and ``.json``.
 
 import json
 import os
-import shlex
 import sys
 
 import numpy as np
@@ -27,23 +26,22 @@ import numpy as np
 from lsst_bfdrift.calibration.tuning import default_start, model_acoeffs
 from lsst_bfdrift.ptc.acoeffs import lag_weights
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
-from lsst_bfdrift.utils.io import write_json, write_text
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 REPO = os.path.dirname(os.path.dirname(HERE))
 L = 9
 
 
 def main():
-    cmd = " ".join(["python", shlex.quote(os.path.relpath(os.path.abspath(__file__), REPO))]
-                   + [shlex.quote(a) for a in sys.argv[1:]])
     with open(os.path.join(HERE, "parameter_lags_results.json")) as fh:
         fits = json.load(fh)["fits"]
     w = lag_weights(L)
     i = np.arange(L + 1)
     r2 = np.add.outer(i ** 2, i ** 2)
     far = np.maximum.outer(i, i) >= 4
-    lines, out = [], {"command": cmd, "max_lag": L, "sensors": {}}
+    lines, out = [], {"max_lag": L, "sensors": {}}
     for label, fit in fits.items():
         if not label.startswith("GalSim "):
             continue
@@ -61,9 +59,7 @@ def main():
         lines.append(f"{sensor:15s} model / GalSim, r2-weighted beyond lag 3: "
                      f"{rec['r2_far_ratio']:.2f}")
         print("\n".join(lines[-3:]), flush=True)
-    write_text(os.path.join(HERE, "far_field_results.txt"),
-               f"# command: {cmd}\n" + "\n".join(lines) + "\n")
-    write_json(os.path.join(HERE, "far_field_results.json"), out, indent=1)
+    write_results(os.path.join(HERE, "far_field_results"), lines, out, script=__file__)
 
 
 if __name__ == "__main__":

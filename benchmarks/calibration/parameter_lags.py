@@ -33,7 +33,6 @@ Writes ``benchmarks/calibration/parameter_lags_results.txt`` and ``.json``.
 import argparse
 import os
 import platform
-import shlex
 import sys
 import time
 import warnings
@@ -45,19 +44,14 @@ from lsst_bfdrift.calibration.tuning import (CANDIDATES, CalibrationWarning, cal
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable
 from lsst_bfdrift.ptc.inputs import read_calibration_input
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
-from lsst_bfdrift.utils.io import write_json, write_text
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 REPO = os.path.dirname(os.path.dirname(HERE))
 MEASURED = os.path.join(REPO, "..", "shared", "data", "measured", "itl_covariances_21oct19.txt")
 #: cp_pipe-scale errors: relative part and floor (per electron).
 REL_ERROR, ERROR_FLOOR = 0.03, 1e-9
-
-
-def command_line():
-    """The command that runs this script as it was run."""
-    return " ".join(["python", shlex.quote(os.path.relpath(os.path.abspath(__file__), REPO))]
-                    + [shlex.quote(a) for a in sys.argv[1:]])
 
 
 def lag_list(mask):
@@ -155,7 +149,7 @@ def main(argv=None):
     lags = lag_list(np.ones_like(ref, bool))
     _, J, source = start_jacobian(default_start(), CANDIDATES, L)
     say(f"start Jacobian from {source}")
-    out = {"command": command_line(), "lags": L,
+    out = {"lags": L,
            "errors": {"relative": REL_ERROR, "floor": ERROR_FLOOR},
            "per_parameter": lags_per_parameter(J, sigma, lags, say),
            "linear": linear_correlations(J, sigma, lags, say), "fits": {}}
@@ -172,8 +166,7 @@ def main(argv=None):
                            measured_acoeffs(read_calibration_input([MEASURED]))))
         for label, table in inputs:
             out["fits"][label] = report_fit(label, table, say)
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-    write_json(args.out + ".json", out, indent=1, default=float)
+    write_results(args.out, lines, out, script=__file__, json_default=float)
 
 
 if __name__ == "__main__":

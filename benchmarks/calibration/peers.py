@@ -53,7 +53,6 @@ lies within that precision combined with the stars' error. Run::
 
 import argparse
 import os
-import shlex
 import sys
 import time
 import zlib
@@ -70,22 +69,17 @@ from lsst_bfdrift.templates.edge_shifts import template_from_edge_shifts
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.templates.refine import draw_templates
 from lsst_bfdrift.utils.errors import InputError
-from lsst_bfdrift.utils.io import write_json, write_text
 from lsst_bfdrift.validation.stars import per_star_residuals
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 REPO = os.path.dirname(os.path.dirname(HERE))
 
 #: cp_pipe-scale errors: relative part and floor (per electron).
 REL_ERROR, ERROR_FLOOR = 0.03, 1e-9
 #: Quantities compared: column of per_star_residuals' rows, name.
 QUANTITIES = ((0, "size"), (1, "e1"), (2, "e2"))
-
-
-def command_line():
-    """The command that runs this script as it was run."""
-    return " ".join(["python", shlex.quote(os.path.relpath(os.path.abspath(__file__), REPO))]
-                    + [shlex.quote(a) for a in sys.argv[1:]])
 
 
 def origin_slope(x, y):
@@ -202,9 +196,8 @@ def main(argv=None):
         out["coverage"] = {m: {"fraction": float(np.mean(c)), "cases": len(c)}
                            for m, c in coverage.items() if c}
         text = lines + ([head] if partial else [])
-        write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(text) + "\n")
-        write_json(args.out + ".json", {"command": command_line(), "complete": not partial, **out},
-                   indent=1, default=float)
+        write_results(args.out, text, {"complete": not partial, **out}, script=__file__,
+                      json_default=float)
 
     say(f"routes: {', '.join(f'{m} ({ROUTE_METHODS[m]})' for m in MODELS)}; a-matrix lags "
         f"0..{args.lags}, errors {REL_ERROR:.0%} + {ERROR_FLOOR:g}/e; % of the uncorrected "

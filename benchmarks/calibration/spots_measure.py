@@ -35,7 +35,6 @@ predicted; writes ``benchmarks/calibration/spots_measure_results.txt`` /
 
 import argparse
 import os
-import shlex
 import sys
 import time
 import zlib
@@ -43,24 +42,19 @@ import zlib
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from lsst_bfdrift.catalogs.spot_series import SpotSeries  # noqa: E402
 from lsst_bfdrift.catalogs.spot_slopes import fit_spot_slope  # noqa: E402
 from lsst_bfdrift.catalogs.spots import SPOT_QUANTITIES  # noqa: E402
 from lsst_bfdrift.simulation.spots import simulate_spot_series  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 #: Clip level above the bias (e): the saturation of the simulated sensor.
 FULL_WELL = 8.5e4
 #: Bias pedestal (e), removed by the spots' local background.
 BIAS = 1000.0
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def _col(cat, name):
@@ -172,8 +166,7 @@ def main(argv=None):
         block = report(sensor, r)
         print("\n".join(block), flush=True)
         lines += block
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-    write_json(args.out + ".json", {"command": command_line(), **out}, indent=1, default=float)
+    write_results(args.out, lines, out, script=__file__, json_default=float)
 
 
 if __name__ == "__main__":

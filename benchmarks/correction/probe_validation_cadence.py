@@ -39,13 +39,14 @@ import contextlib
 import functools
 import json
 import os
-import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import command_line, write_results  # noqa: E402
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
@@ -55,12 +56,6 @@ from lsst_bfdrift.validation.stars import per_star_residuals, residual_slopes  #
 from lsst_bfdrift.validation.stars import slope_through_origin as _slope  # noqa: E402
 
 METHODS = ("coulton18", "astier23", "drift")
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 @contextlib.contextmanager
@@ -178,7 +173,8 @@ def qdist_templates(args):
             per_star_rows(pairs, tpl_m), rows_q,
             f"template qdist={qd}-matched minus qdist=3-matched, {cad}", lines)
     # the files now come from the previous run's command(s) and this one
-    heads = [ln for ln in lines if ln.startswith("# command: ")] + [f"# command: {command_line()}"]
+    heads = ([ln for ln in lines if ln.startswith("# command: ")]
+             + [f"# command: {command_line(__file__)}"])
     lines = heads + [ln for ln in lines if not ln.startswith("# command: ")]
     out["command"] = " && ".join(h[len("# command: "):] for h in heads)
     write_json(args.out + ".json", out, indent=2)
@@ -253,8 +249,7 @@ def main():
                             bf=np.array([p["bf"] for p in pairs]),
                             truth=np.array([p["truth"] for p in pairs]),
                             flux=np.array([p["flux"] for p in pairs]))
-        write_json(args.out + ".json", {"command": command_line(), **out}, indent=2)
-        write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
+        write_results(args.out, lines, out, script=__file__, indent=2)
 
 
 if __name__ == "__main__":

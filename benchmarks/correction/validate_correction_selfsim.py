@@ -17,15 +17,15 @@ two methods on the same images, free of the star-to-star scatter. Writes
 
 import argparse
 import os
-import shlex
 import sys
 
 import galsim
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
-from lsst_bfdrift.utils.io import write_text  # noqa: E402
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
 from lsst_bfdrift.simulation.stars import StarSimulation, image_moments, shoot_photons  # noqa: E402
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
@@ -38,12 +38,6 @@ VARIANTS = {"drift": dict(method="drift"),  # default density 'fv4'
             "coulton18": dict(method="coulton18")}
 MEASURES = {"adaptive": lambda a: _moments(a, 0.0)[0],
             "fixed s=3": lambda a: image_moments(a, weight_sigma=3)["T"]}
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def main():
@@ -94,9 +88,8 @@ def main():
                 lines.append(f"  paired {m} - astier23 {100 * d.mean():+6.2f} +- "
                              f"{100 * d.std(ddof=1) / np.sqrt(len(d)):.2f} %")
         print("\n".join(lines[-(2 * (len(VARIANTS) + 3)):]), flush=True)
-    text = "\n".join(lines) + "\n"
-    write_text(os.path.join(HERE, "validate_correction_selfsim_results.txt"),
-               f"# command: {command_line()}\n" + text)
+    write_results(os.path.join(HERE, "validate_correction_selfsim_results"), lines,
+                  script=__file__)
 
 
 if __name__ == "__main__":

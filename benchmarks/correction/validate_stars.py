@@ -29,26 +29,20 @@ re-evaluated without re-drawing.
 import argparse
 import json
 import os
-import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.validation.stars import (draw_star_pairs, per_star_residuals,  # noqa: E402
                                      residual_slopes, slope_through_origin as _slope)
 
 METHODS = ("coulton18", "astier23", "drift")
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def load_or_draw(psf, args):
@@ -177,8 +171,7 @@ def main():
                              f"{100 * dee / abs(ue1):.1f} %")
             out["psfs"][psf]["transfers_minus_areas"] = change
         print("\n".join(lines[n0:]), flush=True)
-        write_json(args.out + ".json", {"command": command_line(), **out}, indent=2)
-        write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
+        write_results(args.out, lines, out, script=__file__, indent=2)
 
 
 if __name__ == "__main__":

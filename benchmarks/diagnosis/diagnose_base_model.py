@@ -28,30 +28,24 @@ Writes ``benchmarks/diagnosis/diagnose_base_model_results.txt`` and ``.json``.
 import argparse
 import os
 import platform
-import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from galsim_flat_sets import set_config  # noqa: E402
 from lsst_bfdrift.calibration.acoeff_model import load_default_basis  # noqa: E402
 from lsst_bfdrift.diagnosis.effects_fit import diagnose, observations_from_pairs  # noqa: E402
 from lsst_bfdrift.simulation.flats import simulate_flat_pairs  # noqa: E402
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 INJECTIONS = (("cti_parallel", (1e-2,)), ("cti_serial", (1e-2,)),
               ("gain_nonlinearity", (6e-7,)), ("gain_nonlinearity", (2e-7,)),
               ("echo", (1e-2, 3)))
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def run(a, cfg, bases, *, steps=20, inject=None):
@@ -118,8 +112,7 @@ def main(argv=None):
         say(f"    {name:18s} {str(amp):12s} " + "   ".join(
             f"{b}: {sum(name in r[b]['added'] for r in rows)}/{len(rows)}" for b in bases))
     say(f"({time.time() - t0:.0f} s)")
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-    write_json(args.out + ".json", {"command": command_line(), **rec}, indent=1, default=float)
+    write_results(args.out, lines, rec, script=__file__, json_default=float)
     return 0
 
 

@@ -25,7 +25,6 @@ import io
 import json
 import os
 import platform
-import shlex
 import sys
 import time
 
@@ -33,18 +32,13 @@ import numpy as np
 from scipy import stats
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from lsst_bfdrift.calibration.acoeff_model import load_default_basis  # noqa: E402
 from lsst_bfdrift.diagnosis.effects_fit import diagnose, observations_from_pairs  # noqa: E402
-from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
 
 OUT = os.path.join(HERE, "diagnose_false_alarms_results")
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def run_set(path, basis):
@@ -140,11 +134,8 @@ def main(argv=None):
         f"{summary['chi2_dof_range'][0]:.3f} - {summary['chi2_dof_range'][1]:.3f}; p-values "
         f"against uniform: KS p = {ks.pvalue:.2f}")
     say(f"edge signature named in {summary['edge_named']} of {n} sets (GalSim's open edges)")
-    with atomic_output(OUT + ".txt") as tmp, open(tmp, "w") as fh:
-        fh.write(f"# command: {command_line()}\n" + out.getvalue())
-    with atomic_output(OUT + ".json") as tmp, open(tmp, "w") as fh:
-        json.dump({"command": command_line(), "summary": summary, "checks": checks,
-                   "sets": rows}, fh, indent=1)
+    write_results(OUT, out.getvalue().removesuffix("\n").split("\n"),
+                  {"summary": summary, "checks": checks, "sets": rows}, script=__file__)
 
 
 if __name__ == "__main__":

@@ -26,13 +26,14 @@ import argparse
 import io
 import json
 import os
-import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import command_line, write_results  # noqa: E402
 
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable, read_acoeff_table
 from lsst_bfdrift.calibration.acoeff_model import (LinearBasis, default_basis_path,
@@ -50,15 +51,9 @@ if not os.path.isdir(DATA):
     DATA = "/work/shared/data/measured"
 ITL = os.path.join(DATA, "itl_covariances_21oct19.txt")
 E2V = os.path.join(DATA, "eotest_e2v_ptc_amp05.txt")
-OUT_JSON = os.path.join(HERE, "diagnose_itl_results.json")
-OUT_TXT = os.path.join(HERE, "diagnose_itl_results.txt")
+OUT = os.path.join(HERE, "diagnose_itl_results")
+OUT_JSON = OUT + ".json"
 FIG_DIR = os.path.join(HERE, "..", "..", "docs", "_static", "diagnose_itl")
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 class Tee(io.StringIO):
@@ -160,7 +155,8 @@ def main():
     if not args.reuse_fit:  # keep the slow part even if a later step fails
         with atomic_output(OUT_JSON) as tmp:
             with open(tmp, "w") as fh:
-                json.dump({"command": command_line(), **results}, fh, indent=1, default=float)
+                json.dump({"command": command_line(__file__), **results}, fh, indent=1,
+                          default=float)
 
     # 3: diagnosis on the table
     t = time.perf_counter()
@@ -207,12 +203,8 @@ def main():
     results["ptc_tools_closure"] = {"values": lin.values, "errors": lin.errors,
                                     "truth": basis.x0, "chi2": lin.chi2, "dof": lin.dof}
 
-    with atomic_output(OUT_JSON) as tmp:
-        with open(tmp, "w") as fh:
-            json.dump({"command": command_line(), **results}, fh, indent=1, default=float)
-    with atomic_output(OUT_TXT) as tmp:
-        with open(tmp, "w") as fh:
-            fh.write(f"# command: {command_line()}\n" + out.getvalue())
+    write_results(OUT, out.getvalue().removesuffix("\n").split("\n"), results, script=__file__,
+                  json_default=float)
 
 
 if __name__ == "__main__":

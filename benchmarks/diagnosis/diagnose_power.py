@@ -40,13 +40,14 @@ import io
 import json
 import os
 import platform
-import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from lsst_bfdrift.calibration.acoeff_model import load_default_basis  # noqa: E402
 from lsst_bfdrift.diagnosis.effects_fit import base_acoeffs  # noqa: E402
@@ -54,19 +55,12 @@ from lsst_bfdrift.diagnosis.effects_fit import diagnose, observations_from_pairs
 from lsst_bfdrift.simulation.effects import EFFECT_NAMES  # noqa: E402
 from lsst_bfdrift.simulation.flats import (READOUT_EFFECTS, apply_readout_effects,  # noqa: E402
                                            engine_acoeffs)
-from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
 
 from galsim_flat_sets import INJECTIONS  # noqa: E402
 
 OUT = os.path.join(HERE, "diagnose_power_results")
 #: The echo's lag (serial): where an undeclared echo must be named.
 ECHO_LAG = "C3,0"
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def _load(path):
@@ -233,10 +227,8 @@ def main(argv=None):
         "(drawn twins); vs truth: the same minus the change of the a-matrix the flats carry "
         "(engine_acoeffs: GalSim's noise-free areas with a charge cloud or diffusion; zero "
         f"for the other effects). {len(rows)} diagnoses in {time.time() - t_start:.0f} s.")
-    with atomic_output(OUT + ".txt") as tmp, open(tmp, "w") as fh:
-        fh.write(f"# command: {command_line()}\n" + out.getvalue())
-    with atomic_output(OUT + ".json") as tmp, open(tmp, "w") as fh:
-        json.dump({"command": command_line(), "table": table, "sets": rows}, fh, indent=1)
+    write_results(OUT, out.getvalue().removesuffix("\n").split("\n"),
+                  {"table": table, "sets": rows}, script=__file__)
 
 
 if __name__ == "__main__":

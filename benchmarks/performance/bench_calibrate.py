@@ -17,27 +17,21 @@ area refinement. Prints the machine and writes
 import argparse
 import os
 import platform
-import shlex
 import statistics
 import sys
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable, read_acoeff_table  # noqa: E402
 from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 ITL = os.path.join(HERE, "..", "..", "..", "shared", "data", "measured",
                    "itl_covariances_21oct19.txt")
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def inputs():
@@ -85,8 +79,7 @@ def main(argv=None):
                  "(2 = both cores busy)")
     text = "\n".join(lines)
     print(text)
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text + "\n")
-    write_json(args.out + ".json", {"command": command_line(), **out}, indent=2, default=float)
+    write_results(args.out, lines, out, script=__file__, json_default=float, indent=2)
     return 0
 
 

@@ -19,24 +19,19 @@ import json
 import os
 import platform
 import resource
-import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import command_line  # noqa: E402
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.geometry.superpose import moment_maps  # noqa: E402
 from lsst_bfdrift.templates.template import TemplateSettings, build_template, load_default_template  # noqa: E402,E501
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def _timed(fn, *a, **k):
@@ -182,7 +177,7 @@ _PREFIXES = {"template": "template build", "superpose": "superposition",
 def _write(out, rows, lines, sections):
     """Write the results, keeping the other sections' lines and rows (and the
     commands that wrote them, before this run's)."""
-    commands = [command_line()]
+    commands = [command_line(__file__)]
     if sections != set(_PREFIXES) and os.path.exists(out + ".json"):
         with open(out + ".json") as fh:
             old_rows = json.load(fh)

@@ -26,15 +26,15 @@ Prints a table and writes ``benchmarks/performance/bench_geometry_results.json``
 import argparse
 import json
 import os
-import shlex
 import shutil
 import subprocess
 import sys
 import tempfile
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 CHILD = r"""
 import json, os, resource, sys, time
@@ -80,12 +80,6 @@ else:
 print(json.dumps(dict(seconds=dt, cpu_seconds=cpu, peak_rss_mb=peak - base, image_mb=img.nbytes / 2**20,
                       accuracy=acc, area_sum_minus_npix=float(maps.area.sum() - n * n))))
 """
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def main():
@@ -144,10 +138,9 @@ def main():
                                                       for k, v in sig.items()))
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    write_json(args.out + ".json", {"command": command_line(), "size": args.size,
-                                    "cores": os.cpu_count(),
-                                    "load_average": load, "runs": rows}, indent=2)
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text)
+    write_results(args.out, lines, {"size": args.size, "cores": os.cpu_count(),
+                                    "load_average": load, "runs": rows},
+                  script=__file__, indent=2)
 
 
 if __name__ == "__main__":

@@ -38,7 +38,6 @@ import argparse
 import json
 import os
 import platform
-import shlex
 import subprocess
 import sys
 import time
@@ -47,8 +46,9 @@ import tracemalloc
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 CHILD = r"""
 import json, os, resource, sys, time
@@ -109,12 +109,6 @@ print(json.dumps({{"seconds": dt, "peak_rss_mb": peak - base, "baseline_rss_mb":
                   "warm_min": min(warm) if warm else None, "warm_max": max(warm) if warm else None,
                   "solver": res.header.get("BFSOLVER", "n/a")}}))
 """
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def star_field(n, n_stars, seed=1):
@@ -345,12 +339,11 @@ def main():
                  f"call, {rows['drift']['warm_seconds'] / ns['warm_seconds']:.2f}x warm")
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    write_json(args.out + ".json", {"command": command_line(), "size": args.size,
-                                    "cores": os.cpu_count(),
+    write_results(args.out, lines, {"size": args.size, "cores": os.cpu_count(),
                                     "load_average_before": load[0],
                                     "load_average_after": os.getloadavg()[0],
-                                    "alternated": alt, "runs": rows}, indent=2)
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text)
+                                    "alternated": alt, "runs": rows},
+                  script=__file__, indent=2)
 
 
 if __name__ == "__main__":

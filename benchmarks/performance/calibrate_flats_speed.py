@@ -33,7 +33,6 @@ import json
 import os
 import platform
 import resource
-import shlex
 import statistics
 import subprocess
 import sys
@@ -43,23 +42,19 @@ import time
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 ROOT = os.path.dirname(os.path.dirname(HERE))
 
 from lsst_bfdrift.ptc.covariances import pair_covariances, read_flat_pair  # noqa: E402
 from lsst_bfdrift.ptc.full_model import fit_covariance_model  # noqa: E402
 from lsst_bfdrift.ptc.inputs import read_calibration_input  # noqa: E402
 from lsst_bfdrift.simulation.flats import simulate_flat_pairs, write_flat_pairs  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 #: Mean signals (e) of the 7 pairs.
 LEVELS = np.linspace(1e4, 8e4, 7)
 SHAPE = (256, 256)
 MAX_LAG = 8
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), ROOT)] + sys.argv[1:])
 
 
 def flat_files(directory):
@@ -216,8 +211,7 @@ def main(argv=None):
     out["load_average"] = loads
     text = "\n".join(lines)
     print(text)
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text + "\n")
-    write_json(args.out + ".json", {"command": command_line(), **out}, indent=2, default=float)
+    write_results(args.out, lines, out, script=__file__, json_default=float, indent=2)
     return 0
 
 

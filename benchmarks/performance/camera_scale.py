@@ -40,7 +40,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import argparse  # noqa: E402
 import math  # noqa: E402
 import platform  # noqa: E402
-import shlex  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
@@ -50,20 +49,15 @@ from astropy.io import fits  # noqa: E402
 
 import bench_task  # noqa: E402  (this folder's bench_task.py: its star field)
 from lsst_bfdrift.correction.batch import correct_files  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 __all__ = ["star_field", "main"]
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import command_line, write_results  # noqa: E402
 OUT = os.path.join(HERE, "camera_scale")
 #: Science CCDs in one LSSTCam visit.
 VISIT_CCDS = 189
-
-
-def command_line():
-    """This run's command as typed from the repository root."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def star_field(n, n_stars=400, *, seed=1):
@@ -159,7 +153,6 @@ def main():
     cpu_rate = rows["dask"]["images_per_cpu_second"]
     need_cpu = VISIT_CCDS / (cpu_rate * args.budget)
     lines = [
-        f"# command: {command_line()}",
         f"{args.n} images of {args.size} x {args.size} float32 (sky 1200 e, 400 stars), "
         "default Task (drift + geometry maps),",
         "FITS read + correct + maps + FITS write per image (correct_files); NUMBA_NUM_THREADS=1, "
@@ -195,11 +188,9 @@ def main():
         "Scaling out: the same correct_files call with the scheduler's address, or "
         "`bfdrift correct --scheduler tcp://HOST:8786`.",
     ]
-    text = "\n".join(lines) + "\n"
-    print(text, end="")
-    write_text(args.out + "_results.txt", text)
-    write_json(args.out + "_results.json", {
-        "command": command_line(), "size": args.size, "n_images": args.n, "repeat": args.repeat,
+    print(f"# command: {command_line(__file__)}\n" + "\n".join(lines))
+    write_results(args.out + "_results", lines, {
+        "size": args.size, "n_images": args.n, "repeat": args.repeat,
         "dtype": "float32", "n_stars": 400, "dask_workers": args.workers, "threads_per_worker": 1,
         "env": {"NUMBA_NUM_THREADS": 1, "OMP_NUM_THREADS": 1}, "cpu_count": os.cpu_count(),
         "load_average_before": load_before[0], "load_average_after": load_after[0],
@@ -207,7 +198,7 @@ def main():
         "visit_ccds": VISIT_CCDS, "budget_seconds": args.budget,
         "visit_core_seconds": one_core_visit, "visit_cores": need,
         "visit_cpu_seconds": VISIT_CCDS / cpu_rate, "visit_cores_cpu_rate": need_cpu,
-    }, indent=2)
+    }, script=__file__, indent=2)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,6 @@ Writes ``benchmarks/performance/crowded_windows_results.txt`` and ``.json``.
 import argparse
 import os
 import platform
-import shlex
 import sys
 import time
 
@@ -25,22 +24,17 @@ import numpy as np
 from scipy import ndimage
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from bench_task import star_field  # noqa: E402
 from lsst_bfdrift.correction import series as S  # noqa: E402
 from lsst_bfdrift.correction.solvers import correct_image  # noqa: E402
 from lsst_bfdrift.templates.swept import OperatorCache  # noqa: E402
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 NOISE_TOL = 0.05
 CELL = 16
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def main(argv=None):
@@ -94,8 +88,7 @@ def main(argv=None):
     lines.append(f"  oracle / bound time: {res['oracle']['median_seconds'] / res['bound']['median_seconds']:.2f}")
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text)
-    write_json(args.out + ".json", {"command": command_line(), **res}, indent=1)
+    write_results(args.out, lines, res, script=__file__)
     return 0
 
 

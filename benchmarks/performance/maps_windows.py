@@ -26,13 +26,14 @@ Writes ``benchmarks/performance/maps_windows_results.txt`` and ``.json``.
 import argparse
 import os
 import platform
-import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from bench_task import star_field  # noqa: E402
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
@@ -41,16 +42,9 @@ from lsst_bfdrift.geometry.bounds import reference_level  # noqa: E402
 from lsst_bfdrift.geometry.first_order import LINEAR_MAPS, linear_kernels  # noqa: E402
 from lsst_bfdrift.geometry.linear import first_order_route, linear_moment_maps  # noqa: E402
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 RTOLS = (1e-3, 1e-2, 3e-2, 1e-1)
 NOMINAL = dict(area=1.0, dx=0.0, dy=0.0, e1=0.0, e2=0.0)
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def sky_response(img, template):
@@ -174,9 +168,9 @@ def main(argv=None):
     lines.append(f"  1-min load average after: {os.getloadavg()[0]:.2f}")
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    write_json(args.out + ".json", {"command": command_line(), "load_average_before": load,
-                                    "load_average_after": os.getloadavg()[0], **res}, indent=2)
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text)
+    write_results(args.out, lines, {"load_average_before": load,
+                                    "load_average_after": os.getloadavg()[0], **res},
+                  script=__file__, indent=2)
 
 
 if __name__ == "__main__":

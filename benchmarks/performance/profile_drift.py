@@ -25,27 +25,21 @@ Prints and writes ``benchmarks/performance/profile_drift_results.txt``.
 """
 
 import os
-import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
-from lsst_bfdrift.utils.io import write_text  # noqa: E402
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
 from lsst_bfdrift.correction import _edge_kernels as E
 from lsst_bfdrift.correction import solvers as C
 from lsst_bfdrift.correction import series as S
 from lsst_bfdrift.templates.swept import OperatorCache  # noqa: E402
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def star_field(n=4096, seed=1):
@@ -199,8 +193,7 @@ def main():
     lines.append(f"load average {load:.1f} at the end")
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    write_text(os.path.join(HERE, "profile_drift_results.txt"),
-               f"# command: {command_line()}\n" + text)
+    write_results(os.path.join(HERE, "profile_drift_results"), lines, script=__file__)
 
 
 if __name__ == "__main__":

@@ -18,7 +18,6 @@ Prints and writes ``benchmarks/performance/stage_timings_results.txt`` / ``.json
 import argparse
 import os
 import platform
-import shlex
 import sys
 import tempfile
 import time
@@ -26,18 +25,13 @@ import time
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from bench_task import star_field  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 CONFIGS = {"default": {}, "no maps": {"compute_geometry": False},
            "exact maps": {"geometry_method": "exact"}}
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def timed_run(src, dst, config):
@@ -91,9 +85,8 @@ def main():
                      + f"  total {sum(st.values()):6.2f} s")
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    write_json(args.out + ".json", {"command": command_line(), "repeat": args.repeat,
-                                    "medians": med}, indent=2)
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text)
+    write_results(args.out, lines, {"repeat": args.repeat, "medians": med}, script=__file__,
+                  indent=2)
 
 
 if __name__ == "__main__":

@@ -19,27 +19,21 @@ for the record, with (A_ij - 1)/Q and ln A_ij / Q). Prints and writes
 
 import argparse
 import os
-import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.ptc.full_model import fit_covariance_model  # noqa: E402
 from lsst_bfdrift.simulation.flats import (simulate_ptc_levels,  # noqa: E402
                                       template_area_coefficients, with_responsivity)
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
 
 LAGS = [(0, 0), (1, 0), (0, 1), (1, 1), (2, 0), (0, 2), (2, 1), (1, 2), (2, 2)]
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def closure(template, levels, *, steps_per_level=40, n_images=1024, shape=(16, 16), max_lag=3,
@@ -118,8 +112,7 @@ def main():
                                              "pull_alpha": rf["pull"]["alpha"].tolist()}}
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    write_json(args.out + ".json", {"command": command_line(), **rows}, indent=2, default=float)
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text)
+    write_results(args.out, lines, rows, script=__file__, json_default=float, indent=2)
 
 
 if __name__ == "__main__":

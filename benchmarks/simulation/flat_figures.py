@@ -20,13 +20,14 @@ and a text summary
 
 import argparse
 import os
-import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import command_line  # noqa: E402
 
 import matplotlib  # noqa: E402
 
@@ -40,12 +41,6 @@ from lsst_bfdrift.simulation.flats import (simulate_flats, template_area_coeffic
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
 
 LAGS = [((0, 1), "C0"), ((1, 0), "C1"), ((1, 1), "C2"), ((0, 2), "C3"), ((2, 0), "C4")]
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def figure(tab, alpha, resp, step):
@@ -129,7 +124,7 @@ def main():
     print(text, end="")
     with atomic_output(args.results) as tmp:
         with open(tmp, "w") as fh:
-            fh.write(f"# command: {command_line()}\n" + text)
+            fh.write(f"# command: {command_line(__file__)}\n" + text)
 
 
 if __name__ == "__main__":

@@ -42,26 +42,20 @@ Prints and writes ``<out>.txt`` and ``<out>.json``.
 
 import argparse
 import os
-import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.simulation.stars import StarSimulation, image_moments  # noqa: E402
 from lsst_bfdrift.geometry.superpose import moment_maps  # noqa: E402
 
 SENSOR = "lsst_itl_50_8"
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def _slope(x, y):
@@ -282,8 +276,7 @@ def main():
     lines.append("  seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in res["seconds"].items()))
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    write_json(args.out + ".json", {"command": command_line(), **res}, indent=2, default=float)
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + text)
+    write_results(args.out, lines, res, script=__file__, json_default=float, indent=2)
 
 
 if __name__ == "__main__":

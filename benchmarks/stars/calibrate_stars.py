@@ -42,7 +42,6 @@ drew there with its twin (the same image) is used as is.
 import argparse
 import importlib.util
 import os
-import shlex
 import sys
 import time
 import zlib
@@ -50,6 +49,8 @@ import zlib
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable  # noqa: E402
 from lsst_bfdrift.calibration.star_fit import StarField, calibrate_with_stars  # noqa: E402
@@ -58,7 +59,6 @@ from lsst_bfdrift.simulation.skysim import simulate_star_field  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.templates.template import load_default_template  # noqa: E402
 from lsst_bfdrift.utils.errors import InputError  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.validation.stars import per_star_residuals, residual_slopes  # noqa: E402
 
 
@@ -76,12 +76,6 @@ def _script(folder, name):
 _calibrate_sensor = _script("calibration", "calibrate_sensor")
 FLAT_STEPS = _calibrate_sensor.FLAT_STEPS
 flats_table, star_pairs = _calibrate_sensor.flats_table, _calibrate_sensor.star_pairs
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def cached_flats(sensor, args):
@@ -333,8 +327,7 @@ def main(argv=None):
         if line:
             say("  " + line)
     say("target: flats+stars drift <= 3 % of the size slope and <= 5 % of e1")
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-    write_json(args.out + ".json", {"command": command_line(), **out}, indent=1, default=float)
+    write_results(args.out, lines, out, script=__file__, json_default=float)
     return 0
 
 

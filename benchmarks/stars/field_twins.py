@@ -47,13 +47,14 @@ Writes ``benchmarks/stars/field_twins_results.txt`` / ``.json``. Drawing a
 import argparse
 import os
 import platform
-import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from calibrate_stars import field_seed, ivw_mean, twin_cache_path  # noqa: E402
 from lsst_bfdrift.calibration.star_fit import StarField  # noqa: E402
@@ -61,13 +62,6 @@ from lsst_bfdrift.catalogs.slopes import FLUX_UNIT  # noqa: E402
 from lsst_bfdrift.simulation.skysim import simulate_star_field  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.templates.template import DistortionTemplate  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def twin_field(sensor, k, args):
@@ -232,8 +226,7 @@ def main(argv=None):
                              "chi2": chi2})
         say(f"  {sensor} {q:4s} {name:12s} {m:+6.1f} +- {m_err:.1f} % ({pct.size} fields, "
             f"chi2 {chi2:.1f} / {pct.size - 1})")
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-    write_json(args.out + ".json", {"command": command_line(), **rec}, indent=1, default=float)
+    write_results(args.out, lines, rec, script=__file__, json_default=float)
     return 0
 
 

@@ -33,24 +33,18 @@ bootstrap's), whose chi^2 about the mean tests them::
 
 import argparse
 import os
-import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from lsst_bfdrift.calibration.star_fit import StarField  # noqa: E402
 from lsst_bfdrift.catalogs.slopes import FLUX_UNIT, fit_flux_slope, select_stars  # noqa: E402
 from lsst_bfdrift.simulation.skysim import _field_psf, _positions, simulate_star_field  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def bf_free_field(seed, *, size=2048, n_stars=800, sky=1000.0, read_noise=5.0,
@@ -154,8 +148,7 @@ def main(argv=None):
             lines.append(f"  {name:27s} {q:4s} mean {mean:+.2e} +- {err:.1e} "
                          f"({mean / err:+.1f} sigma), chi2 about the mean {chi2:.1f} / {len(v) - 1}")
             print(lines[-1], flush=True)
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-    write_json(args.out + ".json", {"command": command_line(), **out}, indent=1)
+    write_results(args.out, lines, out, script=__file__)
     return 0
 
 

@@ -25,29 +25,22 @@ figure ``docs/_static/sky_validation.png``.
 """
 
 import argparse
-import json
 import os
-import shlex
 import sys
 import time
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
+from _common import write_results  # noqa: E402
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.catalogs.catalog import measure_stars  # noqa: E402
-from lsst_bfdrift.utils.io import atomic_output  # noqa: E402
 from lsst_bfdrift.validation.shape_correction import correct_catalog  # noqa: E402
 from lsst_bfdrift.validation.sky import validate_sky  # noqa: E402
 from lsst_bfdrift.simulation.skysim import simulate_star_field  # noqa: E402
 from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
-
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def _slope(f, v):
@@ -169,12 +162,8 @@ def main(argv=None):
     from lsst_bfdrift.validation.plots import plot_sky_validation
     png = os.path.join(HERE, "..", "..", "docs", "_static", "sky_validation.png")
     save_figure(plot_sky_validation(v), png)
-    with atomic_output(os.path.join(HERE, "validate_sky_results.txt")) as tmp, \
-            open(tmp, "w") as fh:
-        fh.write(f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-    with atomic_output(os.path.join(HERE, "validate_sky_results.json")) as tmp, \
-            open(tmp, "w") as fh:
-        json.dump({"command": command_line(), **out}, fh, indent=2, default=float)
+    write_results(os.path.join(HERE, "validate_sky_results"), lines, out, script=__file__,
+                  json_default=float, indent=2)
     return 0
 
 
