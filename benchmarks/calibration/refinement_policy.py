@@ -39,7 +39,6 @@ import argparse
 import glob
 import os
 import pickle
-import shlex
 import sys
 import time
 import warnings
@@ -49,23 +48,19 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
 
+from _common import write_results  # noqa: E402
 from calibrate_sensor import star_pairs  # noqa: E402
 from peers import amatrix_inputs, origin_slope  # noqa: E402
 
 from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
 from lsst_bfdrift.templates.refine import match_area_coefficients, template_alpha  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 from lsst_bfdrift.validation.stars import per_star_residuals  # noqa: E402
 
 POLICIES = ("model", "shrink", "full")  # and one "prior T" per --tau
 QUANTITIES = ((0, "size"), (1, "e1"))
 
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def calibration(sensor, name, table, cache):
@@ -186,7 +181,7 @@ def main(argv=None):
                 for p in policies:
                     for _, q in QUANTITIES:
                         rms[p][q].append(out[p][q][0])
-        write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
+        write_results(args.out, lines, script=__file__)
     say(f"root mean square over {len(rms['model']['size'])} sensor-input-PSF rows "
         "(what one calibration leaves):")
     rec["rms"] = {}
@@ -196,9 +191,7 @@ def main(argv=None):
         rec["rms"][p] = {"rms": r, "mean": m}
         say(f"  {p:9s} size rms {r['size']:4.1f} % (mean {m['size']:+5.1f}), e1 rms "
             f"{r['e1']:5.1f} % (mean {m['e1']:+5.1f})")
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-    write_json(args.out + ".json", {"command": command_line(), **rec}, indent=1,
-               default=lambda o: o.tolist() if hasattr(o, "tolist") else float(o))
+    write_results(args.out, lines, rec, script=__file__)
 
 
 if __name__ == "__main__":

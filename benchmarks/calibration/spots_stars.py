@@ -74,7 +74,6 @@ import glob
 import json
 import os
 import pickle
-import shlex
 import sys
 import time
 import warnings
@@ -84,6 +83,7 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
 
 from calibrate_sensor import star_pairs  # noqa: E402
 from peers import amatrix_inputs, origin_slope  # noqa: E402
@@ -99,7 +99,9 @@ from lsst_bfdrift.catalogs.spot_slopes import fit_spot_slope  # noqa: E402
 from lsst_bfdrift.catalogs.spots import SPOT_QUANTITIES, spot_flag_counts  # noqa: E402
 from lsst_bfdrift.simulation.spots import simulate_spot_series  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
+from _common import to_json, write_results  # noqa: E402
+
+from lsst_bfdrift.utils.io import write_json  # noqa: E402
 from lsst_bfdrift.validation.stars import per_star_residuals  # noqa: E402
 
 #: Clip level above the bias (e), bias pedestal (e), read noise (e): the simulated sensor.
@@ -109,11 +111,6 @@ PEAK_MAX = 8e4
 #: Quantities compared on the stars: column of per_star_residuals' rows, name.
 QUANTITIES = ((0, "size"), (1, "e1"), (2, "e2"))
 
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def flats_calibration(sensor, *, lags, cache=None):
@@ -451,10 +448,6 @@ def target_table(sensors, say):
     return rows
 
 
-def to_json(obj):
-    """Arrays as lists, numpy scalars as floats (write_json's ``default``)."""
-    return obj.tolist() if hasattr(obj, "tolist") else float(obj)
-
 
 def sensor_record(sensor, args, say):
     """run_sensor's record and printed lines, cached per sensor and settings (sensors can
@@ -523,14 +516,11 @@ def main(argv=None):
     out["machine"] = {"cores": os.cpu_count(), "load_average": list(load)}
     for sensor in args.sensors:
         out["sensors"][sensor] = sensor_record(sensor, args, say)
-        write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-        write_json(args.out + ".json", {"command": command_line(), **out}, indent=1,
-                   default=to_json)
+        write_results(args.out, lines, out, script=__file__)
     say("target (issue 42): with spots, <= 2 % of the size slope and <= 5 % of e1 left on the "
         "stars of every sensor model")
     out["target"] = target_table(out["sensors"], say)
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-    write_json(args.out + ".json", {"command": command_line(), **out}, indent=1, default=to_json)
+    write_results(args.out, lines, out, script=__file__)
 
 
 if __name__ == "__main__":

@@ -43,7 +43,6 @@ series). Writes ``benchmarks/calibration/spots_truth_results.txt`` /
 
 import argparse
 import os
-import shlex
 import sys
 import time
 import warnings
@@ -52,7 +51,9 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
+sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
 
+from _common import write_results  # noqa: E402
 from spots_stars import (BIAS, FULL_WELL, PairedSpotSeries, flats_calibration,  # noqa: E402
                          spot_simulation)
 
@@ -61,16 +62,10 @@ from lsst_bfdrift.catalogs.spot_series import SpotSeries  # noqa: E402
 from lsst_bfdrift.catalogs.spots import fixed_weight_moments  # noqa: E402
 from lsst_bfdrift.simulation.stars import StarSimulation  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
-from lsst_bfdrift.utils.io import write_json, write_text  # noqa: E402
 
 #: Quantities whose paired slopes are compared.
 QUANTITIES = ("size", "e1")
 
-
-def command_line():
-    """This run's command as typed from the repository root (the results' first line)."""
-    root = os.path.dirname(os.path.dirname(HERE))
-    return shlex.join(["python", os.path.relpath(os.path.abspath(__file__), root)] + sys.argv[1:])
 
 
 def paired_series(sensor, args, sigma):
@@ -192,9 +187,7 @@ def main(argv=None):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the calibration's poor-fit warning is in its fit
             out["sensors"][sensor] = run_sensor(sensor, args, say)
-    write_text(args.out + ".txt", f"# command: {command_line()}\n" + "\n".join(lines) + "\n")
-    write_json(args.out + ".json", {"command": command_line(), **out}, indent=1,
-               default=lambda o: o.tolist() if hasattr(o, "tolist") else float(o))
+    write_results(args.out, lines, out, script=__file__)
 
 
 if __name__ == "__main__":
