@@ -94,7 +94,7 @@ def _a00_errors(unc, jacobian, covariance):
 
 
 def calibrated_band_templates(template, band, *, bands=BANDS, sed=None, nodes=8, fit=None,
-                              progress=False):
+                              temperature=None, progress=False):
     """Templates for every band from a template calibrated on flats of one band.
 
     Parameters
@@ -120,6 +120,10 @@ def calibrated_band_templates(template, band, *, bands=BANDS, sed=None, nodes=8,
         each band's a00 error from the parameter covariance alone (recorded
         as ``a00_err_params``). Default: from the template's uncertainty
         when it is of kind 'parameters'.
+    temperature : float, optional
+        Temperature of the sensor (K) for the absorption lengths of every
+        band, the flats' included (None: 300 K, the table's;
+        :func:`~lsst_bfdrift.templates.bands.build_band_templates`).
     progress : bool or callable, optional
         Progress of the model builds (see ``build_band_templates``).
 
@@ -156,7 +160,7 @@ def calibrated_band_templates(template, band, *, bands=BANDS, sed=None, nodes=8,
     need = keys + ([b] if b not in keys else [])
     sources = [float(k[:-2]) if k.endswith("nm") else k for k in need]
     model = build_band_templates(params, sources, sed=sed, settings=settings, nodes=nodes,
-                                 progress=progress)
+                                 temperature=temperature, progress=progress)
     mb = model[b]
     if mb.size != template.size or mb.edge_samples != template.edge_samples or \
             not np.allclose(mb.fractions, template.fractions):

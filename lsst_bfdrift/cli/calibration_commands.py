@@ -38,6 +38,7 @@ from lsst_bfdrift.ptc.full_model import fit_covariance_model
 from lsst_bfdrift.ptc.data import describe_paths
 from lsst_bfdrift.ptc.inputs import ExposureLevelWarning, read_calibration_input, read_ptc_file
 from lsst_bfdrift.correction.task import BAND_KEYWORDS, exposure_band
+from lsst_bfdrift.physics.absorption import absorption_length
 from lsst_bfdrift.physics.depth import normalize_band
 from lsst_bfdrift.utils.errors import InputError, InputFileError, InputNotFoundError
 from lsst_bfdrift.utils.io import data_files, not_fits_reason
@@ -211,6 +212,11 @@ def cmd_calibrate(args):
     check_size_goal(args.size_goal, "--size-goal")  # before any file is read
     _check_model_options(args)
     flats_band = _flats_band(args)  # before minutes of fitting
+    if args.temperature is not None:
+        if flats_band is None:
+            raise InputError("--temperature sets the absorption lengths of the per-band "
+                             "templates: give --band (the flats' band) as well")
+        absorption_length(500.0, temperature=args.temperature)  # its range, checked now
     for opt, files in (("--stars", args.stars or []), ("--spots", spot_files)):
         for x in files:
             if not os.path.isfile(x):
@@ -259,6 +265,7 @@ def cmd_calibrate(args):
         final.save(args.out, overwrite=args.overwrite)
     else:
         bands = calibrated_band_templates(final, flats_band, fit=res.fit, nodes=args.band_nodes,
+                                          temperature=args.temperature,
                                           progress=not args.quiet)
         bands.save(args.out, overwrite=args.overwrite)
     summary = res.summary()
@@ -538,6 +545,11 @@ def add_calibrate_parser(subparsers):
                     default=library_default(calibrated_band_templates, "nodes"),
                     help="with --band: conversion heights of the model's band templates "
                     "(each a template build; default: %(default)s)")
+    ca.add_argument("--temperature", type=float, metavar="K",
+                    default=library_default(calibrated_band_templates, "temperature"),
+                    help="with --band: temperature of the sensor (K) for the absorption "
+                    "lengths of every band, the flats' included (default: 300 K, GalSim's "
+                    "table; an LSST sensor runs at about 173 K)")
     ca.add_argument("--model", choices=MODELS, default=library_default(calibrate_route, "model"),
                     help="electrostatic: this package's model (corrected with --method "
                          "drift); astier23: the Astier & Regnault 2023 model, LSST's DP2 route "

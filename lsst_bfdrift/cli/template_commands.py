@@ -81,7 +81,7 @@ def cmd_template_build(args):
     check_outputs(args, [args.config], {"--out": args.out})
     if not sources:
         for opt, val in (("--sed", args.sed), ("--depth-response", args.depth_response),
-                         ("--nodes", args.nodes)):
+                         ("--nodes", args.nodes), ("--temperature", args.temperature)):
             if val is not None:
                 raise InputError(f"{opt} applies to per-band templates: give --band or "
                                  "--wavelength as well")
@@ -90,7 +90,7 @@ def cmd_template_build(args):
     if args.nodes is not None:
         kw["nodes"] = args.nodes
     mb = build_band_templates(params, sources, sed=args.sed, settings=settings,
-                              progress=not args.quiet, **kw)
+                              temperature=args.temperature, progress=not args.quiet, **kw)
     mb.save(args.out, overwrite=True)
     if args.json:
         print_json({"out": os.path.abspath(args.out), "bands": list(mb.bands),
@@ -262,6 +262,10 @@ def add_template_parser(subparsers):
                    "tanh(z / 12 um))")
     b.add_argument("--nodes", type=int, help="with --band: conversion heights of the shared "
                    "grid (default 8: 7 builds for all bands)")
+    b.add_argument("--temperature", type=float, metavar="K",
+                   help="with --band: temperature of the silicon (K) for the absorption "
+                   "lengths (default: 300 K, GalSim's table; an LSST sensor runs at about "
+                   "173 K, where z and y photons convert deeper)")
     add_common_options(b, "overwrite", "quiet", "json")
     b.set_defaults(func=cmd_template_build)
     s = tsub.add_parser("summary", help="key numbers of a template")

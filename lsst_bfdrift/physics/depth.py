@@ -3,9 +3,10 @@
 A photon of wavelength lambda entering the backside (z = t, the entrance
 window) converts at depth d = t - z with the exponential law
 ``exp(-d / L) / L``, L the absorption length of silicon
-(:func:`~lsst_bfdrift.physics.drift.absorption_length`: GalSim's
+(:func:`~lsst_bfdrift.physics.absorption.absorption_length`: GalSim's
 ``share/sensors/abs_length.dat``, Green 2008 at 300 K, the table
-galsim.SiliconSensor draws its depths from). A band mixes wavelengths with
+galsim.SiliconSensor draws its depths from; at another ``temperature``
+scaled by the Rajkanan, Singh & Shewchun model's change with temperature). A band mixes wavelengths with
 weights ``T(lambda) N(lambda)``: the band's throughput (the LSST total
 throughputs ``LSST_u.dat`` .. ``LSST_y.dat`` that ship with GalSim, airmass
 1.2) times the photon spectrum of the source (:func:`sed_photons`).
@@ -30,12 +31,11 @@ import os
 
 import numpy as np
 
-from lsst_bfdrift.physics.drift import absorption_length
+from lsst_bfdrift.physics.absorption import absorption_length, absorption_table_range
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["BANDS", "DepthDistribution", "depth_distribution", "bandpass", "sed_photons",
-           "conversion_nodes", "normalize_band", "GALSIM_ZFIT", "galsim_depth_factor",
-           "absorption_table_range"]
+           "conversion_nodes", "normalize_band", "GALSIM_ZFIT", "galsim_depth_factor"]
 
 #: The LSST bands, blue to red.
 BANDS = ("u", "g", "r", "i", "z", "y")
@@ -48,15 +48,6 @@ GALSIM_ZFIT = 12.0
 
 #: Step (nm) of the wavelength grid a band is integrated on.
 _WAVELENGTH_STEP = 0.5
-
-
-def absorption_table_range():
-    """(shortest, longest) wavelength (nm) of the silicon absorption table."""
-    import galsim  # heavy: only for its table
-
-    path = os.path.join(galsim.meta_data.share_dir, "sensors", "abs_length.dat")
-    wl = np.loadtxt(path, skiprows=1)[:, 0]
-    return float(wl[0]), float(wl[-1])
 
 
 def normalize_band(band):
@@ -192,6 +183,9 @@ class DepthDistribution:
         Silicon thickness t (um).
     label : str, optional
         What the distribution is of (the band, or ``'700nm'``).
+    temperature : float, optional
+        Temperature of the silicon (K; None: the table's 300 K,
+        galsim.SiliconSensor's), :func:`~lsst_bfdrift.physics.absorption.absorption_length`.
 
     Attributes
     ----------
@@ -203,7 +197,7 @@ class DepthDistribution:
         Fraction of the incident photons that convert in the silicon.
     """
 
-    def __init__(self, wavelength, photons, thickness, *, label=""):
+    def __init__(self, wavelength, photons, thickness, *, label="", temperature=None):
         self.wavelength = np.atleast_1d(np.asarray(wavelength, float))
         photons = np.atleast_1d(np.asarray(photons, float))
         self.thickness = float(thickness)
@@ -214,7 +208,8 @@ class DepthDistribution:
                 not np.all(np.isfinite(photons)) or photons.sum() <= 0:
             raise InputError("photon weights must be finite, >= 0, not all 0, one per "
                              "wavelength")
-        self.absorption = absorption_length(self.wavelength)
+        self.temperature = None if temperature is None else float(temperature)
+        self.absorption = absorption_length(self.wavelength, temperature=temperature)
         detected = photons * -np.expm1(-self.thickness / self.absorption)
         self.converted_fraction = float(detected.sum() / photons.sum())
         self.coefficients = photons / detected.sum()
@@ -302,7 +297,7 @@ class DepthDistribution:
                 f"{self.converted_fraction:.3f})")
 
 
-def depth_distribution(source, thickness=100.0, *, sed=None):
+def depth_distribution(source, thickness=100.0, *, sed=None, temperature=None):
     """Depth distribution of the photons of a band or of one wavelength.
 
     Parameters
@@ -316,6 +311,10 @@ def depth_distribution(source, thickness=100.0, *, sed=None):
     sed : optional
         Spectrum of the source (:func:`sed_photons`); None: flat in photons
         per nm. Ignored for one wavelength.
+    temperature : float, optional
+        Temperature of the silicon (K); None: 300 K, the table's
+        (:func:`~lsst_bfdrift.physics.absorption.absorption_length`). An LSST
+        sensor runs at about 173 K, where z and y photons convert deeper.
 
     Returns
     -------
@@ -342,13 +341,13 @@ def depth_distribution(source, thickness=100.0, *, sed=None):
         lo, hi = absorption_table_range()
         wl = np.clip(wl, lo, hi)
         photons = np.interp(wl, wl0, thr) * sed_photons(sed, wl) * _WAVELENGTH_STEP
-        return DepthDistribution(wl, photons, t, label=band)
+        return DepthDistribution(wl, photons, t, label=band, temperature=temperature)
     wl = _nm(source)
     lo, hi = absorption_table_range()
     if not lo <= wl <= hi:
         raise InputError(f"wavelength {wl:g} nm is outside the silicon absorption table "
                          f"({lo:g}-{hi:g} nm, GalSim's abs_length.dat)")
-    return DepthDistribution([wl], [1.0], t, label=f"{wl:g}nm")
+    return DepthDistribution([wl], [1.0], t, label=f"{wl:g}nm", temperature=temperature)
 
 
 def _um(value, name):

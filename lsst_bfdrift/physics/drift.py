@@ -18,6 +18,7 @@ import os
 import numpy as np
 
 from lsst_bfdrift.physics._drift_kernels import drift_batch
+from lsst_bfdrift.physics.absorption import absorption_length
 from lsst_bfdrift.physics.constants import COULOMB_UM
 from lsst_bfdrift.physics.fields import (BackdropField, HalfPeriodicDipoleGrid, LineDipole,
                                          PeriodicDipoleGrid, PointDipoles, TabulatedBackdrop,
@@ -25,7 +26,7 @@ from lsst_bfdrift.physics.fields import (BackdropField, HalfPeriodicDipoleGrid, 
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["DriftResult", "drift_lines", "compile_model", "landing_pixels",
-           "conversion_height", "absorption_length"]
+           "conversion_height"]
 
 
 class DriftResult:
@@ -238,22 +239,6 @@ def landing_pixels(model, x0, y0, z0=None, **kwargs):
     """
     res = drift_lines(model, x0, y0, z0, **kwargs)
     return model.pixel_of(res.x, res.y)
-
-
-def absorption_length(wavelength):
-    """Absorption length of photons in silicon (um) at ``wavelength`` (nm).
-
-    Interpolated in GalSim's table (``share/sensors/abs_length.dat``, from
-    Green 2008 at 300 K), so that depths agree with galsim.SiliconSensor.
-    """
-    import galsim  # heavy: only for its table of absorption lengths
-
-    path = os.path.join(galsim.meta_data.share_dir, "sensors", "abs_length.dat")
-    table = np.loadtxt(path, skiprows=1)
-    wl = np.asarray(wavelength, dtype=float)
-    if np.any(~np.isfinite(wl)) or np.any(wl < table[0, 0]) or np.any(wl > table[-1, 0]):
-        raise InputError(f"wavelength must lie in [{table[0, 0]}, {table[-1, 0]}] nm")
-    return np.interp(wl, table[:, 0], table[:, 1])
 
 
 def conversion_height(wavelength, thickness, *, z_stop=0.0, rng=None, size=None):

@@ -36,7 +36,7 @@ import os
 import numpy as np
 
 from lsst_bfdrift.physics.depth import BANDS, normalize_band, sed_photons
-from lsst_bfdrift.physics.drift import absorption_length
+from lsst_bfdrift.physics.absorption import absorption_length
 from lsst_bfdrift.simulation.galsim_twins import accumulate_twins, shoot_stamp_photons, sky_box
 from lsst_bfdrift.simulation.stars import make_psf
 from lsst_bfdrift.utils.errors import InputError
@@ -144,7 +144,7 @@ def detected_fraction(wavelength, thickness):
     """Probability that a photon of ``wavelength`` (nm) converts in ``thickness`` um of silicon.
 
     ``1 - exp(-t / L(lambda))``, L from GalSim's table
-    (:func:`~lsst_bfdrift.physics.drift.absorption_length`).
+    (:func:`~lsst_bfdrift.physics.absorption.absorption_length`).
     """
     return -np.expm1(-float(thickness) / absorption_length(wavelength))
 

@@ -93,7 +93,8 @@ def combine_templates(templates, weights, *, meta=None):
                               meta=dict(t0.meta if meta is None else meta))
 
 
-def band_weights(bands=BANDS, *, thickness=100.0, z_stop=0.5, sed=None, nodes=8):
+def band_weights(bands=BANDS, *, thickness=100.0, z_stop=0.5, sed=None, nodes=8,
+                 temperature=None):
     """Conversion-height grid and each band's weights on it.
 
     Parameters
@@ -107,6 +108,9 @@ def band_weights(bands=BANDS, *, thickness=100.0, z_stop=0.5, sed=None, nodes=8)
     nodes : int or array_like, optional
         Number of heights of :func:`~lsst_bfdrift.physics.depth.conversion_nodes`,
         or the heights themselves (um, increasing, last = thickness).
+    temperature : float, optional
+        Temperature of the silicon (K) for the absorption lengths; None:
+        300 K, the table's (:func:`~lsst_bfdrift.physics.absorption.absorption_length`).
 
     Returns
     -------
@@ -122,12 +126,14 @@ def band_weights(bands=BANDS, *, thickness=100.0, z_stop=0.5, sed=None, nodes=8)
     keys = [band_key(b) for b in bands]
     if not keys or len(set(keys)) != len(keys):
         raise InputError(f"bands must be given once each, got {list(bands)}")
-    dists = {k: depth_distribution(_source(k), thickness, sed=sed) for k in keys}
+    dists = {k: depth_distribution(_source(k), thickness, sed=sed, temperature=temperature)
+             for k in keys}
     return z, {k: d.node_weights(z) for k, d in dists.items()}, dists
 
 
 def build_band_templates(params=None, bands=BANDS, *, sed=None, settings=None,
-                         depth_response="drift", nodes=8, base=None, progress=False):
+                         depth_response="drift", nodes=8, base=None, temperature=None,
+                         progress=False):
     """Templates for bands (or wavelengths) of one sensor, on one shared grid of heights.
 
     Parameters
@@ -153,6 +159,11 @@ def build_band_templates(params=None, bands=BANDS, *, sed=None, settings=None,
     base : DistortionTemplate, optional
         ``'galsim'`` only: the entrance-window template to scale (default:
         built from ``params`` and ``settings``).
+    temperature : float, optional
+        Temperature of the silicon (K) where the photons convert; None: 300
+        K, the absorption table's and galsim.SiliconSensor's. An LSST sensor
+        runs at about 173 K, where z and y photons convert deeper
+        (:func:`~lsst_bfdrift.physics.absorption.absorption_length`).
     progress : bool or callable, optional
         True: a bar on stderr; a callable gets the fraction done (0 to 1).
 
@@ -180,7 +191,8 @@ def build_band_templates(params=None, bands=BANDS, *, sed=None, settings=None,
         raise InputError("base is the template GalSim's rule scales: depth_response='galsim' "
                          "only")
     z, weights, dists = band_weights(bands, thickness=params.thickness,
-                                     z_stop=params.z_collect, sed=sed, nodes=nodes)
+                                     z_stop=params.z_collect, sed=sed, nodes=nodes,
+                                     temperature=temperature)
     if depth_response == "galsim":
         z = np.array([params.thickness])
         needed = [] if base is not None else [0]
@@ -202,7 +214,10 @@ def build_band_templates(params=None, bands=BANDS, *, sed=None, settings=None,
         info = {"response": depth_response, "band": key, "sed": _sed_label(sed),
                 "mean_height": d.mean_height, "converted_fraction": d.converted_fraction,
                 "thickness": params.thickness, "z_stop": params.z_collect,
-                "absorption_table": "GalSim share/sensors/abs_length.dat (Green 2008, 300 K)"}
+                "absorption_table": "GalSim share/sensors/abs_length.dat (Green 2008, 300 K)"
+                + ("" if temperature is None else ", scaled to the temperature by Rajkanan, "
+                   "Singh & Shewchun 1979"),
+                "temperature": 300.0 if temperature is None else float(temperature)}
         if depth_response == "galsim":
             factor = galsim_depth_factor(d)
             tpl = base if base is not None else built[0]
@@ -216,7 +231,9 @@ def build_band_templates(params=None, bands=BANDS, *, sed=None, settings=None,
             temps = [built.get(k) for k in range(z.size)]
             out[key] = combine_templates(temps, w, meta=meta)
     return MultiBandTemplate(out, meta={"depth_response": depth_response,
-                                        "sed": _sed_label(sed)})
+                                        "sed": _sed_label(sed),
+                                        "temperature": 300.0 if temperature is None
+                                        else float(temperature)})
 
 
 class _fraction_reporter:

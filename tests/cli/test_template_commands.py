@@ -45,6 +45,25 @@ def test_build_bands_and_wavelength_one_file(capsys, tmp_path):
     assert code == 0 and set(json.loads(text)) == {"u", "y", "700nm"}
 
 
+def test_a_cold_sensor_builds_a_weaker_y_template(capsys, tmp_path):
+    """CONSISTENCY with the absorption model: at 173 K the y photons convert deeper, so
+    the y template's A00 shrinks less than at 300 K, the u template's hardly moves, and the
+    files record the temperature."""
+    a00 = {}
+    for temp in ("300", "173"):
+        out = tmp_path / f"bands_{temp}.fits"
+        code, text, err = _run(capsys, "template", "build", "--out", str(out), "--band", "u",
+                               "--band", "y", "--nodes", "3", "--temperature", temp, "--json",
+                               *TINY)
+        assert code == 0, err
+        a00[temp] = {k: v["A00"] for k, v in json.loads(text)["summary"].items()}
+        mb = load_templates(out)
+        assert mb["y"].meta["depth"]["temperature"] == float(temp)
+    loss = {t: {k: 1 - v for k, v in a.items()} for t, a in a00.items()}  # area lost: > 0
+    assert loss["173"]["y"] < 0.99 * loss["300"]["y"]       # 3 % weaker on this tiny grid
+    assert abs(loss["173"]["u"] - loss["300"]["u"]) < 0.002 * loss["300"]["u"]
+
+
 def test_band_sources():
     assert band_sources(["all"], None) == ["u", "g", "r", "i", "z", "y"]
     assert band_sources(["r", "ALL"], [500.0]) == ["r", "u", "g", "i", "z", "y", 500.0]
@@ -56,6 +75,8 @@ def test_band_sources():
     (["--wavelength", "2000"], "outside the silicon absorption table"),
     (["--sed", "5800K"], "--sed applies to per-band templates"),
     (["--nodes", "4"], "--nodes applies to per-band templates"),
+    (["--temperature", "173"], "--temperature applies to per-band templates"),
+    (["--band", "y", "--temperature", "5"], "temperature must lie in [20, 500] K"),
     (["--band", "r", "--sed", "nonesuch"], "unknown sed 'nonesuch'"),
 ])
 def test_bad_band_input(capsys, tmp_path, extra, match):
@@ -114,6 +135,16 @@ def test_calibrate_band_writes_every_band(capsys, tmp_path, monkeypatch):
     assert_allclose(mb["r"].corner_d, tpl.corner_d, rtol=0)
     assert mb["r"].meta["calibration"]["inputs"] == [PTC]
     assert mb["z"].meta["calibration"]["band"]["flats"] == "r"
+    # the same at the sensor's operating temperature: recorded, y weaker, r unchanged
+    cold = tmp_path / "cold.fits"
+    code, text, err = _run(capsys, "calibrate", PTC, "--out", str(cold), "--band", "r",
+                           "--band-nodes", "3", "--temperature", "173", "--json", "--quiet")
+    assert code == 0, err
+    mc = load_templates(cold)
+    assert mc["y"].meta["depth"]["temperature"] == 173.0
+    assert_allclose(mc["r"].corner_d, tpl.corner_d, rtol=0)
+    cold_rows = json.loads(text)["bands"]["a00"]
+    assert cold_rows["y"]["ratio_a00"] < rows["y"]["ratio_a00"]
 
 
 def _flat_file(path, **keys):
@@ -135,6 +166,12 @@ def test_calibrate_band_refusals(capsys, tmp_path):
     code, _, err = _run(capsys, "calibrate", PTC, "--out", str(out), "--band", "r", "--model",
                         "astier23", "--quiet")
     assert code == 2 and "--band" in err and "options of --model electrostatic" in err
+    code, _, err = _run(capsys, "calibrate", PTC, "--out", str(out), "--temperature", "173",
+                        "--quiet")
+    assert code == 2 and "--temperature sets the absorption lengths" in err
+    code, _, err = _run(capsys, "calibrate", PTC, "--out", str(out), "--band", "r",
+                        "--temperature", "900", "--quiet")
+    assert code == 2 and "temperature must lie in [20, 500] K" in err
     a = _flat_file(tmp_path / "a.fits", FILTER="r_57")
     b = _flat_file(tmp_path / "b.fits", BAND="g")
     c = _flat_file(tmp_path / "c.fits")

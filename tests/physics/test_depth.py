@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from lsst_bfdrift.physics.depth import (BANDS, GALSIM_ZFIT, DepthDistribution,
-                                        absorption_table_range, bandpass, conversion_nodes,
-                                        depth_distribution, galsim_depth_factor,
-                                        normalize_band, sed_photons)
-from lsst_bfdrift.physics.drift import absorption_length
+from lsst_bfdrift.physics.absorption import absorption_length, absorption_table_range
+from lsst_bfdrift.physics.depth import (BANDS, GALSIM_ZFIT, DepthDistribution, bandpass,
+                                        conversion_nodes, depth_distribution,
+                                        galsim_depth_factor, normalize_band, sed_photons)
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 T = 100.0  # um, the default silicon thickness

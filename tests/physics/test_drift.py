@@ -5,7 +5,8 @@ import pytest
 from numpy.testing import assert_allclose
 from scipy.integrate import solve_ivp
 
-from lsst_bfdrift.physics.drift import absorption_length, conversion_height, drift_lines, landing_pixels
+from lsst_bfdrift.physics.absorption import absorption_length
+from lsst_bfdrift.physics.drift import conversion_height, drift_lines, landing_pixels
 from lsst_bfdrift.physics.sensor import SensorModel, SensorParameters
 
 
