@@ -52,6 +52,7 @@ lies within that precision combined with the stars' error. Run::
 """
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -155,6 +156,28 @@ def run_case(pairs, templates, args):
     return out
 
 
+def rms_lines(sensors):
+    """Per route and data set: the root mean square (and mean) over the sensor-input-PSF rows
+    of the size and e1 slopes left (%), inputs split into noise-free and drawn."""
+    rows = {}
+    for sensor, per_input in sensors.items():
+        for name, per_psf in per_input.items():
+            kind = "noise-free" if name == "noise-free" else (
+                "flats" if name.startswith("flats") else "draws")
+            for tab in per_psf.values():
+                for route in MODELS + ("true template",):
+                    if isinstance(tab.get(route), dict) and "size" in tab[route]:
+                        rows.setdefault((route, kind), []).append(
+                            (tab[route]["size"][0], tab[route]["e1"][0]))
+    out = ["root mean square (mean) over the sensor-input-PSF rows of the % left:"]
+    for (route, kind), v in sorted(rows.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+        a = np.array(v)
+        rms, mean = np.sqrt(np.mean(a ** 2, axis=0)), a.mean(axis=0)
+        out.append(f"  {kind:10s} {route:14s} {len(v):2d} rows: size {rms[0]:5.1f} "
+                   f"({mean[0]:+5.1f}), e1 {rms[1]:5.1f} ({mean[1]:+5.1f})")
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sensors", nargs="+",
@@ -173,7 +196,17 @@ def main(argv=None):
     ap.add_argument("--flat-max-lag", type=int, default=3)
     ap.add_argument("--flat-steps", type=int, default=40)
     ap.add_argument("--out", default=os.path.join(HERE, "peers_results"))
+    ap.add_argument("--summarize", nargs="+", metavar="JSON",
+                    help="only print the root-mean-square summary of earlier results files "
+                         "(read, not rewritten)")
     args = ap.parse_args(argv)
+    if args.summarize:
+        sensors = {}
+        for path in args.summarize:
+            with open(path) as fh:
+                sensors.update(json.load(fh)["sensors"])
+        print("\n".join(rms_lines(sensors)))
+        return
     lines, out = [], {"sensors": {}, "errors": {"relative": REL_ERROR, "floor": ERROR_FLOOR},
                       "lags": args.lags}
     coverage = {m: [] for m in MODELS}
@@ -193,6 +226,8 @@ def main(argv=None):
             + cov)
         if not partial:
             say(head)
+            for line in rms_lines(out["sensors"]):
+                say(line)
         out["coverage"] = {m: {"fraction": float(np.mean(c)), "cases": len(c)}
                            for m, c in coverage.items() if c}
         text = lines + ([head] if partial else [])
