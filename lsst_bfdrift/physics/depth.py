@@ -6,8 +6,8 @@ window) converts at depth d = t - z with the exponential law
 (:func:`~lsst_bfdrift.physics.absorption.absorption_length`: GalSim's
 ``share/sensors/abs_length.dat``, Green 2008 at 300 K, the table
 galsim.SiliconSensor draws its depths from; at another ``temperature``
-scaled by the Rajkanan, Singh & Shewchun model's change with temperature). A band mixes wavelengths with
-weights ``T(lambda) N(lambda)``: the band's throughput (the LSST total
+scaled by the Rajkanan, Singh & Shewchun model's change with temperature).
+A band mixes wavelengths with weights ``T(lambda) N(lambda)``: the band's throughput (the LSST total
 throughputs ``LSST_u.dat`` .. ``LSST_y.dat`` that ship with GalSim, airmass
 1.2) times the photon spectrum of the source (:func:`sed_photons`).
 
