@@ -18,6 +18,7 @@ from lsst_bfdrift.calibration.sensor_fit import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.tuning import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.star_result import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.star_fit import *  # noqa: F401,F403
+from lsst_bfdrift.calibration.spot_bias import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.spot_fit import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.astier23_model import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.lsst_products import *  # noqa: F401,F403
