@@ -57,11 +57,12 @@ import time  # noqa: E402
 from datetime import datetime  # noqa: E402
 
 import numpy as np  # noqa: E402
+import psutil  # noqa: E402  (a dependency of parsl)
 from astropy.io import fits  # noqa: E402
 
 import bench_task  # noqa: E402  (this folder's bench_task.py: its star field)
 
-__all__ = ["check_bps", "write_submit_yaml", "parse_bps_stages", "parse_job_logs", "main"]
+__all__ = ["CpuSampler", "check_bps", "write_submit_yaml", "parse_bps_stages", "parse_job_logs", "main"]
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
@@ -198,6 +199,97 @@ def parse_job_logs(submit_dir):
     return out
 
 
+class CpuSampler:
+    """CPU seconds of every process of a run, sampled from a thread.
+
+    Parsl's local provider starts its worker pool in the background, so its
+    processes leave the process tree of ``bps submit`` and
+    ``RUSAGE_CHILDREN`` misses them. Every ``interval`` seconds this reads
+    the CPU time (user + system) of each process whose command line names
+    ``marker`` (the working directory: the worker pool, each job's
+    ``pipetask``/``butler``), of ``root`` (the ``bps`` process) and of all
+    their descendants; each process counts with its last reading, so up to
+    ``interval`` of a process's CPU time can be missed.
+    """
+
+    def __init__(self, marker, root, *, interval=0.2):
+        import threading
+
+        self.marker, self.root, self.interval = marker, root, interval
+        self.seen = {}  # (pid, create_time) -> [cpu seconds, kind]
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    @staticmethod
+    def _kind(cmdline):
+        text = " ".join(cmdline)
+        if "run-qbb" in text:
+            m = re.search(r"--qgraph-node-id\s+(\S+)", text)
+            return "quantum:" + (m.group(1) if m else "?")
+        return ("init" if "pre-exec-init-qbb" in text
+                else "final" if "aggregate-graph" in text else
+                "qgraph" if " qgraph " in text else
+                "parsl workers" if "process_worker_pool" in text else None)
+
+    def _sample(self):
+        roots = []
+        try:
+            roots.append((psutil.Process(self.root), "bps"))
+        except psutil.Error:
+            pass
+        for proc in psutil.process_iter(["cmdline"]):
+            cmd = proc.info["cmdline"] or []
+            if proc.pid != self.root and any(self.marker in c for c in cmd):
+                roots.append((proc, self._kind(cmd) or "other"))
+        for proc, root_kind in roots:
+            try:
+                family = [proc] + proc.children(recursive=True)
+            except psutil.Error:
+                continue
+            for member in family:
+                try:
+                    with member.oneshot():
+                        key = (member.pid, member.create_time())
+                        t = member.cpu_times()
+                        kind = self._kind(member.cmdline()) or root_kind
+                except psutil.Error:
+                    continue
+                entry = self.seen.setdefault(key, [0.0, kind])
+                entry[0] = max(entry[0], t.user + t.system)
+                if entry[1] in ("bps", "other"):  # a process's own command says more
+                    entry[1] = kind
+
+    def _run(self):
+        while not self._stop.is_set():
+            self._sample()
+            self._stop.wait(self.interval)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+
+    def totals(self):
+        """CPU seconds by kind of process, ``total`` for all of them."""
+        out = {}
+        for cpu, kind in self.seen.values():
+            kind = kind.split(":")[0]
+            out[kind] = out.get(kind, 0.0) + cpu
+        out["total"] = sum(cpu for cpu, _ in self.seen.values())
+        return out
+
+    def quanta(self):
+        """CPU seconds of each quantum's processes (``pipetask run-qbb`` and its shell)."""
+        out = {}
+        for cpu, kind in self.seen.values():
+            if kind.startswith("quantum:"):
+                out[kind] = out.get(kind, 0.0) + cpu
+        return sorted(out.values())
+
+
 def write_field(path, img):
     hdr = fits.Header()
     hdr["BUNIT"] = "electron"
@@ -242,7 +334,9 @@ def camera_scale_rate():
             d = json.load(fh)
         return {"command": d["command"], "size": d["size"], "n_images": d["n_images"],
                 "serial": d["routes"]["serial"]["images_per_core_second"],
-                "dask": d["routes"]["dask"]["images_per_core_second"]}
+                "dask": d["routes"]["dask"]["images_per_core_second"],
+                "serial_cpu": d["routes"]["serial"]["images_per_cpu_second"],
+                "load_average": [d["load_average_before"], d["load_average_after"]]}
     except (OSError, KeyError, ValueError):
         return None
 
@@ -298,20 +392,26 @@ def main():
         print(f"bps submit: {args.n} CCDs of {args.size} px, {args.cores} cores, in {work}",
               flush=True)
         start = time.time()
-        t0 = time.perf_counter()
-        proc = subprocess.run([bps, "submit", submit], cwd=work, env=env, capture_output=True,
-                              text=True, timeout=args.timeout, check=False)
-        total = time.perf_counter() - t0
+        t0, c0 = time.perf_counter(), time.process_time()
+        with subprocess.Popen([bps, "submit", submit], cwd=work, env=env, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT) as proc:
+            with CpuSampler(work, proc.pid) as cpu:
+                try:
+                    output, _ = proc.communicate(timeout=args.timeout)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    raise
+        total, own_cpu = time.perf_counter() - t0, time.process_time() - c0
         load_after = os.getloadavg()
         with open(os.path.join(work, "bps_submit.log"), "w") as fh:
-            fh.write(proc.stdout + proc.stderr)
+            fh.write(output)
         if proc.returncode != 0:
             raise SystemExit(f"bps_scale.py: bps submit failed (exit {proc.returncode}) after "
-                             f"{total:.1f} s; its output's end:\n{(proc.stdout + proc.stderr)[-4000:]}"
+                             f"{total:.1f} s; its output's end:\n{output[-4000:]}"
                              f"\n(working directory {work} kept)")
         runs, found = check_outputs(repo, args.n)
-        stages = parse_bps_stages(proc.stdout + proc.stderr)
-        m = re.search(r"^Submit dir: (\S+)", proc.stdout + proc.stderr, re.M)
+        stages = parse_bps_stages(output)
+        m = re.search(r"^Submit dir: (\S+)", output, re.M)
         jobs = parse_job_logs(m.group(1)) if m else {}
         nbi_after = numba_cache_files()
     except BaseException:
@@ -365,16 +465,30 @@ def main():
                      "included).")
     else:
         lines.append("  (no per-job logs found in the submit directory: total only)")
+    cpus = cpu.totals()
+    qcpu = np.array(cpu.quanta())
+    lines += ["", "CPU seconds (user + system, sampled every 0.2 s from /proc; by process): " +
+              ", ".join(f"{k} {v:.1f}" for k, v in sorted(cpus.items()) if k != "total") +
+              f"; total {cpus['total']:.1f}"]
+    if qcpu.size:
+        lines.append(f"  per quantum: median {np.median(qcpu):.1f} (min {qcpu.min():.1f}, max "
+                     f"{qcpu.max():.1f}); this script's sampling thread {own_cpu:.1f}")
+    cpu_rate = args.n / cpus["total"] if cpus["total"] > 0 else float("nan")
     lines += [
-        "",
+        f"CCDs per CPU-second (N / total CPU s, the figure when the cores are not shared): "
+        f"{cpu_rate:.4f}",
+    ]
+    lines += [
         f"CCDs per core-second (N / (total s x {args.cores} cores)): {rate:.4f}",
     ]
     cam = camera_scale_rate()
     if cam is not None:
         lines += [
             f"camera_scale_results.json ({cam['n_images']} CCDs of {cam['size']} px, files, no "
-            f"Butler): serial {cam['serial']:.4f}, dask {cam['dask']:.4f} CCDs per core-second;",
-            f"  BPS here / serial there: {rate / cam['serial']:.2f}",
+            f"Butler, load {cam['load_average'][0]:.1f}-{cam['load_average'][1]:.1f}): serial "
+            f"{cam['serial']:.4f} CCDs per core-second, {cam['serial_cpu']:.4f} per CPU-second;",
+            f"  BPS here / serial there: {rate / cam['serial']:.2f} per core-second, "
+            f"{cpu_rate / cam['serial_cpu']:.2f} per CPU-second",
         ]
     lines.append(f"Outputs checked in {', '.join(runs)}: " + ", ".join(
         f"{v} {k}" for k, v in found.items()) + " (one per detector, files present).")
@@ -389,8 +503,10 @@ def main():
         "quanta_phase_seconds": phase,
         "jobs": {name: {**j, "start": j["start"] - start, "end": j["end"] - start}
                  for name, j in sorted(jobs.items(), key=lambda kv: kv[1]["start"])},
-        "ccds_per_core_second": rate, "camera_scale": cam,
+        "ccds_per_core_second": rate, "cpu_seconds": cpus, "quantum_cpu_seconds": qcpu,
+        "sampler_cpu_seconds": own_cpu, "ccds_per_cpu_second": cpu_rate, "camera_scale": cam,
         "bps_over_camera_scale_serial": None if cam is None else rate / cam["serial"],
+        "bps_over_camera_scale_serial_cpu": None if cam is None else cpu_rate / cam["serial_cpu"],
         "output_runs": runs, "outputs": found,
     }, script=__file__, indent=2)
 
