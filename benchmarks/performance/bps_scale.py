@@ -17,14 +17,18 @@ defaults (drift with the geometry maps). Each quantum is its own
 
 Timed: ``bps submit`` from start to exit (quantum graph, the init job,
 the quanta, the final job that registers the outputs). From what BPS and
-Parsl leave in the submit directory: the stages BPS times itself (its
-``Completed ...: Took ... seconds`` lines), each job's span (first to last
-time stamp of its ``--long-log`` log: Python's start and imports before
-the first line are not in it), the Task's own time per quantum
-(``Execution of task ... took ... seconds``), and the quanta phase (first
-quantum log line to last). CCDs per core-second = N / (total wall s x
-cores). For comparison, camera_scale_results.json's serial rate (one
-process, files, no Butler) is quoted when that file exists.
+the Parsl plugin leave: the stages BPS times itself (its ``Completed ...:
+Took ... seconds`` lines) and, per job, from its log files in the submit
+directory, its wall time (the files' creation, just before the plugin
+starts the command, to their last change), its start-up (to the first
+``--long-log`` line: Python's start and the imports) and the Task's own
+time (``Execution of task ... took ... seconds``, Butler read and write
+included). CPU seconds (user + system) of every process of the run are
+sampled from ``/proc`` every 0.2 s (:class:`CpuSampler`), by kind of job.
+CCDs per core-second = N / (total wall s x cores); CCDs per CPU-second =
+N / total CPU s, the figure that holds when the cores are not shared. For
+comparison, camera_scale_results.json's serial rates (one process, FITS
+files, no Butler) are quoted when that file exists.
 
 Then it checks that the repository holds ``bf_corrected_image`` and
 ``bf_geometry_maps`` for every data ID in the output collection, and that
@@ -33,7 +37,8 @@ the end unless ``--keep``. Needs ``lsst-ctrl-bps-parsl`` (see
 docs/pipelines.rst for the versions that work). Run from the repository
 root::
 
-    OMP_NUM_THREADS=1 nice -n 10 python benchmarks/performance/bps_scale.py [--n 6] [--size 4096] [--cores 2]
+    OMP_NUM_THREADS=1 nice -n 10 python benchmarks/performance/bps_scale.py \\
+        [--n 6] [--size 4096] [--cores 2] [--workdir DIR] [--keep]
 
 Prints the figures and writes ``benchmarks/performance/bps_scale_results.txt`` / ``.json``.
 """
@@ -57,12 +62,12 @@ import time  # noqa: E402
 from datetime import datetime  # noqa: E402
 
 import numpy as np  # noqa: E402
-import psutil  # noqa: E402  (a dependency of parsl)
 from astropy.io import fits  # noqa: E402
 
 import bench_task  # noqa: E402  (this folder's bench_task.py: its star field)
 
-__all__ = ["CpuSampler", "check_bps", "write_submit_yaml", "parse_bps_stages", "parse_job_logs", "main"]
+__all__ = ["CpuSampler", "check_bps", "write_submit_yaml", "parse_bps_stages", "parse_job_logs",
+           "main"]
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
@@ -98,8 +103,14 @@ _TASK_TOOK = re.compile(r"Execution of task '[^']+' on quantum .* took ([0-9.]+)
 
 def check_bps():
     """Fail with the pip command when ``bps`` or the Parsl plugin is missing."""
-    missing = [m for m in ("lsst.ctrl.bps", "lsst.ctrl.bps.parsl", "parsl")
-               if importlib.util.find_spec(m) is None]
+    missing = []
+    for name in ("lsst.ctrl.bps", "lsst.ctrl.bps.parsl", "parsl", "psutil"):
+        try:
+            found = importlib.util.find_spec(name) is not None
+        except ModuleNotFoundError:  # a parent package is missing
+            found = False
+        if not found:
+            missing.append(name)
     if missing or shutil.which("bps") is None:
         what = ", ".join(missing) if missing else "the `bps` command on PATH"
         raise SystemExit(f"bps_scale.py: {what} not found in this environment "
@@ -215,6 +226,9 @@ class CpuSampler:
     def __init__(self, marker, root, *, interval=0.2):
         import threading
 
+        import psutil  # a dependency of parsl
+
+        self._psutil = psutil
         self.marker, self.root, self.interval = marker, root, interval
         self.seen = {}  # (pid, create_time) -> [cpu seconds, kind]
         self._stop = threading.Event()
@@ -234,17 +248,17 @@ class CpuSampler:
     def _sample(self):
         roots = []
         try:
-            roots.append((psutil.Process(self.root), "bps"))
-        except psutil.Error:
+            roots.append((self._psutil.Process(self.root), "bps"))
+        except self._psutil.Error:
             pass
-        for proc in psutil.process_iter(["cmdline"]):
+        for proc in self._psutil.process_iter(["cmdline"]):
             cmd = proc.info["cmdline"] or []
             if proc.pid != self.root and any(self.marker in c for c in cmd):
                 roots.append((proc, self._kind(cmd) or "other"))
         for proc, root_kind in roots:
             try:
                 family = [proc] + proc.children(recursive=True)
-            except psutil.Error:
+            except self._psutil.Error:
                 continue
             for member in family:
                 try:
@@ -252,7 +266,7 @@ class CpuSampler:
                         key = (member.pid, member.create_time())
                         t = member.cpu_times()
                         kind = self._kind(member.cmdline()) or root_kind
-                except psutil.Error:
+                except self._psutil.Error:
                     continue
                 entry = self.seen.setdefault(key, [0.0, kind])
                 entry[0] = max(entry[0], t.user + t.system)
