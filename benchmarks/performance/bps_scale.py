@@ -30,6 +30,9 @@ N / total CPU s, the figure that holds when the cores are not shared. For
 comparison, camera_scale_results.json's serial rates (one process, FITS
 files, no Butler) are quoted when that file exists.
 
+``--final-cpus N`` adds ``finalJob: requestCpus: N`` to the submit YAML:
+the final job's ``butler aggregate-graph -j N`` (BPS's default 16).
+
 Then it checks that the repository holds ``bf_corrected_image`` and
 ``bf_geometry_maps`` for every data ID in the output collection, and that
 their files exist, and fails otherwise. The working directory is deleted at
@@ -38,7 +41,7 @@ docs/pipelines.rst for the versions that work). Run from the repository
 root::
 
     OMP_NUM_THREADS=1 nice -n 10 python benchmarks/performance/bps_scale.py \\
-        [--n 6] [--size 4096] [--cores 2] [--workdir DIR] [--keep]
+        [--n 6] [--size 4096] [--cores 2] [--final-cpus N] [--workdir DIR] [--keep]
 
 Prints the figures and writes ``benchmarks/performance/bps_scale_results.txt`` / ``.json``.
 """
@@ -72,7 +75,7 @@ __all__ = ["CpuSampler", "check_bps", "write_submit_yaml", "parse_bps_stages", "
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
 from _common import command_line, write_results  # noqa: E402
-OUT = os.path.join(HERE, "bps_scale")
+OUT = os.path.join(HERE, "bps_scale_results")
 CAMERA_SCALE_JSON = os.path.join(HERE, "camera_scale_results.json")
 INSTRUMENT = "BFCam"
 INPUT_RUN = "bf/inputs"
@@ -119,11 +122,18 @@ def check_bps():
                          "Parsl', says which versions work).")
 
 
-def write_submit_yaml(path, *, pipe, repo, cores):
-    """Write docs/pipelines.rst's submit YAML with the pipeline, repository and cores filled in."""
+def write_submit_yaml(path, *, pipe, repo, cores, final_cpus=None):
+    """Write docs/pipelines.rst's submit YAML with the pipeline, repository and cores filled in.
+
+    ``final_cpus``, when given, adds ``finalJob: requestCpus:`` (the final
+    job's ``butler aggregate-graph -j``; BPS's default is 16).
+    """
+    text = SUBMIT_YAML.format(pipe=pipe, repo=repo, cores=cores, inputs=INPUT_RUN,
+                              instrument=INSTRUMENT, output=OUTPUT)
+    if final_cpus is not None:
+        text += f"finalJob:\n  requestCpus: {final_cpus}\n"
     with open(path, "w") as fh:
-        fh.write(SUBMIT_YAML.format(pipe=pipe, repo=repo, cores=cores, inputs=INPUT_RUN,
-                                    instrument=INSTRUMENT, output=OUTPUT))
+        fh.write(text)
 
 
 def parse_bps_stages(text):
@@ -360,14 +370,17 @@ def main():
     ap.add_argument("--n", type=int, default=6, help="CCDs (quanta)")
     ap.add_argument("--size", type=int, default=4096, help="CCD side in pixels")
     ap.add_argument("--cores", type=int, default=2, help="cores of Parsl's Local site")
+    ap.add_argument("--final-cpus", type=int, default=None,
+                    help="finalJob requestCpus (aggregate-graph -j; default BPS's, 16)")
     ap.add_argument("--workdir", default=None,
                     help="where the repository and submit directory go (default a temp dir)")
     ap.add_argument("--keep", action="store_true", help="keep the working directory")
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds for bps submit")
-    ap.add_argument("--out", default=OUT)
+    ap.add_argument("--out", default=OUT,
+                    help="results prefix: writes OUT.txt and OUT.json (default %(default)s)")
     args = ap.parse_args()
-    if args.n < 1 or args.size < 64 or args.cores < 1:
-        ap.error("--n >= 1, --size >= 64 and --cores >= 1")
+    if args.n < 1 or args.size < 64 or args.cores < 1 or (args.final_cpus or 1) < 1:
+        ap.error("--n >= 1, --size >= 64, --cores >= 1 and --final-cpus >= 1")
     check_bps()
     from lsst.daf.butler import Butler, Config
 
@@ -395,7 +408,8 @@ def main():
             os.remove(path)
         t_prep = time.perf_counter() - t0
         submit = os.path.join(work, "submit.yaml")
-        write_submit_yaml(submit, pipe=bfpipe.pipeline_path(), repo=repo, cores=args.cores)
+        write_submit_yaml(submit, pipe=bfpipe.pipeline_path(), repo=repo, cores=args.cores,
+                          final_cpus=args.final_cpus)
         # PWD: the submit directory's default (${PWD}/submit/{outputRun}) in the work dir
         env = dict(os.environ, CTRL_MPEXEC_DIR=sys.prefix, DAF_BUTLER_DIR=sys.prefix,
                    NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1", PWD=work)
@@ -507,7 +521,7 @@ def main():
     lines.append(f"Outputs checked in {', '.join(runs)}: " + ", ".join(
         f"{v} {k}" for k, v in found.items()) + " (one per detector, files present).")
     print(f"# command: {command_line(__file__)}\n" + "\n".join(lines))
-    write_results(args.out + "_results", lines, {
+    write_results(args.out, lines, {
         "n_ccds": args.n, "size": args.size, "dtype": "float32", "n_stars": 400,
         "cores": args.cores, "site": "lsst.ctrl.bps.parsl.sites.Local",
         "env": {"NUMBA_NUM_THREADS": 1, "OMP_NUM_THREADS": 1}, "cpu_count": os.cpu_count(),
