@@ -24,10 +24,36 @@ import numpy as np
 
 from lsst_bfdrift.utils.io import write_json, write_text
 
-__all__ = ["REPO", "command_line", "to_json", "write_results"]
+__all__ = ["REPO", "Lines", "command_line", "settings_record", "to_json", "write_results"]
 
 #: The repository root: the folder that holds ``benchmarks/``.
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+class Lines(list):
+    """The lines of a run: each printed when said and kept for the results file.
+
+    Calling it says a line (``say = Lines(); say("...")``); as a list it is
+    the ``lines`` of :func:`write_results`. A new ``Lines`` opens with the
+    machine line (cores, 1-minute load average; ``note`` appended) unless
+    ``machine=False``.
+    """
+
+    def __init__(self, *, machine=True, note=""):
+        super().__init__()
+        if machine:
+            load = os.getloadavg()
+            self(f"machine: {os.cpu_count()} cores, load average {load[0]:.1f} (1 min) at "
+                 "the start" + (f"; {note}" if note else ""))
+
+    def __call__(self, line):
+        print(line, flush=True)
+        self.append(line)
+
+
+def settings_record(args, *, leave=("out",)):
+    """The parsed options as a record's ``settings`` (``--out`` and the like left out)."""
+    return {k: v for k, v in vars(args).items() if k not in leave}
 
 
 def command_line(script):

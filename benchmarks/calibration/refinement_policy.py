@@ -38,10 +38,7 @@ and PSFs (what a user can expect from one calibration). Writes
 import argparse
 import glob
 import os
-import pickle
 import sys
-import time
-import warnings
 import zlib
 
 import numpy as np
@@ -50,11 +47,11 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
 
-from _common import write_results  # noqa: E402
+from _common import Lines, settings_record, write_results  # noqa: E402
 from calibrate_sensor import star_pairs  # noqa: E402
 from peers import amatrix_inputs, origin_slope  # noqa: E402
+from spots_stars import cached_calibration  # noqa: E402
 
-from lsst_bfdrift.calibration.tuning import calibrate  # noqa: E402
 from lsst_bfdrift.templates.refine import match_area_coefficients, template_alpha  # noqa: E402
 from lsst_bfdrift.validation.stars import per_star_residuals  # noqa: E402
 
@@ -64,22 +61,10 @@ QUANTITIES = ((0, "size"), (1, "e1"))
 
 
 def calibration(sensor, name, table, cache):
-    """calibrate() of one input (cached), poor fits kept (refined, as the default writes)."""
+    """calibrate() of one input (spots_stars.py's cached_calibration), keyed by its a_ij."""
     key = zlib.crc32(np.asarray(table.a).tobytes()) % 100000
-    path = f"{cache}_{sensor}_{name.replace(' ', '')}_{key}.pkl" if cache else None
-    if path and os.path.isfile(path):
-        with open(path, "rb") as fh:
-            return pickle.load(fh), None
-    t0 = time.time()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # a poor fit is refined and stated in the result
-        res = calibrate(table, allow_poor_fit=True)
-    cost = time.time() - t0
-    if path:
-        with open(path + ".tmp", "wb") as fh:
-            pickle.dump(res, fh)
-        os.replace(path + ".tmp", path)
-    return res, cost
+    return cached_calibration(
+        table, f"{cache}_{sensor}_{name.replace(' ', '')}_{key}.pkl" if cache else None)
 
 
 def prior_target(template, table, lags, tau):
@@ -150,16 +135,9 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.cache:
         os.makedirs(os.path.dirname(args.cache), exist_ok=True)
-    lines, rec = [], {"settings": {k: v for k, v in vars(args).items() if k != "out"},
-                      "sensors": {}}
-
-    def say(s):
-        print(s, flush=True)
-        lines.append(s)
-
-    load = os.getloadavg()
-    say(f"machine: {os.cpu_count()} cores, load average {load[0]:.1f} (1 min) at the start; "
-        "% of the uncorrected slope left on paired GalSim stars, errors from the stars")
+    rec = {"settings": settings_record(args), "sensors": {}}
+    say = Lines(note="% of the uncorrected slope left on paired GalSim stars, errors from "
+                     "the stars")
     policies = list(POLICIES) + [f"prior {t:g}" for t in args.tau]
     rms = {p: {q: [] for _, q in QUANTITIES} for p in policies}
     for sensor in args.sensors:
@@ -181,7 +159,7 @@ def main(argv=None):
                 for p in policies:
                     for _, q in QUANTITIES:
                         rms[p][q].append(out[p][q][0])
-        write_results(args.out, lines, script=__file__)
+        write_results(args.out, say, script=__file__)
     say(f"root mean square over {len(rms['model']['size'])} sensor-input-PSF rows "
         "(what one calibration leaves):")
     rec["rms"] = {}
@@ -191,7 +169,7 @@ def main(argv=None):
         rec["rms"][p] = {"rms": r, "mean": m}
         say(f"  {p:9s} size rms {r['size']:4.1f} % (mean {m['size']:+5.1f}), e1 rms "
             f"{r['e1']:5.1f} % (mean {m['e1']:+5.1f})")
-    write_results(args.out, lines, rec, script=__file__)
+    write_results(args.out, say, rec, script=__file__)
 
 
 if __name__ == "__main__":

@@ -99,7 +99,7 @@ from lsst_bfdrift.catalogs.spot_slopes import fit_spot_slope  # noqa: E402
 from lsst_bfdrift.catalogs.spots import SPOT_QUANTITIES, spot_flag_counts  # noqa: E402
 from lsst_bfdrift.simulation.spots import simulate_spot_series  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
-from _common import to_json, write_results  # noqa: E402
+from _common import Lines, settings_record, to_json, write_results  # noqa: E402
 
 from lsst_bfdrift.utils.io import write_json  # noqa: E402
 from lsst_bfdrift.validation.stars import per_star_residuals  # noqa: E402
@@ -113,23 +113,28 @@ QUANTITIES = ((0, "size"), (1, "e1"), (2, "e2"))
 
 
 
-def flats_calibration(sensor, *, lags, cache=None):
-    """The a-matrix route: GalSim's noise-free a-matrix, lags 0..lags, calibrated (cached)."""
-    path = f"{cache}_{sensor}_lags{lags}.pkl" if cache else None
+def cached_calibration(table, path=None):
+    """calibrate() of an a-matrix table, a poor fit kept (refined, as the default writes it),
+    pickled at ``path`` (None: not cached); (result, seconds, or None when read)."""
     if path and os.path.isfile(path):
         with open(path, "rb") as fh:
             return pickle.load(fh), None
-    _, inputs = amatrix_inputs(sensor, lags, 0)
     t0 = time.time()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a poor physics fit is refined and stated in the fit
-        res = calibrate(inputs[0][1], allow_poor_fit=True)
+        res = calibrate(table, allow_poor_fit=True)
     cost = time.time() - t0
     if path:
         with open(path + ".tmp", "wb") as fh:
             pickle.dump(res, fh)
         os.replace(path + ".tmp", path)
     return res, cost
+
+
+def flats_calibration(sensor, *, lags, cache=None):
+    """The a-matrix route: GalSim's noise-free a-matrix, lags 0..lags, calibrated (cached)."""
+    _, inputs = amatrix_inputs(sensor, lags, 0)
+    return cached_calibration(inputs[0][1], f"{cache}_{sensor}_lags{lags}.pkl" if cache else None)
 
 
 def spot_simulation(sensor, args, sigma):
@@ -503,13 +508,7 @@ def main(argv=None):
                     help="leave out item 5 (spots needed, from the stated precision)")
     ap.add_argument("--out", default=os.path.join(HERE, "spots_stars_results"))
     args = ap.parse_args(argv)
-    lines, out = [], {"settings": {k: v for k, v in vars(args).items() if k != "out"},
-                      "sensors": {}}
-
-    def say(s):
-        print(s, flush=True)
-        lines.append(s)
-
+    out, say = {"settings": settings_record(args), "sensors": {}}, Lines(machine=False)
     load = os.getloadavg()
     say(f"machine: {os.cpu_count()} cores, load average {load[0]:.1f} / {load[1]:.1f} / "
         f"{load[2]:.1f} (1 / 5 / 15 min) at the start of this run; times are wall-clock "
@@ -518,11 +517,11 @@ def main(argv=None):
     out["machine"] = {"cores": os.cpu_count(), "load_average": list(load)}
     for sensor in args.sensors:
         out["sensors"][sensor] = sensor_record(sensor, args, say)
-        write_results(args.out, lines, out, script=__file__)
+        write_results(args.out, say, out, script=__file__)
     say("target (issue 42): with spots, <= 2 % of the size slope and <= 5 % of e1 left on the "
         "stars of every sensor model")
     out["target"] = target_table(out["sensors"], say)
-    write_results(args.out, lines, out, script=__file__)
+    write_results(args.out, say, out, script=__file__)
 
 
 if __name__ == "__main__":

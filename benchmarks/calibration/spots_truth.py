@@ -53,7 +53,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
 
-from _common import write_results  # noqa: E402
+from _common import Lines, settings_record, write_results  # noqa: E402
 from spots_stars import (BIAS, FULL_WELL, PairedSpotSeries, flats_calibration,  # noqa: E402
                          spot_simulation)
 
@@ -174,20 +174,12 @@ def main(argv=None):
                     help="spots_stars.py's cache prefix (calibrations, spot series)")
     ap.add_argument("--out", default=os.path.join(HERE, "spots_truth_results"))
     args = ap.parse_args(argv)
-    lines, out = [], {"settings": {k: v for k, v in vars(args).items() if k != "out"},
-                      "sensors": {}}
-
-    def say(s):
-        print(s, flush=True)
-        lines.append(s)
-
-    load = os.getloadavg()
-    say(f"machine: {os.cpu_count()} cores, load average {load[0]:.1f} (1 min) at the start")
+    out, say = {"settings": settings_record(args), "sensors": {}}, Lines()
     for sensor in args.sensors:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the calibration's poor-fit warning is in its fit
             out["sensors"][sensor] = run_sensor(sensor, args, say)
-    write_results(args.out, lines, out, script=__file__)
+    write_results(args.out, say, out, script=__file__)
 
 
 if __name__ == "__main__":
