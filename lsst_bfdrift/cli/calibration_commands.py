@@ -38,7 +38,7 @@ from lsst_bfdrift.ptc.full_model import fit_covariance_model
 from lsst_bfdrift.ptc.data import describe_paths
 from lsst_bfdrift.ptc.inputs import ExposureLevelWarning, read_calibration_input, read_ptc_file
 from lsst_bfdrift.correction.task import BAND_KEYWORDS, exposure_band
-from lsst_bfdrift.physics.absorption import absorption_length
+from lsst_bfdrift.physics.absorption import check_temperature
 from lsst_bfdrift.physics.depth import normalize_band
 from lsst_bfdrift.utils.errors import InputError, InputFileError, InputNotFoundError
 from lsst_bfdrift.utils.io import data_files, not_fits_reason
@@ -216,7 +216,7 @@ def cmd_calibrate(args):
         if flats_band is None:
             raise InputError("--temperature sets the absorption lengths of the per-band "
                              "templates: give --band (the flats' band) as well")
-        absorption_length(500.0, temperature=args.temperature)  # its range, checked now
+        check_temperature(args.temperature)  # before minutes of fitting
     for opt, files in (("--stars", args.stars or []), ("--spots", spot_files)):
         for x in files:
             if not os.path.isfile(x):

@@ -35,14 +35,16 @@ gap less a phonon, out to about 1100 nm at 173 K); beyond that
 :func:`absorption_length` refuses a temperature.
 """
 
+import functools
 import os
 
 import numpy as np
+from astropy import units as u
 
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["absorption_length", "absorption_table_range", "rajkanan_alpha", "RAJKANAN",
-           "TABLE_TEMPERATURE", "TEMPERATURE_RANGE"]
+__all__ = ["absorption_length", "absorption_table_range", "check_temperature", "rajkanan_alpha",
+           "RAJKANAN", "TABLE_TEMPERATURE", "TEMPERATURE_RANGE"]
 
 #: Temperature (K) of GalSim's table.
 TABLE_TEMPERATURE = 300.0
@@ -62,11 +64,15 @@ _HC_EV_NM = 1239.841984
 _K_EV = 8.617333262e-5
 
 
+@functools.lru_cache(maxsize=1)
 def _table():
+    """GalSim's table (nm, um), read once per process (read-only)."""
     import galsim  # heavy: only for its table
 
     path = os.path.join(galsim.meta_data.share_dir, "sensors", "abs_length.dat")
-    return np.loadtxt(path, skiprows=1)
+    table = np.loadtxt(path, skiprows=1)
+    table.flags.writeable = False
+    return table
 
 
 def absorption_table_range():
@@ -75,8 +81,29 @@ def absorption_table_range():
     return float(wl[0]), float(wl[-1])
 
 
-def _temperature(temperature):
-    t = float(getattr(temperature, "value", temperature))
+def check_temperature(temperature):
+    """A silicon temperature as K (float), checked against :data:`TEMPERATURE_RANGE`.
+
+    Parameters
+    ----------
+    temperature : float or Quantity
+        K, or an astropy Quantity of temperature (deg_C included).
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    InputError
+        Not a temperature, not finite, or outside the range.
+    """
+    try:
+        t = (float(temperature.to_value(u.K, equivalencies=u.temperature()))
+             if isinstance(temperature, u.Quantity) else float(temperature))
+    except (TypeError, ValueError, u.UnitsError) as exc:
+        raise InputError(f"temperature must be a number of K or a Quantity of temperature, "
+                         f"got {temperature!r}") from exc
     lo, hi = TEMPERATURE_RANGE
     if not (np.isfinite(t) and lo <= t <= hi):
         raise InputError(f"temperature must lie in [{lo:g}, {hi:g}] K (the absorption "
@@ -103,7 +130,7 @@ def rajkanan_alpha(wavelength, temperature):
     wl = np.asarray(wavelength, float)
     if np.any(~np.isfinite(wl)) or np.any(wl <= 0):
         raise InputError("wavelength must be finite and positive (nm)")
-    t = _temperature(temperature)
+    t = check_temperature(temperature)
     p = RAJKANAN
     energy = _HC_EV_NM / wl
     shift = p["beta"] * t * t / (t + p["gamma"])
@@ -154,7 +181,7 @@ def absorption_length(wavelength, *, temperature=None):
     length = np.interp(wl, table[:, 0], table[:, 1])
     if temperature is None:
         return length
-    t = _temperature(temperature)
+    t = check_temperature(temperature)
     if t == TABLE_TEMPERATURE:
         return length
     a_ref, a_t = rajkanan_alpha(wl, TABLE_TEMPERATURE), rajkanan_alpha(wl, t)

@@ -31,7 +31,8 @@ import os
 
 import numpy as np
 
-from lsst_bfdrift.physics.absorption import absorption_length, absorption_table_range
+from lsst_bfdrift.physics.absorption import (absorption_length, absorption_table_range,
+                                             check_temperature)
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["BANDS", "DepthDistribution", "depth_distribution", "bandpass", "sed_photons",
@@ -208,8 +209,8 @@ class DepthDistribution:
                 not np.all(np.isfinite(photons)) or photons.sum() <= 0:
             raise InputError("photon weights must be finite, >= 0, not all 0, one per "
                              "wavelength")
-        self.temperature = None if temperature is None else float(temperature)
-        self.absorption = absorption_length(self.wavelength, temperature=temperature)
+        self.temperature = None if temperature is None else check_temperature(temperature)
+        self.absorption = absorption_length(self.wavelength, temperature=self.temperature)
         detected = photons * -np.expm1(-self.thickness / self.absorption)
         self.converted_fraction = float(detected.sum() / photons.sum())
         self.coefficients = photons / detected.sum()

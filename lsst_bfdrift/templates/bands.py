@@ -37,6 +37,7 @@ from collections.abc import Mapping
 import numpy as np
 from astropy.io import fits
 
+from lsst_bfdrift.physics.absorption import TABLE_TEMPERATURE, check_temperature
 from lsst_bfdrift.physics.depth import (BANDS, GALSIM_ZFIT, conversion_nodes,
                                         depth_distribution, galsim_depth_factor, normalize_band)
 from lsst_bfdrift.physics.sensor import SensorParameters
@@ -190,6 +191,7 @@ def build_band_templates(params=None, bands=BANDS, *, sed=None, settings=None,
     if base is not None and depth_response != "galsim":
         raise InputError("base is the template GalSim's rule scales: depth_response='galsim' "
                          "only")
+    kelvin = TABLE_TEMPERATURE if temperature is None else check_temperature(temperature)
     z, weights, dists = band_weights(bands, thickness=params.thickness,
                                      z_stop=params.z_collect, sed=sed, nodes=nodes,
                                      temperature=temperature)
@@ -217,7 +219,7 @@ def build_band_templates(params=None, bands=BANDS, *, sed=None, settings=None,
                 "absorption_table": "GalSim share/sensors/abs_length.dat (Green 2008, 300 K)"
                 + ("" if temperature is None else ", scaled to the temperature by Rajkanan, "
                    "Singh & Shewchun 1979"),
-                "temperature": 300.0 if temperature is None else float(temperature)}
+                "temperature": kelvin}
         if depth_response == "galsim":
             factor = galsim_depth_factor(d)
             tpl = base if base is not None else built[0]
@@ -232,8 +234,7 @@ def build_band_templates(params=None, bands=BANDS, *, sed=None, settings=None,
             out[key] = combine_templates(temps, w, meta=meta)
     return MultiBandTemplate(out, meta={"depth_response": depth_response,
                                         "sed": _sed_label(sed),
-                                        "temperature": 300.0 if temperature is None
-                                        else float(temperature)})
+                                        "temperature": kelvin})
 
 
 class _fraction_reporter:

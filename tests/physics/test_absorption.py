@@ -61,6 +61,10 @@ def test_cooling_lengthens_absorption_most_in_the_red():
     print("L(173 K) / L(300 K):", np.round(cold, 2))
     assert np.all(cold > 1.0) and np.all(warm < 1.0)
     assert np.all(np.diff(cold[1:]) > 0)                 # the red grows with the wavelength
+    # a Quantity of temperature is the same temperature
+    from astropy import units as u
+    assert_allclose(absorption_length(wl, temperature=-100.15 * u.deg_C),
+                    absorption_length(wl, temperature=173.0), rtol=1e-9)
     assert cold[-1] > 2 * cold[0]
 
 
@@ -87,5 +91,7 @@ def test_bad_input_is_refused():
     lo, hi = absorption_table_range()
     with pytest.raises(InputError, match=r"wavelength must lie in"):
         absorption_length(hi + 1.0, temperature=173.0)
+    with pytest.raises(InputError, match="a number of K or a Quantity of temperature"):
+        absorption_length(700.0, temperature="cold")
     with pytest.raises(InputError, match="finite and positive"):
         rajkanan_alpha(-5.0, 300.0)
