@@ -4,9 +4,10 @@
 GalSim's absorption table, which the band templates use by default, is
 silicon at 300 K; an LSST sensor runs at about 173 K (-100 C), where red
 photons convert deeper (:func:`~lsst_bfdrift.physics.absorption.absorption_length`
-scales the table with the Rajkanan, Singh & Shewchun model). For the
-default sensor (the bundled default template's parameters, 100 um), this
-script builds templates with drift lines starting at ``--nodes`` conversion
+scales the table with the Rajkanan, Singh & Shewchun model; the script
+first prints the table, the model's own 300 K lengths over it, and the
+scaled lengths over it at each temperature). For the default sensor (the
+bundled default template's parameters, 100 um), this script builds templates with drift lines starting at ``--nodes`` conversion
 heights (size 9, 8 samples per edge, tol 1e-5 px), and for each band and
 temperature integrates A00 - 1 over the band's depth distribution (flat
 photon spectrum, piecewise linear in the height:
@@ -32,6 +33,7 @@ sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
 
 from _common import write_results  # noqa: E402
 
+from lsst_bfdrift.physics.absorption import absorption_length, rajkanan_alpha  # noqa: E402
 from lsst_bfdrift.physics.depth import BANDS, conversion_nodes, depth_distribution  # noqa: E402
 from lsst_bfdrift.physics.sensor import SensorParameters  # noqa: E402
 from lsst_bfdrift.templates.template import (TemplateSettings, build_template,  # noqa: E402
@@ -55,6 +57,22 @@ def main(argv=None):
 
     load = os.getloadavg()
     say(f"machine: {os.cpu_count()} cores, load average {load[0]:.1f} (1 min) at the start")
+    wl = np.array([450.0, 500, 600, 700, 800, 900, 950, 1000, 1050])
+    table = absorption_length(wl)
+    model = 1e4 / rajkanan_alpha(wl, 300.0)
+    say("absorption length (um): GalSim's table at 300 K; the Rajkanan model's own 300 K value "
+        "over the table's; the table scaled to each temperature over the table")
+    say("  nm     table  model/table  " + "  ".join(f"{'%g K' % t:>8s}" for t in
+                                                    args.temperatures))
+    rec["absorption"] = {}
+    for k, w in enumerate(wl):
+        ratios = [float(absorption_length(w, temperature=t) / table[k])
+                  for t in args.temperatures]
+        rec["absorption"][f"{w:g}"] = {"table_um": float(table[k]),
+                                       "model_over_table": float(model[k] / table[k]),
+                                       "scaled_over_table": ratios}
+        say(f"  {w:5g} {table[k]:8.3f} {model[k] / table[k]:11.2f}  "
+            + "  ".join(f"{r:8.2f}" for r in ratios))
     params = SensorParameters.from_dict(load_default_template().meta["params"])
     settings = TemplateSettings(size=9, edge_samples=8, tol=1e-5, workers=2)
     z = conversion_nodes(params.thickness, params.z_collect, args.nodes)

@@ -604,7 +604,7 @@ def add_calibrate_parser(subparsers):
                     action="store_false",
                     help="with --spots: ask the fit for zero slopes left on the spots, not for "
                          "what the drift correction leaves on their design with a right "
-                         "template (by default simulated photon by photon, 5-15 s per series: "
+                         "template (by default simulated photon by photon, up to ~30 s per series: "
                          "about -2 %% of the size slope on spots of sigma 1 px)")
     ca.add_argument("--min-spots", type=int, default=spots_default("min_spots"),
                     help="with --spots: fewest usable spots a series fits (per half with "

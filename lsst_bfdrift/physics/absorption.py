@@ -27,9 +27,9 @@ each bracket term taken only where its base is positive, with the band gaps
 
 the measured table keeps its shape, the model gives only the change with
 temperature, which is set by the gaps' shift and the phonon populations
-rather than by the model's absolute level (the model's own 300 K values are
-within a factor 1.5 of the table from 400 to 1000 nm, closer in the blue;
-``tests/physics/test_absorption.py`` states it). The ratio is defined where
+rather than by the model's absolute level (the model's own 300 K lengths
+are 0.61-0.97 of the table's from 450 to 1050 nm;
+``benchmarks/calibration/band_temperature.py`` prints them). The ratio is defined where
 the model absorbs at both temperatures (photon energies above the indirect
 gap less a phonon, out to about 1100 nm at 173 K); beyond that
 :func:`absorption_length` refuses a temperature.
