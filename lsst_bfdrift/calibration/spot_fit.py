@@ -59,6 +59,7 @@ its drivers: the lags the fit moved most (in units of their errors) and the
 slopes it left furthest from zero.
 """
 
+import copy
 import os
 import time
 
@@ -174,7 +175,7 @@ class SpotField:
         self.series, self.name = series, name or "spots"
         self.fitted_slopes = _check_slopes(fitted_slopes, "spot fitted_slopes")
         self.split_by, self.min_spots = split_by, int(min_spots)
-        self.bias = _check_bias(bias)
+        self._bias = _check_bias(bias)
         cat = series.catalog
         self.spot, self.image = np.asarray(cat["spot"]), np.asarray(cat["image"])
         self.flux = np.asarray(cat["flux"].value, float)
@@ -188,6 +189,25 @@ class SpotField:
         self.held_out = np.zeros_like(self.usable)
         self.half_a, self.half_b = self.usable.copy(), np.zeros_like(self.usable)
         self._slopes = {}
+
+    @property
+    def bias(self):
+        """The correction's own slopes subtracted from the corrected ones:
+        ``{quantity: (slope, error)}`` (empty: none)."""
+        return dict(self._bias)
+
+    @bias.setter
+    def bias(self, value):
+        self._bias = _check_bias(value)
+        self._slopes = {}  # the kept slopes had the former bias subtracted
+
+    def copy(self):
+        """A field of the same series whose split, name and bias can change
+        without changing this one (the measured spots and kept slopes shared
+        until then)."""
+        new = copy.copy(self)
+        new._slopes = dict(self._slopes)
+        return new
 
     @property
     def n_detections(self):
@@ -305,7 +325,7 @@ class SpotField:
         if key not in self._slopes:
             out = self.series.slopes(template, use=subset, quantities=STAR_SLOPES)
             if template is not None:
-                for q, (b, be) in self.bias.items():
+                for q, (b, be) in self._bias.items():
                     out[q] = (out[q][0] - b, float(np.hypot(out[q][1], be)))
             self._slopes[key] = out
         return dict(self._slopes[key])
@@ -331,13 +351,14 @@ def read_spot_fields(spots, *, gain=None, saturation=None, fitted_slopes=SPOT_FI
         One series (a SpotSeries, or a sequence of image paths, arrays in
         electrons or CCDData/NDData), or several (a sequence of such
         series: SpotSeries, SpotField or sequences of images). SpotField
-        objects are taken as they are.
+        objects are taken as they are (copied).
     gain : float, optional
         e/ADU of images in ADU without a GAIN keyword.
     saturation : float, optional
         Saturation level of the images (their unit; default SATURATE).
     fitted_slopes, split_by, min_spots
-        Of every new :class:`SpotField`.
+        Of every new :class:`SpotField` (a SpotField given is copied, so that
+        the calibration's split, names and bias leave the caller's as it was).
     names : sequence of str, optional
         One label per series (default: the files' common prefix, else
         ``spots<k>``).
@@ -365,7 +386,7 @@ def read_spot_fields(spots, *, gain=None, saturation=None, fitted_slopes=SPOT_FI
     out = []
     for k, s in enumerate(items):
         if isinstance(s, SpotField):
-            out.append(s)
+            out.append(s.copy())  # the caller's field is not split, renamed or biased
             continue
         series = s if isinstance(s, SpotSeries) else SpotSeries(
             list(s), gain=gain, saturation=saturation, progress=progress)
@@ -396,7 +417,7 @@ def check_spot_fields(fields, holdout, *, seed=20151, n_stars=0):
         :meth:`SpotField.check_split`.
     """
     mode = holdout_fields([None] * int(n_stars) + list(fields), holdout)[0]
-    split_fields(list(fields), mode, seed=seed)
+    split_fields([f.copy() for f in fields], mode, seed=seed)  # the fields left unsplit
 
 
 def calibrate_with_spots(result, spots, *, stars=(), holdout="auto", split_by="spots",
@@ -490,8 +511,8 @@ def calibrate_with_spots(result, spots, *, stars=(), holdout="auto", split_by="s
     if correction_bias:
         for f in spot_fields:
             if not f.bias:  # a series' own stated bias is kept
-                f.bias = _check_bias(spot_correction_bias(f.series, result.template,
-                                                          centres=bias_centres))
+                f.bias = spot_correction_bias(f.series, result.template,
+                                              centres=bias_centres)
     stars = list(stars) if not isinstance(stars, (str, np.ndarray)) else [stars]
     star_fields = read_star_fields(stars, gain=gain, min_snr=min_snr) if stars else []
     fields = star_fields + spot_fields

@@ -123,6 +123,7 @@ field's place: a data set has a ``name``, a ``kind``, its own
 ``check_split``, and ``slopes`` and ``corrected_catalog`` per template.
 """
 
+import copy
 import functools
 import time
 
@@ -280,6 +281,13 @@ class StarField:
                             "non-finite pixels in their aperture excluded")
         return warnings
 
+    def copy(self):
+        """A field of the same stars whose split and name can change without
+        changing this one (the corrections and slopes kept so far shared)."""
+        new = copy.copy(self)
+        new._corrected, new._slopes = dict(self._corrected), dict(self._slopes)
+        return new
+
     def corrected_catalog(self, template):
         """Catalog of the same stars after a drift correction with ``template``
         (None: the uncorrected image). Kept per template: the fit, the
@@ -392,7 +400,7 @@ def read_star_fields(stars, *, gain=None, min_snr=30.0):
     fields = []
     for k, s in enumerate(stars):
         if isinstance(s, StarField):
-            fields.append(s)
+            fields.append(s.copy())  # the caller's field is not split or renamed
             continue
         name = str(s) if isinstance(s, str) or hasattr(s, "__fspath__") else f"field{k}"
         try:

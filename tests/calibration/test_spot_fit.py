@@ -122,7 +122,12 @@ def test_spot_field_halves_minimum_and_reading():
         split_fields([h], "cross", seed=3)
     split_fields([h], "last", seed=3)  # all 16 spots fitted
     assert [x.name for x in read_spot_fields([series, series])] == ["spots0", "spots1"]
-    assert read_spot_fields(f)[0] is f
+    # a field given is copied: its split stays the caller's
+    given = SpotField(series, name="mine")
+    read = read_spot_fields(given)[0]
+    split_fields([read], "split", seed=3)
+    assert read is not given and read.name == "mine" and read.held_out.any()
+    assert not given.held_out.any() and np.array_equal(given.fit_stars, given.usable)
     with pytest.raises(CalibrationError, match="no spot series"):
         read_spot_fields([])
     with pytest.raises(InputError, match="split_by must be one of"):
@@ -207,7 +212,10 @@ def test_galsim_spots_and_galsim_a_matrix_calibrate_jointly():
     sim = simulate_spot_series(grid=(3, 3), n_images=4, peak_max=8e4, full_well=1e5, seed=3,
                                updates=100)
     series = SpotSeries(sim["images"], exptimes=sim["exptimes"], saturation=1e5)
-    joint = calibrate_with_spots(res, series, seed=3, iterations=1)
+    given = SpotField(series, name="spots0")
+    joint = calibrate_with_spots(res, given, seed=3, iterations=1)
+    # the caller's field is left as it was: not split or given a bias
+    assert given.bias == {} and not given.held_out.any()
     # photons, not the forward model: the correction's own slopes on the design are asked
     bias = joint.fields[0]["correction_bias"]
     assert set(bias) == {"size", "e1", "e2"} and bias["size"][1] > 0

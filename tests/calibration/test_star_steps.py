@@ -465,8 +465,10 @@ def test_read_and_split_fields():
     img = paired_fields()["images"][2]
     fields = read_star_fields([img, img.copy()])
     assert [f.name for f in fields] == ["field0", "field1"]
-    named = read_star_fields([StarField(img, name="x"), StarField(img, name="x")])
+    given = [StarField(img, name="x"), StarField(img, name="x")]
+    named = read_star_fields(given)
     assert [f.name for f in named] == ["x#0", "x#1"]
+    assert [f.name for f in given] == ["x", "x"]  # copies renamed, the caller's kept
     with pytest.raises(CalibrationError, match="no star fields"):
         read_star_fields([])
     with pytest.raises(CalibrationError, match="star field field0: "):
