@@ -149,21 +149,18 @@ def astier23_shifts(params, max_lag=8):
     i, j = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
     e, we = _nodes(_EDGE_NODES)
 
-    def edge_mean(x_of, y_of, stop, along_x):
-        acc = np.zeros((n, n))
-        for f, w in zip(e, we):
-            px, py = x_of(f), y_of(f)
-            if along_x:  # the field along x at a column boundary
-                acc += w * _field_integral(px, py, stop, p)
-            else:  # along y at a row boundary: swap the roles of x and y
-                q = dataclasses.replace(p, a=p.b, b=p.a)
-                acc += w * _field_integral(py, px, stop, q)
-        return acc
-
-    east = edge_mean(lambda f: i + 0.5, lambda f: j + f, p.z_sv, True)
-    west = edge_mean(lambda f: i - 0.5, lambda f: j + f, p.z_sv, True)
-    north = edge_mean(lambda f: i + f, lambda f: j + 0.5, p.z_sh, False)
-    south = edge_mean(lambda f: i + f, lambda f: j - 0.5, p.z_sh, False)
+    # the field along x at the column boundaries x = i + 1/2, and along y at the row
+    # boundaries y = j + 1/2 (roles of x and y swapped), averaged along the edge
+    swapped = dataclasses.replace(p, a=p.b, b=p.a)
+    east, north = np.zeros((n, n)), np.zeros((n, n))
+    for f, w in zip(e, we):
+        east += w * _field_integral(i + 0.5, j + f, p.z_sv, p)
+        north += w * _field_integral(j + 0.5, i + f, p.z_sh, swapped)
+    # the source rectangle is symmetric about its centre, so the field along x is odd
+    # in x: the west edge of pixel i is the east edge of pixel i - 1, and at x = -1/2
+    # minus the east edge of pixel 0 (likewise south from north)
+    west = np.concatenate([-east[:1], east[:-1]], axis=0)
+    south = np.concatenate([-north[:, :1], north[:, :-1]], axis=1)
     # outward: +x at the east edge, -x at the west edge (likewise in y)
     return p.alpha * north, -p.alpha * south, p.alpha * east, -p.alpha * west
 
