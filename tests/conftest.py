@@ -10,9 +10,14 @@ if "PYTEST_XDIST_WORKER" in os.environ:
     # cores made the numba-bound tests 35 % slower than one thread per worker
     os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
+import shutil
+import tempfile
+
 import numpy as np
 import pytest
 from hypothesis import settings
+
+from tests._shared import SHARED_ENV
 
 # Property-based tests (tests/test_fuzz.py): seeded and derandomized, so every run
 # generates the same cases; BFDRIFT_HYPOTHESIS=extended runs ten times more.
@@ -24,6 +29,21 @@ settings.load_profile(os.environ.get("BFDRIFT_HYPOTHESIS", "ci"))
 
 from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.templates.template import TemplateSettings, build_template
+
+
+def pytest_configure(config):
+    """On the controlling process: a directory for the data the xdist workers
+    share (tests/_shared.py); the workers, started after it, inherit it."""
+    if not hasattr(config, "workerinput") and SHARED_ENV not in os.environ:
+        config._bfdrift_shared = tempfile.mkdtemp(prefix="bfdrift-tests-")
+        os.environ[SHARED_ENV] = config._bfdrift_shared
+
+
+def pytest_unconfigure(config):
+    directory = getattr(config, "_bfdrift_shared", None)
+    if directory:
+        shutil.rmtree(directory, ignore_errors=True)
+        os.environ.pop(SHARED_ENV, None)
 
 
 @pytest.fixture(scope="session")

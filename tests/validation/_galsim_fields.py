@@ -1,9 +1,10 @@
-"""GalSim SiliconSensor star fields shared by the star tests (drawn once per process)."""
+"""GalSim SiliconSensor star fields shared by the star tests (drawn once per session)."""
 
 import functools
 
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.simulation.skysim import simulate_star_field
+from tests._shared import shared
 
 #: strengths of the paired fields: the same photons, diffusion and noise, only BF differs
 STRENGTHS = (0.0, 5.0, 10.0)
@@ -18,8 +19,9 @@ def paired_fields():
     and 1000), which keeps the drawing at about 2.2x the time of sky added afterwards
     (3.1x with 100 updates; more with the defaults).
     """
-    return simulate_star_field((320, 320), 22, strength=STRENGTHS, flux=(2e4, 1.5e6),
-                               sky_radius=6, updates=50, min_nrecalc=1e4, seed=20157)
+    return shared("paired_fields", lambda: simulate_star_field(
+        (320, 320), 22, strength=STRENGTHS, flux=(2e4, 1.5e6), sky_radius=6, updates=50,
+        min_nrecalc=1e4, seed=20157))
 
 
 @functools.lru_cache(maxsize=None)
