@@ -146,7 +146,8 @@ def density_weight(density):
     return DENSITY_WEIGHTS[density]
 
 
-#: Pixels below which :func:`fused_transfer` runs on one thread.
+#: Pixels below which :func:`fused_transfer` runs on one thread (it does on any
+#: image when numba has one thread: the parallel kernel is then never compiled).
 SERIAL_BELOW = 1 << 18
 
 
@@ -184,6 +185,7 @@ def fused_transfer(sv, sh, flux, blocked, *, cubic=False, out=None):
                          f"blocked {b.shape}")
     if out is None:
         out = np.empty((ny, nx))
-    kernel = fused_serial if ny * nx < SERIAL_BELOW else fused_parallel
+    serial = ny * nx < SERIAL_BELOW or numba.get_num_threads() == 1
+    kernel = fused_serial if serial else fused_parallel
     kernel(sv, sh, f, b, b.any(axis=1), density_weight(cubic), out)
     return out

@@ -323,7 +323,7 @@ def test_task_geometry_samples(default_template, small_template, rng):
 def test_kernel_works_in_double_precision_on_single_precision_channels(default_template, rng):
     """float32 FFT output: the polygons are still built in float64 (same maps as
     the same channels converted to float64 first)."""
-    from lsst_bfdrift.geometry._moment_kernels import stack_moments
+    from lsst_bfdrift.geometry._moment_kernels import stack_moments_serial as stack_moments
     from lsst_bfdrift.geometry._convolve import Convolver, block_stack
     from lsst_bfdrift.geometry.superpose import resample_template
     t = resample_template(default_template, 8)
