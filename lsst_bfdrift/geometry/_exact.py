@@ -10,12 +10,11 @@ its border) and the polygons' moments taken only in the boxes
 
 import math
 
-import numba
 import numpy as np
 from scipy import ndimage
 
 from lsst_bfdrift.geometry._convolve import Convolver, block_stack
-from lsst_bfdrift.geometry._moment_kernels import stack_moments, stack_moments_serial
+from lsst_bfdrift.geometry._moment_kernels import moment_kernel
 from lsst_bfdrift.geometry.superpose import MomentMaps, resample_template
 
 __all__ = ["exact_boxes", "exact_windows", "packed_canvas"]
@@ -147,7 +146,6 @@ def _box_moments(template, canvas, place, outs, names, *, samples, workers, dtyp
     if rows * nblocks > h:  # equal blocks: the last one padded with empty rows
         canvas = np.concatenate([canvas, np.zeros((rows * nblocks - h, canvas.shape[1]))])
     keep = [MomentMaps._names.index(name) for name in names]
-    threads = numba.get_num_threads()
     for r0 in range(0, h, rows):
         r1 = r0 + rows
         st, ro = block_stack(conv, canvas, r0, r1, workers)
@@ -156,10 +154,7 @@ def _box_moments(template, canvas, place, outs, names, *, samples, workers, dtyp
             if j0 >= j1:
                 continue
             part = np.empty((8, j1 - j0, x1 - x0))
-            # one thread: the serial kernel (the parallel one is then never compiled)
-            kernel = stack_moments if part[0].size > 16384 and threads > 1 \
-                else stack_moments_serial
-            kernel(st, ns, has_t, ro + j0 - r0, c + cx, fr, part)
+            moment_kernel(part[0].size)(st, ns, has_t, ro + j0 - r0, c + cx, fr, part)
             for k, m in zip(range(len(names)), keep):
                 outs[k][y0 + j0 - cy:y0 + j1 - cy, x0:x1] = part[m]
         del st

@@ -12,7 +12,7 @@ import types
 import numba
 import numpy as np
 
-__all__ = ["stack_moments", "stack_moments_serial"]
+__all__ = ["stack_moments", "stack_moments_serial", "moment_kernel", "SERIAL_PIXELS"]
 
 
 _THIRD = 1.0 / 3.0
@@ -201,3 +201,15 @@ stack_moments = numba.njit(parallel=True, cache=True)(
 # take a scheduler time slice, far more than a small box's work.
 stack_moments_serial = numba.njit(cache=True)(
     _named(_stack_moments_py, "stack_moments_serial", _row_chains=_row_chains_serial))
+
+#: Pixels of a block at or below which the moments run on one thread.
+SERIAL_PIXELS = 16384
+
+
+def moment_kernel(pixels):
+    """The moment kernel for a block of ``pixels``: the parallel one for large
+    blocks when numba has more than one thread, else the serial one (with one
+    thread the parallel kernel gains nothing and is never compiled)."""
+    if pixels > SERIAL_PIXELS and numba.get_num_threads() > 1:
+        return stack_moments
+    return stack_moments_serial

@@ -13,7 +13,7 @@ Image frame: ``charge[j, i]`` is pixel (i, j), centred on (i, j) in pixel units.
 import numpy as np
 
 from lsst_bfdrift.geometry._convolve import Convolver, block_stack
-from lsst_bfdrift.geometry._moment_kernels import stack_moments
+from lsst_bfdrift.geometry._moment_kernels import moment_kernel
 from lsst_bfdrift.physics.boundaries import BoundaryGrid
 from lsst_bfdrift.utils.errors import InputError, InputTypeError
 from lsst_bfdrift.templates.swept import kernel_abs_sum, refuse_out_of_range
@@ -359,7 +359,7 @@ def moment_maps(template, charge, *, mask=None, samples=None, strip=256, workers
         r1 = min(r0 + strip, ny)
         st, ro = block_stack(conv, q, r0, r1, workers)
         part = res if r1 - r0 == res.shape[1] else np.empty((8, r1 - r0, nx))
-        stack_moments(st, ns, has_t, ro, template.center, fr, part)
+        moment_kernel(part[0].size)(st, ns, has_t, ro, template.center, fr, part)
         del st
         for k, name in enumerate(MomentMaps._names):
             if getattr(out, name) is not None:
