@@ -22,7 +22,9 @@ inputs and caches):
 
 Printed per input: the fitted parameters (bounds hit), per template a00, a01,
 a10, a11 and S1 = a00 + 2 (a01 + a10) + 4 a11 (the net area response of the
-3 x 3 block around a charge; its ratio to GalSim's noise-free S1), the chi2
+3 x 3 block around a charge), the net response of the lags 2-3 ring and
+minus that of lags 0-3 (what area conservation leaves beyond lag 3), each
+as a ratio to GalSim's noise-free a-matrix's, the chi2
 of its a_ij at lags 0..3 against the input and the pulls of the worst three;
 the input's S1 with its error (the a_ij errors taken as independent) and
 the % of the uncorrected size and e1 slopes each template leaves (drift,
@@ -68,6 +70,14 @@ def s1(a):
     return float(np.sum(S1_WEIGHTS * np.asarray(a)[:2, :2]))
 
 
+def rings(a):
+    """(S1, net area response of the lags 2-3 ring, -(sum over lags 0-3)): the last is
+    what area conservation leaves to the lags beyond 3, the far field."""
+    a = np.asarray(a)[:4, :4]
+    s3 = float(np.sum(lag_multiplicity(3) * a))
+    return s1(a), s3 - s1(a), -s3
+
+
 def templates_of(res, table, truth, true_tpl, lags):
     """The route's links as templates (module docstring)."""
     built = res.built_template
@@ -105,6 +115,7 @@ def main(argv=None):
         true_tpl = import_galsim_sensor(sensor, match="transfers")
         pairs = {psf: cached_pairs(sensor, psf, [args.pairs]) for psf in args.psf}
         s1_true = s1(truth)
+        ring_true = rings(truth)
         rs = rec["sensors"][sensor] = {"s1_truth": s1_true}
         for name, table in inputs:
             res, cost = calibration(sensor, name, table, args.cache)
@@ -118,6 +129,9 @@ def main(argv=None):
                 f"{n} {f.values[n]:.4g} +- {f.errors[n]:.2g}" for n in f.names)
                 + (f"; at a bound: {', '.join(f.at_bound)}" if f.at_bound else "")
                 + ("" if cost is None else f"; calibrated in {cost:.0f} s"))
+            say(f"  GalSim's S1 / ring 2-3 / beyond 3 {ring_true[0]:+.3e} / {ring_true[1]:+.3e}"
+                f" / {ring_true[2]:+.3e}; input's " + " / ".join(
+                    f"{v / t:.2f}" for v, t in zip(rings(a), ring_true)) + " x")
             say(f"  input        a00 {a[0, 0]:+.3e} a01 {a[0, 1]:.3e} a10 {a[1, 0]:.3e} a11 "
                 f"{a[1, 1]:.3e}  S1 {s1(a):+.3e} +- {s1_err:.1e} ({s1(a) / s1_true:.2f} x "
                 f"GalSim's {s1_true:+.3e}); errors a00 {sig[0, 0] / abs(a[0, 0]):.0%} a01 "
@@ -129,10 +143,12 @@ def main(argv=None):
                 ta = lag_a(t, lags)
                 pull = (ta - a) / sig
                 worst = np.argsort(-np.abs(pull), axis=None)[:3]
-                rt = ri["templates"][k] = {"a": ta.tolist(), "s1": s1(ta),
+                ring = [v / t for v, t in zip(rings(ta), ring_true)]
+                rt = ri["templates"][k] = {"a": ta.tolist(), "s1": s1(ta), "rings": ring,
                                           "chi2": float(np.sum(pull ** 2)), "stars": {}}
                 line = (f"  {k:17s} a00 {ta[0, 0]:+.3e} a01 {ta[0, 1]:.3e} a10 {ta[1, 0]:.3e} "
-                        f"a11 {ta[1, 1]:.3e}  S1 {s1(ta) / s1_true:.2f} x; chi2 "
+                        f"a11 {ta[1, 1]:.3e}  S1 / ring 2-3 / beyond 3 {ring[0]:.2f} / "
+                        f"{ring[1]:.2f} / {ring[2]:.2f} x; chi2 "
                         f"{rt['chi2']:6.1f} (worst " + ", ".join(
                             "a{}{} {:+.1f}".format(*np.unravel_index(w, pull.shape),
                                                    pull.flat[w]) for w in worst) + ")")
