@@ -20,6 +20,12 @@ def itl():
     return AcoeffTable(a, 0.05 * np.abs(a) + 1e-10, source="galsim:lsst_itl_50_8")
 
 
+@pytest.fixture(scope="module")
+def depth_fit(itl):
+    """channel_depth alone fitted to ``itl`` (a poor fit, written refined)."""
+    return calibrate(itl, free=["channel_depth"], settings=SMALL, allow_poor_fit=True)
+
+
 def test_calibrates_to_galsim_itl(itl):
     """Two parameters fitted to GalSim's ITL a-matrix (lags <= 2, a00
     included, 5 % errors): a reported fit with covariance; the refined
@@ -68,14 +74,14 @@ def test_bad_input(itl):
         calibrate(AcoeffTable([[itl.a[0, 0]]], [[1e-8]]), free=["channel_depth", "xi0"])
 
 
-def test_uncertainty_travels_with_the_file(itl, tmp_path):
+def test_uncertainty_travels_with_the_file(itl, depth_fit, tmp_path):
     """The calibrated template saves and reloads with its covariance and
     provenance; draws from it scatter the area response by the stored
     errors (seeded: the scatter over 200 draws is within 15 % of sigma)."""
     from lsst_bfdrift.templates.refine import draw_templates, template_alpha
     from lsst_bfdrift.templates.template import DistortionTemplate
 
-    res = calibrate(itl, free=["channel_depth"], settings=SMALL, allow_poor_fit=True)
+    res = depth_fit
     path = tmp_path / "cal.fits"
     res.template.save(path)
     back = DistortionTemplate.load(path)
@@ -97,13 +103,13 @@ def test_uncertainty_travels_with_the_file(itl, tmp_path):
             back.corner_d, back.vedge_d, back.hedge_d, back.fractions, back.charge), 2)
 
 
-def test_task_gives_flux_moved_error(itl):
+def test_task_gives_flux_moved_error(depth_fit):
     """The Task's flux_moved_err from a calibrated template: positive where
     flux moves, zero where nothing moves, and of the size expected from the
     a_ij errors (5 %): a few percent of |flux_moved| at a bright star."""
     from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask
 
-    res = calibrate(itl, free=["channel_depth"], settings=SMALL, allow_poor_fit=True)
+    res = depth_fit
     y, x = np.mgrid[:48, :48]
     img = 1e5 * np.exp(-((x - 24.3) ** 2 + (y - 23.8) ** 2) / (2 * 1.6**2)) + 500.0
     cfg = BrighterFatterDriftConfig(compute_geometry=False, uncertainty_draws=8)
