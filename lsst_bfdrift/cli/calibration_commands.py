@@ -52,6 +52,10 @@ __all__ = ["add_calibrate_parser", "add_ptc_parser", "add_diagnose_parser", "cmd
 #: lags to 8 that ``calibrate`` reads (read_calibration_input's default).
 PTC_MAX_LAG = 3
 
+#: Relative error of the near-field response S1 above which ``calibrate`` says
+#: that its data leave S1 (and so the stars' size correction) to the model.
+NEAR_FIELD_NOTE = 0.1
+
 
 def read_with_progress(command, files, *, quiet=False, **kwargs):
     """:func:`~lsst_bfdrift.ptc.inputs.read_calibration_input` with the progress of
@@ -152,6 +156,18 @@ def _print_calibration(args, res, joint, data, table):
           + ", ".join(f"a{i}{j} {p:+.1f} sigma" for (i, j), p in f.worst(3)))
     sr = res.sum_rule
     print(f"  sum rule: sum a_ij = {sr['sum']:+.3e} +- {sr['error']:.1e} per e")
+    nf = res.near_field
+    if nf is not None:
+        rel = "" if nf["relative_error"] is None else f" ({100 * nf['relative_error']:.0f} %)"
+        print(f"  near field S1 = a00 + 2 (a01 + a10) + 4 a11 (sets the stars' size correction): "
+              f"data {nf['data']:+.3e} +- {nf['error']:.1e}{rel}, model {nf['model']:+.3e}"
+              + ("" if nf["template"] is None else f", template {nf['template']:+.3e}")
+              + " per e")
+        if nf["relative_error"] is not None and nf["relative_error"] > NEAR_FIELD_NOTE:
+            print(f"  note: this a-matrix measures S1 to {100 * nf['relative_error']:.0f} %; the "
+                  "template's comes mostly from the model, and the stars' size slope left "
+                  "follows it (about 0.7-1 % per 1 % of S1): star fields (--stars) or spots "
+                  "(--spots) measure it")
     if data.kind == "flats":
         print(f"  input: {len(data.pairs_used)} flat pair(s) used at {data.n_levels} level(s); "
               f"dropped: {_dropped_text(data.pairs_dropped) or 'none'}")

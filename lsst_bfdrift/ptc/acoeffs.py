@@ -26,7 +26,8 @@ from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.utils.io import read_text_rows
 
 __all__ = ["AcoeffTable", "read_acoeff_table", "assign_axes", "sum_rule_check",
-           "lag_radius", "acoeff_square", "lag_weights", "check_consistency", "MAX_TABLE_LAG"]
+           "lag_radius", "acoeff_square", "lag_weights", "check_consistency",
+           "near_field_response", "MAX_TABLE_LAG"]
 
 #: Largest lag an a_ij table may hold (measured tables reach ~20; a larger
 #: lag is a typo, and the square arrays grow as its square).
@@ -248,6 +249,57 @@ def sum_rule_check(table, *, nsigma=1.0):
             f"a00 error {table.sigma[0, 0]:.2g}): "
             + ("a00 set by the sum rule, left out of chi2" if ok else "a00 measured, kept"))
     return ok, note
+
+
+def near_field_response(a, sigma=None):
+    """The net area response of the 3 x 3 block around a charge, S1 (per e).
+
+    S1 = a00 + 2 (a01 + a10) + 4 a11: the relative area change, summed over
+    the aggressor and its eight neighbours, per electron in the aggressor.
+    By area conservation it is minus the response of every pixel beyond them.
+    The stars' size-flux slope left by a correction follows it
+    (``benchmarks/calibration/flats_links.py``: on GalSim's stars the size
+    slope left moves by 0.7-1.0 % of the uncorrected slope per 1 % of S1),
+    and an a-matrix measures it poorly: a difference of large terms of
+    opposite sign.
+
+    Parameters
+    ----------
+    a : array_like, shape (L + 1, L + 1), L >= 1
+        a_ij (per e), [serial, parallel].
+    sigma : array_like, optional
+        Their 1-sigma errors (independent); NaN or inf where unmeasured.
+
+    Returns
+    -------
+    s1 : float
+        Per e.
+    error : float or None
+        1-sigma error of ``s1`` from ``sigma`` (None without it, NaN when a
+        lag of the block is unmeasured).
+
+    Raises
+    ------
+    InputError
+        Fewer than two lags per axis.
+
+    Examples
+    --------
+    >>> a = [[-2.0e-6, 3.0e-7], [1.0e-7, 5.0e-8]]
+    >>> s1, err = near_field_response(a, [[1e-7, 1e-8], [1e-8, 1e-8]])
+    >>> print(f"{s1:.2e} {err:.2e}")
+    -1.00e-06 1.11e-07
+    """
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim != 2 or min(a.shape) < 2:
+        raise InputError(f"the near-field response needs lags 0-1 on both axes, got a_ij of "
+                         f"shape {a.shape}")
+    w = lag_weights(1)
+    s1 = float(np.sum(w * a[:2, :2]))
+    if sigma is None:
+        return s1, None
+    s = np.asarray(sigma, dtype=np.float64)[:2, :2]
+    return s1, float(np.sqrt(np.sum((w * s) ** 2)))
 
 
 def lag_weights(max_lag):

@@ -103,6 +103,34 @@ def test_uncertainty_travels_with_the_file(itl, depth_fit, tmp_path):
             back.corner_d, back.vedge_d, back.hedge_d, back.fractions, back.charge), 2)
 
 
+def test_near_field_of_the_data_model_and_template(itl, depth_fit):
+    """S1 = a00 + 2 (a01 + a10) + 4 a11 of the data (with its error), the fitted
+    model and the written template, in the result and its summary; with a00
+    set by the sum rule, S1 is minus the lags beyond the block (their errors)."""
+    from lsst_bfdrift.calibration.tuning import CalibrationResult
+    from lsst_bfdrift.ptc.acoeffs import near_field_response
+
+    nf = depth_fit.near_field
+    assert (nf["data"], nf["error"]) == near_field_response(itl.a, itl.sigma)
+    assert nf["model"] == near_field_response(depth_fit.model)[0]
+    assert nf["template"] == near_field_response(depth_fit.template_acoeffs)[0]
+    assert_allclose(nf["relative_error"], nf["error"] / abs(nf["data"]))
+    assert depth_fit.summary()["near_field"] == nf
+    a, sig = itl.a.copy(), itl.sigma.copy()
+    out = [(i, j) for i in range(3) for j in range(3) if max(i, j) == 2]
+    w = {(i, j): 2.0 if 0 in (i, j) else 4.0 for i, j in out}
+    a[0, 0] = -sum(w[k] * a[k] for k in out) - (2 * (a[0, 1] + a[1, 0]) + 4 * a[1, 1])
+    ruled = AcoeffTable(a, sig, exclude_a00=True)
+    res = CalibrationResult(table=ruled, model=depth_fit.model, template_acoeffs=None)
+    got = res.near_field
+    assert_allclose(got["data"], -sum(w[k] * a[k] for k in out), rtol=1e-12)
+    assert_allclose(got["error"], np.sqrt(sum((w[k] * sig[k]) ** 2 for k in out)), rtol=1e-12)
+    assert got["template"] is None
+    short = CalibrationResult(table=AcoeffTable([[a[0, 0]]], [[1e-8]]), model=None,
+                              template_acoeffs=None)
+    assert short.near_field is None
+
+
 def test_task_gives_flux_moved_error(depth_fit):
     """The Task's flux_moved_err from a calibrated template: positive where
     flux moves, zero where nothing moves, and of the size expected from the

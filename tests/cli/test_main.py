@@ -412,15 +412,22 @@ def test_calibrate_poor_fit_refused_unrefined_and_written_refined(capsys, tmp_pa
     tight = tmp_path / "tight.txt"
     itl = np.loadtxt("/work/shared/data/measured/itl_covariances_21oct19.txt", skiprows=1)
     itl[:, 3] = 1e-4 * np.abs(itl[:, 2]) + 1e-14  # errors no model meets
+    a11 = (itl[:, 0] == 1) & (itl[:, 1] == 1)
+    itl[a11, 3] = 0.5 * np.abs(itl[a11, 2])  # but S1 measured to only 23 %: said
     # lags 0-1: 3 dof for one free parameter, and each model evaluation is cheaper
     np.savetxt(tight, itl[(itl[:, 0] <= 1) & (itl[:, 1] <= 1)], header="i j a sigma")
     bad = tmp_path / "bad.fits"
     code, _, err = _run(capsys, "calibrate", str(tight), "--out", str(bad), "--free", "v_bss",
                         "--quiet", "--no-refine")
     assert code == 4 and "poor fit" in err and "worst lags" in err and not bad.exists()
-    code, _, err = _run(capsys, "calibrate", str(tight), "--out", str(bad), "--free", "v_bss",
-                        "--quiet")
+    code, out, err = _run(capsys, "calibrate", str(tight), "--out", str(bad), "--free", "v_bss",
+                          "--quiet")
     assert code == 0 and "warning: poor fit" in err and "Birge ratio" in err
+    r = {(int(i), int(j)): a for i, j, a, _ in itl}
+    s1 = r[0, 0] + 2 * (r[0, 1] + r[1, 0]) + 4 * r[1, 1]
+    assert f"near field S1 = a00 + 2 (a01 + a10) + 4 a11 (sets the stars' size correction): " \
+           f"data {s1:+.3e} +- {2 * abs(r[1, 1]):.1e} (23 %)" in out
+    assert "note: this a-matrix measures S1 to 23 %" in out
     misfit = DistortionTemplate.load(bad).meta["calibration"]["misfit"]
     assert misfit["birge"] > 10 and misfit["template_chi2"] < misfit["template_lags"]
 
