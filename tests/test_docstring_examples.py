@@ -15,7 +15,7 @@ MODULES = ["lsst_bfdrift.physics.drift", "lsst_bfdrift.physics.polygons",
            "lsst_bfdrift.templates.template", "lsst_bfdrift.templates.galsim_io",
            "lsst_bfdrift.geometry.superpose",
            "lsst_bfdrift.geometry.linear", "lsst_bfdrift.correction.task",
-           "lsst_bfdrift.catalogs.catalog"]
+           "lsst_bfdrift.catalogs.catalog", "lsst_bfdrift.ptc.acoeffs"]
 
 
 @pytest.mark.parametrize("name", MODULES)
