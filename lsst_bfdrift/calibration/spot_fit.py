@@ -203,11 +203,9 @@ class SpotField:
 
     def copy(self):
         """A field of the same series whose split, name and bias can change
-        without changing this one (the measured spots and kept slopes shared
-        until then)."""
-        new = copy.copy(self)
-        new._slopes = dict(self._slopes)
-        return new
+        without changing this one. The slopes kept are shared until the copy's
+        bias changes (their keys hold the template and the subset)."""
+        return copy.copy(self)
 
     @property
     def n_detections(self):

@@ -283,10 +283,9 @@ class StarField:
 
     def copy(self):
         """A field of the same stars whose split and name can change without
-        changing this one (the corrections and slopes kept so far shared)."""
-        new = copy.copy(self)
-        new._corrected, new._slopes = dict(self._corrected), dict(self._slopes)
-        return new
+        changing this one. The corrections and slopes kept are shared (their
+        keys hold the template and the subset, not the split)."""
+        return copy.copy(self)
 
     def corrected_catalog(self, template):
         """Catalog of the same stars after a drift correction with ``template``
