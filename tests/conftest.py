@@ -11,8 +11,6 @@ if "PYTEST_XDIST_WORKER" in os.environ:
     os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
 import shutil
-import subprocess
-import sys
 import tempfile
 
 import numpy as np
@@ -35,32 +33,10 @@ from lsst_bfdrift.templates.template import TemplateSettings, build_template
 
 def pytest_configure(config):
     """On the controlling process: a directory for the data the xdist workers
-    share (tests/_shared.py); the workers, started after it, inherit it. With
-    workers, the numba kernels are compiled first, once, by the workloads of
-    tests/_warm.py side by side (``BFDRIFT_TEST_WARM=0`` skips it)."""
-    if hasattr(config, "workerinput"):
-        return
-    if SHARED_ENV not in os.environ:
+    share (tests/_shared.py); the workers, started after it, inherit it."""
+    if not hasattr(config, "workerinput") and SHARED_ENV not in os.environ:
         config._bfdrift_shared = tempfile.mkdtemp(prefix="bfdrift-tests-")
         os.environ[SHARED_ENV] = config._bfdrift_shared
-    if getattr(config.option, "numprocesses", None) and \
-            os.environ.get("BFDRIFT_TEST_WARM", "1") != "0":
-        _warm_numba(str(config.rootpath))
-
-
-def _warm_numba(root):
-    """Run tests/_warm.py's parts side by side; a part that fails only costs its
-    kernels' compilation in the workers, as without the warm-up (said on stderr)."""
-    from tests._warm import PARTS
-
-    procs = {p: subprocess.Popen([sys.executable, "-m", "tests._warm", p], cwd=root,
-                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-             for p in PARTS}
-    for part, proc in procs.items():
-        _, err = proc.communicate()
-        if proc.returncode:
-            sys.stderr.write(f"tests/_warm.py {part} failed (kernels compile in the "
-                             f"workers instead): {err.strip().splitlines()[-1:]}\n")
 
 
 def pytest_unconfigure(config):
