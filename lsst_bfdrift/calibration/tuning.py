@@ -64,7 +64,7 @@ from lsst_bfdrift.templates.refine import lag_multiplicity, match_area_coefficie
 from lsst_bfdrift.templates.template import (TemplateSettings, build_template,
                                              load_default_template)
 from lsst_bfdrift.utils.progress import StageProgress
-from lsst_bfdrift.utils.errors import InputTypeError
+from lsst_bfdrift.utils.errors import InputError, InputTypeError
 from lsst_bfdrift.utils.io import data_path, write_text
 
 __all__ = ["CANDIDATES", "CalibrationError", "CalibrationWarning", "CalibrationResult",
@@ -633,7 +633,8 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     build : bool, optional
         Build the template (the slow step: about 15 s).
     max_evaluations : int, optional
-        Model evaluations of the search (each about 1 s).
+        Model evaluations of the search (each about 1 s); a search that stops
+        there reports its fit as it is (a poor one as poor).
     progress : bool, optional
         Progress bar on stderr, labelled with the stage: ``calibrate: model
         fit`` (the Jacobian and the search), ``calibrate: template build``,
@@ -663,6 +664,9 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
         raise InputTypeError("calibrate needs an AcoeffTable (see "
                         "lsst_bfdrift.ptc.inputs.read_calibration_input), got "
                         f"{type(table).__name__}")
+    if isinstance(max_evaluations, bool) or int(max_evaluations) != max_evaluations \
+            or max_evaluations < 1:
+        raise InputError(f"max_evaluations must be a positive integer, got {max_evaluations!r}")
     t0 = time.perf_counter()
     seconds = {}
     consistency = check_consistency(table)  # data inconsistent in themselves are refused

@@ -250,7 +250,7 @@ def cmd_calibrate(args):
         warnings.simplefilter("always", CalibrationWarning)
         res = calibrate(table, free=args.free, refine=not args.no_refine,
                         allow_poor_fit=args.allow_poor_fit, max_chi2_dof=args.max_chi2_dof,
-                        progress=not args.quiet)
+                        max_evaluations=args.max_evaluations, progress=not args.quiet)
     for w in caught:  # a poor physics fit: written, with the misfit in its uncertainty
         if issubclass(w.category, CalibrationWarning):
             print(f"bfdrift calibrate: warning: {w.message}", file=sys.stderr)
@@ -588,6 +588,10 @@ def add_calibrate_parser(subparsers):
                     default=library_default(calibrate, "max_chi2_dof"),
                     help="a fit above this chi2/dof (and p < 1e-3) is poor: a warning and "
                          "the Birge ratio in the uncertainty, an error with --no-refine "
+                         "(default: %(default)s)")
+    ca.add_argument("--max-evaluations", type=int,
+                    default=library_default(calibrate, "max_evaluations"),
+                    help="model evaluations of the physics fit's search, each about 1 s "
                          "(default: %(default)s)")
     ca.add_argument("--allow-poor-fit", action="store_true",
                     help="with --no-refine: write the model's template even when it fits "

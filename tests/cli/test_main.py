@@ -417,11 +417,12 @@ def test_calibrate_poor_fit_refused_unrefined_and_written_refined(capsys, tmp_pa
     # lags 0-1: 3 dof for one free parameter, and each model evaluation is cheaper
     np.savetxt(tight, itl[(itl[:, 0] <= 1) & (itl[:, 1] <= 1)], header="i j a sigma")
     bad = tmp_path / "bad.fits"
+    # a fit that cannot meet 0.01 % errors is poor however long it searches: 6 evaluations
     code, _, err = _run(capsys, "calibrate", str(tight), "--out", str(bad), "--free", "v_bss",
-                        "--quiet", "--no-refine")
+                        "--quiet", "--no-refine", "--max-evaluations", "6")
     assert code == 4 and "poor fit" in err and "worst lags" in err and not bad.exists()
     code, out, err = _run(capsys, "calibrate", str(tight), "--out", str(bad), "--free", "v_bss",
-                          "--quiet")
+                          "--quiet", "--max-evaluations", "6")
     assert code == 0 and "warning: poor fit" in err and "Birge ratio" in err
     r = {(int(i), int(j)): a for i, j, a, _ in itl}
     s1 = r[0, 0] + 2 * (r[0, 1] + r[1, 0]) + 4 * r[1, 1]
@@ -430,6 +431,9 @@ def test_calibrate_poor_fit_refused_unrefined_and_written_refined(capsys, tmp_pa
     assert "note: this a-matrix measures S1 to 23 %" in out
     misfit = DistortionTemplate.load(bad).meta["calibration"]["misfit"]
     assert misfit["birge"] > 10 and misfit["template_chi2"] < misfit["template_lags"]
+    code, _, err = _run(capsys, "calibrate", str(tight), "--out", str(tmp_path / "x.fits"),
+                        "--max-evaluations", "0", "--quiet")
+    assert code == 2 and "max_evaluations must be a positive integer, got 0" in err
 
 
 def test_template_export_galsim(capsys, tmp_path):
