@@ -51,13 +51,10 @@ from calibrate_sensor import flats_table  # noqa: E402
 from peers import amatrix_inputs  # noqa: E402
 from refinement_policy import cached_pairs, calibration, left  # noqa: E402
 
+from lsst_bfdrift.ptc.acoeffs import near_field_response  # noqa: E402
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from lsst_bfdrift.templates.refine import (lag_multiplicity, match_area_coefficients,  # noqa: E402
                                            template_alpha)
-
-#: Weights of S1, the net area response of the 3 x 3 block: a00 + 2 (a01 + a10) + 4 a11.
-S1_WEIGHTS = lag_multiplicity(1)
-
 
 def lag_a(template, lags):
     """The template's linear area response at lags 0..lags, [i serial, j parallel] (1/e)."""
@@ -66,8 +63,8 @@ def lag_a(template, lags):
 
 
 def s1(a):
-    """a00 + 2 (a01 + a10) + 4 a11 of a quadrant a-matrix."""
-    return float(np.sum(S1_WEIGHTS * np.asarray(a)[:2, :2]))
+    """a00 + 2 (a01 + a10) + 4 a11 of a quadrant a-matrix (the package's near-field response)."""
+    return near_field_response(a)[0]
 
 
 def rings(a):
@@ -121,7 +118,7 @@ def main(argv=None):
             res, cost = calibration(sensor, name, table, args.cache)
             f = res.fit
             a, sig = table.a[:lags + 1, :lags + 1], table.sigma[:lags + 1, :lags + 1]
-            s1_err = float(np.sqrt(np.sum((S1_WEIGHTS * sig[:2, :2]) ** 2)))
+            s1_err = near_field_response(a, sig)[1]
             ri = rs[name] = {"chi2": f.chi2, "dof": f.dof, "values": f.values,
                              "at_bound": f.at_bound, "s1": s1(a), "s1_err": s1_err,
                              "templates": {}}
