@@ -79,6 +79,7 @@ SOURCES = [
     ("calibrate", "model", calibrate_route, "model", _same, "astier23"),
     ("calibrate", "free", calibrate, "free", _same, ["xi0"]),
     ("calibrate", "max_chi2_dof", calibrate, "max_chi2_dof", _same, 5.0),
+    ("calibrate", "max_evaluations", calibrate, "max_evaluations", _same, 12),
     ("calibrate", "band_nodes", calibrated_band_templates, "nodes", _same, 5),
     ("calibrate", "holdout", calibrate_with_stars, "holdout", _same, "cross"),
     ("calibrate", "gain", calibrate_with_stars, "gain", _same, 1.5),
