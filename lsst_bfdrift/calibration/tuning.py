@@ -53,8 +53,7 @@ import warnings
 
 import numpy as np
 
-from lsst_bfdrift.ptc.acoeffs import (AcoeffTable, check_consistency, lag_weights,
-                                       near_field_response)
+from lsst_bfdrift.ptc.acoeffs import AcoeffTable, check_consistency, near_field_response
 from lsst_bfdrift.calibration.acoeff_model import electrostatic_acoeffs
 from lsst_bfdrift.calibration.fitting import FitError, fit_parameters
 from lsst_bfdrift.ptc.covariances import fit_ptc_exponential
@@ -390,17 +389,14 @@ class CalibrationResult:
 
     @property
     def near_field(self):
-        """S1 = a00 + 2 (a01 + a10) + 4 a11 (per e; :func:`~lsst_bfdrift.ptc.acoeffs.near_field_response`)
-        of the data (with its error), the fitted model and the template; None
-        without lags 0-1 on both axes."""
+        """S1 = a00 + 2 (a01 + a10) + 4 a11 (per e;
+        :func:`~lsst_bfdrift.ptc.acoeffs.near_field_response`) of the data
+        (with its error), the fitted model and the template; None without
+        lags 0-1 on both axes."""
         t = self.table
         if t.max_lag < 1:
             return None
-        s1, err = near_field_response(t.a, t.sigma)
-        if t.exclude_a00:  # a00 set by the sum rule: S1 is minus the lags beyond the block
-            w = lag_weights(t.max_lag)
-            w[:2, :2] = 0.0
-            s1, err = -float(np.sum(w * t.a)), float(np.sqrt(np.sum((w * t.sigma) ** 2)))
+        s1, err = near_field_response(t.a, t.sigma, from_sum_rule=t.exclude_a00)
         tpl = self.template_acoeffs
         return {"data": s1, "error": err, "relative_error": err / abs(s1) if s1 else None,
                 "model": near_field_response(self.model)[0],
@@ -419,7 +415,8 @@ class CalibrationResult:
                 "lags": [dict(zip(("i", "j", "a", "sigma", "model", "pull", "template"), r))
                          for r in self.lag_rows()],
                 "selection": self.selection, "sum_rule": self.sum_rule,
-                "near_field": self.near_field, "n_evaluations": f.n_evaluations, "seconds": self.seconds,
+                "near_field": self.near_field, "n_evaluations": f.n_evaluations,
+                "seconds": self.seconds,
                 "source": self.table.source,
                 "template": None if self.template is None else self.template.summary()}
 

@@ -251,7 +251,7 @@ def sum_rule_check(table, *, nsigma=1.0):
     return ok, note
 
 
-def near_field_response(a, sigma=None):
+def near_field_response(a, sigma=None, *, from_sum_rule=False):
     """The net area response of the 3 x 3 block around a charge, S1 (per e).
 
     S1 = a00 + 2 (a01 + a10) + 4 a11: the relative area change, summed over
@@ -269,6 +269,10 @@ def near_field_response(a, sigma=None):
         a_ij (per e), [serial, parallel].
     sigma : array_like, optional
         Their 1-sigma errors (independent); NaN or inf where unmeasured.
+    from_sum_rule : bool, optional
+        a00 was set by the area sum rule (:attr:`AcoeffTable.exclude_a00`):
+        S1 is then minus the response of every lag beyond the block, with
+        those lags' errors (a00's own error says nothing of S1).
 
     Returns
     -------
@@ -294,12 +298,19 @@ def near_field_response(a, sigma=None):
     if a.ndim != 2 or min(a.shape) < 2:
         raise InputError(f"the near-field response needs lags 0-1 on both axes, got a_ij of "
                          f"shape {a.shape}")
-    w = lag_weights(1)
-    s1 = float(np.sum(w * a[:2, :2]))
+    if from_sum_rule:
+        w = lag_weights(a.shape[0] - 1)
+        w[:2, :2] = 0.0
+        sign = -1.0
+    else:
+        w = np.zeros(a.shape)
+        w[:2, :2] = lag_weights(1)
+        sign = 1.0
+    s1 = sign * float(np.sum(w * a))
     if sigma is None:
         return s1, None
-    s = np.asarray(sigma, dtype=np.float64)[:2, :2]
-    return s1, float(np.sqrt(np.sum((w * s) ** 2)))
+    s = np.asarray(sigma, dtype=np.float64)
+    return s1, float(np.sqrt(np.sum((w * s)[w > 0] ** 2)))
 
 
 def lag_weights(max_lag):

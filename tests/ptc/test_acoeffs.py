@@ -48,8 +48,25 @@ def test_galsim_areas_conserve_so_s1_is_minus_the_rest(sensor):
     assert_allclose(s1, -np.sum(w * a), rtol=0.015)
 
 
+def test_a00_from_the_sum_rule_gives_s1_from_the_lags_beyond():
+    """A table whose a00 was set by the sum rule: S1 is minus the lags beyond the
+    block (with their errors), which equals the direct formula there exactly."""
+    rng = np.random.default_rng(11)
+    a = rng.normal(0.0, 3e-8, (5, 5))
+    w = lag_weights(4)
+    a[0, 0] = -np.sum(w[1:, :] * a[1:, :]) - np.sum(w[0, 1:] * a[0, 1:])  # the rule
+    sigma = np.full(a.shape, 1e-9)
+    sigma[0, 0] = 1e-12  # a00's stated error: not S1's
+    s1, err = near_field_response(a, sigma, from_sum_rule=True)
+    assert_allclose(s1, _block_sum(a), rtol=1e-10)
+    beyond = np.ones(a.shape, bool)
+    beyond[:2, :2] = False  # the block's lags: weights 1, 2, 2, 4
+    assert_allclose(err, 1e-9 * np.sqrt(np.sum(w[beyond] ** 2)), rtol=1e-12)
+
+
 def test_bad_input():
-    with pytest.raises(ValueError, match=r"needs lags 0-1 on both axes, got a_ij of shape \(1, 1\)"):
+    with pytest.raises(ValueError,
+                       match=r"needs lags 0-1 on both axes, got a_ij of shape \(1, 1\)"):
         near_field_response([[-2e-6]])
     with pytest.raises(ValueError, match="shape \\(3,\\)"):
         near_field_response([1.0, 2.0, 3.0])
