@@ -35,7 +35,7 @@ import os
 
 import numpy as np
 
-from lsst_bfdrift.physics.depth import BANDS, normalize_band, sed_photons
+from lsst_bfdrift.physics.depth import normalize_band, sed_photons
 from lsst_bfdrift.physics.absorption import absorption_length
 from lsst_bfdrift.simulation.galsim_twins import accumulate_twins, shoot_stamp_photons, sky_box
 from lsst_bfdrift.simulation.stars import make_psf

@@ -39,7 +39,7 @@ from astropy.io import fits
 
 from lsst_bfdrift.physics.absorption import TABLE_TEMPERATURE, check_temperature
 from lsst_bfdrift.physics.depth import (BANDS, GALSIM_ZFIT, conversion_nodes,
-                                        depth_distribution, galsim_depth_factor, normalize_band)
+                                        depth_distribution, galsim_depth_factor)
 from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.templates.template import (TEMPLATE_SCHEMA_VERSION, DistortionTemplate,
                                              TemplateSettings, _set_meta, build_template)
