@@ -13,7 +13,6 @@ step is cut by four until the turn is resolved, then grows back. Lines are
 integrated all at once; finished lines leave the active set.
 """
 
-
 import numpy as np
 
 from lsst_bfdrift.physics._drift_kernels import drift_batch
