@@ -9,7 +9,7 @@ compare against.
 import numba
 import numpy as np
 
-__all__ = ["drift_batch"]
+__all__ = ["drift_batch", "bisect_batch"]
 
 
 # ---------------------------------------------------------------------------
@@ -135,56 +135,96 @@ def _dir(x, y, z, lines, bd_kind, bd, bd_z, bd_ez, px, py, pz, ph, c):
     return -ex / n, -ey / n, -ez / n, n
 
 
+@numba.njit(cache=True, inline="always")
+def _trace(x, y, z, z_stop, step_scale, min_step, max_step, max_steps, cos_max,
+           lines, bd_kind, bd, bd_z, bd_ez, px, py, pz, ph, c):
+    """One drift line from (x, y, z) down to ``z_stop``: (x, y, z, steps, finished, stalled)."""
+    steps = 0
+    fin = z <= z_stop
+    stall = False
+    idle = 0
+    h = min(max(step_scale * (z - z_stop) + min_step, min_step), max_step)
+    while not fin and steps < max_steps:
+        steps += 1
+        a1, b1, c1, n1 = _dir(x, y, z, lines, bd_kind, bd, bd_z, bd_ez, px, py, pz, ph, c)
+        a2, b2, c2_, n2 = _dir(x + 0.5 * h * a1, y + 0.5 * h * b1, z + 0.5 * h * c1, lines,
+                               bd_kind, bd, bd_z, bd_ez, px, py, pz, ph, c)
+        a3, b3, c3, n3 = _dir(x + 0.5 * h * a2, y + 0.5 * h * b2, z + 0.5 * h * c2_, lines,
+                              bd_kind, bd, bd_z, bd_ez, px, py, pz, ph, c)
+        a4, b4, c4, n4 = _dir(x + h * a3, y + h * b3, z + h * c3, lines,
+                              bd_kind, bd, bd_z, bd_ez, px, py, pz, ph, c)
+        turn_ok = (a1 * a4 + b1 * b4 + c1 * c4 >= cos_max) or (h <= 1e-7)
+        null = n1 < 1e-12 * (1.0 + abs(n4))
+        nx = x + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
+        ny = y + h / 6.0 * (b1 + 2 * b2 + 2 * b3 + b4)
+        nz = z + h / 6.0 * (c1 + 2 * c2_ + 2 * c3 + c4)
+        descending = turn_ok and (nz < z - 1e-6 * h)
+        idle = 0 if descending else idle + 1
+        stuck = null or idle > 40
+        done = turn_ok and nz <= z_stop
+        if done:
+            f = (z - z_stop) / (z - nz)
+            nx = x + f * (nx - x)
+            ny = y + f * (ny - y)
+            nz = z_stop
+        if turn_ok:
+            hb = min(max(step_scale * (nz - z_stop) + min_step, min_step), max_step)
+            x, y, z = nx, ny, nz
+            h = min(hb, 2.0 * h)
+        else:
+            h = 0.25 * h
+        if stuck and not done:
+            stall = True
+        if done or stuck:
+            fin = True
+    return x, y, z, steps, fin, stall
+
+
 @numba.njit(parallel=True, cache=True)
 def drift_batch(x0, y0, z0, z_stop, step_scale, min_step, max_step, max_steps, cos_max,
                 lines, bd_kind, bd, bd_z, bd_ez, px, py, pz, ph, c,
                 ox, oy, oz, osteps, ofin, ostall):
     """Integrate drift lines one by one (in parallel); see lsst_bfdrift.physics.drift."""
     for n in numba.prange(x0.shape[0]):
-        x = x0[n]
-        y = y0[n]
-        z = z0[n]
-        steps = 0
-        fin = z <= z_stop
-        stall = False
-        idle = 0
-        h = min(max(step_scale * (z - z_stop) + min_step, min_step), max_step)
-        while not fin and steps < max_steps:
-            steps += 1
-            a1, b1, c1, n1 = _dir(x, y, z, lines, bd_kind, bd, bd_z, bd_ez, px, py, pz, ph, c)
-            a2, b2, c2_, n2 = _dir(x + 0.5 * h * a1, y + 0.5 * h * b1, z + 0.5 * h * c1, lines,
-                                   bd_kind, bd, bd_z, bd_ez, px, py, pz, ph, c)
-            a3, b3, c3, n3 = _dir(x + 0.5 * h * a2, y + 0.5 * h * b2, z + 0.5 * h * c2_, lines,
-                                  bd_kind, bd, bd_z, bd_ez, px, py, pz, ph, c)
-            a4, b4, c4, n4 = _dir(x + h * a3, y + h * b3, z + h * c3, lines,
-                                  bd_kind, bd, bd_z, bd_ez, px, py, pz, ph, c)
-            turn_ok = (a1 * a4 + b1 * b4 + c1 * c4 >= cos_max) or (h <= 1e-7)
-            null = n1 < 1e-12 * (1.0 + abs(n4))
-            nx = x + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
-            ny = y + h / 6.0 * (b1 + 2 * b2 + 2 * b3 + b4)
-            nz = z + h / 6.0 * (c1 + 2 * c2_ + 2 * c3 + c4)
-            descending = turn_ok and (nz < z - 1e-6 * h)
-            idle = 0 if descending else idle + 1
-            stuck = null or idle > 40
-            done = turn_ok and nz <= z_stop
-            if done:
-                f = (z - z_stop) / (z - nz)
-                nx = x + f * (nx - x)
-                ny = y + f * (ny - y)
-                nz = z_stop
-            if turn_ok:
-                hb = min(max(step_scale * (nz - z_stop) + min_step, min_step), max_step)
-                x, y, z = nx, ny, nz
-                h = min(hb, 2.0 * h)
-            else:
-                h = 0.25 * h
-            if stuck and not done:
-                stall = True
-            if done or stuck:
-                fin = True
+        x, y, z, steps, fin, stall = _trace(x0[n], y0[n], z0[n], z_stop, step_scale, min_step,
+                                            max_step, max_steps, cos_max, lines, bd_kind, bd,
+                                            bd_z, bd_ez, px, py, pz, ph, c)
         ox[n] = x
         oy[n] = y
         oz[n] = z
         osteps[n] = steps
         ofin[n] = fin
         ostall[n] = stall
+
+
+@numba.njit(parallel=True, cache=True)
+def bisect_batch(lo, hi, along, index, axis, pitch, n_iter, z0, z_stop, step_scale, min_step,
+                 max_step, max_steps, cos_max, lines, bd_kind, bd, bd_z, bd_ez, px, py, pz, ph,
+                 c):
+    """``n_iter`` bisection steps of pixel boundaries, brackets ``lo``/``hi`` updated in place.
+
+    The loop of :func:`lsst_bfdrift.physics.boundaries.bisect_boundary`, compiled: the
+    line from the bracket's middle (pixel units; ``axis`` 0: across x at
+    ``along`` in y, 1: across y) lands at or below pixel ``index`` or above it.
+    """
+    for n in numba.prange(lo.shape[0]):
+        a = lo[n]
+        b = hi[n]
+        for _ in range(n_iter):
+            mid = 0.5 * (a + b)
+            if axis == 0:
+                xs = (mid + 0.5) * pitch
+                ys = (along[n] + 0.5) * pitch
+            else:
+                xs = (along[n] + 0.5) * pitch
+                ys = (mid + 0.5) * pitch
+            x, y, z, steps, fin, stall = _trace(xs, ys, z0, z_stop, step_scale, min_step,
+                                                max_step, max_steps, cos_max, lines, bd_kind, bd,
+                                                bd_z, bd_ez, px, py, pz, ph, c)
+            landed = np.floor((x if axis == 0 else y) / pitch)
+            if landed <= index[n]:
+                a = mid
+            else:
+                b = mid
+        lo[n] = a
+        hi[n] = b

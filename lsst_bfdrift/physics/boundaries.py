@@ -14,7 +14,8 @@ centred on (i, j) and its nominal corners are at half-integers.
 
 import numpy as np
 
-from lsst_bfdrift.physics.drift import compile_model, drift_lines
+from lsst_bfdrift.physics._drift_kernels import bisect_batch
+from lsst_bfdrift.physics.drift import compile_model, compiled_line_arguments, drift_lines
 from lsst_bfdrift.utils.errors import ComputationError, InputError
 
 __all__ = ["BoundaryGrid", "bisect_boundary", "locate_corners", "pixel_boundaries",
@@ -82,9 +83,12 @@ def bisect_boundary(model, along, across, axis, index, *, tol=1e-4, half_width=0
     """
     drift_kwargs = drift_kwargs or {}
     p = model.params.pixel_pitch
+    compiled = compiled_line_arguments(model, z0, **drift_kwargs)
     along, guess, index = np.broadcast_arrays(np.asarray(along, float),
                                               np.asarray(across, float), np.asarray(index))
     along, guess, index = along.ravel(), guess.ravel().copy(), index.ravel()
+    if not (np.all(np.isfinite(along)) and np.all(np.isfinite(guess))):
+        raise InputError("drift starting points must be finite")
     result = np.empty(along.size)
     todo = np.arange(along.size)
     hw = half_width
@@ -92,21 +96,30 @@ def bisect_boundary(model, along, across, axis, index, *, tol=1e-4, half_width=0
         lo = guess[todo] - hw
         hi = guess[todo] + hw
         n_iter = int(np.ceil(np.log2(2 * hw / tol)))
-        for _ in range(n_iter):
-            mid = 0.5 * (lo + hi)
-            if axis == "x":
-                res = drift_lines(model, (mid + 0.5) * p, (along[todo] + 0.5) * p, z0,
-                                  **drift_kwargs)
-                landed = np.floor(res.x / p)
-            else:
-                res = drift_lines(model, (along[todo] + 0.5) * p, (mid + 0.5) * p, z0,
-                                  **drift_kwargs)
-                landed = np.floor(res.y / p)
-            lower = landed <= index[todo]
-            lo = np.where(lower, mid, lo)
-            hi = np.where(lower, hi, mid)
-            if progress is not None:
-                progress(1)
+        if compiled is not None:
+            # the steps below with the lines integrated in a compiled loop
+            # (one call per step, so that progress keeps its pace)
+            along_t, index_t = along[todo], index[todo]
+            for _ in range(n_iter):
+                bisect_batch(lo, hi, along_t, index_t, 0 if axis == "x" else 1, p, 1, *compiled)
+                if progress is not None:
+                    progress(1)
+        else:
+            for _ in range(n_iter):
+                mid = 0.5 * (lo + hi)
+                if axis == "x":
+                    res = drift_lines(model, (mid + 0.5) * p, (along[todo] + 0.5) * p, z0,
+                                      **drift_kwargs)
+                    landed = np.floor(res.x / p)
+                else:
+                    res = drift_lines(model, (along[todo] + 0.5) * p, (mid + 0.5) * p, z0,
+                                      **drift_kwargs)
+                    landed = np.floor(res.y / p)
+                lower = landed <= index[todo]
+                lo = np.where(lower, mid, lo)
+                hi = np.where(lower, hi, mid)
+                if progress is not None:
+                    progress(1)
         est = 0.5 * (lo + hi)
         # A bracket end that never moved means the boundary may lie outside it.
         at_end = ((np.abs(est - (guess[todo] - hw)) < tol)
@@ -135,7 +148,11 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
     coordinates move by less than ``2 tol`` (each bisection itself scatters by
     up to ``tol``, and with contraction <= 0.25 the remaining error is then
     below ``tol``); later passes use brackets a few times the last change
-    wide, so they cost few traces.
+    wide (the first: the first round's move from the nominal corner),
+    centred on each reading's last value, so they cost few traces. Each
+    boundary is read a small step to either side of the other one and
+    averaged; next to an aggressor the two readings differ by up to a few
+    1e-4 px, which is why each starts from its own last value.
 
     Parameters
     ----------
@@ -157,8 +174,9 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
     x, y : ndarray
         Corner positions (pixel units).
 
-    Corners that have not converged after ``max_passes`` rounds (contraction
-    near 1) are finished by Steffensen's method on y -> Y(X(y)).
+    Corners where a round does not halve the move (slow or oscillating
+    alternation, contraction near 1) are finished by Steffensen's method on
+    y -> Y(X(y)), with brackets likewise a few times the last move wide.
 
     Raises
     ------
@@ -174,53 +192,64 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
     # saddle and the crossing boundary there is not the limit of its neighbours.
     delta = 2.0 * tol  # bias at a cusp ~ delta * (slope jump) / 2 < tol
 
-    def col_bnd(yy, xx, idx, **kw):
-        lo = bisect_boundary(model, yy - delta, xx, "x", col_index[idx], tol=tol, **kw)
-        hi = bisect_boundary(model, yy + delta, xx, "x", col_index[idx], tol=tol, **kw)
-        return 0.5 * (lo + hi)
+    # the readings on either side start from the last ones (they differ by
+    # up to a few 1e-4 px at an aggressor's corners, whose boundaries bend
+    # sharply there), so that narrow brackets hold them
+    guess = {"x": [x.copy(), x.copy()], "y": [y.copy(), y.copy()]}
 
-    def row_bnd(xx, yy, idx, **kw):
-        lo = bisect_boundary(model, xx - delta, yy, "y", row_index[idx], tol=tol, **kw)
-        hi = bisect_boundary(model, xx + delta, yy, "y", row_index[idx], tol=tol, **kw)
-        return 0.5 * (lo + hi)
+    def read(axis, along, idx, **kw):
+        index = (col_index if axis == "x" else row_index)[idx]
+        g = guess[axis]
+        for k, side in enumerate((-delta, delta)):
+            g[k][idx] = bisect_boundary(model, along + side, g[k][idx], axis, index, tol=tol, **kw)
+        return 0.5 * (g[0][idx] + g[1][idx])
 
     everything = np.arange(x.size)
-    x = col_bnd(y, x, everything, **kwargs)
-    y = row_bnd(x, y, everything, **kwargs)
+    x = read("x", y, everything, **kwargs)
+    y = read("y", x, everything, **kwargs)
+    # the first round's move bounds the next (the contraction is < 1): later
+    # brackets are a few times the last move wide, and widen when they miss
+    step = np.maximum(np.abs(x - np.ravel(xc)), np.abs(y - np.ravel(yc)))
     todo = np.arange(x.size)
-    step = np.full(x.size, 0.45)
+    slow = np.zeros(0, dtype=int)
     for _ in range(max_passes):
         if todo.size == 0:
             break
         hw = float(np.clip(4.0 * step[todo].max(), 4.0 * tol, 0.45))
-        xn = col_bnd(y[todo], x[todo], todo, half_width=hw, **kwargs)
-        yn = row_bnd(xn, y[todo], todo, half_width=hw, **kwargs)
+        xn = read("x", y[todo], todo, half_width=hw, **kwargs)
+        yn = read("y", xn, todo, half_width=hw, **kwargs)
         change = np.maximum(np.abs(xn - x[todo]), np.abs(yn - y[todo]))
         x[todo], y[todo] = xn, yn
+        going = change >= 2.0 * tol
+        # a round that does not halve the move: alternation is slow or
+        # oscillates there (|X'Y'| near 1 at strong cusps)
+        stuck = going & (change > 0.5 * step[todo])
         step[todo] = change
-        todo = todo[change >= 2.0 * tol]
+        slow = np.concatenate([slow, todo[stuck]])
+        todo = todo[going & ~stuck]
+    todo = np.sort(np.concatenate([slow, todo]))
     if todo.size:
-        # Slow or oscillating alternation (|X'Y'| near 1 at strong cusps):
-        # Steffensen's method on the composed map G(y) = Y(X(y)).
-        kw = dict(half_width=0.45, **kwargs)
-
-        def g_of(yy, xx, idx):
-            xn = col_bnd(yy, xx, idx, **kw)
-            return row_bnd(xn, yy, idx, **kw), xn
+        # Steffensen's method on the composed map G(y) = Y(X(y))
+        def g_of(yy, idx, kw):
+            xn = read("x", yy, idx, **kw)
+            return read("y", xn, idx, **kw)
 
         for _ in range(max_passes):
             if todo.size == 0:
                 break
+            kw = dict(half_width=float(np.clip(4.0 * step[todo].max(), 4.0 * tol, 0.45)),
+                      **kwargs)
             y0 = y[todo]
-            g0, x0 = g_of(y0, x[todo], todo)
-            g1, x1 = g_of(g0, x0, todo)
+            g0 = g_of(y0, todo, kw)
+            g1 = g_of(g0, todo, kw)
             den = g1 - 2.0 * g0 + y0
             with np.errstate(divide="ignore", invalid="ignore"):
                 ynew = np.where(np.abs(den) > 1e-12, y0 - (g0 - y0) ** 2 / den, g1)
             ynew = np.clip(ynew, y0 - 0.45, y0 + 0.45)
-            xnew = col_bnd(ynew, x1, todo, **kw)
+            xnew = read("x", ynew, todo, **kw)
             change = np.maximum(np.abs(ynew - y0), np.abs(xnew - x[todo]))
             x[todo], y[todo] = xnew, ynew
+            step[todo] = change
             todo = todo[change >= 2.0 * tol]
     if todo.size:
         raise ComputationError(f"{todo.size} corner(s) did not converge in {max_passes} passes, "

@@ -13,6 +13,8 @@ step is cut by four until the turn is resolved, then grows back. Lines are
 integrated all at once; finished lines leave the active set.
 """
 
+import inspect
+
 import numpy as np
 
 from lsst_bfdrift.physics._drift_kernels import drift_batch
@@ -23,8 +25,8 @@ from lsst_bfdrift.physics.fields import (BackdropField, HalfPeriodicDipoleGrid, 
                                          TruncatedLineDipole)
 from lsst_bfdrift.utils.errors import InputError
 
-__all__ = ["DriftResult", "drift_lines", "compile_model", "landing_pixels",
-           "conversion_height"]
+__all__ = ["DriftResult", "drift_lines", "compile_model", "compiled_line_arguments",
+           "landing_pixels", "conversion_height"]
 
 
 class DriftResult:
@@ -154,23 +156,16 @@ def drift_lines(model, x0, y0, z0=None, *, z_stop=None, step_scale=0.15, min_ste
     shape = x0.shape
     if not (np.all(np.isfinite(x0)) and np.all(np.isfinite(y0)) and np.all(np.isfinite(z0))):
         raise InputError("drift starting points must be finite")
-    if np.any(z0 > P.thickness + 1e-9) or np.any(z0 < z_stop):
-        raise InputError(f"conversion heights must lie in [z_stop={z_stop}, "
-                         f"thickness={P.thickness}] um")
-    if engine not in ("auto", "compiled", "numpy"):
-        raise InputError(f"engine must be 'auto', 'compiled' or 'numpy', got {engine!r}")
-    arrays = None if engine == "numpy" else compile_model(model)
-    if engine == "compiled" and arrays is None:
-        raise InputError("this model has terms the compiled engine does not support")
-    if arrays is not None:
+    _check_heights(P, z0, z_stop)
+    compiled = _kernel_arguments(model, z_stop, step_scale, min_step, max_step, max_steps,
+                                 max_turn, engine)
+    if compiled is not None:
         n = x0.size
         out = [np.empty(n), np.empty(n), np.empty(n), np.empty(n, np.int64),
                np.empty(n, np.bool_), np.empty(n, np.bool_)]
         # fresh contiguous copies: the inputs may be read-only broadcast views
         drift_batch(np.array(x0, dtype=np.float64).ravel(), np.array(y0, dtype=np.float64).ravel(),
-                    np.array(z0, dtype=np.float64).ravel(), float(z_stop), float(step_scale),
-                    float(min_step), float(max_step), int(max_steps), float(np.cos(max_turn)),
-                    *arrays, COULOMB_UM, *out)
+                    np.array(z0, dtype=np.float64).ravel(), *compiled, *out)
         return DriftResult(*(a.reshape(shape) for a in out))
     x = x0.ravel().copy()
     y = y0.ravel().copy()
@@ -229,6 +224,72 @@ def drift_lines(model, x0, y0, z0=None, *, z_stop=None, step_scale=0.15, min_ste
     return DriftResult(x.reshape(shape), y.reshape(shape), z.reshape(shape),
                        steps.reshape(shape), finished.reshape(shape), stalled.reshape(shape))
 
+
+def _check_heights(params, z0, z_stop):
+    if np.any(z0 > params.thickness + 1e-9) or np.any(z0 < z_stop):
+        raise InputError(f"conversion heights must lie in [z_stop={z_stop}, "
+                         f"thickness={params.thickness}] um")
+
+
+def _kernel_arguments(model, z_stop, step_scale, min_step, max_step, max_steps, max_turn,
+                      engine):
+    """Step settings and model arrays of the compiled integrator, or None (numpy engine)."""
+    if engine not in ("auto", "compiled", "numpy"):
+        raise InputError(f"engine must be 'auto', 'compiled' or 'numpy', got {engine!r}")
+    arrays = None if engine == "numpy" else compile_model(model)
+    if engine == "compiled" and arrays is None:
+        raise InputError("this model has terms the compiled engine does not support")
+    if arrays is None:
+        return None
+    return (float(z_stop), float(step_scale), float(min_step), float(max_step), int(max_steps),
+            float(np.cos(max_turn)), *arrays, COULOMB_UM)
+
+
+def compiled_line_arguments(model, z0=None, **drift_kwargs):
+    """Arguments of the compiled line integrator for lines from one height, or None.
+
+    What :func:`drift_lines` passes to its compiled kernel after the
+    starting points, for callers that integrate lines inside their own
+    compiled loop (:func:`lsst_bfdrift.physics.boundaries.bisect_boundary`).
+
+    Parameters
+    ----------
+    model : SensorModel
+        The field model.
+    z0 : float, optional
+        Conversion height (um); default the entrance window.
+    **drift_kwargs
+        The keyword options of :func:`drift_lines` (same defaults).
+
+    Returns
+    -------
+    tuple or None
+        ``(z0, z_stop, step_scale, min_step, max_step, max_steps, cos_max,
+        *model arrays, coulomb)``; None where :func:`drift_lines` would use
+        numpy (``engine='numpy'``, or model terms the kernel does not know) or
+        ``z0`` is not one number.
+    """
+    kw = {**_LINE_OPTIONS, **drift_kwargs}
+    unknown = set(kw) - set(_LINE_OPTIONS)
+    if unknown:
+        raise InputError(f"unknown drift line options {sorted(unknown)}")
+    P = model.params
+    z0 = P.thickness if z0 is None else z0
+    if np.ndim(z0) != 0:
+        return None
+    z0 = float(z0)
+    z_stop = P.z_collect if kw["z_stop"] is None else kw["z_stop"]
+    if not np.isfinite(z0):
+        raise InputError("drift starting points must be finite")
+    _check_heights(P, z0, z_stop)
+    compiled = _kernel_arguments(model, z_stop, kw["step_scale"], kw["min_step"],
+                                 kw["max_step"], kw["max_steps"], kw["max_turn"], kw["engine"])
+    return None if compiled is None else (z0, *compiled)
+
+
+#: The keyword options of :func:`drift_lines` and their defaults.
+_LINE_OPTIONS = {k: v.default for k, v in inspect.signature(drift_lines).parameters.items()
+                 if v.kind is inspect.Parameter.KEYWORD_ONLY}
 
 def landing_pixels(model, x0, y0, z0=None, **kwargs):
     """Pixel indices (i, j) where drift lines starting at (x0, y0, z0) land.

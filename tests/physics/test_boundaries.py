@@ -6,7 +6,7 @@ from numpy.testing import assert_allclose
 
 from lsst_bfdrift.physics.boundaries import (bisect_boundary, centred_boundaries, locate_corners,
                                              pixel_boundaries, uniform_fractions)
-from lsst_bfdrift.physics.drift import landing_pixels
+from lsst_bfdrift.physics.drift import drift_lines, landing_pixels
 from lsst_bfdrift.physics.polygons import pixel_polygons, polygon_moments
 from lsst_bfdrift.physics.sensor import SensorModel, SensorParameters
 
@@ -76,6 +76,49 @@ def test_corner_separates_four_pixels():
     assert_allclose(bisect_boundary(m, cy, cx, "x", [0, -1], tol=1e-5), cx, atol=2e-4)
     assert_allclose(bisect_boundary(m, cx, cy, "y", [0, 0], tol=1e-5), cy, atol=2e-4)
 
+
+
+def test_compiled_bisection_takes_the_steps_of_lines_traced_batch_by_batch():
+    """CONSISTENCY: the compiled bisection loop equals the same steps written
+    with :func:`drift_lines` (bracket halved by the landing pixel), bit for bit."""
+    m = SensorModel(SensorParameters.paper()).with_charge({(0, 0): 3e4})
+    along = np.array([-0.45, -0.2, 0.05, 0.3])
+    for axis, index in (("x", 0), ("y", -1)):
+        guess = 0.5 if axis == "x" else -0.5
+        got = bisect_boundary(m, along, guess, axis, index, tol=1e-5)
+        lo, hi = np.full(along.size, guess - 0.45), np.full(along.size, guess + 0.45)
+        for _ in range(int(np.ceil(np.log2(0.9 / 1e-5)))):
+            mid = 0.5 * (lo + hi)
+            start = ((mid + 0.5) * P, (along + 0.5) * P)
+            res = drift_lines(m, *(start if axis == "x" else start[::-1]), engine="compiled")
+            lower = np.floor((res.x if axis == "x" else res.y) / P) <= index
+            lo, hi = np.where(lower, mid, lo), np.where(lower, hi, mid)
+        assert_allclose(got, 0.5 * (lo + hi), rtol=0, atol=0)
+        assert np.all(np.abs(got - guess) > 1e-3)  # the aggressor moved these edges
+
+
+def test_corners_next_to_an_aggressor_at_a_tight_tolerance():
+    """CORRECTNESS (fixed point): corners of the 3 x 3 pixels around a 1e4 e
+    aggressor (the bundled template's sensor, at the charge calibrate uses)
+    at tol 2e-6 px, where the boundaries bend sharply and the readings either
+    side of a corner differ by ~5e-4 px: independent readings with full
+    brackets at each corner's own coordinates return it to within 2 tol
+    (column) and 3 tol (row)."""
+    from lsst_bfdrift.calibration.tuning import default_start
+
+    m = SensorModel(default_start()).with_charge({(0, 0): 1e4})
+    tol, delta = 2e-6, 4e-6
+    jj, ii = np.mgrid[0:3, 0:3]
+    ci, ri = (ii - 1).ravel(), (jj - 1).ravel()
+    x, y = locate_corners(m, ii - 0.5, jj - 0.5, ii - 1, jj - 1, tol=tol)
+    assert np.abs(x - (ii - 0.5).ravel()).max() > 1e-3  # the aggressor moved them
+
+    def reading(axis, along, across, index):
+        return 0.5 * sum(bisect_boundary(m, along + s, across, axis, index, tol=tol)
+                         for s in (-delta, delta))
+
+    assert_allclose(reading("x", y, x, ci), x, rtol=0, atol=2 * tol)
+    assert_allclose(reading("y", x, y, ri), y, rtol=0, atol=3 * tol)
 
 def test_workers_do_not_change_result():
     m = SensorModel(SensorParameters.paper()).with_charge({(0, 0): 1e4})
