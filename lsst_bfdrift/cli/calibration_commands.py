@@ -591,7 +591,7 @@ def add_calibrate_parser(subparsers):
                          "(default: %(default)s)")
     ca.add_argument("--max-evaluations", type=int,
                     default=library_default(calibrate, "max_evaluations"),
-                    help="model evaluations of the physics fit's search, each about 1 s "
+                    help="model evaluations of the physics fit's search, each about 0.6 s "
                          "(default: %(default)s)")
     ca.add_argument("--allow-poor-fit", action="store_true",
                     help="with --no-refine: write the model's template even when it fits "

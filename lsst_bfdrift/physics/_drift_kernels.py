@@ -201,7 +201,7 @@ def drift_batch(x0, y0, z0, z_stop, step_scale, min_step, max_step, max_steps, c
 def bisect_batch(lo, hi, along, index, axis, pitch, n_iter, z0, z_stop, step_scale, min_step,
                  max_step, max_steps, cos_max, lines, bd_kind, bd, bd_z, bd_ez, px, py, pz, ph,
                  c):
-    """``n_iter`` bisection steps of pixel boundaries, brackets ``lo``/``hi`` updated in place.
+    """``n_iter[n]`` bisection steps of pixel boundary n, brackets ``lo``/``hi`` updated in place.
 
     The loop of :func:`lsst_bfdrift.physics.boundaries.bisect_boundary`, compiled: the
     line from the bracket's middle (pixel units; ``axis`` 0: across x at
@@ -210,7 +210,7 @@ def bisect_batch(lo, hi, along, index, axis, pitch, n_iter, z0, z_stop, step_sca
     for n in numba.prange(lo.shape[0]):
         a = lo[n]
         b = hi[n]
-        for _ in range(n_iter):
+        for _ in range(n_iter[n]):
             mid = 0.5 * (a + b)
             if axis == 0:
                 xs = (mid + 0.5) * pitch

@@ -65,8 +65,9 @@ def bisect_boundary(model, along, across, axis, index, *, tol=1e-4, half_width=0
         Pixel index on the lower side of each boundary.
     tol : float, optional
         Bisection tolerance (pixel units).
-    half_width : float, optional
-        Initial half width of the bracket (pixel units).
+    half_width : float or array_like, optional
+        Initial half width of the bracket (pixel units), one or one per
+        sample; a bracket that does not hold the boundary is doubled.
     max_half_width : float, optional
         Largest bracket tried when the boundary lies outside the first one.
     z0 : float, optional
@@ -84,42 +85,45 @@ def bisect_boundary(model, along, across, axis, index, *, tol=1e-4, half_width=0
     drift_kwargs = drift_kwargs or {}
     p = model.params.pixel_pitch
     compiled = compiled_line_arguments(model, z0, **drift_kwargs)
-    along, guess, index = np.broadcast_arrays(np.asarray(along, float),
-                                              np.asarray(across, float), np.asarray(index))
+    along, guess, index, width = np.broadcast_arrays(
+        np.asarray(along, float), np.asarray(across, float), np.asarray(index),
+        np.asarray(half_width, float))
     along, guess, index = along.ravel(), guess.ravel().copy(), index.ravel()
+    width = np.minimum(width.ravel(), max_half_width)
     if not (np.all(np.isfinite(along)) and np.all(np.isfinite(guess))):
         raise InputError("drift starting points must be finite")
+    if not np.all(width > 0):
+        raise InputError("half_width must be positive")
     result = np.empty(along.size)
     todo = np.arange(along.size)
-    hw = half_width
     while todo.size:
+        hw = width[todo]
         lo = guess[todo] - hw
         hi = guess[todo] + hw
-        n_iter = int(np.ceil(np.log2(2 * hw / tol)))
-        if compiled is not None:
-            # the steps below with the lines integrated in a compiled loop
-            # (one call per step, so that progress keeps its pace)
-            along_t, index_t = along[todo], index[todo]
-            for _ in range(n_iter):
-                bisect_batch(lo, hi, along_t, index_t, 0 if axis == "x" else 1, p, 1, *compiled)
-                if progress is not None:
-                    progress(1)
-        else:
-            for _ in range(n_iter):
-                mid = 0.5 * (lo + hi)
+        n_iter = np.maximum(np.ceil(np.log2(2 * hw / tol)), 0).astype(np.int64)
+        along_t, index_t = along[todo], index[todo]
+        for step in range(int(n_iter.max(initial=0))):
+            going = n_iter > step  # samples whose bracket is still wider than tol
+            if compiled is not None:
+                # the lines integrated in a compiled loop (one call per step, so
+                # that progress keeps its pace)
+                bisect_batch(lo, hi, along_t, index_t, 0 if axis == "x" else 1, p,
+                             going.astype(np.int64), *compiled)
+            else:
+                mid = 0.5 * (lo[going] + hi[going])
                 if axis == "x":
-                    res = drift_lines(model, (mid + 0.5) * p, (along[todo] + 0.5) * p, z0,
+                    res = drift_lines(model, (mid + 0.5) * p, (along_t[going] + 0.5) * p, z0,
                                       **drift_kwargs)
                     landed = np.floor(res.x / p)
                 else:
-                    res = drift_lines(model, (along[todo] + 0.5) * p, (mid + 0.5) * p, z0,
+                    res = drift_lines(model, (along_t[going] + 0.5) * p, (mid + 0.5) * p, z0,
                                       **drift_kwargs)
                     landed = np.floor(res.y / p)
-                lower = landed <= index[todo]
-                lo = np.where(lower, mid, lo)
-                hi = np.where(lower, hi, mid)
-                if progress is not None:
-                    progress(1)
+                lower = landed <= index_t[going]
+                lo[going] = np.where(lower, mid, lo[going])
+                hi[going] = np.where(lower, hi[going], mid)
+            if progress is not None:
+                progress(1)
         est = 0.5 * (lo + hi)
         # A bracket end that never moved means the boundary may lie outside it.
         at_end = ((np.abs(est - (guess[todo] - hw)) < tol)
@@ -127,14 +131,15 @@ def bisect_boundary(model, along, across, axis, index, *, tol=1e-4, half_width=0
         result[todo] = est
         if not np.any(at_end):
             break
-        if hw >= max_half_width:
-            bad = todo[at_end]
+        widest = at_end & (hw >= max_half_width)
+        if np.any(widest):
+            bad = todo[widest]
             raise ComputationError(
                 f"no boundary found within {max_half_width} px of the nominal edge for "
                 f"{bad.size} sample(s), e.g. along={along[bad[0]]:.3f}, axis={axis!r}, "
                 f"index={index[bad[0]]}")
         todo = todo[at_end]
-        hw = min(2 * hw, max_half_width)
+        width[todo] = np.minimum(2 * hw[at_end], max_half_width)
     return result
 
 
@@ -197,16 +202,23 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
     # sharply there), so that narrow brackets hold them
     guess = {"x": [x.copy(), x.copy()], "y": [y.copy(), y.copy()]}
 
-    def read(axis, along, idx, **kw):
+    def read(axis, along, idx, first=False, **kw):
         index = (col_index if axis == "x" else row_index)[idx]
         g = guess[axis]
         for k, side in enumerate((-delta, delta)):
+            if first and k == 1:
+                # the first reading of the far side starts from the near side's,
+                # in a bracket a few times that one's move wide
+                nominal = g[1][idx]
+                g[1][idx] = g[0][idx]
+                kw = dict(kw, half_width=np.clip(4.0 * np.abs(g[0][idx] - nominal), 8.0 * tol,
+                                                 0.45))
             g[k][idx] = bisect_boundary(model, along + side, g[k][idx], axis, index, tol=tol, **kw)
         return 0.5 * (g[0][idx] + g[1][idx])
 
     everything = np.arange(x.size)
-    x = read("x", y, everything, **kwargs)
-    y = read("y", x, everything, **kwargs)
+    x = read("x", y, everything, first=True, **kwargs)
+    y = read("y", x, everything, first=True, **kwargs)
     # the first round's move bounds the next (the contraction is < 1): later
     # brackets are a few times the last move wide, and widen when they miss
     step = np.maximum(np.abs(x - np.ravel(xc)), np.abs(y - np.ravel(yc)))
@@ -215,7 +227,7 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
     for _ in range(max_passes):
         if todo.size == 0:
             break
-        hw = float(np.clip(4.0 * step[todo].max(), 4.0 * tol, 0.45))
+        hw = np.clip(4.0 * step[todo], 4.0 * tol, 0.45)
         xn = read("x", y[todo], todo, half_width=hw, **kwargs)
         yn = read("y", xn, todo, half_width=hw, **kwargs)
         change = np.maximum(np.abs(xn - x[todo]), np.abs(yn - y[todo]))
@@ -237,8 +249,7 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
         for _ in range(max_passes):
             if todo.size == 0:
                 break
-            kw = dict(half_width=float(np.clip(4.0 * step[todo].max(), 4.0 * tol, 0.45)),
-                      **kwargs)
+            kw = dict(half_width=np.clip(4.0 * step[todo], 4.0 * tol, 0.45), **kwargs)
             y0 = y[todo]
             g0 = g_of(y0, todo, kw)
             g1 = g_of(g0, todo, kw)
@@ -309,11 +320,17 @@ class BoundaryGrid:
         return (self.corners - ref.corners, self.vedge - ref.vedge, self.hedge - ref.hedge)
 
 
+def _bracket(move, tol, shape):
+    """Half widths of edge brackets from their corners' largest move (pixel units)."""
+    return np.broadcast_to(np.clip(4.0 * move, 8.0 * tol, 0.45), shape)
+
+
 def _bisect_task(model, kind, arrays, kw):
     """Worker body (module level so that it can be sent to a process)."""
     if kind == "corner":
         return locate_corners(model, *arrays, **kw)
-    return bisect_boundary(model, arrays[0], arrays[1], kind, arrays[2], **kw)
+    return bisect_boundary(model, arrays[0], arrays[1], kind, arrays[2], half_width=arrays[3],
+                           **kw)
 
 
 def _split_run(model, kind, arrays, kw, workers):
@@ -390,17 +407,27 @@ def pixel_boundaries(model, i_range, j_range, *, edge_samples=8, tol=1e-4, z0=No
     fr = edge_fractions(edge_samples, spacing)
     nx, ny = i1 - i0, j1 - j0
     kw = dict(tol=tol, z0=z0, drift_kwargs=drift_kwargs, progress=progress)
-    # Column boundaries: x = I - 0.5 for I in i0..i1, rows J in j0..j1-1.
-    I, J, F = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1), fr, indexing="xy")
-    # meshgrid with indexing xy gives shape (nJ, nI, nF)
-    vx = _split_run(model, "x", [J - 0.5 + F, I - 0.5, I - 1], dict(kw), workers)
-    vedge = vx.reshape(ny, nx + 1, edge_samples)
-    I, J, F = np.meshgrid(np.arange(i0, i1), np.arange(j0, j1 + 1), fr, indexing="xy")
-    hy = _split_run(model, "y", [I - 0.5 + F, J - 0.5, J - 1], dict(kw), workers)
-    hedge = hy.reshape(ny + 1, nx, edge_samples)
+    # Corners first: corner (I, J) nominally at (I - 0.5, J - 0.5).
     I, J = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1 + 1))
     cx, cy = _split_run(model, "corner", [I - 0.5, J - 0.5, I - 1, J - 1], dict(kw), workers)
     corners = np.stack([cx.reshape(I.shape), cy.reshape(I.shape)], axis=-1)
+    # Each edge sample starts from the chord between its edge's corners, in a
+    # bracket 4 times their largest move wide (at least 8 tol; it widens when
+    # the edge bows out of it, as next to an aggressor)
+    move = np.abs(corners - np.stack([I - 0.5, J - 0.5], axis=-1)).max(axis=-1)
+    # Column boundaries: x = I - 0.5 for I in i0..i1, rows J in j0..j1-1.
+    # meshgrid with indexing xy gives shape (nJ, nI, nF)
+    I, J, F = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1), fr, indexing="xy")
+    x0, x1 = corners[:-1, :, 0, None], corners[1:, :, 0, None]
+    hw = _bracket(np.maximum(move[:-1, :, None], move[1:, :, None]), tol, F.shape)
+    vx = _split_run(model, "x", [J - 0.5 + F, x0 + F * (x1 - x0), I - 1, hw], dict(kw), workers)
+    vedge = vx.reshape(ny, nx + 1, edge_samples)
+    # Row boundaries: y = J - 0.5 for J in j0..j1, columns I in i0..i1-1.
+    I, J, F = np.meshgrid(np.arange(i0, i1), np.arange(j0, j1 + 1), fr, indexing="xy")
+    y0, y1 = corners[:, :-1, 1, None], corners[:, 1:, 1, None]
+    hw = _bracket(np.maximum(move[:, :-1, None], move[:, 1:, None]), tol, F.shape)
+    hy = _split_run(model, "y", [I - 0.5 + F, y0 + F * (y1 - y0), J - 1, hw], dict(kw), workers)
+    hedge = hy.reshape(ny + 1, nx, edge_samples)
     return BoundaryGrid(i0, j0, corners, vedge, hedge, fr)
 
 

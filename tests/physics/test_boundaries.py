@@ -61,6 +61,43 @@ def test_bracket_is_widened_when_boundary_lies_outside():
     assert (i_lo[0], i_hi[0]) == (0, 1)
 
 
+
+def test_brackets_per_sample_are_widened_each_on_its_own():
+    """CORRECTNESS: a bracket per sample, too narrow for some (the 2e4 e
+    aggressor moves its edge by ~0.05 px): each finds its boundary, where
+    the landing pixel changes, as one wide bracket does."""
+    m = SensorModel(SensorParameters.paper()).with_charge({(0, 0): 2e4})
+    along = np.array([0.0, 0.0, 0.3, 0.3])
+    b = bisect_boundary(m, along, [0.5, 0.49, 0.5, 0.45], "x", 0, tol=1e-4,
+                        half_width=[0.002, 0.02, 0.45, 1e-3])
+    assert_allclose(b, bisect_boundary(m, along, 0.5, "x", 0, tol=1e-4), rtol=0, atol=2e-4)
+    i_lo, _ = _land(m, b - 2e-4, along)
+    i_hi, _ = _land(m, b + 2e-4, along)
+    assert np.all(i_lo == 0) and np.all(i_hi == 1)
+    with pytest.raises(ValueError, match="half_width must be positive"):
+        bisect_boundary(m, along, 0.5, "x", 0, half_width=[0.1, 0.0, 0.1, 0.1])
+
+
+def test_edges_traced_from_their_corners_lie_where_the_landing_pixel_changes():
+    """CORRECTNESS: the edge samples of a block around an aggressor, started
+    from the chord between their corners in narrow brackets: lines started
+    3 tol either side of each land in the two pixels it separates."""
+    m = SensorModel(SensorParameters.paper()).with_charge({(0, 0): 3e4})
+    tol = 1e-5
+    g = pixel_boundaries(m, (-1, 1), (0, 1), edge_samples=3, tol=tol)
+    ny, nx1, ns = g.vedge.shape
+    I = np.broadcast_to(np.arange(-1, 2)[None, :, None], g.vedge.shape)
+    yy = np.broadcast_to(g.fractions[None, None, :] - 0.5, g.vedge.shape)
+    assert np.abs(g.vedge - (I - 0.5)).max() > 1e-3  # the aggressor moved them
+    i_lo, _ = _land(m, g.vedge - 3 * tol, yy)
+    i_hi, _ = _land(m, g.vedge + 3 * tol, yy)
+    assert np.all(i_lo == I - 1) and np.all(i_hi == I)
+    J = np.broadcast_to(np.arange(0, 2)[:, None, None], g.hedge.shape)
+    xx = np.broadcast_to(np.arange(-1, 1)[None, :, None] - 0.5 + g.fractions, g.hedge.shape)
+    _, j_lo = _land(m, xx, g.hedge - 3 * tol)
+    _, j_hi = _land(m, xx, g.hedge + 3 * tol)
+    assert np.all(j_lo == J - 1) and np.all(j_hi == J)
+
 def test_unreachable_boundary_raises():
     m = SensorModel(SensorParameters.paper())
     with pytest.raises(RuntimeError, match="no boundary found"):
