@@ -64,7 +64,8 @@ from calibrate_sensor import flats_table, star_pairs
 
 from lsst_bfdrift.calibration.astier23_model import Astier23Parameters, astier23_shifts
 from lsst_bfdrift.calibration.routes import MODELS, ROUTE_METHODS, calibrate_route
-from lsst_bfdrift.ptc.acoeffs import AcoeffTable
+from lsst_bfdrift.calibration.tuning import CONVERGED_MODEL_SETTINGS, MODEL_SETTINGS
+from lsst_bfdrift.ptc.acoeffs import AcoeffTable, near_field_response
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 from lsst_bfdrift.templates.edge_shifts import template_from_edge_shifts
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
@@ -73,6 +74,9 @@ from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.validation.stars import per_star_residuals
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+
+#: --model-numerics: the electrostatic fit's numerical settings
+MODEL_NUMERICS = {"fit": MODEL_SETTINGS, "converged": CONVERGED_MODEL_SETTINGS}
 sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
 from _common import write_results  # noqa: E402
 REPO = os.path.dirname(os.path.dirname(HERE))
@@ -185,6 +189,9 @@ def main(argv=None):
                              "lsst_e2v_50_32"])
     ap.add_argument("--psf", nargs="+", default=["moffat", "kolmogorov"])
     ap.add_argument("--lags", type=int, default=3, help="largest lag of the a-matrix used")
+    ap.add_argument("--model-numerics", choices=sorted(MODEL_NUMERICS), default="fit",
+                    help="numerical settings of the electrostatic fit's model a_ij: the fit's "
+                         "(MODEL_SETTINGS) or converged ones (CONVERGED_MODEL_SETTINGS)")
     ap.add_argument("--draws", type=int, default=3, help="noisy draws of each a-matrix")
     ap.add_argument("--draws-stated", type=int, default=6,
                     help="templates drawn from each route's uncertainty (stated precision)")
@@ -237,6 +244,9 @@ def main(argv=None):
     say(f"routes: {', '.join(f'{m} ({ROUTE_METHODS[m]})' for m in MODELS)}; a-matrix lags "
         f"0..{args.lags}, errors {REL_ERROR:.0%} + {ERROR_FLOOR:g}/e; % of the uncorrected "
         "slope, errors from the stars")
+    if args.model_numerics != "fit":
+        say(f"electrostatic fit's model a_ij: {args.model_numerics} numerics "
+            f"{MODEL_NUMERICS[args.model_numerics]}")
     for sensor in args.sensors:
         rec = out["sensors"][sensor] = {}
         truth_a, inputs = amatrix_inputs(sensor, args.lags, args.draws)
@@ -256,11 +266,18 @@ def main(argv=None):
             t0 = time.time()
             routes = {}
             for m in MODELS:
-                kw = {"allow_poor_fit": True} if m == "electrostatic" else {}
+                kw = ({"allow_poor_fit": True,
+                       "model_settings": MODEL_NUMERICS[args.model_numerics]}
+                      if m == "electrostatic" else {})
                 routes[m] = calibrate_route(table, m, **kw)
             fits = "; ".join(f"{m} chi2 {r.chi2:.1f}/{r.dof}" for m, r in routes.items()
                              if m != "coulton18")
             say(f" {sensor}, {label}: {fits}; {time.time() - t0:.0f} s")
+            # the near-field response S1 that the size correction follows
+            nf = routes["electrostatic"].product.near_field
+            s1_truth = near_field_response(truth_a)[0]
+            say(f"  electrostatic S1 = a00 + 2 (a01 + a10) + 4 a11 / GalSim's: fitted model "
+                f"{nf['model'] / s1_truth:.3f}, refined template {nf['template'] / s1_truth:.3f}")
             stated = {m: stated_templates(r, table, args.draws_stated,
                                           seed=zlib.crc32(f"{sensor}:{label}:{m}".encode()))
                       for m, r in routes.items()}

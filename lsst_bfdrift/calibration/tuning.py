@@ -70,7 +70,8 @@ __all__ = ["CANDIDATES", "CalibrationError", "CalibrationWarning", "CalibrationR
            "calibrate", "poor_fit_policy", "check_refined_match",
            "default_start", "model_acoeffs", "measured_acoeffs", "refinement_target",
            "refine_template", "select_parameters", "STAGE_SECONDS",
-           "start_jacobian", "write_start_jacobian"]
+           "start_jacobian", "write_start_jacobian", "MODEL_SETTINGS",
+           "CONVERGED_MODEL_SETTINGS"]
 
 #: Candidate free parameters and their bounds: the dipole unit xi0 (e), the
 #: buried-channel depth (um, sets the charge dipole), the collection height
@@ -103,13 +104,39 @@ def default_start():
     return SensorParameters.from_dict(meta["params"]) if "params" in meta else SensorParameters()
 
 
-def model_acoeffs(params, max_lag, *, near_samples=16, far_samples=6, tol=2e-6):
+#: Numerical settings of :func:`model_acoeffs` (the fit's model a_ij):
+#: samples per edge and their spacing for lags 0-1 (``near_*``) and beyond
+#: (``far_*``), bisection tolerance (px) and aggressor charge (e). Their
+#: polygons put the a_ij of lags 0-2 up to ~18-26 % (a10) from their converged
+#: values (``benchmarks/calibration/model_convergence.py``).
+MODEL_SETTINGS = {"near_samples": 16, "far_samples": 6, "near_spacing": "uniform",
+                  "far_spacing": "tan", "tol": 2e-6, "charge": CHARGE}
+
+#: Settings whose a_ij lie within ~1-2 % of their converged values at lags
+#: 0-3 (samples dense at the corners), for 1.2-1.6x the time.
+CONVERGED_MODEL_SETTINGS = {**MODEL_SETTINGS, "near_samples": 32, "far_samples": 12,
+                            "near_spacing": "ends", "far_spacing": "ends"}
+
+
+def model_acoeffs(params, max_lag, *, settings=None):
     """The model's a_ij (1/e) used by the fit: linear area response of the
-    template at :data:`CHARGE`, lags 0..max_lag, [i serial, j parallel]."""
+    template at the settings' charge, lags 0..max_lag, [i serial, j parallel].
+
+    ``settings``: numerical settings (default :data:`MODEL_SETTINGS`; see
+    :data:`CONVERGED_MODEL_SETTINGS`)."""
+    s = MODEL_SETTINGS if settings is None else _checked_settings(settings)
     L = int(max_lag)
-    return electrostatic_acoeffs(params, max_lag=max(L, 1), charge=CHARGE, tol=tol,
-                                 near_samples=near_samples, far_samples=far_samples,
+    return electrostatic_acoeffs(params, max_lag=max(L, 1), charge=s["charge"], tol=s["tol"],
+                                 near_samples=s["near_samples"], far_samples=s["far_samples"],
+                                 near_spacing=s["near_spacing"], far_spacing=s["far_spacing"],
                                  definition="alpha")[:L + 1, :L + 1]
+
+
+def _checked_settings(settings):
+    if not isinstance(settings, dict) or set(settings) != set(MODEL_SETTINGS):
+        raise InputError(f"model settings must be a dict with keys {sorted(MODEL_SETTINGS)}, "
+                         f"got {settings!r}")
+    return settings
 
 
 #: Package data: the model's a_ij and their derivatives at :func:`default_start`
@@ -118,9 +145,6 @@ START_JACOBIAN_FILE = "start_jacobian.json"
 
 #: Largest lag stored in :data:`START_JACOBIAN_FILE` (the 21 x 21 template's).
 START_JACOBIAN_MAX_LAG = 10
-
-#: Settings of :func:`model_acoeffs` that the stored values depend on.
-_MODEL_SETTINGS = {"near_samples": 16, "far_samples": 6, "tol": 2e-6, "charge": CHARGE}
 
 
 def _step(x, lo, hi):
@@ -144,14 +168,14 @@ def _compute_jacobian(model, x0, candidates):
     return m0, J
 
 
-def _shipped(start, candidates, max_lag):
+def _shipped(start, candidates, max_lag, settings):
     """(m0, J) sliced from the package data, or None when they do not apply."""
     try:
         with open(data_path(START_JACOBIAN_FILE)) as fh:
             d = json.load(fh)
     except (OSError, ValueError):
         return None
-    if (d.get("start") != json.loads(start.to_json()) or d.get("model") != _MODEL_SETTINGS
+    if (d.get("start") != json.loads(start.to_json()) or d.get("model") != settings
             or int(max_lag) > int(d.get("max_lag", -1))):
         return None
     stored = d.get("candidates", {})
@@ -164,7 +188,7 @@ def _shipped(start, candidates, max_lag):
     return m0, J
 
 
-def start_jacobian(start, candidates, max_lag, *, model=None):
+def start_jacobian(start, candidates, max_lag, *, model=None, settings=None):
     """The model's a_ij at ``start`` and their forward-difference derivatives.
 
     With the default start (:func:`default_start`) and candidates whose
@@ -186,6 +210,9 @@ def start_jacobian(start, candidates, max_lag, *, model=None):
     model : callable, optional
         ``model(values) -> a_ij`` for {name: value}; default
         :func:`model_acoeffs` of ``start`` with those values replaced.
+    settings : dict, optional
+        The numerical settings ``model`` uses (default
+        :data:`MODEL_SETTINGS`): the package data apply only to theirs.
 
     Returns
     -------
@@ -196,12 +223,13 @@ def start_jacobian(start, candidates, max_lag, *, model=None):
     source : str
         ``'package data'`` or ``'computed'``.
     """
-    shipped = _shipped(start, candidates, max_lag)
+    settings = MODEL_SETTINGS if settings is None else _checked_settings(settings)
+    shipped = _shipped(start, candidates, max_lag, settings)
     if shipped is not None:
         return shipped + ("package data",)
     if model is None:
         def model(values):
-            return model_acoeffs(start.replace(**values), max_lag)
+            return model_acoeffs(start.replace(**values), max_lag, settings=settings)
     x0 = {n: float(getattr(start, n)) for n in candidates}
     return _compute_jacobian(model, x0, candidates) + ("computed",)
 
@@ -223,7 +251,7 @@ def write_start_jacobian(path, *, max_lag=START_JACOBIAN_MAX_LAG):
     m0, J = _compute_jacobian(model, x0, CANDIDATES)
     d = {"note": "lsst_bfdrift.calibration.tuning.write_start_jacobian: model a_ij (1/e, "
                  "[i serial, j parallel]) at default_start() and their forward differences",
-         "start": json.loads(start.to_json()), "model": dict(_MODEL_SETTINGS),
+         "start": json.loads(start.to_json()), "model": dict(MODEL_SETTINGS),
          "max_lag": int(max_lag),
          "candidates": {n: [float(v) for v in b] for n, b in CANDIDATES.items()},
          "steps": {n: _step(x0[n], *CANDIDATES[n]) for n in CANDIDATES},
@@ -599,7 +627,7 @@ def check_refined_match(template_a, table, max_chi2_dof):
 
 def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settings=None,
               max_chi2_dof=3.0, allow_poor_fit=False, build=True, max_evaluations=25,
-              progress=False):
+              progress=False, model_settings=None):
     """Fit the electrostatic model to a measured a-matrix and build its template.
 
     Parameters
@@ -637,6 +665,9 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
         fit`` (the Jacobian and the search), ``calibrate: template build``,
         ``calibrate: refinement``; each weighted by its typical time
         (:data:`STAGE_SECONDS`).
+    model_settings : dict, optional
+        Numerical settings of the fit's model a_ij (:func:`model_acoeffs`;
+        default :data:`MODEL_SETTINGS`, or :data:`CONVERGED_MODEL_SETTINGS`).
 
     Returns
     -------
@@ -703,7 +734,7 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     def model(values):
         count(1)
         try:
-            return model_acoeffs(start.replace(**values), L)
+            return model_acoeffs(start.replace(**values), L, settings=model_settings)
         except (RuntimeError, ValueError):
             # drift lines that do not converge (a field that traps the charge,
             # far outside the data): a rejected step for the fit engine
@@ -712,7 +743,8 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     # 1. Jacobian of every candidate at the start (forward differences), from
     # the package data when the start and the candidates are the defaults
     x0 = {n: float(getattr(start, n)) for n in names}
-    m0, J, jacobian_source = start_jacobian(start, candidates, L, model=model)
+    m0, J, jacobian_source = start_jacobian(start, candidates, L, model=model,
+                                            settings=model_settings)
     seconds["jacobian"] = time.perf_counter() - t0
     if jacobian_source == "package data":
         count(len(names) + 1)

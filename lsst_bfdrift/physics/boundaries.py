@@ -18,6 +18,10 @@ from lsst_bfdrift.physics._drift_kernels import bisect_batch
 from lsst_bfdrift.physics.drift import compile_model, compiled_line_arguments, drift_lines
 from lsst_bfdrift.utils.errors import ComputationError, InputError
 
+#: Times :func:`locate_corners` reads a corner that does not converge 4 times
+#: farther either side of it (2 tol, then 8, 32, 128 tol).
+WIDER_READINGS = 3
+
 __all__ = ["BoundaryGrid", "bisect_boundary", "locate_corners", "pixel_boundaries",
            "centred_boundaries",
            "uniform_fractions", "edge_fractions"]
@@ -33,10 +37,13 @@ def uniform_fractions(n):
 def edge_fractions(n, spacing="uniform"):
     """Sample fractions along an edge.
 
-    ``'uniform'`` (the paper's choice) or ``'tan'``: rays from the pixel
-    centre at equal angles, (tan(theta_k) + 1) / 2 with theta_k = -pi/4 +
-    (k + 1) pi / (2 (n + 1)) (GalSim's vertices), denser towards the corners
-    where boundaries curve most next to an aggressor.
+    * ``'uniform'`` (the paper's choice): k / (n + 1), k = 1..n;
+    * ``'tan'``: rays from the pixel centre at equal angles, (tan(theta_k) +
+      1) / 2 with theta_k = -pi/4 + k pi / (2 (n + 1)) (GalSim's vertices),
+      slightly denser at the edge's middle than at its ends;
+    * ``'ends'``: Chebyshev nodes, (1 - cos(pi (k - 1/2) / n)) / 2, dense at
+      both ends (the first about 0.62 / n^2 from the corner), where the boundaries
+      next to an aggressor bend sharply into its corners.
     """
     if spacing == "uniform":
         return uniform_fractions(n)
@@ -44,7 +51,10 @@ def edge_fractions(n, spacing="uniform"):
         uniform_fractions(n)  # validates n
         theta = -np.pi / 4 + (np.arange(n) + 1.0) * np.pi / (2.0 * (n + 1.0))
         return (np.tan(theta) + 1.0) / 2.0
-    raise InputError(f"edge spacing must be 'uniform' or 'tan', got {spacing!r}")
+    if spacing == "ends":
+        uniform_fractions(n)  # validates n
+        return (1.0 - np.cos(np.pi * (np.arange(n) + 0.5) / n)) / 2.0
+    raise InputError(f"edge spacing must be 'uniform', 'tan' or 'ends', got {spacing!r}")
 
 
 def bisect_boundary(model, along, across, axis, index, *, tol=1e-4, half_width=0.45,
@@ -182,11 +192,16 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
     Corners where a round does not halve the move (slow or oscillating
     alternation, contraction near 1) are finished by Steffensen's method on
     y -> Y(X(y)), with brackets likewise a few times the last move wide.
+    Where that too cycles (a boundary that jumps at the corner: next to a
+    strong aggressor the row boundary left and right of the column boundary
+    can lie a few 1e-4 px apart, so readings 2 tol either side of the corner
+    straddle the jump in turn), the corner is read 4 times farther either
+    side, up to :data:`WIDER_READINGS` times (at most 128 tol).
 
     Raises
     ------
     RuntimeError
-        If some corner has not converged after that either.
+        If some corner has not converged after all that.
     """
     x = np.asarray(xc, float).ravel().copy()
     y = np.asarray(yc, float).ravel().copy()
@@ -195,7 +210,7 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
     # Each boundary is read a small step to either side of the other one and
     # averaged: exactly on a barrier's symmetry plane, lines stall on its
     # saddle and the crossing boundary there is not the limit of its neighbours.
-    delta = 2.0 * tol  # bias at a cusp ~ delta * (slope jump) / 2 < tol
+    delta = [2.0 * tol]  # bias at a cusp ~ delta * (slope jump) / 2 < tol
 
     # the readings on either side start from the last ones (they differ by
     # up to a few 1e-4 px at an aggressor's corners, whose boundaries bend
@@ -205,7 +220,7 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
     def read(axis, along, idx, first=False, **kw):
         index = (col_index if axis == "x" else row_index)[idx]
         g = guess[axis]
-        for k, side in enumerate((-delta, delta)):
+        for k, side in enumerate((-delta[0], delta[0])):
             if first and k == 1:
                 # the first reading of the far side starts from the near side's,
                 # in a bracket a few times that one's move wide
@@ -216,37 +231,31 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
             g[k][idx] = bisect_boundary(model, along + side, g[k][idx], axis, index, tol=tol, **kw)
         return 0.5 * (g[0][idx] + g[1][idx])
 
-    everything = np.arange(x.size)
-    x = read("x", y, everything, first=True, **kwargs)
-    y = read("y", x, everything, first=True, **kwargs)
-    # the first round's move bounds the next (the contraction is < 1): later
-    # brackets are a few times the last move wide, and widen when they miss
-    step = np.maximum(np.abs(x - np.ravel(xc)), np.abs(y - np.ravel(yc)))
-    todo = np.arange(x.size)
-    slow = np.zeros(0, dtype=int)
-    for _ in range(max_passes):
-        if todo.size == 0:
-            break
-        hw = np.clip(4.0 * step[todo], 4.0 * tol, 0.45)
-        xn = read("x", y[todo], todo, half_width=hw, **kwargs)
-        yn = read("y", xn, todo, half_width=hw, **kwargs)
-        change = np.maximum(np.abs(xn - x[todo]), np.abs(yn - y[todo]))
-        x[todo], y[todo] = xn, yn
-        going = change >= 2.0 * tol
-        # a round that does not halve the move: alternation is slow or
-        # oscillates there (|X'Y'| near 1 at strong cusps)
-        stuck = going & (change > 0.5 * step[todo])
-        step[todo] = change
-        slow = np.concatenate([slow, todo[stuck]])
-        todo = todo[going & ~stuck]
-    todo = np.sort(np.concatenate([slow, todo]))
-    if todo.size:
-        # Steffensen's method on the composed map G(y) = Y(X(y))
-        def g_of(yy, idx, kw):
+    def solve(todo):
+        """Alternation, then Steffensen where it stalls; the corners left."""
+        slow = np.zeros(0, dtype=int)
+        for _ in range(max_passes):
+            if todo.size == 0:
+                break
+            hw = np.clip(4.0 * step[todo], 4.0 * tol, 0.45)
+            xn = read("x", y[todo], todo, half_width=hw, **kwargs)
+            yn = read("y", xn, todo, half_width=hw, **kwargs)
+            change = np.maximum(np.abs(xn - x[todo]), np.abs(yn - y[todo]))
+            x[todo], y[todo] = xn, yn
+            going = change >= 2.0 * tol
+            # a round that does not halve the move: alternation is slow or
+            # oscillates there (|X'Y'| near 1 at strong cusps)
+            stuck = going & (change > 0.5 * step[todo])
+            step[todo] = change
+            slow = np.concatenate([slow, todo[stuck]])
+            todo = todo[going & ~stuck]
+        todo = np.sort(np.concatenate([slow, todo]))
+
+        def g_of(yy, idx, kw):  # G(y) = Y(X(y))
             xn = read("x", yy, idx, **kw)
             return read("y", xn, idx, **kw)
 
-        for _ in range(max_passes):
+        for _ in range(max_passes if todo.size else 0):
             if todo.size == 0:
                 break
             kw = dict(half_width=np.clip(4.0 * step[todo], 4.0 * tol, 0.45), **kwargs)
@@ -262,9 +271,30 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
             x[todo], y[todo] = xnew, ynew
             step[todo] = change
             todo = todo[change >= 2.0 * tol]
+        return todo
+
+    everything = np.arange(x.size)
+    x = read("x", y, everything, first=True, **kwargs)
+    y = read("y", x, everything, first=True, **kwargs)
+    # the first round's move bounds the next (the contraction is < 1): later
+    # brackets are a few times the last move wide, and widen when they miss
+    step = np.maximum(np.abs(x - np.ravel(xc)), np.abs(y - np.ravel(yc)))
+    todo = solve(everything)
+    for _ in range(WIDER_READINGS):
+        if todo.size == 0:
+            break
+        # Where a boundary jumps at the corner (next to a strong aggressor the
+        # row boundary left and right of the column boundary can lie a few
+        # 1e-4 px apart), readings 2 tol either side straddle the jump in turn
+        # and the alternation cycles: read those corners 4 times farther out.
+        delta[0] *= 4.0
+        x[todo] = read("x", y[todo], todo, first=True, **kwargs)
+        y[todo] = read("y", x[todo], todo, first=True, **kwargs)
+        step[todo] = 0.45
+        todo = solve(todo)
     if todo.size:
         raise ComputationError(f"{todo.size} corner(s) did not converge in {max_passes} passes, "
-                           f"e.g. near ({x[todo[0]]:.4f}, {y[todo[0]]:.4f})")
+                               f"e.g. near ({x[todo[0]]:.4f}, {y[todo[0]]:.4f})")
     return x, y
 
 
@@ -391,7 +421,7 @@ def pixel_boundaries(model, i_range, j_range, *, edge_samples=8, tol=1e-4, z0=No
         Called with the number of traces done (for progress bars).
     workers : int, optional
         Processes sharing the drift lines (results do not depend on it).
-    spacing : {'uniform', 'tan'}, optional
+    spacing : {'uniform', 'tan', 'ends'}, optional
         Placement of the edge samples (:func:`edge_fractions`).
 
     Returns

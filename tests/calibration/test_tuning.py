@@ -204,14 +204,8 @@ def test_shipped_start_jacobian_equals_a_fresh_computation():
     """Consistency (package against itself): the package-data start Jacobian
     equals a fresh forward difference at the default start (lags <= 2, two
     candidates), and is used only where it applies."""
-    import inspect
-
     from lsst_bfdrift.calibration import tuning
 
-    # the stored values were computed with model_acoeffs' own defaults
-    sig = inspect.signature(tuning.model_acoeffs).parameters
-    assert {k: sig[k].default for k in ("near_samples", "far_samples", "tol")} == {
-        k: tuning._MODEL_SETTINGS[k] for k in ("near_samples", "far_samples", "tol")}
     start = tuning.default_start()
     cands = {n: tuning.CANDIDATES[n] for n in ("xi0", "channel_depth")}
     m0, J, src = tuning.start_jacobian(start, cands, 2)
@@ -227,9 +221,13 @@ def test_shipped_start_jacobian_equals_a_fresh_computation():
     assert_allclose(m0, fresh[0], rtol=1e-12, atol=0)
     assert_allclose(J, fresh[1], rtol=1e-12, atol=1e-25)
     # another start, other bounds, or lags beyond the file: computed
-    assert tuning._shipped(start.replace(xi0=start.xi0 * 1.01), cands, 2) is None
-    assert tuning._shipped(start, {"xi0": (1.0, 2e4)}, 2) is None
-    assert tuning._shipped(start, cands, tuning.START_JACOBIAN_MAX_LAG + 1) is None
+    ms = tuning.MODEL_SETTINGS
+    assert tuning._shipped(start.replace(xi0=start.xi0 * 1.01), cands, 2, ms) is None
+    assert tuning._shipped(start, {"xi0": (1.0, 2e4)}, 2, ms) is None
+    assert tuning._shipped(start, cands, tuning.START_JACOBIAN_MAX_LAG + 1, ms) is None
+    assert tuning._shipped(start, cands, 2, tuning.CONVERGED_MODEL_SETTINGS) is None
+    with pytest.raises(ValueError, match="model settings must be a dict"):
+        tuning.model_acoeffs(start, 2, settings={"near_samples": 32})
 
 
 def test_calibrate_uses_the_shipped_jacobian(itl):

@@ -157,6 +157,26 @@ def test_corners_next_to_an_aggressor_at_a_tight_tolerance():
     assert_allclose(reading("x", y, x, ci), x, rtol=0, atol=2 * tol)
     assert_allclose(reading("y", x, y, ri), y, rtol=0, atol=3 * tol)
 
+
+def test_corners_converge_read_farther_out_where_a_boundary_jumps():
+    """CORRECTNESS (symmetry): around a 1e4 e aggressor at tol 5e-7 px the
+    row boundary jumps at the aggressor's corners (by ~5e-4 px), readings
+    2 tol either side straddle the jump in turn and the alternation cycles
+    (this raised before); read farther out, the corners converge, and the
+    mirror-symmetric model gives mirror-image corners, each located on its
+    own: in x to 4 tol, in y (along the jump) to within the jump, 1e-3 px
+    against the corners' 3.9e-3 px move. Where a boundary jumps, a corner
+    is defined to that size only."""
+    from lsst_bfdrift.calibration.tuning import default_start
+
+    m = SensorModel(default_start()).with_charge({(0, 0): 1e4})
+    jj, ii = np.mgrid[0:3, 0:3]
+    x, y = locate_corners(m, ii - 0.5, jj - 0.5, ii - 1, jj - 1, tol=5e-7)
+    x, y = x.reshape(3, 3), y.reshape(3, 3)
+    assert abs(y[0, 0] + 0.5) > 3e-3  # moved by the aggressor
+    assert_allclose(x[:2, 0], -x[:2, 1], rtol=0, atol=2e-6)  # mirror in x
+    assert_allclose(y[0, :2], -y[1, :2], rtol=0, atol=1e-3)  # mirror in y
+
 def test_workers_do_not_change_result():
     m = SensorModel(SensorParameters.paper()).with_charge({(0, 0): 1e4})
     a = pixel_boundaries(m, (0, 2), (0, 1), edge_samples=2, tol=1e-3, workers=1)
