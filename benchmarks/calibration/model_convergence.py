@@ -1,7 +1,8 @@
 """How far the model's a_ij at the calibration fit's settings lie from their converged values.
 
 The electrostatic model's a_ij
-(:func:`~lsst_bfdrift.calibration.acoeff_model.electrostatic_acoeffs`, ``definition='alpha'``, 1e4 e aggressor, bisection tol 2e-6 px, as
+(:func:`~lsst_bfdrift.calibration.acoeff_model.electrostatic_acoeffs`,
+``definition='alpha'``, 1e4 e aggressor, bisection tol 2e-6 px, as
 :func:`~lsst_bfdrift.calibration.tuning.model_acoeffs` computes them for
 the fit) are areas of polygons through samples of the traced boundaries.
 Next to the aggressor the boundaries bend sharply into its corners, so the
