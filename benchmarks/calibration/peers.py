@@ -64,7 +64,7 @@ from calibrate_sensor import flats_table, star_pairs
 
 from lsst_bfdrift.calibration.astier23_model import Astier23Parameters, astier23_shifts
 from lsst_bfdrift.calibration.routes import MODELS, ROUTE_METHODS, calibrate_route
-from lsst_bfdrift.calibration.tuning import CONVERGED_MODEL_SETTINGS, MODEL_SETTINGS
+from lsst_bfdrift.calibration.tuning import MODEL_NUMERICS
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable, near_field_response
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 from lsst_bfdrift.templates.edge_shifts import template_from_edge_shifts
@@ -74,9 +74,6 @@ from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.validation.stars import per_star_residuals
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-
-#: --model-numerics: the electrostatic fit's numerical settings
-MODEL_NUMERICS = {"fit": MODEL_SETTINGS, "converged": CONVERGED_MODEL_SETTINGS}
 sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
 from _common import write_results  # noqa: E402
 REPO = os.path.dirname(os.path.dirname(HERE))

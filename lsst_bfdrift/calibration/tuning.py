@@ -71,7 +71,7 @@ __all__ = ["CANDIDATES", "CalibrationError", "CalibrationWarning", "CalibrationR
            "default_start", "model_acoeffs", "measured_acoeffs", "refinement_target",
            "refine_template", "select_parameters", "STAGE_SECONDS",
            "start_jacobian", "write_start_jacobian", "MODEL_SETTINGS",
-           "CONVERGED_MODEL_SETTINGS"]
+           "CONVERGED_MODEL_SETTINGS", "MODEL_NUMERICS"]
 
 #: Candidate free parameters and their bounds: the dipole unit xi0 (e), the
 #: buried-channel depth (um, sets the charge dipole), the collection height
@@ -116,6 +116,9 @@ MODEL_SETTINGS = {"near_samples": 16, "far_samples": 6, "near_spacing": "uniform
 #: 0-3 (samples dense at the corners), for 1.2-1.6x the time.
 CONVERGED_MODEL_SETTINGS = {**MODEL_SETTINGS, "near_samples": 32, "far_samples": 12,
                             "near_spacing": "ends", "far_spacing": "ends"}
+
+#: The fit's numerics by name (``bfdrift calibrate --model-numerics``).
+MODEL_NUMERICS = {"fit": MODEL_SETTINGS, "converged": CONVERGED_MODEL_SETTINGS}
 
 
 def model_acoeffs(params, max_lag, *, settings=None):
@@ -392,6 +395,9 @@ class CalibrationResult:
     jacobian_source : str
         Where the start Jacobian came from: ``'package data'`` (the default
         start and candidates, :func:`start_jacobian`) or ``'computed'``.
+    model_settings : dict
+        Numerical settings of the fit's model a_ij (:data:`MODEL_SETTINGS`
+        or those passed).
     """
 
     def __init__(self, **kw):
@@ -444,7 +450,8 @@ class CalibrationResult:
                          for r in self.lag_rows()],
                 "selection": self.selection, "sum_rule": self.sum_rule,
                 "near_field": self.near_field, "n_evaluations": f.n_evaluations,
-                "seconds": self.seconds,
+                "seconds": self.seconds, "jacobian_source": self.jacobian_source,
+                "model_settings": getattr(self, "model_settings", None),
                 "source": self.table.source,
                 "template": None if self.template is None else self.template.summary()}
 
@@ -804,6 +811,8 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
                                refined=bool(refine and build), built_template=built,
                                settings=settings, candidates=candidates, start=start,
                                jacobian_source=jacobian_source, misfit=misfit,
+                               model_settings=dict(MODEL_SETTINGS if model_settings is None
+                                                   else model_settings),
                                consistency=consistency)
     if template is not None:
         template.meta["params"] = params.to_dict()
@@ -813,6 +822,7 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
             "errors": fit.errors, "covariance": np.asarray(fit.covariance).tolist(),
             "chi2": fit.chi2, "dof": fit.dof, "p_value": fit.p_value, "poor_fit": poor,
             "refined": bool(refine), "max_lag": int(L), "a00_in_fit": bool(mask[0, 0]),
+            "model_settings": result.model_settings,
             "misfit": misfit,
             "uncertainty": (
                 {"kind": "data", "sigma": np.where(

@@ -25,7 +25,8 @@ from lsst_bfdrift.calibration.routes import MODELS, calibrate_route
 from lsst_bfdrift.calibration.spot_fit import (SPOT_SPLITS, calibrate_with_spots,
                                                check_spot_fields, read_spot_fields)
 from lsst_bfdrift.calibration.star_fit import calibrate_with_stars, check_size_goal
-from lsst_bfdrift.calibration.tuning import CalibrationWarning, calibrate, measured_acoeffs
+from lsst_bfdrift.calibration.tuning import (MODEL_NUMERICS, CalibrationWarning, calibrate,
+                                          measured_acoeffs)
 from lsst_bfdrift.catalogs.spot_series import SpotSeries
 from lsst_bfdrift.cli._common import (add_common_options, check_output_dir, check_outputs, emit,
                                       library_default, print_json, save_plot)
@@ -250,7 +251,8 @@ def cmd_calibrate(args):
         warnings.simplefilter("always", CalibrationWarning)
         res = calibrate(table, free=args.free, refine=not args.no_refine,
                         allow_poor_fit=args.allow_poor_fit, max_chi2_dof=args.max_chi2_dof,
-                        max_evaluations=args.max_evaluations, progress=not args.quiet)
+                        max_evaluations=args.max_evaluations, progress=not args.quiet,
+                        model_settings=MODEL_NUMERICS[args.model_numerics])
     for w in caught:  # a poor physics fit: written, with the misfit in its uncertainty
         if issubclass(w.category, CalibrationWarning):
             print(f"bfdrift calibrate: warning: {w.message}", file=sys.stderr)
@@ -593,6 +595,11 @@ def add_calibrate_parser(subparsers):
                     default=library_default(calibrate, "max_evaluations"),
                     help="model evaluations of the physics fit's search, each about 0.6 s "
                          "(default: %(default)s)")
+    ca.add_argument("--model-numerics", choices=sorted(MODEL_NUMERICS), default="fit",
+                    help="the physics fit's model a_ij: 'fit' (16 uniform samples per edge: "
+                         "a10 ~20 %% below its converged value, the default) or 'converged' "
+                         "(Chebyshev samples, within ~2 %%, 1.2-1.6x the time; on GalSim's "
+                         "sensors it halves the e1 left and leaves more of the size)")
     ca.add_argument("--allow-poor-fit", action="store_true",
                     help="with --no-refine: write the model's template even when it fits "
                          "poorly (refined templates are written with the misfit in their "

@@ -255,7 +255,8 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
             xn = read("x", yy, idx, **kw)
             return read("y", xn, idx, **kw)
 
-        for _ in range(max_passes if todo.size else 0):
+        cycling = np.zeros(0, dtype=int)
+        for it in range(max_passes if todo.size else 0):
             if todo.size == 0:
                 break
             kw = dict(half_width=np.clip(4.0 * step[todo], 4.0 * tol, 0.45), **kwargs)
@@ -269,9 +270,14 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
             xnew = read("x", ynew, todo, **kw)
             change = np.maximum(np.abs(ynew - y0), np.abs(xnew - x[todo]))
             x[todo], y[todo] = xnew, ynew
+            going = change >= 2.0 * tol
+            # past its first steps, a Steffensen step that does not halve the
+            # move cycles too: left for the wider readings
+            stuck = going & (change > 0.5 * step[todo]) & (it > 0)
             step[todo] = change
-            todo = todo[change >= 2.0 * tol]
-        return todo
+            cycling = np.concatenate([cycling, todo[stuck]])
+            todo = todo[going & ~stuck]
+        return np.sort(np.concatenate([cycling, todo]))
 
     everything = np.arange(x.size)
     x = read("x", y, everything, first=True, **kwargs)

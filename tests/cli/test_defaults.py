@@ -136,12 +136,20 @@ def _not(v):
     return not v
 
 
+def _numerics(v):
+    """--model-numerics NAME as calibrate's model_settings (None: the default settings)."""
+    from lsst_bfdrift.calibration.tuning import MODEL_NUMERICS, MODEL_SETTINGS
+
+    return None if MODEL_NUMERICS[v] is MODEL_SETTINGS else MODEL_NUMERICS[v]
+
+
 #: Options that feed a keyword with the same default but are not read from it:
 #: flags (absent = the keyword's default), an option read from another source,
 #: a default that would import matplotlib at startup (plot_template's).
 ALSO_FEEDS = [
     ("calibrate", "no_refine", calibrate, "refine", _not),
     ("calibrate", "allow_poor_fit", calibrate, "allow_poor_fit", _same),
+    ("calibrate", "model_numerics", calibrate, "model_settings", _numerics),
     ("calibrate", "model_directions_only", calibrate_with_stars, "flats_uncertainty", _not),
     ("calibrate", "spot_correction_bias", calibrate_with_spots, "correction_bias", _same),
     ("correct", "processes", correct_files, "processes", _same),

@@ -436,6 +436,26 @@ def test_calibrate_poor_fit_refused_unrefined_and_written_refined(capsys, tmp_pa
     assert code == 2 and "max_evaluations must be a positive integer, got 0" in err
 
 
+
+def test_calibrate_with_converged_model_numerics(capsys, tmp_path):
+    """--model-numerics converged fits with CONVERGED_MODEL_SETTINGS (the start
+    Jacobian computed, the package data being the fit's) and records them in
+    the template."""
+    from lsst_bfdrift.calibration.tuning import CONVERGED_MODEL_SETTINGS
+    from lsst_bfdrift.templates.template import DistortionTemplate
+
+    small = tmp_path / "small.txt"
+    itl = np.loadtxt("/work/shared/data/measured/itl_covariances_21oct19.txt", skiprows=1)
+    np.savetxt(small, itl[(itl[:, 0] <= 1) & (itl[:, 1] <= 1)], header="i j a sigma")
+    out = tmp_path / "converged.fits"
+    code, text, err = _run(capsys, "calibrate", str(small), "--out", str(out), "--free", "v_bss",
+                           "--max-evaluations", "1", "--model-numerics", "converged",
+                           "--no-refine", "--json", "--quiet")
+    assert code == 0, err
+    assert json.loads(text)["jacobian_source"] == "computed"
+    calibration = DistortionTemplate.load(out).meta["calibration"]
+    assert calibration["model_settings"] == CONVERGED_MODEL_SETTINGS
+
 def test_template_export_galsim(capsys, tmp_path):
     """bfdrift template export-galsim writes files galsim.SiliconSensor
     reads, and refuses to overwrite them."""
