@@ -211,4 +211,4 @@ def test_readme_says_how_to_build_the_docs_and_how_long_the_tests_take():
     with open(os.path.join(ROOT, "README.md")) as fh:
         text = fh.read()
     assert 'pip install ".[docs]" && python3 -m sphinx' in text
-    assert re.search(r"suite takes about \d+ minutes on 2 cores", text)
+    assert re.search(r"suite takes about \d+(\.\d+)? minutes on 2 cores", text)

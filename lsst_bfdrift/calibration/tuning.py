@@ -450,7 +450,8 @@ class CalibrationResult:
                          for r in self.lag_rows()],
                 "selection": self.selection, "sum_rule": self.sum_rule,
                 "near_field": self.near_field, "n_evaluations": f.n_evaluations,
-                "seconds": self.seconds, "jacobian_source": self.jacobian_source,
+                "seconds": self.seconds,
+                "jacobian_source": getattr(self, "jacobian_source", None),
                 "model_settings": getattr(self, "model_settings", None),
                 "source": self.table.source,
                 "template": None if self.template is None else self.template.summary()}

@@ -210,7 +210,7 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
     # Each boundary is read a small step to either side of the other one and
     # averaged: exactly on a barrier's symmetry plane, lines stall on its
     # saddle and the crossing boundary there is not the limit of its neighbours.
-    delta = [2.0 * tol]  # bias at a cusp ~ delta * (slope jump) / 2 < tol
+    delta = [2.0 * tol]  # bias at a kink ~ delta * (slope jump) / 2; jumps: see below
 
     # the readings on either side start from the last ones (they differ by
     # up to a few 1e-4 px at an aggressor's corners, whose boundaries bend
