@@ -120,14 +120,17 @@ def electrostatic_acoeffs(params, *, max_lag=8, charge=1e5, near_samples=32, far
         raise InputError(f"definition must be 'log' or 'alpha', got {definition!r}")
     scales = (1.0,) if definition == "log" else (1.0, 0.5)
     model = SensorModel(params).with_charge({(0, 0): float(charge)})
-    far = _quadrant_areas(model, L + 1, far_samples, tol, far_spacing, scales)
     k = min(int(near_lag), L) + 1
     near = _quadrant_areas(model, k, near_samples, tol, near_spacing, scales)
-    areas = []
-    for f, nr in zip(far, near):
-        a = f.copy()
-        a[:k, :k] = nr
-        areas.append(a)
+    if k == L + 1:  # the near lags are all of them
+        areas = near
+    else:
+        far = _quadrant_areas(model, L + 1, far_samples, tol, far_spacing, scales)
+        areas = []
+        for f, nr in zip(far, near):
+            a = f.copy()
+            a[:k, :k] = nr
+            areas.append(a)
     if definition == "log":
         return np.log(areas[0]) / float(charge)
     return (4.0 * (areas[1] - 1.0) - (areas[0] - 1.0)) / float(charge)

@@ -78,6 +78,19 @@ def test_brackets_per_sample_are_widened_each_on_its_own():
         bisect_boundary(m, along, 0.5, "x", 0, half_width=[0.1, 0.0, 0.1, 0.1])
 
 
+
+def test_numpy_engine_bisection_agrees_with_the_compiled_one():
+    """CONSISTENCY: the bisection's numpy path (drift_lines per step, used for
+    models the compiled engine does not know), with brackets per sample and
+    one too narrow, finds the boundaries the compiled loop finds, to tol."""
+    m = SensorModel(SensorParameters.paper()).with_charge({(0, 0): 3e4})
+    along, widths = np.array([-0.3, 0.0, 0.3]), [0.45, 0.002, 0.05]
+    fast = bisect_boundary(m, along, 0.5, "x", 0, tol=1e-4, half_width=widths)
+    slow = bisect_boundary(m, along, 0.5, "x", 0, tol=1e-4, half_width=widths,
+                           drift_kwargs={"engine": "numpy"})
+    assert np.abs(fast - 0.5).max() > 1e-2  # moved beyond the narrow bracket
+    assert_allclose(slow, fast, rtol=0, atol=1e-4)
+
 def test_edges_traced_from_their_corners_lie_where_the_landing_pixel_changes():
     """CORRECTNESS: the edge samples of a block around an aggressor, started
     from the chord between their corners in narrow brackets: lines started
