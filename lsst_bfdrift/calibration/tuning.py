@@ -400,6 +400,10 @@ class CalibrationResult:
         or those passed).
     """
 
+    #: Defaults of the attributes a result built by hand may lack.
+    jacobian_source = None
+    model_settings = None
+
     def __init__(self, **kw):
         self.__dict__.update(kw)
 
@@ -451,8 +455,7 @@ class CalibrationResult:
                 "selection": self.selection, "sum_rule": self.sum_rule,
                 "near_field": self.near_field, "n_evaluations": f.n_evaluations,
                 "seconds": self.seconds,
-                "jacobian_source": getattr(self, "jacobian_source", None),
-                "model_settings": getattr(self, "model_settings", None),
+                "jacobian_source": self.jacobian_source, "model_settings": self.model_settings,
                 "source": self.table.source,
                 "template": None if self.template is None else self.template.summary()}
 
