@@ -83,7 +83,8 @@ __all__ = ["CANDIDATES", "CalibrationError", "CalibrationWarning", "CalibrationR
 CANDIDATES = {"channel_depth": (0.05, 6.0), "xi0": (300.0, 3e4),
               "collection_height": (0.05, 6.0), "clock_separation": (0.1, 8.0),
               "v_bss": (-150.0, -10.0), "acceptor_density": (1e11, 1e13),
-              "xi_ck": (0.5, 30.0), "xi_cs": (-60.0, -2.0), "charge_cloud": (0.0, 5.0)}
+              "xi_ck": (0.5, 30.0), "xi_cs": (-60.0, -2.0), "charge_cloud": (0.0, 2.8),
+              "charge_variance_parallel": (0.0, 8.0)}
 
 #: Aggressor charge (e) of the model evaluations and of the template.
 CHARGE = 1e4

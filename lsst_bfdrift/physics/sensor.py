@@ -135,6 +135,15 @@ class SensorParameters:
         well; 0 makes each pixel's charge one point dipole, otherwise it is
         spread over a 3 x 3 Gauss-Hermite grid of dipoles (exact for the
         cloud's moments up to fifth order).
+    charge_variance_parallel : float
+        Extra variance (um^2) of the collected charge along the columns (y,
+        the parallel transfer direction): the cloud's rms extents are
+        ``charge_cloud`` along x and sqrt(charge_cloud^2 +
+        charge_variance_parallel) along y. A packet held under its collecting
+        phases can be longer along the column than across it, between the
+        channel stops. A variance, not an extent, so that the a_ij move
+        linearly with it from 0 (a fit can start there). The rule's outer
+        dipoles (sqrt(3) rms from the centre) must stay inside the pixel.
     charge_images : int
         Number of images of collected-charge dipoles, nearest first
         (z = 2t, -2t, 4t, ...).
@@ -178,6 +187,7 @@ class SensorParameters:
     backside_images: bool = True
     charge_images: int = 1
     charge_cloud: float = 0.0
+    charge_variance_parallel: float = 0.0
     bloom_stop: float = None
     xi_bs: float = None
     edge: float = None
@@ -220,6 +230,14 @@ class SensorParameters:
                              f"{self.acceptor_density}")
         if not self.charge_cloud >= 0:
             raise InputError(f"parameter 'charge_cloud' must be >= 0 um, got {self.charge_cloud}")
+        if not self.charge_variance_parallel >= 0:
+            raise InputError(f"parameter 'charge_variance_parallel' must be >= 0 um^2, got "
+                             f"{self.charge_variance_parallel}")
+        reach = math.sqrt(3.0) * max(self.charge_cloud, self.cloud_extent_y)
+        if reach >= self.pixel_pitch / 2:
+            raise InputError(f"the charge cloud's outer dipoles (sqrt(3) x its rms extent, "
+                             f"{reach:.3g} um) must lie inside the pixel (half pitch "
+                             f"{self.pixel_pitch / 2:.3g} um)")
         if self.charge_images < 0:
             raise InputError(f"parameter 'charge_images' must be >= 0, got {self.charge_images}")
         if self.edge_side not in (1, -1):
@@ -235,6 +253,11 @@ class SensorParameters:
                 raise InputError(f"truncation 'extends' must be +1 or -1, got {ext}")
         # Building the backdrop checks full depletion.
         self.backdrop()
+
+    @property
+    def cloud_extent_y(self):
+        """The charge cloud's rms extent along y (um)."""
+        return math.sqrt(self.charge_cloud ** 2 + self.charge_variance_parallel)
 
     @property
     def z_collect(self):
@@ -353,13 +376,15 @@ class SensorModel:
         x = (ij[keep, 0] + 0.5) * P.pixel_pitch
         y = (ij[keep, 1] + 0.5) * P.pixel_pitch
         pz = -2.0 * q[keep] * P.channel_depth
-        if P.charge_cloud > 0:
-            # 3-point Gauss-Hermite rule per axis: offsets 0, +-sqrt(3) s,
-            # weights 2/3, 1/6, 1/6
-            off = np.array([0.0, -1.0, 1.0]) * math.sqrt(3.0) * P.charge_cloud
-            w = np.array([4.0, 1.0, 1.0]) / 6.0
-            ox, oy = np.meshgrid(off, off, indexing="ij")
-            wxy = np.outer(w, w).ravel()
+        sx, sy = P.charge_cloud, P.cloud_extent_y
+        if sx > 0 or sy > 0:
+            # 3-point Gauss-Hermite rule per axis with spread: offsets 0,
+            # +-sqrt(3) s, weights 2/3, 1/6, 1/6 (one point on an axis without)
+            rule = np.array([0.0, -1.0, 1.0]) * math.sqrt(3.0), np.array([4.0, 1.0, 1.0]) / 6.0
+            ux, wx = (rule[0] * sx, rule[1]) if sx > 0 else (np.zeros(1), np.ones(1))
+            uy, wy = (rule[0] * sy, rule[1]) if sy > 0 else (np.zeros(1), np.ones(1))
+            ox, oy = np.meshgrid(ux, uy, indexing="ij")
+            wxy = np.outer(wx, wy).ravel()
             x = (x[:, None] + ox.ravel()[None, :]).ravel()
             y = (y[:, None] + oy.ravel()[None, :]).ravel()
             pz = (pz[:, None] * wxy[None, :]).ravel()

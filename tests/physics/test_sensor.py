@@ -140,3 +140,48 @@ class TestChargeCloud:
         assert e_cl < e_pt
         with pytest.raises(ValueError, match="charge_cloud"):
             SensorParameters(charge_cloud=-1.0)
+
+    def test_parallel_variance_elongates_the_cloud_along_y_only(self):
+        """charge_variance_parallel adds its variance along y: rms extents
+        charge_cloud along x and sqrt(charge_cloud^2 + variance) along y,
+        total dipole and centre unchanged; without charge_cloud the rule
+        needs 3 dipoles (one per y offset), not 9 (consistency of the rule
+        against its stated moments)."""
+        pt = SensorModel(SensorParameters()).with_charge({(0, 0): 1e4}).charge_terms()[0]
+        for sx, var, n in ((0.0, 2.25, 3), (1.0, 3.0, 9)):
+            cl = SensorModel(SensorParameters(charge_cloud=sx, charge_variance_parallel=var)
+                             ).with_charge({(0, 0): 1e4}).charge_terms()[0]
+            assert cl.x.size == n * pt.x.size
+            w = cl.p_z / cl.p_z.sum()
+            assert_allclose(cl.p_z.sum(), pt.p_z.sum())
+            assert_allclose([(w * cl.x).sum(), (w * cl.y).sum()], [pt.x[0], pt.y[0]])
+            assert_allclose(np.sqrt((w * (cl.x - pt.x[0]) ** 2).sum()), sx, atol=1e-12)
+            assert_allclose((w * (cl.y - pt.y[0]) ** 2).sum(), sx ** 2 + var)
+        with pytest.raises(ValueError, match="charge_variance_parallel"):
+            SensorParameters(charge_variance_parallel=-0.1)
+
+    def test_cloud_must_stay_inside_its_pixel(self):
+        """The rule's outer dipoles lie sqrt(3) rms from the centre: beyond the
+        half pitch they would be another pixel's charge."""
+        SensorParameters(charge_cloud=2.8, charge_variance_parallel=0.0)
+        with pytest.raises(ValueError, match="inside the pixel"):
+            SensorParameters(charge_cloud=2.9)
+        with pytest.raises(ValueError, match="inside the pixel"):
+            SensorParameters(charge_variance_parallel=8.4)
+
+    def test_elongated_cloud_moves_area_to_its_parallel_neighbours(self):
+        """Independent physical check on the drift model: a packet longer
+        along the column puts its charge nearer the row boundaries, so the
+        neighbours along y gain area relative to those along x (a01 / a10
+        grows) and the total area is conserved as for the point packet (sum
+        rule over lags 0-9 within 3 % of a00: the rest lies beyond lag 9)."""
+        from lsst_bfdrift.calibration.acoeff_model import electrostatic_acoeffs
+        from lsst_bfdrift.ptc.acoeffs import lag_weights
+        base = SensorParameters()
+        kw = dict(max_lag=9, charge=1e4, near_samples=16, far_samples=6, tol=2e-6)
+        a0 = electrostatic_acoeffs(base, **kw)
+        a1 = electrostatic_acoeffs(base.replace(charge_variance_parallel=4.0), **kw)
+        assert a1[0, 1] / a1[1, 0] > 1.2 * a0[0, 1] / a0[1, 0]
+        w = lag_weights(9)
+        for a in (a0, a1):
+            assert abs(np.sum(w * a)) < 0.03 * abs(a[0, 0])

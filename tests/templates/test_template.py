@@ -273,7 +273,7 @@ class TestDefaultWindow:
         bundled = load_default_template()
         settings = TemplateSettings().to_dict()
         assert settings == bundled.meta["settings"]
-        assert bundled.meta["params"] == SensorParameters().to_dict()
+        assert SensorParameters.from_dict(bundled.meta["params"]) == SensorParameters()
         assert "area_refined" in bundled.meta  # the one step a plain build lacks
 
     def test_window_leak_is_the_missing_share_of_the_area_change(self):
