@@ -34,7 +34,8 @@ from _common import write_results  # noqa: E402
 ROOT = os.path.join(HERE, "..", "..")
 
 from lsst_bfdrift.ptc.acoeffs import read_acoeff_table  # noqa: E402
-from lsst_bfdrift.calibration.tuning import CHARGE, calibrate, refine_template  # noqa: E402
+from lsst_bfdrift.calibration.fit_model import CHARGE  # noqa: E402
+from lsst_bfdrift.calibration.tuning import calibrate, refine_template  # noqa: E402
 from lsst_bfdrift.physics.sensor import SensorParameters  # noqa: E402
 from lsst_bfdrift.templates.template import TemplateSettings, build_template  # noqa: E402
 from lsst_bfdrift.utils.io import write_json  # noqa: E402

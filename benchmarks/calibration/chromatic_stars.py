@@ -78,7 +78,7 @@ import numpy as np
 
 from lsst_bfdrift.physics.depth import BANDS, depth_distribution, galsim_depth_factor
 from lsst_bfdrift.physics.sensor import SensorParameters
-from lsst_bfdrift.calibration.tuning import default_start
+from lsst_bfdrift.calibration.fit_model import default_start
 from lsst_bfdrift.simulation.chromatic import (draw_chromatic_star_pairs, flat_area_response,
                                                star_list)
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs

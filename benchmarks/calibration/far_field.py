@@ -23,7 +23,7 @@ import sys
 
 import numpy as np
 
-from lsst_bfdrift.calibration.tuning import default_start, model_acoeffs
+from lsst_bfdrift.calibration.fit_model import default_start, model_acoeffs
 from lsst_bfdrift.ptc.acoeffs import lag_weights
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 

@@ -3,7 +3,7 @@
 The electrostatic model's a_ij
 (:func:`~lsst_bfdrift.calibration.acoeff_model.electrostatic_acoeffs`,
 ``definition='alpha'``, 1e4 e aggressor, bisection tol 2e-6 px, as
-:func:`~lsst_bfdrift.calibration.tuning.model_acoeffs` computes them for
+:func:`~lsst_bfdrift.calibration.fit_model.model_acoeffs` computes them for
 the fit) are areas of polygons through samples of the traced boundaries.
 Next to the aggressor the boundaries bend sharply into its corners, so the
 polygons' areas depend on where the samples lie. For three sensor
@@ -36,7 +36,7 @@ sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
 from _common import Lines, settings_record, write_results  # noqa: E402
 
 from lsst_bfdrift.calibration.acoeff_model import electrostatic_acoeffs  # noqa: E402
-from lsst_bfdrift.calibration.tuning import CHARGE, default_start  # noqa: E402
+from lsst_bfdrift.calibration.fit_model import CHARGE, default_start  # noqa: E402
 
 #: (label, near spacing, far spacing, near samples, far samples)
 SETTINGS = (("fit settings (uniform 16 / tan 6)", "uniform", "tan", 16, 6),

@@ -5,7 +5,7 @@ a-matrices within their errors. This script states what the model's
 parameters can and cannot do at lags 0..``--lags``:
 
 1. **Lags per parameter** (the start Jacobian of the package data,
-   :func:`~lsst_bfdrift.calibration.tuning.start_jacobian`, no fitting): each
+   :func:`~lsst_bfdrift.calibration.fit_model.start_jacobian`, no fitting): each
    candidate's derivative d a_ij / d p times a step of 10 % of its range, in
    units of cp_pipe-scale errors (3 % of |a_ij| plus 1e-9 per electron of
    the GalSim ITL a-matrix); the lags it moves most, and its share of the
@@ -39,8 +39,8 @@ import warnings
 
 import numpy as np
 
-from lsst_bfdrift.calibration.tuning import (CANDIDATES, CalibrationWarning, calibrate,
-                                             default_start, measured_acoeffs, start_jacobian)
+from lsst_bfdrift.calibration.fit_model import CANDIDATES, default_start, start_jacobian
+from lsst_bfdrift.calibration.tuning import CalibrationWarning, calibrate, measured_acoeffs
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable
 from lsst_bfdrift.ptc.inputs import read_calibration_input
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs

@@ -64,7 +64,7 @@ from calibrate_sensor import flats_table, star_pairs
 
 from lsst_bfdrift.calibration.astier23_model import Astier23Parameters, astier23_shifts
 from lsst_bfdrift.calibration.routes import MODELS, ROUTE_METHODS, calibrate_route
-from lsst_bfdrift.calibration.tuning import MODEL_NUMERICS
+from lsst_bfdrift.calibration.fit_model import MODEL_NUMERICS
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable, near_field_response
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 from lsst_bfdrift.templates.edge_shifts import template_from_edge_shifts

@@ -1,7 +1,7 @@
 """Boundary tracing against an earlier version of the package: the cost of a model's a_ij.
 
 Every ``bfdrift calibrate`` of the electrostatic model evaluates the model's
-a_ij (:func:`lsst_bfdrift.calibration.tuning.model_acoeffs`: pixel boundaries
+a_ij (:func:`lsst_bfdrift.calibration.fit_model.model_acoeffs`: pixel boundaries
 of a quadrant around a 1e4 e aggressor, bisected to 2e-6 px) tens of
 times, and every template build traces boundaries the same way. This script
 times the same work in this tree and in an earlier revision (``--against``,
@@ -41,7 +41,7 @@ from _common import REPO, Lines, settings_record, write_results  # noqa: E402
 WORKER = r"""
 import json, sys, time
 import numpy as np
-from lsst_bfdrift.calibration.tuning import default_start, model_acoeffs
+from lsst_bfdrift.calibration.fit_model import default_start, model_acoeffs
 start = default_start()
 model_acoeffs(start, 3)  # compile and warm
 print(json.dumps({"ready": True}), flush=True)

@@ -15,6 +15,7 @@ and LSST's two routes from the same a-matrix with their products
 from lsst_bfdrift.calibration.fitting import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.acoeff_model import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.sensor_fit import *  # noqa: F401,F403
+from lsst_bfdrift.calibration.fit_model import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.tuning import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.star_result import *  # noqa: F401,F403
 from lsst_bfdrift.calibration.star_fit import *  # noqa: F401,F403

@@ -18,7 +18,7 @@ template T_a) and one or several star fields, and fits
 
 where :math:`\\Delta T_k` is the change of the built template when model
 parameter k moves by its step h_k (every candidate of
-:data:`~lsst_bfdrift.calibration.tuning.CANDIDATES`: the directions the
+:data:`~lsst_bfdrift.calibration.fit_model.CANDIDATES`: the directions the
 physics allows, including those the a-matrix does not see), plus the
 direction ``scale``, T_a itself (an overall strength change, c the
 fractional change), and the direction ``curl``: the part of T_a's boundary

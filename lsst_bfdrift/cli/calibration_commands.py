@@ -25,8 +25,8 @@ from lsst_bfdrift.calibration.routes import MODELS, calibrate_route
 from lsst_bfdrift.calibration.spot_fit import (SPOT_SPLITS, calibrate_with_spots,
                                                check_spot_fields, read_spot_fields)
 from lsst_bfdrift.calibration.star_fit import calibrate_with_stars, check_size_goal
-from lsst_bfdrift.calibration.tuning import (MODEL_NUMERICS, CalibrationWarning, calibrate,
-                                          measured_acoeffs)
+from lsst_bfdrift.calibration.fit_model import MODEL_NUMERICS
+from lsst_bfdrift.calibration.tuning import CalibrationWarning, calibrate, measured_acoeffs
 from lsst_bfdrift.catalogs.spot_series import SpotSeries
 from lsst_bfdrift.cli._common import (add_common_options, check_output_dir, check_outputs, emit,
                                       library_default, print_json, save_plot)

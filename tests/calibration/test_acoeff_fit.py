@@ -199,7 +199,7 @@ def test_samples_dense_at_the_corners_converge_where_uniform_ones_do_not():
     lag; the calibration fit's 16 uniform samples put a10 ~18 % low, because
     the boundaries next to the aggressor bend sharply into its corners
     (benchmarks/calibration/model_convergence.py)."""
-    from lsst_bfdrift.calibration.tuning import CHARGE, default_start
+    from lsst_bfdrift.calibration.fit_model import CHARGE, default_start
     from lsst_bfdrift.physics.boundaries import edge_fractions
 
     f = edge_fractions(16, "ends")

@@ -24,7 +24,8 @@ from tests.validation._galsim_fields import STRENGTHS, paired_fields
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable
 from lsst_bfdrift.catalogs.catalog import detect_stars, measure_stars
 from lsst_bfdrift.calibration.star_fit import StarField, calibrate_with_stars
-from lsst_bfdrift.calibration.tuning import CANDIDATES, CalibrationError, CalibrationResult
+from lsst_bfdrift.calibration.fit_model import CANDIDATES
+from lsst_bfdrift.calibration.tuning import CalibrationError, CalibrationResult
 from lsst_bfdrift.physics.sensor import SensorParameters
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 from lsst_bfdrift.simulation.skysim import scale_template

@@ -200,46 +200,16 @@ def test_refine_template_is_the_refinement_of_calibrate():
         or not np.allclose(out.hedge_d, tpl.hedge_d, rtol=0, atol=0)
 
 
-def test_shipped_start_jacobian_equals_a_fresh_computation():
-    """Consistency (package against itself): the package-data start Jacobian
-    equals a fresh forward difference at the default start (lags <= 2, two
-    candidates), and is used only where it applies."""
-    from lsst_bfdrift.calibration import tuning
-
-    start = tuning.default_start()
-    cands = {n: tuning.CANDIDATES[n] for n in ("xi0", "channel_depth")}
-    m0, J, src = tuning.start_jacobian(start, cands, 2)
-    assert src == "package data" and m0.shape == (3, 3) and J.shape == (3, 3, 2)
-    calls = []
-
-    def model(values):
-        calls.append(values)
-        return tuning.model_acoeffs(start.replace(**values), 2)
-
-    fresh = tuning._compute_jacobian(model, {n: float(getattr(start, n)) for n in cands}, cands)
-    assert len(calls) == 3
-    assert_allclose(m0, fresh[0], rtol=1e-12, atol=0)
-    assert_allclose(J, fresh[1], rtol=1e-12, atol=1e-25)
-    # another start, other bounds, or lags beyond the file: computed
-    ms = tuning.MODEL_SETTINGS
-    assert tuning._shipped(start.replace(xi0=start.xi0 * 1.01), cands, 2, ms) is None
-    assert tuning._shipped(start, {"xi0": (1.0, 2e4)}, 2, ms) is None
-    assert tuning._shipped(start, cands, tuning.START_JACOBIAN_MAX_LAG + 1, ms) is None
-    assert tuning._shipped(start, cands, 2, tuning.CONVERGED_MODEL_SETTINGS) is None
-    with pytest.raises(ValueError, match="model settings must be a dict"):
-        tuning.model_acoeffs(start, 2, settings={"near_samples": 32})
-
-
 def test_calibrate_uses_the_shipped_jacobian(itl):
     """The default start reads the package data (no model evaluation for the
     Jacobian); an explicit other start computes it. Both fit GalSim's a00
     (3 % error) with xi0 alone to the same value and reproduce it."""
-    from lsst_bfdrift.calibration import tuning
+    from lsst_bfdrift.calibration.fit_model import default_start
 
     a00 = AcoeffTable(itl.a[:1, :1], 0.03 * np.abs(itl.a[:1, :1]))
     res = calibrate(a00, free=["xi0"], build=False)
     assert res.jacobian_source == "package data" and res.seconds["jacobian"] < 1.0
-    start = tuning.default_start()
+    start = default_start()
     res2 = calibrate(a00, free=["xi0"], start=start.replace(xi0=start.xi0 * 1.05), build=False)
     assert res2.jacobian_source == "computed"
     # the same optimum within a small fraction of the fit's own error

@@ -138,7 +138,7 @@ def _not(v):
 
 def _numerics(v):
     """--model-numerics NAME as calibrate's model_settings (None: the default settings)."""
-    from lsst_bfdrift.calibration.tuning import MODEL_NUMERICS, MODEL_SETTINGS
+    from lsst_bfdrift.calibration.fit_model import MODEL_NUMERICS, MODEL_SETTINGS
 
     return None if MODEL_NUMERICS[v] is MODEL_SETTINGS else MODEL_NUMERICS[v]
 

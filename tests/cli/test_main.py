@@ -441,7 +441,7 @@ def test_calibrate_with_converged_model_numerics(capsys, tmp_path):
     """--model-numerics converged fits with CONVERGED_MODEL_SETTINGS (the start
     Jacobian computed, the package data being the fit's) and records them in
     the template."""
-    from lsst_bfdrift.calibration.tuning import CONVERGED_MODEL_SETTINGS
+    from lsst_bfdrift.calibration.fit_model import CONVERGED_MODEL_SETTINGS
     from lsst_bfdrift.templates.template import DistortionTemplate
 
     small = tmp_path / "small.txt"

@@ -154,7 +154,7 @@ def test_corners_next_to_an_aggressor_at_a_tight_tolerance():
     side of a corner differ by ~5e-4 px: independent readings with full
     brackets at each corner's own coordinates return it to within 2 tol
     (column) and 3 tol (row)."""
-    from lsst_bfdrift.calibration.tuning import default_start
+    from lsst_bfdrift.calibration.fit_model import default_start
 
     m = SensorModel(default_start()).with_charge({(0, 0): 1e4})
     tol, delta = 2e-6, 4e-6
@@ -180,7 +180,7 @@ def test_corners_converge_read_farther_out_where_a_boundary_jumps():
     own: in x to 4 tol, in y (along the jump) to within the jump, 1e-3 px
     against the corners' 3.9e-3 px move. Where a boundary jumps, a corner
     is defined to that size only."""
-    from lsst_bfdrift.calibration.tuning import default_start
+    from lsst_bfdrift.calibration.fit_model import default_start
 
     m = SensorModel(default_start()).with_charge({(0, 0): 1e4})
     jj, ii = np.mgrid[0:3, 0:3]
