@@ -134,7 +134,8 @@ class SensorParameters:
         Lateral rms extent (um) of the collected charge in its potential
         well; 0 makes each pixel's charge one point dipole, otherwise it is
         spread over a 3 x 3 Gauss-Hermite grid of dipoles (exact for the
-        cloud's moments up to fifth order).
+        cloud's moments up to fifth order), whose outer dipoles (sqrt(3) rms
+        from the centre) must lie inside the pixel.
     charge_variance_parallel : float
         Extra variance (um^2) of the collected charge along the columns (y,
         the parallel transfer direction): the cloud's rms extents are
@@ -142,8 +143,8 @@ class SensorParameters:
         charge_variance_parallel) along y. A packet held under its collecting
         phases can be longer along the column than across it, between the
         channel stops. A variance, not an extent, so that the a_ij move
-        linearly with it from 0 (a fit can start there). The rule's outer
-        dipoles (sqrt(3) rms from the centre) must stay inside the pixel.
+        linearly with it from 0 (a fit can start there). The same rule
+        (one dipole along x without ``charge_cloud``), inside the pixel.
     charge_images : int
         Number of images of collected-charge dipoles, nearest first
         (z = 2t, -2t, 4t, ...).
@@ -233,7 +234,7 @@ class SensorParameters:
         if not self.charge_variance_parallel >= 0:
             raise InputError(f"parameter 'charge_variance_parallel' must be >= 0 um^2, got "
                              f"{self.charge_variance_parallel}")
-        reach = math.sqrt(3.0) * max(self.charge_cloud, self.cloud_extent_y)
+        reach = math.sqrt(3.0) * self.cloud_extent_y  # the larger extent
         if reach >= self.pixel_pitch / 2:
             raise InputError(f"the charge cloud's outer dipoles (sqrt(3) x its rms extent, "
                              f"{reach:.3g} um) must lie inside the pixel (half pitch "
