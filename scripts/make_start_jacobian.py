@@ -16,7 +16,8 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from lsst_bfdrift.calibration.fit_model import START_JACOBIAN_FILE, write_start_jacobian  # noqa: E402
+from lsst_bfdrift.calibration.fit_model import (START_JACOBIAN_FILE,  # noqa: E402
+                                                write_start_jacobian)
 from lsst_bfdrift.utils.io import data_path  # noqa: E402
 
 

@@ -12,10 +12,11 @@ The steps:
    response of the template, ``definition='alpha'`` of
    :func:`~lsst_bfdrift.calibration.acoeff_model.electrostatic_acoeffs`) are
    differentiated once with respect to every candidate parameter of
-   :data:`~lsst_bfdrift.calibration.fit_model.CANDIDATES` at the start. In that linear approximation, parameters
-   are added one at a time, the one that lowers chi2 most first, while the
-   drop exceeds the Bayesian information criterion's ln(N) (N measured
-   lags) and the data have more lags than parameters. This chooses with the
+   :data:`~lsst_bfdrift.calibration.fit_model.CANDIDATES` at the start. In
+   that linear approximation, parameters are added one at a time, the one
+   that lowers chi2 most first, while the drop exceeds the Bayesian
+   information criterion's ln(N) (N measured lags) and the data have more
+   lags than parameters. This chooses with the
    data: a PTC that measures only a00 frees one parameter; a full a-matrix
    frees what its lags constrain.
 2. **The fit.** :func:`~lsst_bfdrift.calibration.fitting.fit_parameters`
@@ -209,10 +210,13 @@ class CalibrationResult:
         Wall time of the steps.
     jacobian_source : str
         Where the start Jacobian came from: ``'package data'`` (the default
-        start and candidates, :func:`~lsst_bfdrift.calibration.fit_model.start_jacobian`) or ``'computed'``.
+        start and candidates,
+        :func:`~lsst_bfdrift.calibration.fit_model.start_jacobian`) or
+        ``'computed'``.
     model_settings : dict
-        Numerical settings of the fit's model a_ij (:data:`~lsst_bfdrift.calibration.fit_model.MODEL_SETTINGS`
-        or those passed).
+        Numerical settings of the fit's model a_ij
+        (:data:`~lsst_bfdrift.calibration.fit_model.MODEL_SETTINGS` or those
+        passed).
     """
 
     #: Defaults of the attributes a result built by hand may lack.
@@ -463,8 +467,9 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
         when the table measures it (``exclude_a00`` False). Read one with
         :func:`~lsst_bfdrift.ptc.inputs.read_calibration_input`.
     start : SensorParameters, optional
-        Starting point; default :func:`~lsst_bfdrift.calibration.fit_model.default_start` (the bundled template's
-        sensor).
+        Starting point; default
+        :func:`~lsst_bfdrift.calibration.fit_model.default_start` (the
+        bundled template's sensor).
     free : dict or sequence of str, optional
         Free parameters with bounds ({name: (lo, hi)}) or names of
         :data:`~lsst_bfdrift.calibration.fit_model.CANDIDATES`. Default: chosen
@@ -492,8 +497,10 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
         ``calibrate: refinement``; each weighted by its typical time
         (:data:`STAGE_SECONDS`).
     model_settings : dict, optional
-        Numerical settings of the fit's model a_ij (:func:`~lsst_bfdrift.calibration.fit_model.model_acoeffs`;
-        default :data:`~lsst_bfdrift.calibration.fit_model.MODEL_SETTINGS`, or :data:`~lsst_bfdrift.calibration.fit_model.CONVERGED_MODEL_SETTINGS`).
+        Numerical settings of the fit's model a_ij
+        (:func:`~lsst_bfdrift.calibration.fit_model.model_acoeffs`; default
+        :data:`~lsst_bfdrift.calibration.fit_model.MODEL_SETTINGS`, or
+        :data:`~lsst_bfdrift.calibration.fit_model.CONVERGED_MODEL_SETTINGS`).
 
     Returns
     -------

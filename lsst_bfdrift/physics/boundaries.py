@@ -153,6 +153,12 @@ def bisect_boundary(model, along, across, axis, index, *, tol=1e-4, half_width=0
     return result
 
 
+def _bracket(move, tol, floor=8.0):
+    """Half widths (pixel units) of brackets a few times the last ``move``:
+    4 move, at least ``floor`` tol, at most 0.45."""
+    return np.clip(4.0 * move, floor * tol, 0.45)
+
+
 def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=12, **kwargs):
     """Locate pixel corners (meeting points of four pixels) by alternation.
 
@@ -226,8 +232,7 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
                 # in a bracket a few times that one's move wide
                 nominal = g[1][idx]
                 g[1][idx] = g[0][idx]
-                kw = dict(kw, half_width=np.clip(4.0 * np.abs(g[0][idx] - nominal), 8.0 * tol,
-                                                 0.45))
+                kw = dict(kw, half_width=_bracket(np.abs(g[0][idx] - nominal), tol))
             g[k][idx] = bisect_boundary(model, along + side, g[k][idx], axis, index, tol=tol, **kw)
         return 0.5 * (g[0][idx] + g[1][idx])
 
@@ -237,7 +242,7 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
         for _ in range(max_passes):
             if todo.size == 0:
                 break
-            hw = np.clip(4.0 * step[todo], 4.0 * tol, 0.45)
+            hw = _bracket(step[todo], tol, floor=4.0)
             xn = read("x", y[todo], todo, half_width=hw, **kwargs)
             yn = read("y", xn, todo, half_width=hw, **kwargs)
             change = np.maximum(np.abs(xn - x[todo]), np.abs(yn - y[todo]))
@@ -259,7 +264,7 @@ def locate_corners(model, xc, yc, col_index, row_index, *, tol=1e-4, max_passes=
         for it in range(max_passes if todo.size else 0):
             if todo.size == 0:
                 break
-            kw = dict(half_width=np.clip(4.0 * step[todo], 4.0 * tol, 0.45), **kwargs)
+            kw = dict(half_width=_bracket(step[todo], tol, floor=4.0), **kwargs)
             y0 = y[todo]
             g0 = g_of(y0, todo, kw)
             g1 = g_of(g0, todo, kw)
@@ -356,11 +361,6 @@ class BoundaryGrid:
         return (self.corners - ref.corners, self.vedge - ref.vedge, self.hedge - ref.hedge)
 
 
-def _bracket(move, tol, shape):
-    """Half widths of edge brackets from their corners' largest move (pixel units)."""
-    return np.broadcast_to(np.clip(4.0 * move, 8.0 * tol, 0.45), shape)
-
-
 def _bisect_task(model, kind, arrays, kw):
     """Worker body (module level so that it can be sent to a process)."""
     if kind == "corner":
@@ -455,13 +455,15 @@ def pixel_boundaries(model, i_range, j_range, *, edge_samples=8, tol=1e-4, z0=No
     # meshgrid with indexing xy gives shape (nJ, nI, nF)
     I, J, F = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1), fr, indexing="xy")
     x0, x1 = corners[:-1, :, 0, None], corners[1:, :, 0, None]
-    hw = _bracket(np.maximum(move[:-1, :, None], move[1:, :, None]), tol, F.shape)
+    hw = np.broadcast_to(_bracket(np.maximum(move[:-1, :, None], move[1:, :, None]), tol),
+                         F.shape)
     vx = _split_run(model, "x", [J - 0.5 + F, x0 + F * (x1 - x0), I - 1, hw], dict(kw), workers)
     vedge = vx.reshape(ny, nx + 1, edge_samples)
     # Row boundaries: y = J - 0.5 for J in j0..j1, columns I in i0..i1-1.
     I, J, F = np.meshgrid(np.arange(i0, i1), np.arange(j0, j1 + 1), fr, indexing="xy")
     y0, y1 = corners[:, :-1, 1, None], corners[:, 1:, 1, None]
-    hw = _bracket(np.maximum(move[:, :-1, None], move[:, 1:, None]), tol, F.shape)
+    hw = np.broadcast_to(_bracket(np.maximum(move[:, :-1, None], move[:, 1:, None]), tol),
+                         F.shape)
     hy = _split_run(model, "y", [I - 0.5 + F, y0 + F * (y1 - y0), J - 1, hw], dict(kw), workers)
     hedge = hy.reshape(ny + 1, nx, edge_samples)
     return BoundaryGrid(i0, j0, corners, vedge, hedge, fr)
