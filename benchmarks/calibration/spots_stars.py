@@ -29,7 +29,17 @@ lsst_itl_50_32):
      the spot shapes cancels and the slopes are those of the BF effect
      alone, to a few % of the e1 slope; this is what a series of thousands
      of spots measures, and it tests the method (the calibration machinery
-     and the transfer from spots to stars), not the photon count.
+     and the transfer from spots to stars), not the photon count;
+   * ``..., bias-corrected``: each series asks for the slopes the drift
+     correction leaves on its design with a right template
+     (:func:`~lsst_bfdrift.calibration.spot_bias.spot_correction_bias`);
+   * ``..., sum kept``: the same fit with the a-matrix's directions
+     conditioned on the measured lags' area sum (``keep_lag_sum=True``, the
+     star route's default), against the spot route's default that lets the
+     spots move it.
+
+   Before the stars, each paired series is corrected with T_a and with
+   GalSim's own file: the size and e1 slopes they leave on all its spots.
 
 4. **stars, held out**: paired GalSim stars as ``calibrate_sensor.py``
    and ``peers.py`` draw them (Moffat and Kolmogorov, FWHM 0.6-0.9", random
@@ -224,7 +234,7 @@ def star_table(pairs, templates, say, psf):
         s = star_slopes(fl_n, rows[name])
         out[name] = {q: (100 * s[q][0] / den[q], 100 * s[q][1] / abs(den[q]))
                      for _, q in QUANTITIES}
-        say(f"  {psf:10s} {name:38s} " + "  ".join(
+        say(f"  {psf:10s} {name:47s} " + "  ".join(
             f"{q} {out[name][q][0]:+6.1f} +- {out[name][q][1]:4.1f}" for _, q in QUANTITIES))
     base = "flats only"
     for name in res:
@@ -322,6 +332,10 @@ def run_sensor(sensor, args, say):
                 f"({time.time() - t0:.0f} s)")
         runs.update({f"{k}, bias-corrected": v for k, v in list(runs.items())
                      if k in ("spots", "spots, paired")})
+        # the same with the a-matrix's directions conditioned on the measured lags' area
+        # sum (keep_lag_sum=True, the star route's default): what freeing it changes
+        runs.update({f"{k}, sum kept": runs[k] for k in
+                     ("spots, bias-corrected", "spots, paired, bias-corrected")})
     templates = {"flats only": res_a.template}
     fits = {}
     for label, group in runs.items():
@@ -332,7 +346,8 @@ def run_sensor(sensor, args, say):
             warnings.simplefilter("ignore")  # the fit's warnings are in its record
             # the bias-corrected runs carry their series' bias (4 x 4 centres); the others ask
             # for zero slopes left
-            j = calibrate_with_spots(res_a, fields, seed=args.seed, correction_bias=False)
+            j = calibrate_with_spots(res_a, fields, seed=args.seed, correction_bias=False,
+                                     keep_lag_sum=label.endswith("sum kept"))
         fits[label] = j
         r = rec[label] = {name: fit_record(j, name) for name in group}
         templates[f"flats + {label}"] = j.template
@@ -346,6 +361,7 @@ def run_sensor(sensor, args, say):
                 f"{rr['size_sigma_flats_percent']:.1f} % -> +- "
                 f"{rr['size_sigma_joint_percent']:.1f} %; {held_text(rr['held_out'])}")
     templates["true template"] = import_galsim_sensor(sensor, match="transfers")
+    rec["paired_spots"] = paired_spot_check(paired, templates, say)
     rec["stars"] = {}
     for psf in args.psf:
         pairs, seed, cost = cached_pairs(sensor, psf, args)
@@ -356,6 +372,26 @@ def run_sensor(sensor, args, say):
     if args.plan:
         rec["plan"] = plan_lines(fits, series, designs, sigmas, say)
     return rec
+
+
+def paired_spot_check(paired, templates, say):
+    """The size and e1 slopes T_a and GalSim's own file leave on every paired spot series
+    (all its spots; % of the uncorrected slope): how far the flats template is from the
+    truth on spots of each size, and what the correction leaves with the truth."""
+    out = {}
+    for sigma, series in paired.items():
+        s0 = series.slopes(None)
+        out[sigma_label(sigma)] = r = {}
+        for name in ("flats only", "true template"):
+            s = series.slopes(templates[name])
+            r[name] = {q: [100 * s[q][0] / s0[q][0], 100 * s[q][1] / abs(s0[q][0])]
+                       for q in ("size", "e1")}
+        say(f" paired spots, {sigma_label(sigma)} (all spots): % left, flats only size "
+            f"{r['flats only']['size'][0]:+.1f} +- {r['flats only']['size'][1]:.1f}, e1 "
+            f"{r['flats only']['e1'][0]:+.1f} +- {r['flats only']['e1'][1]:.1f}; true template "
+            f"size {r['true template']['size'][0]:+.1f} +- {r['true template']['size'][1]:.1f}, "
+            f"e1 {r['true template']['e1'][0]:+.1f} +- {r['true template']['e1'][1]:.1f}")
+    return out
 
 
 def fitted_design(bf, sigma):
@@ -449,7 +485,7 @@ def target_table(sensors, say):
                     r[q] = [v, e]
                     r[f"{q}_target"] = verdict(v, e, TARGET[q])
                 rows.append(r)
-                say(f"  {sensor:15s} {psf:10s} {name:38s} size {r['size'][0]:+5.1f} +- "
+                say(f"  {sensor:15s} {psf:10s} {name:47s} size {r['size'][0]:+5.1f} +- "
                     f"{r['size'][1]:3.1f} ({r['size_target']}), e1 {r['e1'][0]:+6.1f} +- "
                     f"{r['e1'][1]:4.1f} ({r['e1_target']})")
     return rows

@@ -39,6 +39,17 @@ stands in for a :class:`~lsst_bfdrift.calibration.star_fit.StarField`:
   at their chi2 cost, so the fit divides the e1 change between the
   template's divergence-free part (free for the a-matrix) and the lags (as
   their errors allow);
+* those directions span the a-matrix's **full** errors
+  (``keep_lag_sum=False``): a change of the measured lags' area sum (most
+  of it a00's) moves area between the measured lags and the far ones
+  beyond them, at its chi2 cost. The star route keeps that sum, as a
+  field's noisy size slope would move the far lags, which nothing else
+  measures; spots of two sizes measure their size slopes to a fraction of
+  a per cent, and the far area is what sets them apart: on GalSim's spots
+  of 1 and 2 px the flats template from GalSim's a-matrix over-corrects the
+  2 px spots' size slope about twice as much as the 1 px spots', and with
+  the sum kept no template of the fit matches both
+  (``benchmarks/calibration/spots_stars.py``);
 * its halves (two-fold cross-validation, ``holdout`` 'cross', and 'split')
   are halves of its **spots**, paired by their mean flux (the projector's
   illumination), every image of a spot on one side; or halves of its
@@ -421,7 +432,7 @@ def check_spot_fields(fields, holdout, *, seed=20151, n_stars=0):
 def calibrate_with_spots(result, spots, *, stars=(), holdout="auto", split_by="spots",
                          seed=20151, max_directions=6, n_boot=200, iterations=2, gain=None,
                          saturation=None, min_snr=30.0, min_stars=30, min_spots=MIN_FIT_SPOTS,
-                         flats_uncertainty=True, fitted_slopes=("size",),
+                         flats_uncertainty=True, keep_lag_sum=False, fitted_slopes=("size",),
                          spot_slopes=SPOT_FITTED_SLOPES, scale_star_errors=True,
                          size_goal=3.0, correction_bias=True, bias_centres=3, progress=False):
     """Refit a calibration jointly to its a-matrix and to spot series (and star fields).
@@ -459,6 +470,11 @@ def calibrate_with_spots(result, spots, *, stars=(), holdout="auto", split_by="s
         Fewest usable spots a series fits (per half with 'cross').
     flats_uncertainty : bool, optional
         As :func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars`.
+    keep_lag_sum : bool, optional
+        As :func:`~lsst_bfdrift.calibration.star_fit.calibrate_with_stars`,
+        with the opposite default: the spots may move the measured lags'
+        area sum, and with it the area the template sends beyond the
+        measured lags (module docstring). True keeps the flats template's.
     fitted_slopes : sequence of {'size', 'e1', 'e2'}, optional
         The slopes fitted on the star fields.
     spot_slopes : sequence of {'size', 'e1', 'e2'}, optional
@@ -521,7 +537,7 @@ def calibrate_with_spots(result, spots, *, stars=(), holdout="auto", split_by="s
     return joint_calibration(result, fields, holdout=holdout, seed=seed,
                              max_directions=max_directions, n_boot=n_boot,
                              iterations=iterations, min_stars=min_stars,
-                             flats_uncertainty=flats_uncertainty, fitted_slopes=fitted_slopes,
-                             scale_star_errors=scale_star_errors, size_goal=size_goal,
-                             always=SPOT_DIRECTIONS, meta_key="spots", progress=progress,
-                             t0=t0)
+                             flats_uncertainty=flats_uncertainty, keep_lag_sum=keep_lag_sum,
+                             fitted_slopes=fitted_slopes, scale_star_errors=scale_star_errors,
+                             size_goal=size_goal, always=SPOT_DIRECTIONS, meta_key="spots",
+                             progress=progress, t0=t0)

@@ -31,7 +31,8 @@ default) there are the directions of the a-matrix's errors: minimum-norm,
 curl-free edge shifts that change the measured a_ij by one standard
 deviation along each principal axis of their errors, conditioned on the sum
 rule (the measured lags' area sum is kept, so no area is pushed into the
-unmeasured far lags; :func:`~lsst_bfdrift.templates.refine.area_response_directions`).
+unmeasured far lags, unless ``keep_lag_sum=False``, the spot route's default;
+:func:`~lsst_bfdrift.templates.refine.area_response_directions`).
 They span what the flats leave uncertain: T_a plus their sum with standard
 normal coefficients is a template drawn from those errors. They are always
 in the fit (not chosen), and each step costs one unit of the a-matrix's
@@ -598,8 +599,9 @@ def fields_summary(fields, fit_fields, hold_fields):
 
 def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_directions=6,
                          n_boot=200, iterations=2, gain=None, min_snr=30.0,
-                         min_stars=30, flats_uncertainty=True, fitted_slopes=("size",),
-                         scale_star_errors=True, size_goal=3.0, progress=False):
+                         min_stars=30, flats_uncertainty=True, keep_lag_sum=True,
+                         fitted_slopes=("size",), scale_star_errors=True, size_goal=3.0,
+                         progress=False):
     """Refit a calibration jointly to its a-matrix and to star fields.
 
     Parameters
@@ -639,6 +641,11 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
         directions always in the fit, their cost the a-matrix's chi2
         (module docstring); the model's directions are then left out, but
         ``curl``. False: the model's directions (tension resolved by physics).
+    keep_lag_sum : bool, optional
+        The a-matrix's directions keep the measured lags' area sum (True:
+        a field's noisy size slope moves no area into the far lags), or
+        span its full errors (False, the spot route's default: a change of
+        that sum, mostly a00's, moves area to or from the far lags).
     fitted_slopes : sequence of {'size', 'e1', 'e2'}, optional
         The star slopes the fit nulls (default: size). The others are
         measured and reported (held-out stars included, and their chi2
@@ -687,15 +694,15 @@ def calibrate_with_stars(result, stars, *, holdout="auto", seed=20151, max_direc
     return joint_calibration(result, fields, holdout=holdout, seed=seed,
                              max_directions=max_directions, n_boot=n_boot,
                              iterations=iterations, min_stars=min_stars,
-                             flats_uncertainty=flats_uncertainty, fitted_slopes=fitted_slopes,
-                             scale_star_errors=scale_star_errors, size_goal=size_goal,
-                             progress=progress, t0=t0)
+                             flats_uncertainty=flats_uncertainty, keep_lag_sum=keep_lag_sum,
+                             fitted_slopes=fitted_slopes, scale_star_errors=scale_star_errors,
+                             size_goal=size_goal, progress=progress, t0=t0)
 
 
 def joint_calibration(result, fields, *, holdout="auto", seed=20151, max_directions=6,
                       n_boot=200, iterations=2, min_stars=30, flats_uncertainty=True,
-                      fitted_slopes=("size",), scale_star_errors=True, size_goal=3.0,
-                      always=(), meta_key="stars", progress=False, t0=None):
+                      keep_lag_sum=True, fitted_slopes=("size",), scale_star_errors=True,
+                      size_goal=3.0, always=(), meta_key="stars", progress=False, t0=None):
     """The joint fit of a calibration to data sets read already: star fields, spot series.
 
     The body of :func:`calibrate_with_stars` and
@@ -708,7 +715,7 @@ def joint_calibration(result, fields, *, holdout="auto", seed=20151, max_directi
         With its template built (:func:`check_star_inputs`).
     fields : list of StarField or SpotField
         The data sets, with distinct names.
-    holdout, seed, max_directions, n_boot, iterations, min_stars, flats_uncertainty
+    holdout, seed, max_directions, n_boot, iterations, min_stars, flats_uncertainty, keep_lag_sum
         As :func:`calibrate_with_stars`.
     fitted_slopes : tuple of str
         The slopes fitted on data sets that state none of their own (star
@@ -734,7 +741,8 @@ def joint_calibration(result, fields, *, holdout="auto", seed=20151, max_directi
     # uncertainty (per measured lag, the curl-free change of one error), and 'curl'
     ta = result.template
     rows = AmatrixRows(result.table, ta)
-    lag_dirs = area_response_directions(ta, rows.sigma_lags, max_lag=rows.max_lag) \
+    lag_dirs = area_response_directions(ta, rows.sigma_lags, max_lag=rows.max_lag,
+                                        sum_rule=bool(keep_lag_sum)) \
         if flats_uncertainty else {}
     n_model = 0 if lag_dirs else len(result.candidates) + 1  # the candidates and 'scale'
     bar = ProgressBar(progress_steps(n_model, len(lag_dirs), len(fit_fields), len(hold_fields),
@@ -777,6 +785,7 @@ def joint_calibration(result, fields, *, holdout="auto", seed=20151, max_directi
         "fields": [f.name for f in fields], "kinds": [f.kind for f in fields],
         "holdout": mode, "directions": final["chosen"],
         "coefficients": coefficients, "flats_uncertainty": uncertainty,
+        "keep_lag_sum": bool(keep_lag_sum) if flats_uncertainty else None,
         "chi2_amatrix": chi2["joint"]["amatrix"], "chi2_stars": chi2["joint"]["stars"],
         "tension": tension, "held_out": held,
         "correction_bias": {f.name: dict(f.bias) for f in fields if getattr(f, "bias", None)}},

@@ -34,7 +34,8 @@ from lsst_bfdrift.catalogs.spot_series import SpotSeries
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 from lsst_bfdrift.simulation.spots import simulate_spot_series
-from lsst_bfdrift.templates.refine import match_area_coefficients
+from lsst_bfdrift.templates.refine import (lag_multiplicity, match_area_coefficients,
+                                           template_alpha)
 from lsst_bfdrift.templates.template import load_default_template
 from lsst_bfdrift.utils.errors import InputError
 
@@ -232,3 +233,42 @@ def test_galsim_spots_and_galsim_a_matrix_calibrate_jointly():
     assert joint.fields[0]["n_held_out"] == joint.fields[0]["n_usable"]
     print(joint.tension_line())
     print(joint.held_out_table())
+
+
+def test_spots_move_the_area_the_template_sends_beyond_the_measured_lags():
+    """Consistency (the drift forward model makes the spots, the Task
+    corrects them): a sensor whose a00 is 10 % weaker than the flats' a00
+    (2 of its errors), the area made up beyond the measured lags 0..3, seen
+    through spots of 1.5 and 2.5 px. With the a-matrix's directions kept on
+    the measured lags' area sum (``keep_lag_sum=True``, the star route's
+    default) the fit cannot send less area beyond lag 3: that sum stays the
+    flats template's, the two spot sizes stay in tension and keep a third of
+    their size slope or more. With the full errors (the spot route's
+    default) the sum moves to the truth's, the held-out spots of both sizes
+    keep under 3 % of their size slope and the tension is gone."""
+    res = _calibration()
+    a_truth = res.table.a.copy()
+    a_truth[0, 0] *= 0.9
+    truth = match_area_coefficients(res.built_template, a_truth, max_lag=3)
+    series = []
+    for sigma, pitch, margin in ((1.5, 26, 20), (2.5, 44, 32)):
+        images, times = forward_spot_images(truth, sigma=sigma, pitch=pitch, margin=margin)
+        series.append(SpotSeries(images, exptimes=times))
+
+    def lag_sum(t):
+        c = t.center
+        return float(np.sum(lag_multiplicity(3) * template_alpha(t)[c:c + 4, c:c + 4].T))
+
+    s_flats, s_truth = lag_sum(res.template), lag_sum(truth)
+    assert abs(s_flats - s_truth) > 0.05 * abs(res.table.a[0, 0])
+    kept, free = (calibrate_with_spots(res, series, seed=3, iterations=1, correction_bias=False,
+                                       keep_lag_sum=k) for k in (True, False))
+    assert kept.template.meta["calibration"]["spots"]["keep_lag_sum"] is True
+    assert free.template.meta["calibration"]["spots"]["keep_lag_sum"] is False
+    assert_allclose(lag_sum(kept.template), s_flats, atol=0.01 * abs(s_flats - s_truth))
+    assert abs(lag_sum(free.template) - s_truth) < 0.1 * abs(s_flats - s_truth)
+    assert kept.tension["p_value"] < 1e-3 < free.tension["p_value"]
+    for name in ("spots0", "spots1"):
+        before = free.held_out[name]["before"]["size"][0]
+        assert abs(kept.held_out[name]["joint"]["size"][0]) > 0.3 * before
+        assert abs(free.held_out[name]["joint"]["size"][0]) < 0.03 * before
