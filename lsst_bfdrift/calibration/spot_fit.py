@@ -488,9 +488,10 @@ def calibrate_with_spots(result, spots, *, stars=(), holdout="auto", split_by="s
         of zero: :func:`~lsst_bfdrift.calibration.spot_bias.spot_correction_bias`
         with ``result``'s template on ``bias_centres`` x ``bias_centres``
         sub-pixel centres (up to about 30 s per series; the series' field
-        records keep it as ``correction_bias``). On GalSim's spots of 1 and 2 px it
-        moves the size slope left on held-out stars by 0.2-1.9 % points, toward
-        zero on the four sensor models of ``benchmarks/calibration/spots_stars.py``.
+        records keep it as ``correction_bias``). On GalSim's paired spots of 1
+        and 2 px it moves the size slope left on held-out stars by 0.2-0.8 %
+        points, toward zero, on the four sensor models of
+        ``benchmarks/calibration/spots_stars.py``.
         Default True.
     bias_centres : int, optional
         Sub-pixel centres per side of that simulation.
