@@ -40,10 +40,12 @@ and e2 left (e2, which has no brighter-fatter slope of its own, in % of the
 uncorrected e1 slope) with errors from the stars, and the paired differences between
 routes (per-star differences: the stars' scatter cancels; the package's route
 against each LSST route and against the true template). Each route states
-a precision from its own input errors: the standard deviation of the
-corrected slopes over ``--draws-stated`` templates drawn from them (the
+a precision from its own input errors: the rms difference between the
+corrected slopes with ``--draws-stated`` templates drawn from them (the
 calibrated template's stored uncertainty; the Astier & Regnault fit's
-parameter covariance; the a-matrix errors through the kernel); its coverage
+parameter covariance; the a-matrix errors through the kernel) and with the
+route's own template (as the Task's ``uncertainty_draws`` state the flux
+moved; the spread among few draws alone misses their offset); its coverage
 is the fraction of cases (sensor x input x PSF x size, e1) whose residual
 lies within that precision combined with the stars' error. Run::
 
@@ -337,8 +339,9 @@ def main(argv=None):
                         s, _ = slopes(fl_d, rows_d[m])
                         for _, q in QUANTITIES:
                             vals[q].append(100 * s[q][0] / den[q])
-                    st = {q: float(np.std(v, ddof=1)) if len(v) > 1 else float("inf")
-                          for q, v in vals.items()}
+                    # rms about the route's own template's residual (its offset counts)
+                    st = {q: float(np.sqrt(np.mean((np.asarray(v) - row[m][q][0]) ** 2)))
+                          if v else float("inf") for q, v in vals.items()}
                     row[m]["stated"] = st
                     row[m]["stated_refused"] = refused
                     for q in ("size", "e1"):
