@@ -405,7 +405,8 @@ def uncertainty_report(final, basis, rows, fields, flats_template, *, n_boot=200
         "e1_slope_sigma": e1_sigma,
         "note": "the joint template's change from the flats template: a_ij change per "
                 "lag (1/e) and its chi2 with the a-matrix's errors; steps along the "
-                "directions of those errors (sum rule kept); size_slope_sigma: per "
+                "directions of those errors (the measured lags' area sum kept when the "
+                "record's keep_lag_sum is true); size_slope_sigma: per "
                 "fitted field, the standard deviation of its corrected size slope (per "
                 "1e5 e, and % of its uncorrected slope) that the flats' errors leave, "
                 "and that the flats and the stars together leave; e1_slope_sigma: the "
