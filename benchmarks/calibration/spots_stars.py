@@ -374,18 +374,24 @@ def run_sensor(sensor, args, say):
     return rec
 
 
+def slopes_left(series, template, before, quantities=("size", "e1")):
+    """(value, error) in % of ``before`` (the uncorrected (slope, error) per quantity) of
+    the slopes a spot series keeps after a correction with ``template``."""
+    s = series.slopes(template, quantities=quantities)
+    return {q: (100 * s[q][0] / before[q][0], 100 * s[q][1] / abs(before[q][0]))
+            for q in quantities}
+
+
 def paired_spot_check(paired, templates, say):
     """The size and e1 slopes T_a and GalSim's own file leave on every paired spot series
     (all its spots; % of the uncorrected slope): how far the flats template is from the
-    truth on spots of each size, and what the correction leaves with the truth."""
+    truth on spots of each size, and what the correction leaves with the truth
+    (``spots_truth.py`` adds the file's other reading and the correction's own error)."""
     out = {}
     for sigma, series in paired.items():
-        s0 = series.slopes(None)
-        out[sigma_label(sigma)] = r = {}
-        for name in ("flats only", "true template"):
-            s = series.slopes(templates[name])
-            r[name] = {q: [100 * s[q][0] / s0[q][0], 100 * s[q][1] / abs(s0[q][0])]
-                       for q in ("size", "e1")}
+        s0 = series.slopes(None, quantities=("size", "e1"))
+        out[sigma_label(sigma)] = r = {name: slopes_left(series, templates[name], s0)
+                                       for name in ("flats only", "true template")}
         say(f" paired spots, {sigma_label(sigma)} (all spots): % left, flats only size "
             f"{r['flats only']['size'][0]:+.1f} +- {r['flats only']['size'][1]:.1f}, e1 "
             f"{r['flats only']['e1'][0]:+.1f} +- {r['flats only']['e1'][1]:.1f}; true template "

@@ -55,7 +55,7 @@ sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
 
 from _common import Lines, settings_record, write_results  # noqa: E402
 from spots_stars import (BIAS, FULL_WELL, PairedSpotSeries, flats_calibration,  # noqa: E402
-                         spot_simulation)
+                         slopes_left, spot_simulation)
 
 from lsst_bfdrift import BrighterFatterDriftConfig, BrighterFatterDriftTask  # noqa: E402
 from lsst_bfdrift.catalogs.spot_series import SpotSeries  # noqa: E402
@@ -76,12 +76,6 @@ def paired_series(sensor, args, sigma):
     twin = SpotSeries([im - BIAS for im in sim["twins"]], exptimes=sim["exptimes"],
                       saturation=FULL_WELL, grid=bf.grid)
     return PairedSpotSeries(bf, twin.catalog), sim["seed"]
-
-
-def slopes(series, template):
-    """(slope, error) per 1e5 e of the paired size and e1 after ``template`` (None: none)."""
-    fit = series.fit(template, quantities=QUANTITIES)
-    return {q: (fit[q]["slope"], fit[q]["slope_err"]) for q in QUANTITIES}
 
 
 def selfsim_left(template, sigma, flux, weight_sigma, radius, *, centres, layout, seed):
@@ -120,16 +114,14 @@ def run_sensor(sensor, args, say):
     for sigma in args.sigma:
         t0 = time.time()
         series, seed = paired_series(sensor, args, sigma)
-        before = slopes(series, None)
+        before = {q: v for q, v in series.slopes(None, quantities=QUANTITIES).items()
+                  if q in QUANTITIES}
         r = rec[f"sigma {sigma:g}"] = {"seed": seed, "uncorrected_per_1e5": before}
         say(f" sigma {sigma:g} px (seed {seed}): uncorrected size {before['size'][0]:+.3e} "
             f"+- {before['size'][1]:.1e}, e1 {before['e1'][0]:+.3e} +- {before['e1'][1]:.1e} "
             "per 1e5 e")
         for name, tpl in templates.items():
-            s = slopes(series, tpl)
-            left = {q: (100 * s[q][0] / before[q][0], 100 * s[q][1] / abs(before[q][0]))
-                    for q in QUANTITIES}
-            r[name] = left
+            left = r[name] = slopes_left(series, tpl, before, QUANTITIES)
             say(f"  {name:24s} size {left['size'][0]:+6.2f} +- {left['size'][1]:4.2f} %   "
                 f"e1 {left['e1'][0]:+7.2f} +- {left['e1'][1]:5.2f} %")
         if args.centres:

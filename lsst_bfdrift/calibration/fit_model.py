@@ -43,6 +43,7 @@ CANDIDATES = {"channel_depth": (0.05, 6.0), "xi0": (300.0, 3e4),
 #: Aggressor charge (e) of the model evaluations and of the template.
 CHARGE = 1e4
 
+
 def default_start():
     """Sensor parameters of the bundled default template (the fit's default start)."""
     meta = load_default_template().meta
