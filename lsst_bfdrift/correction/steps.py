@@ -255,8 +255,12 @@ def flux_moved(flux, finite_data, blocked, fill, recorded):
 
 
 def flux_moved_error(template, data, finite_data, blocked, moved, cfg, dtype):
-    """Standard deviation of the flux moved over templates drawn from the
-    calibration uncertainty (:func:`~lsst_bfdrift.templates.refine.draw_templates`).
+    """Root-mean-square difference of the flux moved with templates drawn from the
+    calibration uncertainty (:func:`~lsst_bfdrift.templates.refine.draw_templates`)
+    from the flux moved with the template itself (``moved``).
+
+    The draws scatter about the template, so the mean square is taken over the
+    number of draws (no degree of freedom is spent on a sample mean).
 
     Returns
     -------
@@ -272,7 +276,7 @@ def flux_moved_error(template, data, finite_data, blocked, moved, cfg, dtype):
         d[blocked] = 0.0
         d -= moved
         acc += d * d
-    return np.sqrt(acc / max(len(draws) - 1, 1))
+    return np.sqrt(acc / len(draws))
 
 
 def edge_flags(blocked, reach):

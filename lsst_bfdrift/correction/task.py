@@ -143,8 +143,8 @@ class BrighterFatterDriftConfig(pexConfig.Config):
                               check=lambda v: v >= 1)
     uncertainty_draws = pexConfig.Field(
         doc="templates drawn from the calibration uncertainty stored in a calibrated template "
-            "(bfdrift calibrate) to give flux_moved_err, the standard deviation of "
-            "flux_moved; each costs one more correction; 0: off", dtype=int, default=0,
+            "(bfdrift calibrate) to give flux_moved_err, the rms difference of "
+            "their flux_moved from the template's own; each costs one more correction; 0: off", dtype=int, default=0,
         check=lambda v: v == 0 or v >= 2)
     uncertainty_seed = pexConfig.Field(doc="seed of the template draws", dtype=int, default=0)
     blocking_mask_planes = pexConfig.ListField(
@@ -343,7 +343,7 @@ class BrighterFatterDriftTask(Task):
             carried; a MaskedArray's mask gains the blocked pixels), ``area``,
             ``centroid_x``, ``centroid_y`` (shift from the pixel centre, px),
             ``e1``, ``e2`` (None if ``compute_geometry`` is off), ``flux_moved`` (e;
-            sums to zero), ``flux_moved_err`` (e; its standard deviation over
+            sums to zero), ``flux_moved_err`` (e; its rms difference with
             templates drawn from the calibration uncertainty, None unless
             ``uncertainty_draws``), ``flags`` (uint8, bits FLAG_BLOCKED, FLAG_EDGE),
             ``iterations``, ``converged``, ``warnings`` (what looks wrong with the

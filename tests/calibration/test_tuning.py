@@ -153,6 +153,15 @@ def test_task_gives_flux_moved_error(depth_fit):
         config=BrighterFatterDriftConfig(compute_geometry=False), template=res.template).run(img)
     assert plain.flux_moved_err is None
     assert_allclose(plain.flux_moved, moved, atol=0)
+    # direct sum (consistency): the rms over the same 8 drawn templates, each run
+    # by a plain Task, of flux_moved minus the template's own (no sample mean)
+    from lsst_bfdrift.templates.refine import draw_templates
+    acc = np.zeros_like(moved)
+    for tpl in draw_templates(res.template, 8, seed=cfg.uncertainty_seed):
+        d = BrighterFatterDriftTask(config=BrighterFatterDriftConfig(compute_geometry=False),
+                                    template=tpl).run(img).flux_moved - moved
+        acc += d * d
+    assert_allclose(err, np.sqrt(acc / 8), rtol=1e-4, atol=1e-6 * np.abs(moved).max())
 
 
 def test_refinement_target_keeps_the_model_within_errors():
