@@ -25,7 +25,7 @@ from lsst_bfdrift.calibration.routes import MODELS, calibrate_route
 from lsst_bfdrift.calibration.spot_fit import (SPOT_SPLITS, calibrate_with_spots,
                                                check_spot_fields, read_spot_fields)
 from lsst_bfdrift.calibration.star_fit import calibrate_with_stars, check_size_goal
-from lsst_bfdrift.calibration.fit_model import MODEL_NUMERICS
+from lsst_bfdrift.calibration.fit_model import CANDIDATES, MODEL_NUMERICS
 from lsst_bfdrift.calibration.tuning import CalibrationWarning, calibrate, measured_acoeffs
 from lsst_bfdrift.catalogs.spot_series import SpotSeries
 from lsst_bfdrift.cli._common import (add_common_options, check_output_dir, check_outputs, emit,
@@ -578,9 +578,8 @@ def add_calibrate_parser(subparsers):
                          "electroBfDistortionMatrix or a bfk FITS file")
     ca.add_argument("--free", nargs="+", metavar="NAME",
                     default=library_default(calibrate, "free"),
-                    help="free parameters (default: chosen by the data from channel_depth, "
-                         "xi0, collection_height, clock_separation, v_bss, acceptor_density, "
-                         "xi_ck, xi_cs)")
+                    help="free parameters (default: chosen by the data from "
+                         f"{', '.join(CANDIDATES)})")
     ca.add_argument("--max-lag", type=int,
                     default=library_default(read_calibration_input, "max_lag"),
                     help="largest lag measured from flat pairs (default: %(default)s)")

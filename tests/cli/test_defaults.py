@@ -310,7 +310,8 @@ def test_help_shows_each_default_once(capsys):
     with pytest.raises(SystemExit):
         main(["calibrate", "--help"])
     out = " ".join(capsys.readouterr().out.split())
-    assert "xi_ck, xi_cs) --max-lag MAX_LAG" in out and "(default: None)" not in out
+    assert "charge_cloud, charge_variance_parallel) --max-lag MAX_LAG" in out \
+        and "(default: None)" not in out
     assert out.count("(default: 8)") == 1
 
 
