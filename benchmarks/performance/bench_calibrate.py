@@ -7,8 +7,8 @@ Two inputs, alternated, ``--repeat`` times each, medians reported:
 * GalSim's own a-matrix of lsst_e2v_50_8 (9 x 9 lags, 2 % errors).
 
 Each run: the candidates' Jacobian at the start (package data for the default start), the parameter choice, the
-fit, the exact template build (21 x 21 pixels, 32 samples per edge) and the
-area refinement. Prints the machine and writes
+fit, the exact template build (21 x 21 pixels, 32 samples per edge), the
+area refinement and the parameter modes (two small builds per free parameter). Prints the machine and writes
 ``benchmarks/performance/bench_calibrate_results.txt`` / ``.json``::
 
     python benchmarks/performance/bench_calibrate.py [--repeat 3]
@@ -66,11 +66,12 @@ def main(argv=None):
     out = {"machine": machine, "repeat": args.repeat, "inputs": {}}
     for name, rs in runs.items():
         med = {k: statistics.median(r["seconds"].get(k, 0.0) for r in rs)
-               for k in ("jacobian", "fit", "build", "refine", "total")}
+               for k in ("jacobian", "fit", "build", "refine", "modes", "total")}
         nev = statistics.median(r["n_evaluations"] for r in rs)
         lines.append(f"  {name:13s} total {med['total']:5.1f} s (Jacobian {med['jacobian']:.1f}, "
                      f"fit {med['fit']:.1f}, build {med['build']:.1f}, refine "
-                     f"{med['refine']:.1f}); {nev:.0f} model evaluations; free "
+                     f"{med['refine']:.1f}, parameter modes {med['modes']:.1f}); {nev:.0f} model "
+                     "evaluations; free "
                      f"{', '.join(rs[0]['names'])}; chi2 {rs[0]['chi2']:.1f} / {rs[0]['dof']} dof; "
                      f"start Jacobian: {rs[0]['jacobian_source']}")
         out["inputs"][name] = {"median_seconds": med, "median_evaluations": nev, "runs": rs}

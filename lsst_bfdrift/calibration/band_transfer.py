@@ -52,10 +52,16 @@ def _lag_ratio(model_x, model_b, max_lag):
 
 
 def _scaled_uncertainty(unc, ratio):
-    """The calibration uncertainty ``unc`` with every lag scaled by ``ratio`` [i, j]."""
+    """The calibration uncertainty ``unc`` with every lag scaled by ``ratio`` [i, j]
+    (parameter modes, edge shifts near the aggressor, by the a00 ratio)."""
     if not unc:
         return unc
     out = copy.deepcopy(unc)
+    modes = out.get("parameter_modes")
+    if modes:
+        r00 = abs(float(np.asarray(ratio, float)[0, 0]))
+        for key in ("corner_d", "vedge_d", "hedge_d"):
+            modes[key] = (np.asarray(modes[key], float) * r00).tolist()
     if unc.get("kind") == "data":
         s = np.asarray(unc["sigma"], float)
         r = _fit(ratio, s.shape)

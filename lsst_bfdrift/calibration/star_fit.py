@@ -553,7 +553,9 @@ def joint_template(template, flats_template, stars_meta, *, key="stars"):
     flats_template : DistortionTemplate
         T_a: its metadata are the base of the result's.
     stars_meta : dict
-        Stored as ``meta['calibration'][key]``.
+        Stored as ``meta['calibration'][key]``. The flats' ``parameter_modes``
+        (:func:`~lsst_bfdrift.calibration.tuning.parameter_modes`) leave the
+        stored uncertainty: the stars or spots measure what they describe.
     key : str, optional
         ``'stars'``, or ``'spots'`` when spot series are in the fit.
 
@@ -566,6 +568,11 @@ def joint_template(template, flats_template, stars_meta, *, key="stars"):
     meta = dict(flats_template.meta)
     calib = dict(meta.get("calibration", {}))
     calib[key] = stars_meta
+    if isinstance(calib.get("uncertainty"), dict) and "parameter_modes" in calib["uncertainty"]:
+        # the stars or spots measure how area changes divide between column and
+        # row edges: the flats' parameter modes of that part are not carried
+        calib["uncertainty"] = {k: v for k, v in calib["uncertainty"].items()
+                                if k != "parameter_modes"}
     meta["calibration"] = calib
     template.meta = meta
     return template

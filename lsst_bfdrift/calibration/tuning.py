@@ -43,7 +43,11 @@ The steps:
    (:func:`~lsst_bfdrift.templates.refine.match_area_coefficients`): the
    model gives the shape of the boundary shifts, the data their divergence.
    The template's ``meta['calibration']`` stores the parameters, their
-   covariance, chi2, the inputs and the date.
+   covariance, chi2, the inputs and the date, and its uncertainty: the
+   a_ij errors (Birge-scaled for a poor fit) and what the parameters'
+   covariance does beyond the areas (:func:`parameter_modes`: how area
+   changes divide between column and row edges, which sets the e1 stars
+   keep).
 """
 
 import datetime
@@ -67,12 +71,14 @@ from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["CalibrationError", "CalibrationWarning", "CalibrationResult", "calibrate",
            "poor_fit_policy", "check_refined_match", "measured_acoeffs", "refinement_target",
-           "refine_template", "select_parameters", "STAGE_SECONDS"]
+           "refine_template", "parameter_modes", "select_parameters", "STAGE_SECONDS",
+           "MODE_MAX_SIZE", "MODE_EDGE_SAMPLES"]
 
 #: Typical seconds of :func:`calibrate`'s stages on 2 cores, the weights of its
 #: progress bar: one evaluation of the model's a_ij, the template build at the
 #: bundled default's settings (21 x 21, 32 samples, 1e-5 px) and the refinement.
-STAGE_SECONDS = {"model evaluation": 1.5, "template build": 12.0, "refinement": 1.0}
+STAGE_SECONDS = {"model evaluation": 1.5, "template build": 12.0, "refinement": 1.0,
+                 "parameter modes": 6.0}
 
 
 class CalibrationError(FitError):
@@ -175,6 +181,110 @@ def refine_template(template, table):
     """
     return match_area_coefficients(template, refinement_target(template, table),
                                    max_lag=min(table.max_lag, template.center - 1))
+
+
+#: Largest side of the templates :func:`parameter_modes` builds (lags up to 4
+#: around the aggressor, where the stars' e1 is set) and their samples per
+#: edge (a mode keeps each edge's mean shift): two such builds per free
+#: parameter cost about 0.3-0.8 s each.
+MODE_MAX_SIZE = 9
+MODE_EDGE_SAMPLES = 8
+
+
+def _edge_means(template, size):
+    """Corner shifts and per-edge mean shifts of the central ``size`` block."""
+    c, h = template.center, size // 2
+    o = c - h
+    return (template.corner_d[o:o + size + 1, o:o + size + 1],
+            template.vedge_d[o:o + size, o:o + size + 1].mean(axis=-1),
+            template.hedge_d[o:o + size + 1, o:o + size].mean(axis=-1))
+
+
+def parameter_modes(params, fit, candidates, table, settings, *, scale=1.0, progress=None):
+    """What the fitted parameters' uncertainty does to a refined template beyond its areas.
+
+    The refined template has the measured areas whatever the parameters
+    (within their errors), but how each pixel's area change divides between
+    its column and row edges, the divergence-free part of the boundary
+    shifts that no a-matrix measures and that sets the e1 stars keep,
+    follows the parameters. For each eigenvector v_m of the fit's parameter
+    covariance (eigenvalue lambda_m), templates are built at the best fit
+    +- sqrt(lambda_m) v_m (clipped to the bounds), each refined to the same
+    a_ij (:func:`refine_template`); half their difference is mode m, one
+    standard deviation. The templates are built on the central block of
+    side ``2 (L + 1) + 1`` (L the table's largest lag), at most
+    :data:`MODE_MAX_SIZE` and the settings' size, with
+    :data:`MODE_EDGE_SAMPLES` samples per edge (at most the settings'), where
+    the boundaries are those of the full build (lags beyond the block's are
+    refined no further: their areas change with the parameters); a mode is kept
+    as its corner shifts and the mean shift of each edge (the samples along
+    an edge move together), so that it stays small in the template's
+    metadata. :func:`~lsst_bfdrift.templates.refine.draw_templates` adds the
+    modes times independent standard normal numbers.
+
+    Parameters
+    ----------
+    params : SensorParameters
+        Best-fit parameters.
+    fit : ParameterFit
+        The fit (``names``, ``values``, ``covariance``).
+    candidates : dict
+        {name: (lo, hi)} bounds of the fitted parameters.
+    table : AcoeffTable
+        The a_ij the templates are refined to.
+    settings : TemplateSettings
+        Settings of the calibrated template (its charge, samples, tolerance).
+    scale : float, optional
+        Factor on the standard deviations (a poor fit's Birge ratio, as its
+        a_ij errors are scaled).
+    progress : callable, optional
+        Called with the fraction done.
+
+    Returns
+    -------
+    dict or None
+        ``size`` (side of the block, centred on the aggressor), ``names``,
+        ``eigenvalues``, ``vectors`` (columns v_m), ``scale``, ``kept`` (the
+        indices m of the modes stored), ``corner_d`` (per mode,
+        shape (size + 1, size + 1, 2)), ``vedge_d`` (per mode, mean shift of
+        each column edge, shape (size, size + 1)), ``hedge_d`` (per mode, each
+        row edge, shape (size + 1, size)), pixel units at the template's
+        charge, rounded to 5 significant digits; ``skipped``: modes whose
+        builds failed (parameters the model refuses), with the reason. None
+        without a usable covariance.
+    """
+    cov = np.asarray(fit.covariance, float)
+    if cov.size == 0 or not np.all(np.isfinite(cov)):
+        return None
+    lam, vec = np.linalg.eigh(cov)
+    size = int(min(settings.size, MODE_MAX_SIZE, 2 * (int(table.max_lag) + 1) + 1))
+    small = TemplateSettings.from_dict({**settings.to_dict(), "size": size,
+                                        "edge_samples": min(settings.edge_samples,
+                                                            MODE_EDGE_SAMPLES)})
+    out = {"size": size, "names": list(fit.names), "eigenvalues": lam.tolist(),
+           "vectors": vec.tolist(), "scale": float(scale), "kept": [], "corner_d": [],
+           "vedge_d": [], "hedge_d": [], "skipped": []}
+    for m in range(lam.size):
+        step = float(scale) * math.sqrt(max(float(lam[m]), 0.0)) * vec[:, m]
+        pair = []
+        for sign in (1.0, -1.0):
+            vals = {n: float(np.clip(fit.values[n] + sign * step[k], *candidates[n]))
+                    for k, n in enumerate(fit.names)}
+            try:
+                built = build_template(params.replace(**vals), small)
+            except (InputError, RuntimeError, ValueError) as exc:
+                out["skipped"].append({"mode": m, "values": vals, "reason": str(exc)})
+                break
+            pair.append(_edge_means(refine_template(built, table), size))
+            if progress is not None:
+                progress((2 * m + len(pair)) / (2 * lam.size))
+        if len(pair) < 2:
+            continue
+        out["kept"].append(m)
+        for key, plus, minus in zip(("corner_d", "vedge_d", "hedge_d"), *pair):
+            half = 0.5 * (np.asarray(plus) - np.asarray(minus))
+            out[key].append(np.vectorize(lambda v: float(f"{v:.5g}"))(half).tolist())
+    return out
 
 
 class CalibrationResult:
@@ -457,7 +567,7 @@ def check_refined_match(template_a, table, max_chi2_dof):
 
 def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settings=None,
               max_chi2_dof=3.0, allow_poor_fit=False, build=True, max_evaluations=25,
-              progress=False, model_settings=None):
+              progress=False, model_settings=None, modes=True):
     """Fit the electrostatic model to a measured a-matrix and build its template.
 
     Parameters
@@ -494,13 +604,20 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     progress : bool, optional
         Progress bar on stderr, labelled with the stage: ``calibrate: model
         fit`` (the Jacobian and the search), ``calibrate: template build``,
-        ``calibrate: refinement``; each weighted by its typical time
+        ``calibrate: refinement``, ``calibrate: parameter modes``; each
+        weighted by its typical time
         (:data:`STAGE_SECONDS`).
     model_settings : dict, optional
         Numerical settings of the fit's model a_ij
         (:func:`~lsst_bfdrift.calibration.fit_model.model_acoeffs`; default
         :data:`~lsst_bfdrift.calibration.fit_model.MODEL_SETTINGS`, or
         :data:`~lsst_bfdrift.calibration.fit_model.CONVERGED_MODEL_SETTINGS`).
+    modes : bool, optional
+        With refinement: store the fitted parameters' uncertainty beyond the
+        template's areas (:func:`parameter_modes`; two small template builds
+        per free parameter, about 1 s each), so that templates drawn from the
+        template's uncertainty vary how area changes divide between column
+        and row edges too.
 
     Returns
     -------
@@ -553,8 +670,12 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     stages = StageProgress({"model fit": n_eval * STAGE_SECONDS["model evaluation"],
                             "template build": STAGE_SECONDS["template build"] if build else 0,
                             "refinement": STAGE_SECONDS["refinement"] if build and refine
-                            else 0}, "calibrate", enabled=progress)
+                            else 0,
+                            "parameter modes": STAGE_SECONDS["parameter modes"]
+                            if build and refine and modes else 0}, "calibrate",
+                           enabled=progress)
     evaluations = 0
+    mode_record = None
 
     def count(n):
         nonlocal evaluations
@@ -623,6 +744,14 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
             stages("refinement", 0.0)
             template = refine_template(template, table)
             seconds["refine"] = time.perf_counter() - t3
+            if modes and fit.names:
+                t4 = time.perf_counter()
+                stages("parameter modes", 0.0)
+                mode_record = parameter_modes(
+                    params, fit, {n: candidates[n] for n in fit.names}, table, settings,
+                    scale=1.0 if misfit is None else misfit["birge"],
+                    progress=lambda f: stages("parameter modes", f))
+                seconds["modes"] = time.perf_counter() - t4
         c = template.center
         k = min(L, c - 1) + 1
         tpl_a = np.full_like(table.a, np.nan)
@@ -653,7 +782,8 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
             "uncertainty": (
                 {"kind": "data", "sigma": np.where(
                     mask, table.sigma * (1.0 if misfit is None else misfit["birge"]),
-                    np.nan).tolist()}
+                    np.nan).tolist(), **({"parameter_modes": mode_record}
+                                         if mode_record else {})}
                 if refine else
                 {"kind": "parameters", "jacobian": np.asarray(fit.jacobian).tolist(),
                  "covariance": np.asarray(fit.covariance).tolist(), "names": fit.names})}

@@ -386,7 +386,11 @@ def draw_templates(template, n, *, seed=0):
     Each draw of the a_ij change is turned into edge shifts by the same
     minimum-norm curl-free solution as :func:`match_area_coefficients`, so
     that the draws differ from ``template`` by exactly the drawn area
-    response (to first order).
+    response (to first order). Where the record holds ``parameter_modes``
+    (:func:`~lsst_bfdrift.calibration.tuning.parameter_modes`: what the
+    fitted parameters' uncertainty does beyond the areas, how area changes
+    divide between column and row edges), each draw adds every mode times
+    an independent standard normal number (drawn after the area change).
 
     Parameters
     ----------
@@ -433,13 +437,41 @@ def draw_templates(template, n, *, seed=0):
     solve = _edge_solver(template, matched, 0.05)
     jj, ii = np.mgrid[0:template.size, 0:template.size]
     di, dj = np.abs(ii - c), np.abs(jj - c)
+    modes = _padded_modes(template, unc.get("parameter_modes"))
     out = []
     for k in range(int(n)):
         d = delta()
         full = np.zeros((template.size, template.size))
         full[matched] = d[di[matched], dj[matched]]
         vd, hd, _ = solve(full, template.vedge_d, template.hedge_d)
+        cd = template.corner_d
+        if modes is not None:
+            z = rng.standard_normal(modes[0].shape[0])
+            cd = cd + np.tensordot(z, modes[0], axes=1)
+            vd = vd + np.tensordot(z, modes[1], axes=1)[..., None]
+            hd = hd + np.tensordot(z, modes[2], axes=1)[..., None]
         meta = dict(template.meta)
         meta["draw"] = {"index": k, "seed": int(seed)}
-        out.append(_with_edges(template, vd, hd, meta))
+        out.append(DistortionTemplate(cd, vd, hd, template.fractions, template.charge,
+                                      vedge_t=template.vedge_t, hedge_t=template.hedge_t,
+                                      meta=meta))
     return out
+
+
+def _padded_modes(template, record):
+    """Parameter modes of a calibration record on the template's grid: (corner
+    shifts (m, N + 1, N + 1, 2), column edge means (m, N, N + 1), row edge
+    means (m, N + 1, N)), or None without modes."""
+    if not record or not record.get("vedge_d"):
+        return None
+    size = int(record["size"])
+    if size > template.size or size % 2 != 1:
+        raise InputError(f"parameter modes of size {size} do not fit a template of size "
+                         f"{template.size}")
+    n, m = template.size, len(record["vedge_d"])
+    o = template.center - size // 2
+    cd, vd, hd = np.zeros((m, n + 1, n + 1, 2)), np.zeros((m, n, n + 1)), np.zeros((m, n + 1, n))
+    cd[:, o:o + size + 1, o:o + size + 1] = np.asarray(record["corner_d"], float)
+    vd[:, o:o + size, o:o + size + 1] = np.asarray(record["vedge_d"], float)
+    hd[:, o:o + size + 1, o:o + size] = np.asarray(record["hedge_d"], float)
+    return cd, vd, hd

@@ -70,6 +70,25 @@ def test_uncertainty_scaled_by_the_band_ratio(transferred):
     assert_allclose(a00.std(ddof=1), rows["y"]["a00_err"], rtol=0.3)
 
 
+def test_parameter_modes_scaled_by_the_a00_ratio(calibrated):
+    """CONSISTENCY: a band's stored parameter modes are the calibration's times |r00|."""
+    modes = {"size": 3, "corner_d": np.ones((1, 4, 4, 2)).tolist(),
+             "vedge_d": np.full((1, 3, 4), 2e-4).tolist(),
+             "hedge_d": np.full((1, 4, 3), -1e-4).tolist()}
+    meta = dict(calibrated.meta, calibration={
+        **calibrated.meta["calibration"],
+        "uncertainty": {**calibrated.meta["calibration"]["uncertainty"],
+                        "parameter_modes": modes}})
+    t = DistortionTemplate(calibrated.corner_d, calibrated.vedge_d, calibrated.hedge_d,
+                           calibrated.fractions, calibrated.charge, meta=meta)
+    mb = calibrated_band_templates(t, "r_57", bands=("u", "r"), nodes=NODES)
+    r00 = band_a00_table(mb)["u"]["ratio_a00"]
+    got = mb["u"].meta["calibration"]["uncertainty"]["parameter_modes"]
+    assert_allclose(got["vedge_d"], 2e-4 * abs(r00) * np.ones((1, 3, 4)), rtol=1e-12)
+    assert_allclose(got["hedge_d"], -1e-4 * abs(r00) * np.ones((1, 4, 3)), rtol=1e-12)
+    assert abs(r00) != 1.0 and modes["vedge_d"][0][0][0] == 2e-4  # the input is kept
+
+
 def test_parameter_uncertainty(calibrated):
     """CORRECTNESS: kind 'parameters': a00 error = |r00| sqrt(J C J^T) at lag 0."""
     jac = np.array([[[3e-7], [1e-7]], [[1e-7], [2e-8]]])

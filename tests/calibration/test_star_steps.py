@@ -512,12 +512,21 @@ def test_result_assembly():
     assert t is not ta and ta.meta == ta_meta  # a copy; the input is not modified
     assert t.meta["calibration"]["stars"] == {"holdout": "cross"}
     for k, v in ta.meta.get("calibration", {}).items():
+        if k == "uncertainty":  # the flats' parameter modes are not carried
+            assert "parameter_modes" not in t.meta["calibration"][k]
+            v = {n: u for n, u in v.items() if n != "parameter_modes"}
         assert t.meta["calibration"][k] == v
     for k in _ARRAYS:
         if getattr(ta, k) is not None:
             assert np.array_equal(getattr(t, k), getattr(ta, k))
     other = combine_templates(ta, [_scale_delta(ta)], [0.1])
     assert joint_template(other, ta, {}) is other
+    # the flats' parameter modes leave the uncertainty; the input keeps them
+    unc = {"kind": "data", "sigma": [[1e-8]], "parameter_modes": {"size": 3}}
+    moded = combine_templates(ta, [], [], meta={**ta.meta, "calibration": {"uncertainty": unc}})
+    t = joint_template(moded, moded, {"holdout": "cross"})
+    assert t.meta["calibration"]["uncertainty"] == {"kind": "data", "sigma": [[1e-8]]}
+    assert moded.meta["calibration"]["uncertainty"] is unc and "parameter_modes" in unc
 
     def slopes(tmp, sub):
         return {"size": ({None: 1.0, "Ta": 2.0, "Tj": 3.0}[tmp], 0.1), "e1": (0.0, 0.1),

@@ -65,6 +65,52 @@ def test_poor_fit_is_an_error_naming_lags(itl):
         calibrate(tight, free=["channel_depth"], build=False, max_evaluations=6)
 
 
+def test_parameter_modes_vary_the_template_beyond_its_areas(itl, depth_fit):
+    """The fitted parameter's uncertainty beyond the refined areas
+    (consistency: recomputed by hand from two independent builds at
+    +- 1 sigma, each refined to the same a_ij), and the draws that carry it:
+    with the area errors set to zero, a draw minus the template is a
+    standard normal number times the mode (300 seeded draws: mean within
+    0.2, standard deviation within 15 % of 1, nothing else moves)."""
+    from lsst_bfdrift.calibration.tuning import parameter_modes, refine_template
+    from lsst_bfdrift.templates.refine import draw_templates
+    from lsst_bfdrift.templates.template import DistortionTemplate, build_template
+
+    res = depth_fit
+    rec = res.template.meta["calibration"]["uncertainty"]["parameter_modes"]
+    assert rec["names"] == ["channel_depth"] and rec["size"] == 7 and not rec["skipped"]
+    sd = float(np.sqrt(res.fit.covariance[0, 0]))
+    assert_allclose(rec["eigenvalues"], [sd ** 2])
+    # a poor fit: the step is scaled by the Birge ratio, as the a_ij errors are
+    assert_allclose(rec["scale"], res.misfit["birge"] if res.misfit else 1.0)
+    sd *= rec["scale"]
+    sign = float(np.sign(rec["vectors"][0][0]))
+    built = [refine_template(build_template(res.params.replace(
+        channel_depth=res.fit.values["channel_depth"] + s * sign * sd), SMALL), itl)
+        for s in (1.0, -1.0)]
+    half = 0.5 * (built[0].vedge_d.mean(axis=-1) - built[1].vedge_d.mean(axis=-1))
+    mode = np.asarray(rec["vedge_d"][0])
+    assert np.abs(mode).max() > 0
+    assert_allclose(mode, half, rtol=1e-4, atol=1e-6 * np.abs(half).max())
+    # draws: with zero area errors only the mode moves them
+    tpl = res.template
+    meta = {**tpl.meta, "calibration": {**tpl.meta["calibration"], "uncertainty": {
+        **tpl.meta["calibration"]["uncertainty"],
+        "sigma": np.where(np.isfinite(np.asarray(
+            tpl.meta["calibration"]["uncertainty"]["sigma"], float)), 0.0, np.nan).tolist()}}}
+    quiet = DistortionTemplate(tpl.corner_d, tpl.vedge_d, tpl.hedge_d, tpl.fractions,
+                               tpl.charge, meta=meta)
+    z = []
+    for d in draw_templates(quiet, 300, seed=3):
+        dv = d.vedge_d - tpl.vedge_d
+        coef = float(np.sum(dv[..., 0] * mode) / np.sum(mode * mode))
+        assert_allclose(dv, coef * mode[..., None] * np.ones_like(dv), atol=1e-9)
+        z.append(coef)
+    assert abs(np.mean(z)) < 0.2 and abs(np.std(z) - 1.0) < 0.15
+    assert parameter_modes(res.params, res.fit, {"channel_depth": (0.05, 6.0)}, itl,
+                           SMALL, scale=rec["scale"])["vedge_d"] == rec["vedge_d"]
+
+
 def test_bad_input(itl):
     with pytest.raises(TypeError, match="AcoeffTable"):
         calibrate(itl.a)
@@ -271,13 +317,13 @@ def test_an_amatrix_inconsistent_in_itself_is_refused(change, match):
 def test_progress_says_each_stage_from_the_start(itl, capsys):
     """Issue 43 item 1: calibrate's bar says what runs from its first line (the
     model fit at 0 %), then each stage as it starts (template build,
-    refinement), and ends at 100 %."""
+    refinement, parameter modes), and ends at 100 %."""
     calibrate(itl, free=["channel_depth"], settings=SMALL, allow_poor_fit=True, progress=True)
     lines = capsys.readouterr().err.splitlines()
     assert lines[0].startswith("calibrate: model fit   0.0%")
     labels = [re.match(r"(.*?)\s+[0-9.]+%", ln).group(1) for ln in lines]
     order = ["calibrate: model fit", "calibrate: template build", "calibrate: refinement",
-             "calibrate: done"]
+             "calibrate: parameter modes", "calibrate: done"]
     assert [lb for lb in order if lb in labels] == order
     assert labels == sorted(labels, key=order.index)
     assert lines[-1].startswith("calibrate: done 100.0%")
