@@ -47,10 +47,21 @@ parameter covariance; the a-matrix errors through the kernel) and with the
 route's own template (as the Task's ``uncertainty_draws`` state the flux
 moved; the spread among few draws alone misses their offset); its coverage
 is the fraction of cases (sensor x input x PSF x size, e1) whose residual
-lies within that precision combined with the stars' error. Run::
+lies within that precision combined with the stars' error. The residual is
+the calibration's error plus the correction method's own floor (what the
+method leaves with the truth: GalSim's file, or for the kernel the kernel of
+GalSim's noise-free a-matrix), and a precision drawn from the input errors
+states only the first: a second coverage compares it with the calibration
+error alone, the route's residual minus its method's with the truth, paired
+on the same stars. The electrostatic route's precision is given twice: with
+the template's whole stored uncertainty (the a_ij errors and the fitted
+parameters' modes beyond the areas,
+:func:`~lsst_bfdrift.calibration.tuning.parameter_modes`) and from the
+a_ij errors alone (``electrostatic, a_ij errors alone``; the same seeds).
+Run::
 
     python benchmarks/calibration/peers.py [--sensors ...] [--lags 3] [--draws 3]
-        [--n-stars 200] [--pairs CACHE_PREFIX] [--flats] [--out PREFIX]
+        [--n-stars 200 [N ...]] [--pairs CACHE_PREFIX] [--flats] [--out PREFIX]
 """
 
 import argparse
@@ -65,13 +76,14 @@ import numpy as np
 from calibrate_sensor import flats_table, star_pairs
 
 from lsst_bfdrift.calibration.astier23_model import Astier23Parameters, astier23_shifts
-from lsst_bfdrift.calibration.routes import MODELS, ROUTE_METHODS, calibrate_route
+from lsst_bfdrift.calibration.routes import MODELS, ROUTE_METHODS, RouteResult, calibrate_route
 from lsst_bfdrift.calibration.fit_model import MODEL_NUMERICS
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable, near_field_response
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 from lsst_bfdrift.templates.edge_shifts import template_from_edge_shifts
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
-from lsst_bfdrift.templates.refine import draw_templates
+from lsst_bfdrift.templates.refine import (combine_templates, curl_free_template, draw_templates,
+                                          template_difference)
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.validation.stars import per_star_residuals
 
@@ -84,6 +96,13 @@ REPO = os.path.dirname(os.path.dirname(HERE))
 REL_ERROR, ERROR_FLOOR = 0.03, 1e-9
 #: Quantities compared: column of per_star_residuals' rows, name.
 QUANTITIES = ((0, "size"), (1, "e1"), (2, "e2"))
+#: What each route's calibration aims at: its correction method with the truth
+#: (GalSim's file; for the kernel, the kernel of GalSim's noise-free a-matrix).
+#: The route's residual minus this one's, paired on the same stars, is the error
+#: its calibration makes; the rest is the correction method's own floor.
+CALIBRATION_REFERENCE = {"electrostatic": "true template",
+                         "astier23": "true template, astier23",
+                         "coulton18": "coulton18, GalSim's a-matrix"}
 
 
 def origin_slope(x, y):
@@ -118,6 +137,26 @@ def moved_window(template):
     return template.size
 
 
+#: The electrostatic template's areas (its curl-free part) with the divergence-free
+#: part of the Astier & Regnault template: which link of the chain loses e1.
+HYBRID = "electrostatic areas, astier23 curl"
+
+#: The electrostatic route's stated precision from its a_ij errors alone (its
+#: template's uncertainty without the parameter modes), beside the full one.
+AREAS_ONLY = "electrostatic, a_ij errors alone"
+STATED_ROUTE = {AREAS_ONLY: "electrostatic"}
+
+
+def areas_only(template):
+    """A copy of a calibrated template whose stored uncertainty has no parameter modes."""
+    calib = dict(template.meta.get("calibration") or {})
+    calib["uncertainty"] = {k: v for k, v in (calib.get("uncertainty") or {}).items()
+                            if k != "parameter_modes"}
+    out = combine_templates(template, [], [])
+    out.meta = {**template.meta, "calibration": calib}
+    return out
+
+
 def stated_templates(route, table, n, seed):
     """Templates drawn from the route's own input uncertainty (its stated precision)."""
     rng = np.random.default_rng(seed)
@@ -149,6 +188,18 @@ def slopes(fluxes, rows):
     return {q: origin_slope(fluxes[ok], rows[ok, col]) for col, q in QUANTITIES}, ok
 
 
+def paired(res, a, b, fl, ok, den):
+    """{quantity: (slope, error)} in % of the paired per-star difference a - b (the
+    stars' scatter cancels)."""
+    good = ok & np.isfinite(res[a][0]) & np.isfinite(res[b][0])
+    d = {}
+    for col, q in QUANTITIES:
+        diff = res[a][1][a][good, col] - res[b][1][b][good, col]
+        sl, se = origin_slope(fl[good], diff)
+        d[q] = (100 * sl / den[q], 100 * se / abs(den[q]))
+    return d
+
+
 def run_case(pairs, templates, args):
     """Corrected residual rows of every route's template on one set of stars."""
     out = {}
@@ -172,11 +223,15 @@ def rms_lines(sensors):
                     if isinstance(tab.get(route), dict) and "size" in tab[route]:
                         rows.setdefault((route, kind), []).append(
                             (tab[route]["size"][0], tab[route]["e1"][0]))
+                    cal = tab.get(route, {}).get("calibration error")
+                    if cal and not (route == "coulton18" and kind == "noise-free"):
+                        rows.setdefault((f"{route}, calibration", kind), []).append(
+                            (cal["size"][0], cal["e1"][0]))
     out = ["root mean square (mean) over the sensor-input-PSF rows of the % left:"]
     for (route, kind), v in sorted(rows.items(), key=lambda kv: (kv[0][1], kv[0][0])):
         a = np.array(v)
         rms, mean = np.sqrt(np.mean(a ** 2, axis=0)), a.mean(axis=0)
-        out.append(f"  {kind:10s} {route:14s} {len(v):2d} rows: size {rms[0]:5.1f} "
+        out.append(f"  {kind:10s} {route:25s} {len(v):2d} rows: size {rms[0]:5.1f} "
                    f"({mean[0]:+5.1f}), e1 {rms[1]:5.1f} ({mean[1]:+5.1f})")
     return out
 
@@ -194,7 +249,8 @@ def main(argv=None):
     ap.add_argument("--draws", type=int, default=3, help="noisy draws of each a-matrix")
     ap.add_argument("--draws-stated", type=int, default=6,
                     help="templates drawn from each route's uncertainty (stated precision)")
-    ap.add_argument("--n-stars", type=int, default=200)
+    ap.add_argument("--n-stars", type=int, nargs="+", default=[200],
+                    help="stars per PSF: one number, or one per sensor")
     ap.add_argument("--pairs", help="cache prefix for the drawn stars and flats' covariances")
     ap.add_argument("--flats", action="store_true", help="also calibrate from GalSim flats")
     ap.add_argument("--flat-size", type=int, default=400)
@@ -206,6 +262,11 @@ def main(argv=None):
                     help="only print the root-mean-square summary of earlier results files "
                          "(read, not rewritten)")
     args = ap.parse_args(argv)
+    if len(args.n_stars) not in (1, len(args.sensors)):
+        ap.error(f"--n-stars takes one number or one per sensor ({len(args.sensors)}), "
+                 f"got {len(args.n_stars)}")
+    n_stars = dict(zip(args.sensors, args.n_stars * len(args.sensors)
+                       if len(args.n_stars) == 1 else args.n_stars))
     if args.summarize:
         sensors = {}
         for path in args.summarize:
@@ -215,8 +276,9 @@ def main(argv=None):
         return
     lines, out = [], {"sensors": {}, "errors": {"relative": REL_ERROR, "floor": ERROR_FLOOR},
                       "lags": args.lags}
-    coverage = {m: [] for m in MODELS}
-    unbounded = {m: 0 for m in MODELS}
+    coverage = {m: [] for m in MODELS + (AREAS_ONLY,)}
+    cal_coverage = {m: [] for m in MODELS + (AREAS_ONLY,)}
+    unbounded = {m: 0 for m in MODELS + (AREAS_ONLY,)}
 
     def say(s):
         print(s, flush=True)
@@ -227,15 +289,20 @@ def main(argv=None):
         cov = "; ".join(f"{m} {np.mean(c):.0%} of {len(c)}" + (
             f" ({unbounded[m]} cases left out: some of its drawn templates beyond the model's "
             "range)" if unbounded[m] else "") for m, c in coverage.items() if c)
+        cal = "; ".join(f"{m} {np.mean(c):.0%} of {len(c)}" for m, c in cal_coverage.items()
+                        if c)
         head = ("(partial: the run goes on) " if partial else "") + (
             "coverage of the stated precision (|residual| <= stated (+) stars, size and e1): "
-            + cov)
+            + cov + "\ncoverage of the calibration error (|paired residual minus the method's "
+            "with the truth| <= stated (+) paired error, size and e1): " + cal)
         if not partial:
             say(head)
             for line in rms_lines(out["sensors"]):
                 say(line)
         out["coverage"] = {m: {"fraction": float(np.mean(c)), "cases": len(c)}
                            for m, c in coverage.items() if c}
+        out["calibration_coverage"] = {m: {"fraction": float(np.mean(c)), "cases": len(c)}
+                                       for m, c in cal_coverage.items() if c}
         text = lines + ([head] if partial else [])
         write_results(args.out, text, {"complete": not partial, **out}, script=__file__,
                       json_default=float)
@@ -255,9 +322,13 @@ def main(argv=None):
         true_tpl = import_galsim_sensor(sensor, match="transfers")
         true_areas = import_galsim_sensor(sensor, match="areas")
         window = moved_window(true_tpl)
+        # the kernel route's truth: the kernel of GalSim's noise-free a-matrix
+        c18_truth = calibrate_route(inputs[0][1], "coulton18").template
         psf_pairs = {}
         for psf in args.psf:
-            pairs, seed, cost = star_pairs(sensor, psf, args)
+            pairs, seed, cost = star_pairs(sensor, psf,
+                                           argparse.Namespace(**{**vars(args),
+                                                                 "n_stars": n_stars[sensor]}))
             psf_pairs[psf] = pairs
             say(f"{sensor} {psf}: {len(pairs)} stars (seed {seed})"
                 + (f", drawn in {cost:.0f} s" if cost else ""))
@@ -280,6 +351,16 @@ def main(argv=None):
             stated = {m: stated_templates(r, table, args.draws_stated,
                                           seed=zlib.crc32(f"{sensor}:{label}:{m}".encode()))
                       for m, r in routes.items()}
+            # the same draws without the parameter modes: the a_ij errors alone
+            stated[AREAS_ONLY] = stated_templates(
+                RouteResult("electrostatic", "drift", areas_only(routes["electrostatic"].template),
+                            None, 0.0, 0), table, args.draws_stated,
+                seed=zlib.crc32(f"{sensor}:{label}:electrostatic".encode()))
+            es_t = routes["electrostatic"].template
+            ar_t = routes["astier23"].product.template(
+                size=es_t.size, edge_samples=es_t.fractions.size, charge=es_t.charge)
+            hybrid = combine_templates(curl_free_template(es_t), [
+                template_difference(ar_t, curl_free_template(ar_t))], [1.0])
             rec[label] = {}
             for psf, pairs in psf_pairs.items():
                 templates = {m: (r.template, r.method) for m, r in routes.items()}
@@ -294,6 +375,10 @@ def main(argv=None):
                 # GalSim's file matched to its own pixel areas (its a-matrix) rather
                 # than to its photons' transfers: the template an area model aims at
                 templates["true template (areas)"] = (true_areas, "drift")
+                templates[CALIBRATION_REFERENCE["coulton18"]] = (c18_truth, "coulton18")
+                # which link loses e1: the electrostatic template's areas with the
+                # Astier & Regnault template's divergence-free part
+                templates[HYBRID] = (hybrid, "drift")
                 res = run_case(pairs, templates, args)
                 fl, base_rows = next(iter(res.values()))
                 u, ok = slopes(fl, base_rows["uncorrected"])
@@ -311,22 +396,21 @@ def main(argv=None):
                 # paired differences (same stars): package minus each LSST route
                 for other in ("astier23", "coulton18", "true template", "true template (areas)",
                               "electrostatic, window"):
-                    d = {}
-                    for col, q in QUANTITIES:
-                        a_rows, b_rows = res["electrostatic"][1], res[other][1]
-                        good = ok & np.isfinite(res["electrostatic"][0]) & np.isfinite(
-                            res[other][0])
-                        diff = a_rows["electrostatic"][good, col] - b_rows[other][good, col]
-                        sl, se = origin_slope(fl[good], diff)
-                        d[q] = (100 * sl / den[q], 100 * se / abs(den[q]))
-                    row[f"electrostatic minus {other}"] = d
+                    d = row[f"electrostatic minus {other}"] = paired(
+                        res, "electrostatic", other, fl, ok, den)
                     say(f"  {psf:10s} paired electrostatic - {other}: " + "  ".join(
                         f"{q} {d[q][0]:+6.1f} +- {d[q][1]:4.1f}" for _, q in QUANTITIES))
+                for name in (HYBRID, "astier23 shifts, drift"):
+                    d = row[f"{name} minus true template"] = paired(
+                        res, name, "true template", fl, ok, den)
+                    say(f"  {psf:10s} paired {name} - true template: " + "  ".join(
+                        f"{q} {d[q][0]:+6.1f} +- {d[q][1]:4.1f}" for _, q in QUANTITIES))
                 # stated precision and its coverage
-                for m in MODELS:
+                for name in MODELS + (AREAS_ONLY,):
+                    m = STATED_ROUTE.get(name, name)
                     vals = {q: [] for _, q in QUANTITIES}
                     refused = 0
-                    for tpl in stated[m]:
+                    for tpl in stated[name]:
                         try:
                             fl_d, rows_d = per_star_residuals(
                                 pairs, tpl, methods={m: {"method": ROUTE_METHODS[m]}},
@@ -342,19 +426,32 @@ def main(argv=None):
                     # rms about the route's own template's residual (its offset counts)
                     st = {q: float(np.sqrt(np.mean((np.asarray(v) - row[m][q][0]) ** 2)))
                           if v else float("inf") for q, v in vals.items()}
-                    row[m]["stated"] = st
-                    row[m]["stated_refused"] = refused
+                    key = "stated" if name == m else "stated (a_ij errors alone)"
+                    row[m][key] = st
+                    row[m][f"{key}_refused"] = refused
+                    # the calibration's own error: paired against its method with the truth
+                    ref = CALIBRATION_REFERENCE[m]
+                    cal = row[m]["calibration error"] = paired(res, m, ref, fl, ok, den)
+                    if not refused and not (m == "coulton18" and label == "noise-free"):
+                        # (the kernel of the noise-free a-matrix is its own reference)
+                        for q in ("size", "e1"):
+                            cal_coverage[name].append(bool(
+                                abs(cal[q][0]) <= np.hypot(st[q], cal[q][1])))
                     for q in ("size", "e1"):
                         resid, star_err = row[m][q]
                         if refused:  # a stated precision without bound tests nothing
-                            unbounded[m] += 1
+                            unbounded[name] += 1
                             continue
                         covered = abs(resid) <= np.hypot(st[q], star_err)
-                        coverage[m].append(bool(covered))
-                    say(f"  {psf:10s} {m:14s} stated +- " + ", ".join(
+                        coverage[name].append(bool(covered))
+                    if name == m:
+                        say(f"  {psf:10s} {m:14s} calibration error (against {ref}): "
+                            + "  ".join(f"{q} {cal[q][0]:+6.1f} +- {cal[q][1]:4.1f}"
+                                        for _, q in QUANTITIES))
+                    say(f"  {psf:10s} {name:14s} stated +- " + ", ".join(
                         f"{q} {st[q]:.1f}" for _, q in QUANTITIES) + (
-                        f" ({refused} of {len(stated[m])} drawn templates beyond the model's "
-                        "range, left out)" if refused else ""))
+                        f" ({refused} of {len(stated[name])} drawn templates beyond the "
+                        "model's range, left out)" if refused else ""))
             save(partial=True)
     save(partial=False)
 
