@@ -112,7 +112,8 @@ The steps, each a function of its own:
   :func:`~lsst_bfdrift.calibration.star_solve.held_out_validation`;
 * the report (:mod:`~lsst_bfdrift.calibration.star_report`): the chi2, the
   tension test, the stars' information, the coefficients and the
-  precision the fit leaves; then the result (:func:`joint_template`,
+  precision the fit leaves; then the result
+  (:func:`~lsst_bfdrift.calibration.star_result.joint_template`,
   :func:`fitted_star_slopes`, :func:`fields_summary`).
 
 From the fields on, the steps are :func:`joint_calibration`'s, and a spot
@@ -136,7 +137,8 @@ from lsst_bfdrift.calibration.star_basis import AmatrixRows, direction_basis, ev
 from lsst_bfdrift.calibration.star_report import (direction_coefficients, fit_chi2,
                                                   star_information, tension_test,
                                                   uncertainty_report)
-from lsst_bfdrift.calibration.star_result import STAR_SLOPES, StarCalibrationResult
+from lsst_bfdrift.calibration.star_result import (STAR_SLOPES, StarCalibrationResult,
+                                                  joint_template)
 from lsst_bfdrift.calibration.star_solve import (cross_validate, fit_joint,
                                                  fit_with_error_scale, held_out_validation)
 from lsst_bfdrift.calibration.tuning import CalibrationError
@@ -144,14 +146,14 @@ from lsst_bfdrift.catalogs.catalog import FLAG_NAMES, detect_stars, measure_star
 from lsst_bfdrift.catalogs.slopes import FLUX_UNIT, select_stars, shape_flux_relations
 from lsst_bfdrift.correction.task import BrighterFatterDriftConfig, BrighterFatterDriftTask
 from lsst_bfdrift.images.electrons import to_electrons
-from lsst_bfdrift.templates.refine import area_response_directions, combine_templates
+from lsst_bfdrift.templates.refine import area_response_directions
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.utils.progress import ProgressBar
 
 __all__ = ["StarField", "calibrate_with_stars", "joint_calibration", "check_size_goal",
            "check_star_inputs",
            "read_star_fields", "HOLDOUTS", "holdout_fields", "split_fields", "progress_steps",
-           "fitted_star_slopes", "joint_template", "fields_summary"]
+           "fitted_star_slopes", "fields_summary"]
 
 #: The ``holdout`` choices of :func:`calibrate_with_stars`.
 HOLDOUTS = ("auto", "cross", "split", "last")
@@ -540,42 +542,6 @@ def fitted_star_slopes(fields, flats_template, joint_template, *, n_boot=200, se
                                             seed=seed),
                      "joint": f.slopes(joint_template, f.fit_stars, n_boot=n_boot, seed=seed)}
             for f in fields}
-
-
-def joint_template(template, flats_template, stars_meta, *, key="stars"):
-    """The joint template with the star (or spot) calibration in its metadata.
-
-    Parameters
-    ----------
-    template : DistortionTemplate
-        T(c); when it is ``flats_template`` itself (no direction in the
-        fit), a copy is made, so the input is not modified.
-    flats_template : DistortionTemplate
-        T_a: its metadata are the base of the result's.
-    stars_meta : dict
-        Stored as ``meta['calibration'][key]``. The flats' ``parameter_modes``
-        (:func:`~lsst_bfdrift.calibration.tuning.parameter_modes`) leave the
-        stored uncertainty: the stars or spots measure what they describe.
-    key : str, optional
-        ``'stars'``, or ``'spots'`` when spot series are in the fit.
-
-    Returns
-    -------
-    DistortionTemplate
-    """
-    if template is flats_template:
-        template = combine_templates(flats_template, [], [])
-    meta = dict(flats_template.meta)
-    calib = dict(meta.get("calibration", {}))
-    calib[key] = stars_meta
-    if isinstance(calib.get("uncertainty"), dict) and "parameter_modes" in calib["uncertainty"]:
-        # the stars or spots measure how area changes divide between column and
-        # row edges: the flats' parameter modes of that part are not carried
-        calib["uncertainty"] = {k: v for k, v in calib["uncertainty"].items()
-                                if k != "parameter_modes"}
-    meta["calibration"] = calib
-    template.meta = meta
-    return template
 
 
 def fields_summary(fields, fit_fields, hold_fields):

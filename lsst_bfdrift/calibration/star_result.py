@@ -5,12 +5,15 @@
 jointly calibrated template, the fit's chi2, tension and coefficients, the
 move within the a-matrix's errors with the precision it leaves, and the
 held-out (cross-validated) slopes, with the one-line and table summaries the
-CLI and the benchmarks print.
+CLI and the benchmarks print; :func:`joint_template` gives the jointly
+calibrated template its metadata.
 """
 
 import numpy as np
 
-__all__ = ["STAR_SLOPES", "StarCalibrationResult", "fields_for_precision"]
+from lsst_bfdrift.templates.refine import combine_templates
+
+__all__ = ["STAR_SLOPES", "StarCalibrationResult", "fields_for_precision", "joint_template"]
 
 #: The star slopes measured on every field, in the order of the fit's star vector.
 STAR_SLOPES = ("size", "e1", "e2")
@@ -208,3 +211,39 @@ class StarCalibrationResult:
                     cells.append(f"{k} {v:+.3e} +- {e:.1e} ({pct:+6.1f} %)")
                 lines.append(f"  {what:<11s} " + "  ".join(cells))
         return "\n".join(lines)
+
+
+def joint_template(template, flats_template, stars_meta, *, key="stars"):
+    """The joint template with the star (or spot) calibration in its metadata.
+
+    Parameters
+    ----------
+    template : DistortionTemplate
+        T(c); when it is ``flats_template`` itself (no direction in the
+        fit), a copy is made, so the input is not modified.
+    flats_template : DistortionTemplate
+        T_a: its metadata are the base of the result's.
+    stars_meta : dict
+        Stored as ``meta['calibration'][key]``. The flats' ``parameter_modes``
+        (:func:`~lsst_bfdrift.calibration.tuning.parameter_modes`) leave the
+        stored uncertainty: the stars or spots measure what they describe.
+    key : str, optional
+        ``'stars'``, or ``'spots'`` when spot series are in the fit.
+
+    Returns
+    -------
+    DistortionTemplate
+    """
+    if template is flats_template:
+        template = combine_templates(flats_template, [], [])
+    meta = dict(flats_template.meta)
+    calib = dict(meta.get("calibration", {}))
+    calib[key] = stars_meta
+    if isinstance(calib.get("uncertainty"), dict) and "parameter_modes" in calib["uncertainty"]:
+        # the stars or spots measure how area changes divide between column and
+        # row edges: the flats' parameter modes of that part are not carried
+        calib["uncertainty"] = {k: v for k, v in calib["uncertainty"].items()
+                                if k != "parameter_modes"}
+    meta["calibration"] = calib
+    template.meta = meta
+    return template

@@ -32,8 +32,9 @@ from lsst_bfdrift.calibration.star_basis import (STAR_JACOBIAN_STEP, AmatrixRows
                                                  evaluate_directions, evaluated_basis,
                                                  model_direction_step)
 from lsst_bfdrift.calibration.star_fit import (StarField, fields_summary, fitted_star_slopes,
-                                               holdout_fields, joint_template, progress_steps,
-                                               read_star_fields, split_fields)
+                                               holdout_fields, progress_steps, read_star_fields,
+                                               split_fields)
+from lsst_bfdrift.calibration.star_result import joint_template
 from lsst_bfdrift.calibration.star_report import (direction_coefficients, fit_chi2, lag_changes,
                                                   slope_precision, star_information,
                                                   tension_test)
