@@ -175,6 +175,14 @@ def _print_calibration(args, res, joint, data, table):
     if joint is None:
         print(f"  template: {args.out} ({'areas refined to the data' if res.refined else 'model'})"
               f" in {res.seconds['total']:.1f} s")
+        unc = ((res.template.meta.get("calibration") or {}).get("uncertainty") or {}
+               if res.template is not None else {})
+        modes = (unc.get("parameter_modes") or {}).get("kept")
+        if modes:
+            print(f"  uncertainty stored: the a_ij errors and {len(modes)} parameter mode(s) "
+                  "beyond the areas (how area changes divide between column and row edges, "
+                  "which sets the e1 stars keep and no a-matrix measures; spots or star fields "
+                  "measure it)")
         return
     c2 = joint.chi2
     what = " and ".join(w for w in (

@@ -389,6 +389,11 @@ def test_calibrate_from_a_ptc_and_refusals(capsys, tmp_path):
     assert s["input"]["kind"] == "ptc" and png.exists()
     tpl = DistortionTemplate.load(out)
     assert tpl.meta["calibration"]["inputs"] == [ptc]
+    # the text report says what uncertainty the file stores (one parameter: one mode)
+    assert tpl.meta["calibration"]["uncertainty"]["parameter_modes"]["kept"] == [0]
+    code, text, _ = _run(capsys, "calibrate", ptc, "--out", str(tmp_path / "text.fits"),
+                         "--quiet")
+    assert code == 0 and "uncertainty stored: the a_ij errors and 1 parameter mode(s)" in text
     code, _, err = _run(capsys, "calibrate", ptc, "--out", str(out), "--quiet")
     assert code == 3 and "exists" in err
     code, _, err = _run(capsys, "calibrate", ptc, "--out", ptc, "--overwrite", "--quiet")
