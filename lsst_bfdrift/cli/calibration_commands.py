@@ -260,7 +260,8 @@ def cmd_calibrate(args):
         res = calibrate(table, free=args.free, refine=not args.no_refine,
                         allow_poor_fit=args.allow_poor_fit, max_chi2_dof=args.max_chi2_dof,
                         max_evaluations=args.max_evaluations, progress=not args.quiet,
-                        model_settings=MODEL_NUMERICS[args.model_numerics])
+                        model_settings=MODEL_NUMERICS[args.model_numerics],
+                        modes=not args.no_parameter_modes)
     for w in caught:  # a poor physics fit: written, with the misfit in its uncertainty
         if issubclass(w.category, CalibrationWarning):
             print(f"bfdrift calibrate: warning: {w.message}", file=sys.stderr)
@@ -382,6 +383,7 @@ def _check_model_options(args):
     given = [opt for opt, on in (("--stars", bool(args.stars)), ("--spots", bool(args.spots)),
                                  ("--free", bool(args.free)),
                                  ("--no-refine", args.no_refine),
+                                 ("--no-parameter-modes", args.no_parameter_modes),
                                  ("--allow-poor-fit", args.allow_poor_fit),
                                  ("--band", args.band is not None)) if on]
     if given:
@@ -593,6 +595,12 @@ def add_calibrate_parser(subparsers):
                     help="largest lag measured from flat pairs (default: %(default)s)")
     ca.add_argument("--no-refine", action="store_true",
                     help="keep the model's areas (default: match them to the measured a_ij)")
+    ca.add_argument("--no-parameter-modes", action="store_true",
+                    help="store the a_ij errors alone as the template's uncertainty (default: "
+                         "also the fitted parameters' modes beyond the areas, two small template "
+                         "builds per free parameter; without them templates drawn from the "
+                         "uncertainty never vary how area changes divide between column and row "
+                         "edges)")
     ca.add_argument("--max-chi2-dof", type=float,
                     default=library_default(calibrate, "max_chi2_dof"),
                     help="a fit above this chi2/dof (and p < 1e-3) is poor: a warning and "

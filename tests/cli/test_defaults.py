@@ -148,6 +148,7 @@ def _numerics(v):
 #: a default that would import matplotlib at startup (plot_template's).
 ALSO_FEEDS = [
     ("calibrate", "no_refine", calibrate, "refine", _not),
+    ("calibrate", "no_parameter_modes", calibrate, "modes", _not),
     ("calibrate", "allow_poor_fit", calibrate, "allow_poor_fit", _same),
     ("calibrate", "model_numerics", calibrate, "model_settings", _numerics),
     ("calibrate", "model_directions_only", calibrate_with_stars, "flats_uncertainty", _not),

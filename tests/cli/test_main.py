@@ -394,6 +394,11 @@ def test_calibrate_from_a_ptc_and_refusals(capsys, tmp_path):
     code, text, _ = _run(capsys, "calibrate", ptc, "--out", str(tmp_path / "text.fits"),
                          "--quiet")
     assert code == 0 and "uncertainty stored: the a_ij errors and 1 parameter mode(s)" in text
+    code, text, _ = _run(capsys, "calibrate", ptc, "--out", str(tmp_path / "bare.fits"),
+                         "--no-parameter-modes", "--quiet")
+    assert code == 0 and "uncertainty stored" not in text
+    bare = DistortionTemplate.load(tmp_path / "bare.fits").meta["calibration"]["uncertainty"]
+    assert "parameter_modes" not in bare and bare["kind"] == "data"
     code, _, err = _run(capsys, "calibrate", ptc, "--out", str(out), "--quiet")
     assert code == 3 and "exists" in err
     code, _, err = _run(capsys, "calibrate", ptc, "--out", ptc, "--overwrite", "--quiet")
