@@ -11,7 +11,7 @@ calibrated template its metadata.
 
 import numpy as np
 
-from lsst_bfdrift.templates.refine import combine_templates
+from lsst_bfdrift.templates.refine import combine_templates, without_parameter_modes
 
 __all__ = ["STAR_SLOPES", "StarCalibrationResult", "fields_for_precision", "joint_template"]
 
@@ -237,13 +237,10 @@ def joint_template(template, flats_template, stars_meta, *, key="stars"):
     if template is flats_template:
         template = combine_templates(flats_template, [], [])
     meta = dict(flats_template.meta)
-    calib = dict(meta.get("calibration", {}))
+    # the stars or spots measure how area changes divide between column and row
+    # edges: the flats' parameter modes of that part are not carried
+    calib = without_parameter_modes(meta.get("calibration"))
     calib[key] = stars_meta
-    if isinstance(calib.get("uncertainty"), dict) and "parameter_modes" in calib["uncertainty"]:
-        # the stars or spots measure how area changes divide between column and
-        # row edges: the flats' parameter modes of that part are not carried
-        calib["uncertainty"] = {k: v for k, v in calib["uncertainty"].items()
-                                if k != "parameter_modes"}
     meta["calibration"] = calib
     template.meta = meta
     return template

@@ -261,7 +261,8 @@ def cmd_calibrate(args):
                         allow_poor_fit=args.allow_poor_fit, max_chi2_dof=args.max_chi2_dof,
                         max_evaluations=args.max_evaluations, progress=not args.quiet,
                         model_settings=MODEL_NUMERICS[args.model_numerics],
-                        modes=not args.no_parameter_modes)
+                        # a joint (stars, spots) template does not carry the modes
+                        modes=not (args.no_parameter_modes or args.stars or args.spots))
     for w in caught:  # a poor physics fit: written, with the misfit in its uncertainty
         if issubclass(w.category, CalibrationWarning):
             print(f"bfdrift calibrate: warning: {w.message}", file=sys.stderr)

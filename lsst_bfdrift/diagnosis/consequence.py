@@ -167,7 +167,8 @@ def template_change(diagnosis, basis, *, max_lag=None, threshold=1.0, calibrate_
            "changed": bool(np.abs(pull).max() > threshold), "threshold": float(threshold)}
     if not out["changed"]:
         return out
-    kw = {"allow_poor_fit": True, **(calibrate_kw or {})}
+    # the templates' uncertainty is not used here: no parameter modes
+    kw = {"allow_poor_fit": True, "modes": False, **(calibrate_kw or {})}
     results = {}
     for side, a, s in (("without effects", a0, s0), ("with effects", a1, s1)):
         # tuning.calibrate looked up at the call (tests replace it: about a minute a side)

@@ -20,7 +20,7 @@ from lsst_bfdrift.utils.errors import InputError, InputTypeError
 
 __all__ = ["template_alpha", "lag_multiplicity", "match_area_coefficients", "curl_free_template",
            "area_response_directions", "draw_templates", "combine_templates",
-           "template_difference"]
+           "template_difference", "without_parameter_modes"]
 
 
 def lag_multiplicity(max_lag):
@@ -456,6 +456,25 @@ def draw_templates(template, n, *, seed=0):
                                       vedge_t=template.vedge_t, hedge_t=template.hedge_t,
                                       meta=meta))
     return out
+
+
+def without_parameter_modes(calibration):
+    """A copy of a template's ``meta['calibration']`` whose stored uncertainty
+    has no parameter modes (the a_ij errors alone; the input is not modified).
+
+    Parameters
+    ----------
+    calibration : dict or None
+
+    Returns
+    -------
+    dict
+    """
+    calib = dict(calibration or {})
+    if isinstance(calib.get("uncertainty"), dict):
+        calib["uncertainty"] = {k: v for k, v in calib["uncertainty"].items()
+                                if k != "parameter_modes"}
+    return calib
 
 
 def _padded_modes(template, record):
