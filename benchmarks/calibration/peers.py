@@ -83,7 +83,7 @@ from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
 from lsst_bfdrift.templates.edge_shifts import template_from_edge_shifts
 from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.templates.refine import (combine_templates, curl_free_template, draw_templates,
-                                          template_difference)
+                                          template_difference, without_parameter_modes)
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.validation.stars import per_star_residuals
 
@@ -149,12 +149,8 @@ STATED_ROUTE = {AREAS_ONLY: "electrostatic"}
 
 def areas_only(template):
     """A copy of a calibrated template whose stored uncertainty has no parameter modes."""
-    calib = dict(template.meta.get("calibration") or {})
-    calib["uncertainty"] = {k: v for k, v in (calib.get("uncertainty") or {}).items()
-                            if k != "parameter_modes"}
-    out = combine_templates(template, [], [])
-    out.meta = {**template.meta, "calibration": calib}
-    return out
+    return combine_templates(template, [], [], meta={
+        **template.meta, "calibration": without_parameter_modes(template.meta.get("calibration"))})
 
 
 def stated_templates(route, table, n, seed):
@@ -227,12 +223,46 @@ def rms_lines(sensors):
                     if cal and not (route == "coulton18" and kind == "noise-free"):
                         rows.setdefault((f"{route}, calibration", kind), []).append(
                             (cal["size"][0], cal["e1"][0]))
+                # the links of e1: templates against the truth, paired
+                for name in (HYBRID, "astier23 shifts, drift"):
+                    d = tab.get(f"{name} minus true template")
+                    if d:
+                        rows.setdefault((f"{name} - truth", kind), []).append(
+                            (d["size"][0], d["e1"][0]))
     out = ["root mean square (mean) over the sensor-input-PSF rows of the % left:"]
     for (route, kind), v in sorted(rows.items(), key=lambda kv: (kv[0][1], kv[0][0])):
         a = np.array(v)
         rms, mean = np.sqrt(np.mean(a ** 2, axis=0)), a.mean(axis=0)
         out.append(f"  {kind:10s} {route:25s} {len(v):2d} rows: size {rms[0]:5.1f} "
                    f"({mean[0]:+5.1f}), e1 {rms[1]:5.1f} ({mean[1]:+5.1f})")
+    return out
+
+
+def coverage_lines(sensors):
+    """Coverage of each stated precision per PSF and quantity, from the stored rows
+    (|residual| <= stated (+) star error; |calibration error| <= stated (+) its error)."""
+    cases = {}
+    for per_input in sensors.values():
+        for label, per_psf in per_input.items():
+            for psf, tab in per_psf.items():
+                for route in MODELS:
+                    r = tab.get(route) or {}
+                    for key in ("stated", "stated (a_ij errors alone)"):
+                        st = r.get(key)
+                        if st is None or r.get(f"{key}_refused"):
+                            continue
+                        name = route if key == "stated" else AREAS_ONLY
+                        cal = r["calibration error"]
+                        for q in ("size", "e1"):
+                            c = cases.setdefault((name, psf, q), [[], []])
+                            c[0].append(abs(r[q][0]) <= np.hypot(st[q], r[q][1]))
+                            if not (route == "coulton18" and label == "noise-free"):
+                                c[1].append(abs(cal[q][0]) <= np.hypot(st[q], cal[q][1]))
+    out = ["coverage per PSF and quantity: residuals covered / cases; calibration errors "
+           "covered / cases"]
+    for (name, psf, q), (tot, cal) in sorted(cases.items()):
+        out.append(f"  {name:32s} {psf:10s} {q:4s} {sum(tot):2d} / {len(tot):2d}; "
+                   f"{sum(cal):2d} / {len(cal):2d}")
     return out
 
 
@@ -272,7 +302,7 @@ def main(argv=None):
         for path in args.summarize:
             with open(path) as fh:
                 sensors.update(json.load(fh)["sensors"])
-        print("\n".join(rms_lines(sensors)))
+        print("\n".join(rms_lines(sensors) + coverage_lines(sensors)))
         return
     lines, out = [], {"sensors": {}, "errors": {"relative": REL_ERROR, "floor": ERROR_FLOOR},
                       "lags": args.lags}

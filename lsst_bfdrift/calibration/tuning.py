@@ -186,7 +186,7 @@ def refine_template(template, table):
 #: Largest side of the templates :func:`parameter_modes` builds (lags up to 4
 #: around the aggressor, where the stars' e1 is set) and their samples per
 #: edge (a mode keeps each edge's mean shift): two such builds per free
-#: parameter cost about 0.3-1 s each.
+#: parameter cost about 0.25-0.6 s each (benchmarks/performance/bench_calibrate.py).
 MODE_MAX_SIZE = 9
 MODE_EDGE_SAMPLES = 8
 
@@ -615,7 +615,7 @@ def calibrate(table, *, start=None, free=None, max_params=6, refine=True, settin
     modes : bool, optional
         With refinement: store the fitted parameters' uncertainty beyond the
         template's areas (:func:`parameter_modes`; two small template builds
-        per free parameter, about 0.3-1 s each), so that templates drawn from the
+        per free parameter, about 0.25-0.6 s each), so that templates drawn from the
         template's uncertainty vary how area changes divide between column
         and row edges too.
 
