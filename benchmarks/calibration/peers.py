@@ -76,7 +76,7 @@ import numpy as np
 from calibrate_sensor import flats_table, star_pairs
 
 from lsst_bfdrift.calibration.astier23_model import Astier23Parameters, astier23_shifts
-from lsst_bfdrift.calibration.routes import MODELS, ROUTE_METHODS, RouteResult, calibrate_route
+from lsst_bfdrift.calibration.routes import MODELS, ROUTE_METHODS, calibrate_route
 from lsst_bfdrift.calibration.fit_model import MODEL_NUMERICS
 from lsst_bfdrift.ptc.acoeffs import AcoeffTable, near_field_response
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
@@ -382,9 +382,8 @@ def main(argv=None):
                                           seed=zlib.crc32(f"{sensor}:{label}:{m}".encode()))
                       for m, r in routes.items()}
             # the same draws without the parameter modes: the a_ij errors alone
-            stated[AREAS_ONLY] = stated_templates(
-                RouteResult("electrostatic", "drift", areas_only(routes["electrostatic"].template),
-                            None, 0.0, 0), table, args.draws_stated,
+            stated[AREAS_ONLY] = draw_templates(
+                areas_only(routes["electrostatic"].template), args.draws_stated,
                 seed=zlib.crc32(f"{sensor}:{label}:electrostatic".encode()))
             es_t = routes["electrostatic"].template
             ar_t = routes["astier23"].product.template(
