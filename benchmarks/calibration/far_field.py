@@ -24,8 +24,8 @@ import sys
 import numpy as np
 
 from lsst_bfdrift.calibration.fit_model import default_start, model_acoeffs
-from lsst_bfdrift.ptc.acoeffs import lag_weights
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
+from lsst_bfdrift.templates.refine import lag_multiplicity
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
@@ -37,7 +37,7 @@ L = 9
 def main():
     with open(os.path.join(HERE, "parameter_lags_results.json")) as fh:
         fits = json.load(fh)["fits"]
-    w = lag_weights(L)
+    w = lag_multiplicity(L)
     i = np.arange(L + 1)
     r2 = np.add.outer(i ** 2, i ** 2)
     far = np.maximum.outer(i, i) >= 4

@@ -90,9 +90,10 @@ def exact_windows(template, q, boxes, r, outs, names, *, samples, workers, dtype
         done = [0]
         size = canvas.size
 
-        def tick(n):
+        def report(n):
             done[0] += n
             progress(min(done[0] / max(size, 1), 1.0))
+        tick = report
     return _box_moments(template, canvas, place, outs, names, samples=samples,
                         workers=workers, dtype=dtype, strip=strip, progress=tick)
 

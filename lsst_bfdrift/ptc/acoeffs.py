@@ -22,11 +22,12 @@ import math
 
 import numpy as np
 
+from lsst_bfdrift.templates.refine import lag_multiplicity
 from lsst_bfdrift.utils.errors import InputError
 from lsst_bfdrift.utils.io import read_text_rows
 
 __all__ = ["AcoeffTable", "read_acoeff_table", "assign_axes", "sum_rule_check",
-           "lag_radius", "acoeff_square", "lag_weights", "check_consistency",
+           "lag_radius", "acoeff_square", "check_consistency",
            "near_field_response", "MAX_TABLE_LAG"]
 
 #: Largest lag an a_ij table may hold (measured tables reach ~20; a larger
@@ -299,28 +300,18 @@ def near_field_response(a, sigma=None, *, from_sum_rule=False):
         raise InputError(f"the near-field response needs lags 0-1 on both axes, got a_ij of "
                          f"shape {a.shape}")
     if from_sum_rule:
-        w = lag_weights(a.shape[0] - 1)
+        w = lag_multiplicity(a.shape[0] - 1)
         w[:2, :2] = 0.0
         sign = -1.0
     else:
         w = np.zeros(a.shape)
-        w[:2, :2] = lag_weights(1)
+        w[:2, :2] = lag_multiplicity(1)
         sign = 1.0
     s1 = sign * float(np.sum(w * a))
     if sigma is None:
         return s1, None
     s = np.asarray(sigma, dtype=np.float64)
     return s1, float(np.sqrt(np.sum((w * s)[w > 0] ** 2)))
-
-
-def lag_weights(max_lag):
-    """Number of pixels at each lag [i, j] of the quadrant 0..max_lag (1 at the
-    aggressor, 2 on the axes, 4 elsewhere): the weights of the area sum rule."""
-    w = np.full((max_lag + 1, max_lag + 1), 4.0)
-    w[0, :] = 2.0
-    w[:, 0] = 2.0
-    w[0, 0] = 1.0
-    return w
 
 
 def check_consistency(table, *, nsigma=5.0, zero_ring=2.0):
@@ -370,7 +361,7 @@ def check_consistency(table, *, nsigma=5.0, zero_ring=2.0):
     ring[:L, :L] = False
     complete = L >= 3 and ring.any() and bool(np.all(np.abs(a[ring]) <= zero_ring * s[ring]))
     if complete and not table.exclude_a00 and m[0, 0]:
-        w = lag_weights(L)
+        w = lag_multiplicity(L)
         total = float(np.sum((w * a)[m]))
         err = float(np.sqrt(np.sum(((w * s)[m]) ** 2)))
         if abs(total) > nsigma * err:

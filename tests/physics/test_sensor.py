@@ -176,12 +176,12 @@ class TestChargeCloud:
         grows) and the total area is conserved as for the point packet (sum
         rule over lags 0-9 within 3 % of a00: the rest lies beyond lag 9)."""
         from lsst_bfdrift.calibration.acoeff_model import electrostatic_acoeffs
-        from lsst_bfdrift.ptc.acoeffs import lag_weights
+        from lsst_bfdrift.templates.refine import lag_multiplicity
         base = SensorParameters()
         kw = dict(max_lag=9, charge=1e4, near_samples=16, far_samples=6, tol=2e-6)
         a0 = electrostatic_acoeffs(base, **kw)
         a1 = electrostatic_acoeffs(base.replace(charge_variance_parallel=4.0), **kw)
         assert a1[0, 1] / a1[1, 0] > 1.2 * a0[0, 1] / a0[1, 0]
-        w = lag_weights(9)
+        w = lag_multiplicity(9)
         for a in (a0, a1):
             assert abs(np.sum(w * a)) < 0.03 * abs(a[0, 0])

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from lsst_bfdrift.ptc.acoeffs import lag_weights, near_field_response
+from lsst_bfdrift.ptc.acoeffs import near_field_response
 from lsst_bfdrift.simulation.galsim_twins import galsim_acoeffs
+from lsst_bfdrift.templates.refine import lag_multiplicity
 
 
 def _block_sum(a):
@@ -41,7 +42,7 @@ def test_galsim_areas_conserve_so_s1_is_minus_the_rest(sensor):
     S1 equals minus the response of every pixel beyond the block within 1.5 %
     (GalSim's areas keep the total to 0.3 % of a00)."""
     a = galsim_acoeffs(sensor, 6)
-    w = lag_weights(6)
+    w = lag_multiplicity(6)
     w[:2, :2] = 0.0
     s1, _ = near_field_response(a)
     assert s1 < 0 and abs(s1) < 0.5 * abs(a[0, 0])  # the neighbours take back most of a00
@@ -53,7 +54,7 @@ def test_a00_from_the_sum_rule_gives_s1_from_the_lags_beyond():
     block (with their errors), which equals the direct formula there exactly."""
     rng = np.random.default_rng(11)
     a = rng.normal(0.0, 3e-8, (5, 5))
-    w = lag_weights(4)
+    w = lag_multiplicity(4)
     a[0, 0] = -np.sum(w[1:, :] * a[1:, :]) - np.sum(w[0, 1:] * a[0, 1:])  # the rule
     sigma = np.full(a.shape, 1e-9)
     sigma[0, 0] = 1e-12  # a00's stated error: not S1's
