@@ -41,6 +41,7 @@ import os
 import numpy as np
 from astropy import units as u
 
+from lsst_bfdrift.physics.constants import HC_EV_NM, K_B_EV
 from lsst_bfdrift.utils.errors import InputError
 
 __all__ = ["absorption_length", "absorption_table_range", "check_temperature", "rajkanan_alpha",
@@ -58,11 +59,6 @@ TEMPERATURE_RANGE = (20.0, 500.0)
 RAJKANAN = {"E_p": (1.827e-2, 5.773e-2), "C": (5.5, 4.0),
             "E_g": (1.1557, 2.5), "A": (3.231e2, 7.237e3),
             "E_gd": 3.2, "A_d": 1.052e6, "beta": 7.021e-4, "gamma": 1108.0}
-
-#: h c in eV nm; Boltzmann's constant in eV/K.
-_HC_EV_NM = 1239.841984
-_K_EV = 8.617333262e-5
-
 
 @functools.lru_cache(maxsize=1)
 def _table():
@@ -132,9 +128,9 @@ def rajkanan_alpha(wavelength, temperature):
         raise InputError("wavelength must be finite and positive (nm)")
     t = check_temperature(temperature)
     p = RAJKANAN
-    energy = _HC_EV_NM / wl
+    energy = HC_EV_NM / wl
     shift = p["beta"] * t * t / (t + p["gamma"])
-    kt = _K_EV * t
+    kt = K_B_EV * t
     alpha = np.zeros_like(energy)
     for ep, c in zip(p["E_p"], p["C"]):
         absorb = 1.0 / np.expm1(ep / kt)            # phonon absorbed

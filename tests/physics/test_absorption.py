@@ -39,7 +39,9 @@ def test_one_point_against_the_published_formula_written_out():
     for ep, c in ((1.827e-2, 5.5), (5.773e-2, 4.0)):
         total += c * 3.231e2 * ((e - eg + ep) ** 2 / (np.exp(ep / (k * t)) - 1)
                                 + (e - eg - ep) ** 2 / (1 - np.exp(-ep / (k * t))))
-    assert_allclose(rajkanan_alpha(1000.0, 300.0), total, rtol=1e-12)
+    # the package takes h c and k_B from astropy.constants: they agree with the
+    # literals above to 3e-10, which moves alpha by ~5e-9 (a formula error moves it by far more)
+    assert_allclose(rajkanan_alpha(1000.0, 300.0), total, rtol=1e-8)
     assert RAJKANAN["E_g"][0] == 1.1557
 
 
