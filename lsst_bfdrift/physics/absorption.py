@@ -60,6 +60,7 @@ RAJKANAN = {"E_p": (1.827e-2, 5.773e-2), "C": (5.5, 4.0),
             "E_g": (1.1557, 2.5), "A": (3.231e2, 7.237e3),
             "E_gd": 3.2, "A_d": 1.052e6, "beta": 7.021e-4, "gamma": 1108.0}
 
+
 @functools.lru_cache(maxsize=1)
 def _table():
     """GalSim's table (nm, um), read once per process (read-only)."""
