@@ -247,26 +247,35 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
         n_sky = int(keep.sum()) - n_star
     n = xs.size
     images = []
-    for s in strengths:
-        sens = galsim.SiliconSensor(sensor, strength=s, rng=galsim.BaseDeviate(int(seed)),
-                                    nrecalc=max(float(min_nrecalc), n / float(updates)))
-        if feed:
-            im = galsim.ImageD(galsim.BoundsI(i0, i1, i0, i1), scale=float(pixel_scale))
-        else:
-            im = galsim.ImageD(stamp, stamp, scale=float(pixel_scale))
-        sens.accumulate(galsim.PhotonArray(n, x=xs, y=ys, flux=fl, wavelength=wl), im)
-        if feed:
-            n_out = outer[0].size
-            full = galsim.ImageD(stamp, stamp, scale=float(pixel_scale))
-            if n_out:
-                sens_out = galsim.SiliconSensor(
-                    sensor, strength=s, rng=galsim.BaseDeviate(int(seed) + 1),
-                    nrecalc=max(float(min_nrecalc), n_out / float(updates)))
-                sens_out.accumulate(galsim.PhotonArray(n_out, x=outer[0], y=outer[1],
-                                                       flux=outer[2]), full)
-            full[im.bounds] += im
-            im = full
-        images.append(im.array.copy())
+    threads = galsim.utilities.get_omp_threads()
+    try:
+        # one OpenMP thread, as skysim and spots: on a stamp GalSim's threads mostly
+        # wait at their barriers, and on a busy machine they spin (300 stars took
+        # 1059 s instead of 204 s beside one other job); the images differ only by
+        # the rounding of the pixel sums (~4e-12 e)
+        galsim.utilities.set_omp_threads(1)
+        for s in strengths:
+            sens = galsim.SiliconSensor(sensor, strength=s, rng=galsim.BaseDeviate(int(seed)),
+                                        nrecalc=max(float(min_nrecalc), n / float(updates)))
+            if feed:
+                im = galsim.ImageD(galsim.BoundsI(i0, i1, i0, i1), scale=float(pixel_scale))
+            else:
+                im = galsim.ImageD(stamp, stamp, scale=float(pixel_scale))
+            sens.accumulate(galsim.PhotonArray(n, x=xs, y=ys, flux=fl, wavelength=wl), im)
+            if feed:
+                n_out = outer[0].size
+                full = galsim.ImageD(stamp, stamp, scale=float(pixel_scale))
+                if n_out:
+                    sens_out = galsim.SiliconSensor(
+                        sensor, strength=s, rng=galsim.BaseDeviate(int(seed) + 1),
+                        nrecalc=max(float(min_nrecalc), n_out / float(updates)))
+                    sens_out.accumulate(galsim.PhotonArray(n_out, x=outer[0], y=outer[1],
+                                                           flux=outer[2]), full)
+                full[im.bounds] += im
+                im = full
+            images.append(im.array.copy())
+    finally:
+        galsim.utilities.set_omp_threads(threads)
     return images, n_sky
 
 

@@ -157,3 +157,40 @@ def test_galsim_acoeffs_is_the_linear_response():
     np.testing.assert_allclose(a[:3, 0], small, rtol=1e-4)
     with pytest.raises(ValueError, match="max_lag"):
         galsim_acoeffs("lsst_itl_50_8", -1)
+
+
+def test_one_openmp_thread_during_the_draw_and_restored_after(monkeypatch):
+    """The accumulation runs on one OpenMP thread (GalSim's threads spin on a
+    busy machine) and leaves the caller's thread count as it was, after an
+    error too. Consistency: the same photons give images equal to 1e-9 e
+    whatever the caller's thread count (only the pixel sums' rounding may
+    differ), holding the star's flux."""
+    x, y, f = shoot_stamp_photons(galsim.Gaussian(sigma=0.3, flux=2e4), 15, pixel_scale=0.2,
+                                  seed=4)
+    kw = dict(sensor=SENSOR, seed=2, stamp=15, pixel_scale=0.2, updates=50)
+    seen = []
+    accumulate = galsim.SiliconSensor.accumulate
+
+    def spy(self, *args, **kwargs):
+        seen.append(galsim.utilities.get_omp_threads())
+        return accumulate(self, *args, **kwargs)
+
+    monkeypatch.setattr(galsim.SiliconSensor, "accumulate", spy)
+    before = galsim.utilities.get_omp_threads()
+    try:
+        images = []
+        for n in (2, 1):
+            expect = galsim.utilities.set_omp_threads(n)  # what OpenMP grants
+            (img,), _ = accumulate_twins(x, y, f, (1.0,), rng=np.random.default_rng(5), **kw)
+            assert galsim.utilities.get_omp_threads() == expect
+            images.append(img)
+        assert seen == [1, 1]  # GalSim accumulated on one thread both times
+        assert_allclose(images[0], images[1], rtol=0, atol=1e-9)
+        assert images[0].sum() == pytest.approx(2e4, rel=0.05)
+        expect = galsim.utilities.set_omp_threads(2)
+        with pytest.raises(OSError, match="no_such_sensor_file"):
+            accumulate_twins(x, y, f, (1.0,), rng=np.random.default_rng(5),
+                             **{**kw, "sensor": "no_such_sensor_file"})
+        assert galsim.utilities.get_omp_threads() == expect
+    finally:
+        galsim.utilities.set_omp_threads(before)
