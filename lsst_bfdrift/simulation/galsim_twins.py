@@ -180,6 +180,12 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
         One (stamp, stamp) float64 image (e) per strength.
     n_sky : int
         Number of sky photons accumulated (each of flux 1 e).
+
+    Notes
+    -----
+    GalSim accumulates on one OpenMP thread here (its threads spin on a busy
+    machine; the caller's thread count is restored afterwards). The images
+    do not depend on the thread count beyond the rounding of pixel sums.
     """
     import galsim  # galsim: heavy, imported only where GalSim runs
 
