@@ -255,10 +255,10 @@ def accumulate_twins(x, y, flux, strengths, *, sensor, seed, stamp, pixel_scale,
     images = []
     threads = galsim.utilities.get_omp_threads()
     try:
-        # one OpenMP thread, as skysim and spots: on a stamp GalSim's threads mostly
-        # wait at their barriers, and on a busy machine they spin (300 stars took
-        # 1059 s instead of 204 s beside one other job); the images differ only by
-        # the rounding of the pixel sums (~4e-12 e)
+        # one OpenMP thread (every paired star, field and spot draw comes here): on a
+        # stamp GalSim's threads mostly wait at their barriers, and on a busy machine
+        # they spin (300 stars took 1059 s instead of 204 s beside one other job); the
+        # images differ only by the rounding of the pixel sums (~4e-12 e)
         galsim.utilities.set_omp_threads(1)
         for s in strengths:
             sens = galsim.SiliconSensor(sensor, strength=s, rng=galsim.BaseDeviate(int(seed)),

@@ -149,7 +149,6 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
         ``psf_e1``, ``psf_e2``), ``sky`` (e per px), ``strength``.
     """
     import galsim  # galsim: heavy, imported only where GalSim runs
-    from galsim.utilities import get_omp_threads, set_omp_threads  # galsim, as above
 
     ny, nx = (int(v) for v in shape)
     stamp = int(stamp)
@@ -171,16 +170,10 @@ def simulate_star_field(shape=(512, 512), n_stars=40, *, strength=1.0, twin=Fals
     images = [np.zeros((ny, nx)) for _ in strengths]
     collected = np.zeros((ny, nx), bool) if sky_through_sensor and sky > 0 else None
     rows = []
-    n_threads = get_omp_threads()
-    try:
-        # single-threaded accumulation: the stamps are small, and GalSim's OpenMP
-        # threads spin on a busy machine (measured 30x slower under load)
-        set_omp_threads(1)
-        _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_range, flux,
-              beta_moffat, stamp, half, pixel_scale, sensor, float(sky), sky_radius, updates,
-              min_nrecalc, collected)
-    finally:
-        set_omp_threads(n_threads)
+    # accumulate_twins runs GalSim on one OpenMP thread (its threads spin on a busy machine)
+    _draw(galsim, pos, rng, images, strengths, rows, progress, nx, ny, fwhm, e_range, flux,
+          beta_moffat, stamp, half, pixel_scale, sensor, float(sky), sky_radius, updates,
+          min_nrecalc, collected)
     sky_img = rng.poisson(sky, (ny, nx)).astype(float)
     if collected is not None:  # outside the boxes collected through the sensor
         sky_img[collected] = 0.0

@@ -188,8 +188,6 @@ def simulate_spot_series(*, sensor="lsst_itl_50_8", grid=(5, 5), pitch=40.0, sig
         A setting out of range, an unknown profile, or a grid of spots that
         does not fit in the image.
     """
-    from galsim.utilities import get_omp_threads, set_omp_threads  # galsim: heavy
-
     gx, gy = _check(grid, pitch, n_images, flux_min, peak_max, read_noise, bias, background,
                     full_well, flux_scatter, updates)
     if not strength > 0:
@@ -212,26 +210,22 @@ def simulate_spot_series(*, sensor="lsst_itl_50_8", grid=(5, 5), pitch=40.0, sig
     factor = np.clip(1.0 + float(flux_scatter) * rng.normal(size=xs.size), 0.5, 1.5)
     strengths = [float(strength)] + ([NULL_STRENGTH] if twin else [])
     images = [[np.zeros((ny, nx)) for _ in strengths] for _ in levels]
-    n_threads = get_omp_threads()
-    try:
-        set_omp_threads(1)  # small stamps: OpenMP threads only spin (see skysim)
-        with ProgressBar(len(levels) * xs.size, "spot-sim", enabled=progress) as bar:
-            for i, level in enumerate(levels):
-                for k in range(xs.size):
-                    ix, iy = int(np.floor(xs[k] + 0.5)), int(np.floor(ys[k] + 0.5))
-                    s1, s2 = (int(v) for v in rng.integers(1, 2 ** 30, 2))
-                    px, py, pf = shoot_stamp_photons(unit.withFlux(level * factor[k]), stamp,
-                                                     pixel_scale=1.0, seed=s1,
-                                                     offset=(xs[k] - ix, ys[k] - iy))
-                    ims, _ = accumulate_twins(px, py, pf, strengths, sensor=sensor, seed=s2,
-                                              stamp=stamp, pixel_scale=1.0, rng=rng,
-                                              updates=updates, min_nrecalc=min_nrecalc)
-                    win = (slice(iy - half, iy + half + 1), slice(ix - half, ix + half + 1))
-                    for im, acc in zip(ims, images[i]):
-                        acc[win] += im
-                    bar(1)
-    finally:
-        set_omp_threads(n_threads)
+    # accumulate_twins runs GalSim on one OpenMP thread (small stamps: threads only spin)
+    with ProgressBar(len(levels) * xs.size, "spot-sim", enabled=progress) as bar:
+        for i, level in enumerate(levels):
+            for k in range(xs.size):
+                ix, iy = int(np.floor(xs[k] + 0.5)), int(np.floor(ys[k] + 0.5))
+                s1, s2 = (int(v) for v in rng.integers(1, 2 ** 30, 2))
+                px, py, pf = shoot_stamp_photons(unit.withFlux(level * factor[k]), stamp,
+                                                 pixel_scale=1.0, seed=s1,
+                                                 offset=(xs[k] - ix, ys[k] - iy))
+                ims, _ = accumulate_twins(px, py, pf, strengths, sensor=sensor, seed=s2,
+                                          stamp=stamp, pixel_scale=1.0, rng=rng,
+                                          updates=updates, min_nrecalc=min_nrecalc)
+                win = (slice(iy - half, iy + half + 1), slice(ix - half, ix + half + 1))
+                for im, acc in zip(ims, images[i]):
+                    acc[win] += im
+                bar(1)
     bf, nobf = [], []
     for acc in images:
         noise = rng.normal(0.0, float(read_noise), (ny, nx)) + float(bias)
