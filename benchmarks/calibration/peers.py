@@ -85,7 +85,7 @@ from lsst_bfdrift.templates.galsim_io import import_galsim_sensor
 from lsst_bfdrift.templates.refine import (combine_templates, curl_free_template, draw_templates,
                                           template_difference, without_parameter_modes)
 from lsst_bfdrift.utils.errors import InputError
-from lsst_bfdrift.validation.stars import per_star_residuals
+from lsst_bfdrift.validation.stars import per_star_residuals, slope_through_origin
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
@@ -103,14 +103,6 @@ QUANTITIES = ((0, "size"), (1, "e1"), (2, "e2"))
 CALIBRATION_REFERENCE = {"electrostatic": "true template",
                          "astier23": "true template, astier23",
                          "coulton18": "coulton18, GalSim's a-matrix"}
-
-
-def origin_slope(x, y):
-    """Least-squares slope through the origin and its error from the scatter."""
-    x, y = np.asarray(x, float), np.asarray(y, float)
-    s = np.sum(x * y) / np.sum(x * x)
-    r = y - s * x
-    return float(s), float(np.sqrt(np.sum(r * r) / max(len(x) - 1, 1) / np.sum(x * x)))
 
 
 def amatrix_inputs(sensor, lags, draws):
@@ -181,7 +173,7 @@ def stated_templates(route, table, n, seed):
 def slopes(fluxes, rows):
     """{quantity: (slope, error)} of per-star rows, measurable stars."""
     ok = np.isfinite(fluxes)
-    return {q: origin_slope(fluxes[ok], rows[ok, col]) for col, q in QUANTITIES}, ok
+    return {q: slope_through_origin(fluxes[ok], rows[ok, col]) for col, q in QUANTITIES}, ok
 
 
 def paired(res, a, b, fl, ok, den):
@@ -191,7 +183,7 @@ def paired(res, a, b, fl, ok, den):
     d = {}
     for col, q in QUANTITIES:
         diff = res[a][1][a][good, col] - res[b][1][b][good, col]
-        sl, se = origin_slope(fl[good], diff)
+        sl, se = slope_through_origin(fl[good], diff)
         d[q] = (100 * sl / den[q], 100 * se / abs(den[q]))
     return d
 

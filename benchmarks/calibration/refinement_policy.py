@@ -49,11 +49,11 @@ sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
 
 from _common import Lines, settings_record, write_results  # noqa: E402
 from calibrate_sensor import star_pairs  # noqa: E402
-from peers import amatrix_inputs, origin_slope  # noqa: E402
+from peers import amatrix_inputs  # noqa: E402
 from spots_stars import cached_calibration  # noqa: E402
 
 from lsst_bfdrift.templates.refine import match_area_coefficients, template_alpha  # noqa: E402
-from lsst_bfdrift.validation.stars import per_star_residuals  # noqa: E402
+from lsst_bfdrift.validation.stars import per_star_residuals, slope_through_origin  # noqa: E402
 
 POLICIES = ("model", "shrink", "full")  # and one "prior T" per --tau
 QUANTITIES = ((0, "size"), (1, "e1"))
@@ -107,13 +107,13 @@ def left(pairs, templates):
            for n, t in templates.items()}
     fl, first = next(iter(res.values()))
     ok = np.isfinite(fl)
-    u = {q: origin_slope(fl[ok], first["uncorrected"][ok, c]) for c, q in QUANTITIES}
+    u = {q: slope_through_origin(fl[ok], first["uncorrected"][ok, c]) for c, q in QUANTITIES}
     out = {}
     for n, (f, rows) in res.items():
         g = np.isfinite(f)
         out[n] = {}
         for c, q in QUANTITIES:
-            s, e = origin_slope(f[g], rows[n][g, c])
+            s, e = slope_through_origin(f[g], rows[n][g, c])
             out[n][q] = (100 * s / u[q][0], 100 * e / abs(u[q][0]))
     return out, int(ok.sum())
 

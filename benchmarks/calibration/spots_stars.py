@@ -96,7 +96,7 @@ sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, for _common
 
 from calibrate_sensor import star_pairs  # noqa: E402
-from peers import amatrix_inputs, origin_slope  # noqa: E402
+from peers import amatrix_inputs  # noqa: E402
 
 from lsst_bfdrift.calibration.spot_bias import spot_correction_bias  # noqa: E402
 from lsst_bfdrift.calibration.spot_fit import SpotField, calibrate_with_spots  # noqa: E402
@@ -112,7 +112,7 @@ from lsst_bfdrift.templates.galsim_io import import_galsim_sensor  # noqa: E402
 from _common import Lines, settings_record, to_json, write_results  # noqa: E402
 
 from lsst_bfdrift.utils.io import write_json  # noqa: E402
-from lsst_bfdrift.validation.stars import per_star_residuals  # noqa: E402
+from lsst_bfdrift.validation.stars import per_star_residuals, slope_through_origin  # noqa: E402
 
 #: Clip level above the bias (e), bias pedestal (e), read noise (e): the simulated sensor.
 FULL_WELL, BIAS, READ_NOISE = 8.5e4, 1000.0, 5.0
@@ -219,7 +219,7 @@ def cached_pairs(sensor, psf, args):
 
 def star_slopes(fluxes, rows):
     ok = np.isfinite(fluxes)
-    return {q: origin_slope(fluxes[ok], rows[ok, col]) for col, q in QUANTITIES}
+    return {q: slope_through_origin(fluxes[ok], rows[ok, col]) for col, q in QUANTITIES}
 
 
 def star_table(pairs, templates, say, psf):
@@ -244,7 +244,7 @@ def star_table(pairs, templates, say, psf):
         d = {}
         for col, q in QUANTITIES:
             diff = res[name][1][name][good, col] - res[base][1][base][good, col]
-            sl, se = origin_slope(fl[good], diff)
+            sl, se = slope_through_origin(fl[good], diff)
             d[q] = (100 * sl / den[q], 100 * se / abs(den[q]))
         out[f"{name} minus flats only"] = d
         say(f"  {psf:10s} paired {name} - flats only: " + "  ".join(
